@@ -1,0 +1,63 @@
+"""Input validation helpers shared by public boundaries (never used inside kernels)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from kinefuse.exceptions import InputError
+
+
+def as_float_array(value, name: str, *, ndim_min: int = 0, last_dim: int | None = None) -> np.ndarray:
+    """Return ``value`` as a C-contiguous float64 array, refusing non-float dtypes.
+
+    Integer, boolean and object arrays are refused rather than silently cast: an integer
+    position array almost always means millimetres or a wrong column.
+    """
+    arr = np.asarray(value)
+    if arr.dtype == object:
+        raise InputError(f"expected {name} as a float array, got an object array")
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise InputError(
+            f"expected {name} as a float array (float32/float64), got dtype {arr.dtype}; "
+            f"convert explicitly, e.g. {name}.astype(float)"
+        )
+    if arr.ndim < ndim_min:
+        shape = "(..., " + ", ".join(["T", "d"][-ndim_min:]) + ")" if ndim_min else "an array"
+        raise InputError(f"expected {name} with at least {ndim_min} dimensions {shape}, got shape {arr.shape}")
+    if last_dim is not None and (arr.ndim == 0 or arr.shape[-1] != last_dim):
+        raise InputError(f"expected {name} with shape (..., {last_dim}), got {arr.shape}")
+    return np.ascontiguousarray(arr, dtype=np.float64)
+
+
+def positive_finite(value, name: str) -> float:
+    """Return ``value`` as a float, requiring it to be finite and > 0."""
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"expected {name} as a positive number, got {value!r}") from None
+    if not math.isfinite(out) or out <= 0.0:
+        raise InputError(f"expected {name} finite and > 0, got {value!r}")
+    return out
+
+
+def psd_matrix(value, name: str, n: int, *, strict: bool = False) -> np.ndarray:
+    """Return ``value`` as an ``(n, n)`` symmetric positive (semi-)definite float matrix."""
+    m = np.asarray(value, dtype=float) if not isinstance(value, np.ndarray) else value
+    if m.dtype == object or not np.issubdtype(np.asarray(m).dtype, np.number):
+        raise InputError(f"expected {name} as a numeric ({n}, {n}) matrix, got dtype {np.asarray(m).dtype}")
+    m = np.asarray(m, dtype=float)
+    if m.shape != (n, n):
+        raise InputError(f"expected {name} with shape ({n}, {n}), got {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise InputError(f"expected {name} finite, got non-finite entries")
+    if not np.allclose(m, m.T, rtol=1e-10, atol=1e-14 * max(1.0, float(np.abs(m).max()))):
+        raise InputError(f"expected {name} symmetric, got max |{name} - {name}.T| = {np.abs(m - m.T).max():.3g}")
+    eig_min = float(np.linalg.eigvalsh(m).min())
+    tol = 1e-12 * max(1.0, float(np.abs(m).max()))
+    if strict and eig_min <= 0.0:
+        raise InputError(f"expected {name} positive definite, got smallest eigenvalue {eig_min:.3g}")
+    if eig_min < -tol:
+        raise InputError(f"expected {name} positive semi-definite, got smallest eigenvalue {eig_min:.3g}")
+    return m

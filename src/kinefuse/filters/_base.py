@@ -1,0 +1,172 @@
+"""Shared pieces of the filter objects: result container, state container, input checks.
+
+No numerics here beyond initialisation; kernels live in ``_kernels*.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from kinefuse._validation import as_float_array
+from kinefuse.exceptions import InputError
+
+#: Initial velocity standard deviation, m/s (SPEC §4.2 and §12.2).
+SIGMA_V0_M_S = 1.0
+
+
+class GaussianState(NamedTuple):
+    """Gaussian filter state, batched over leading axes.
+
+    Attributes
+    ----------
+    x : ndarray, shape (..., n_x)
+        Posterior mean (NaN until initialised).
+    P : ndarray, shape (..., n_x, n_x)
+        Posterior covariance (NaN until initialised).
+    initialized : ndarray of bool, shape (...)
+        False until the element has seen its first valid measurement (or was given a state).
+    k : int
+        Number of steps taken (time index of the next step).
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    initialized: np.ndarray
+    k: int
+
+
+@dataclass(frozen=True, eq=False)
+class FilterResult:
+    """Per-sample output of a filter run.
+
+    Attributes
+    ----------
+    mean : ndarray, shape (..., T, n_x)
+        Posterior state means.
+    cov : ndarray, shape (..., T, n_x, n_x)
+        Posterior state covariances.
+    position : ndarray, shape (..., T, n_z)
+        ``H @ mean``: the filtered positions, m.
+    observed : ndarray of bool, shape (..., T)
+        True where a valid measurement was used (False: predict only).
+    innovation : ndarray, shape (..., T, n_z) or None
+        ``z - H x⁻``; NaN where not observed.
+    distance : ndarray, shape (..., T) or None
+        Mahalanobis distance of the innovation (filter-specific: NIS ``νᵀS⁻¹ν`` for the KF,
+        paper A's D₁ ``νᵀR⁻¹ν`` for the integrated filter); NaN where not observed.
+    mode : ndarray of int8, shape (..., T) or None
+        Active branch per sample (see :data:`kinefuse.conventions.MODE_NAMES`).
+    """
+
+    mean: np.ndarray
+    cov: np.ndarray
+    position: np.ndarray
+    observed: np.ndarray
+    innovation: np.ndarray | None = None
+    distance: np.ndarray | None = None
+    mode: np.ndarray | None = None
+
+
+def positions(mean: np.ndarray, H: np.ndarray) -> np.ndarray:
+    """``H @ mean`` over leading axes: ``(..., n_x) -> (..., n_z)``."""
+    return np.einsum("ij,...j->...i", H, mean)
+
+
+def initial_covariance(model, sigma_v0: float = SIGMA_V0_M_S) -> np.ndarray:
+    """``P₀``: R on the measured (position) components, ``σ_v0²`` on the rest (SPEC §4.2)."""
+    H = model.H
+    P0 = H.T @ model.R @ H
+    unmeasured = np.ones(model.n_x, dtype=bool)
+    unmeasured[np.flatnonzero(np.any(H != 0, axis=0))] = False
+    P0[unmeasured, unmeasured] = sigma_v0**2
+    return P0
+
+
+def check_measurements(z, n_z: int) -> np.ndarray:
+    """Validate a measurement series ``(..., T, n_z)``; return float64, C-contiguous."""
+    arr = as_float_array(z, "z")
+    if arr.ndim < 2 or arr.shape[-1] != n_z:
+        raise InputError(f"expected z with shape (..., T, {n_z}), got {arr.shape}")
+    if arr.shape[-2] == 0:
+        raise InputError(f"expected z with at least one time step, got shape {arr.shape}")
+    if np.any(np.isinf(arr)):
+        raise InputError("expected z finite or NaN (missing), got ±inf")
+    return arr
+
+
+def check_step_measurement(z, n_z: int, batch_shape: tuple[int, ...]) -> np.ndarray:
+    """Validate one time slice ``(..., n_z)`` against the state's batch shape."""
+    arr = as_float_array(z, "z")
+    if arr.shape != (*batch_shape, n_z):
+        raise InputError(f"expected z with shape {(*batch_shape, n_z)} (batch_shape + (n_z,)), got {arr.shape}")
+    if np.any(np.isinf(arr)):
+        raise InputError("expected z finite or NaN (missing), got ±inf")
+    return arr
+
+
+def check_state_batch(state: GaussianState, z: np.ndarray) -> None:
+    """Ensure a given state matches the batch shape of ``z (..., T, n_z)``."""
+    if tuple(state.initialized.shape) != tuple(z.shape[:-2]):
+        raise InputError(
+            f"expected state with batch shape {z.shape[:-2]} (z's leading axes), got {state.initialized.shape}"
+        )
+
+
+def check_not_all_missing(z: np.ndarray, state: GaussianState | None) -> None:
+    """Refuse series that never observe anything for an element that has no initial state."""
+    valid_any = np.any(np.all(np.isfinite(z), axis=-1), axis=-1)
+    init = np.zeros(z.shape[:-2], dtype=bool) if state is None else np.asarray(state.initialized)
+    bad = ~valid_any & ~init
+    if np.any(bad):
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        where = f" (batch element {idx})" if z.ndim > 2 else ""
+        raise InputError(
+            f"z{where} is all NaN: expected at least one valid measurement row, or an initial state "
+            "passed as state=filter.init(..., mean=..., cov=...)"
+        )
+
+
+def make_initial_state(model, batch_shape=(), mean=None, cov=None) -> GaussianState:
+    """Build the state returned by ``init``: uninitialised (NaN) unless ``mean`` is given.
+
+    Parameters
+    ----------
+    batch_shape : tuple of int
+    mean : array_like, shape (..., n_x), optional
+        Initial state; broadcast to ``batch_shape``.
+    cov : array_like, shape (..., n_x, n_x), optional
+        Initial covariance; defaults to :func:`initial_covariance`.
+    """
+    if isinstance(batch_shape, (int, np.integer)):
+        batch_shape = (int(batch_shape),)
+    try:
+        batch_shape = tuple(int(b) for b in batch_shape)
+    except TypeError:
+        raise InputError(f"expected batch_shape as a tuple of ints, got {batch_shape!r}") from None
+    if any(b < 0 for b in batch_shape):
+        raise InputError(f"expected non-negative batch_shape, got {batch_shape}")
+    n_x = model.n_x
+    if mean is None:
+        if cov is not None:
+            raise InputError("cov given without mean: pass both or neither")
+        x = np.full((*batch_shape, n_x), np.nan)
+        P = np.full((*batch_shape, n_x, n_x), np.nan)
+        return GaussianState(x, P, np.zeros(batch_shape, dtype=bool), 0)
+    m = as_float_array(mean, "mean", last_dim=n_x)
+    try:
+        x = np.array(np.broadcast_to(m, (*batch_shape, n_x)))
+    except ValueError:
+        raise InputError(f"expected mean broadcastable to {(*batch_shape, n_x)}, got {m.shape}") from None
+    if not np.all(np.isfinite(x)):
+        raise InputError("expected a finite initial mean")
+    c = initial_covariance(model) if cov is None else as_float_array(cov, "cov")
+    try:
+        P = np.array(np.broadcast_to(c, (*batch_shape, n_x, n_x)))
+    except ValueError:
+        raise InputError(f"expected cov broadcastable to {(*batch_shape, n_x, n_x)}, got {c.shape}") from None
+    if not np.all(np.isfinite(P)):
+        raise InputError("expected a finite initial cov")
+    return GaussianState(x, P, np.ones(batch_shape, dtype=bool), 0)
