@@ -1,0 +1,106 @@
+"""Dense single-element Kalman kernels (numba), the reference form used by every filter.
+
+Textbook symbols (``x, P, F, Q, H, R, K, S, nu``), no validation. Each line carries the SPEC
+equation it implements. Arrays are single elements: ``x (n_x,)``, ``P (n_x, n_x)``.
+Fast per-axis forms for batches live beside these (see module docs of the filter objects).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from kinefuse._compile import njit
+
+
+@njit
+def symmetrize(P):
+    """``(P + Pᵀ)/2`` (SPEC §1 numerical hygiene)."""
+    return 0.5 * (P + P.T)
+
+
+@njit
+def kf_predict(x, P, F, Q):
+    """KF prediction, SPEC §4.2: ``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q``."""
+    x_pred = F @ x  # SPEC §4.2 kf_predict
+    P_pred = F @ P @ F.T + Q  # SPEC §4.2 kf_predict
+    return x_pred, symmetrize(P_pred)
+
+
+@njit
+def chol_solve_spd(S, B):
+    """Solve ``S X = B`` for SPD ``S`` by Cholesky, regularising per SPEC §13 if needed.
+
+    Returns ``(X, ok)``; ``ok`` is False when ``S`` stayed indefinite after adding
+    ``ε·tr(S)/n·I`` with ε from 1e-12 up to 1e-6.
+    """
+    n = S.shape[0]
+    scale = max(np.trace(S) / n, 1e-300)
+    eps = 0.0
+    for _attempt in range(8):
+        Se = S + eps * scale * np.eye(n)
+        L = np.zeros_like(S)
+        good = True
+        for i in range(n):
+            for j in range(i + 1):
+                s = Se[i, j]
+                for k in range(j):
+                    s -= L[i, k] * L[j, k]
+                if i == j:
+                    if s <= 0.0 or not np.isfinite(s):
+                        good = False
+                        break
+                    L[i, i] = np.sqrt(s)
+                else:
+                    L[i, j] = s / L[j, j]
+            if not good:
+                break
+        if good:
+            # forward / back substitution, column by column
+            m = B.shape[1]
+            X = np.empty_like(B)
+            for c in range(m):
+                y = np.empty(n)
+                for i in range(n):
+                    s = B[i, c]
+                    for k in range(i):
+                        s -= L[i, k] * y[k]
+                    y[i] = s / L[i, i]
+                for i in range(n - 1, -1, -1):
+                    s = y[i]
+                    for k in range(i + 1, n):
+                        s -= L[k, i] * X[k, c]
+                    X[i, c] = s / L[i, i]
+            return X, True
+        eps = 1e-12 if eps == 0.0 else eps * 10.0
+        if eps > 1e-6 * 1.0000001:
+            break
+    return np.full_like(B, np.nan), False
+
+
+@njit
+def kf_update(x_pred, P_pred, z, H, R):
+    """KF update with the Joseph form, SPEC §4.2 ``kf_update``.
+
+    Returns ``(x, P, nu, S, ok)``. The caller handles missing ``z`` (predict only); ``ok`` is
+    False when ``S`` could not be factorised, in which case ``(x_pred, P_pred)`` is returned.
+    """
+    nu = z - H @ x_pred  # SPEC §4.2: ν = z − H x⁻
+    PHt = P_pred @ H.T
+    S = H @ PHt + R  # SPEC §4.2: S = H P⁻ Hᵀ + R
+    Kt, ok = chol_solve_spd(S, PHt.T)  # SPEC §4.2: K = solve(S, H P⁻)ᵀ
+    if not ok:
+        return x_pred.copy(), P_pred.copy(), nu, S, False
+    K = Kt.T
+    x = x_pred + K @ nu  # SPEC §4.2: x = x⁻ + K ν
+    A = np.eye(x.shape[0]) - K @ H
+    P = A @ P_pred @ A.T + K @ R @ K.T  # SPEC §4.2 Joseph form
+    return x, symmetrize(P), nu, S, True
+
+
+@njit
+def mahalanobis(nu, M):
+    """``νᵀ M⁻¹ ν`` via Cholesky; NaN if ``M`` cannot be factorised."""
+    X, ok = chol_solve_spd(M, nu.reshape(-1, 1).copy())
+    if not ok:
+        return np.nan
+    return float(nu @ X[:, 0])
