@@ -1,0 +1,189 @@
+"""Orientation: VQF adapter (batch == vqf, stream == batch), gyro integration, SLERP resampling, BROAD."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import vqf
+from scipy.spatial.transform import Rotation
+
+from kinefuse.exceptions import InputError
+from kinefuse.orientation import (
+    OrientationEstimator,
+    estimate,
+    integrate_gyro,
+    rate_from_orientation,
+    slerp_resample,
+)
+
+FS = 100.0
+
+
+@pytest.fixture
+def imu(rng):
+    """Noisy, smoothly rotating synthetic IMU (6 s at 100 Hz) from a known orientation trajectory."""
+    T = 600
+    t = np.arange(T + 1) / FS
+    rotvec = np.stack(
+        [0.6 * np.sin(1.1 * t), 0.4 * np.sin(0.7 * t + 1), 1.5 * np.sin(0.3 * t)], axis=1
+    )
+    q = Rotation.from_rotvec(rotvec).as_quat(scalar_first=True)
+    gyr = rate_from_orientation(q, 1 / FS)
+    R = Rotation.from_quat(q[1:], scalar_first=True)
+    acc = R.inv().apply([0.0, 0.0, 9.81]) + 0.05 * rng.standard_normal((T, 3))
+    mag = R.inv().apply([0.0, 20.0, -40.0]) + 0.2 * rng.standard_normal((T, 3))
+    return {"acc": acc, "gyr": gyr + 0.002 * rng.standard_normal((T, 3)), "mag": mag, "q": q[1:]}
+
+
+# ---------------------------------------------------------------- estimate == vqf
+@pytest.mark.parametrize("use_mag", [False, True])
+def test_estimate_equals_vqf_bit_for_bit(imu, use_mag):
+    mag = imu["mag"] if use_mag else None
+    q = estimate(imu["acc"], imu["gyr"], mag, rate_hz=FS)
+    out = vqf.VQF(1 / FS).updateBatch(imu["gyr"], imu["acc"], mag)
+    np.testing.assert_array_equal(q, out["quat9D" if use_mag else "quat6D"])
+    assert q.shape == (600, 4)
+
+
+def test_estimate_offline_and_params_equal_vqf(imu):
+    params = {"tauAcc": 1.5, "magDistRejectionEnabled": False}
+    q = estimate(imu["acc"], imu["gyr"], imu["mag"], rate_hz=FS, offline=True, params=params)
+    np.testing.assert_array_equal(
+        q, vqf.offlineVQF(imu["gyr"], imu["acc"], imu["mag"], 1 / FS, params)["quat9D"]
+    )
+    q = estimate(imu["acc"], imu["gyr"], rate_hz=FS, params=params)
+    np.testing.assert_array_equal(
+        q, vqf.VQF(1 / FS, **params).updateBatch(imu["gyr"], imu["acc"])["quat6D"]
+    )
+
+
+def test_estimate_frame_is_enu_with_sensor_to_world(imu):
+    q = estimate(imu["acc"], imu["gyr"], imu["mag"], rate_hz=FS)
+    # 9D: heading referenced to the magnetic field (north = +y): after convergence close to truth
+    err = (
+        Rotation.from_quat(q, scalar_first=True)
+        * Rotation.from_quat(imu["q"], scalar_first=True).inv()
+    ).magnitude()
+    assert np.degrees(np.median(err[300:])) < 3.0
+    # 6D: the sensor z axis in the world frame follows the true inclination
+    q6 = estimate(imu["acc"], imu["gyr"], rate_hz=FS)
+    up_est = Rotation.from_quat(q6, scalar_first=True).inv().apply([0, 0, 1])
+    up_true = Rotation.from_quat(imu["q"], scalar_first=True).inv().apply([0, 0, 1])
+    assert np.degrees(np.median(np.arccos(np.clip(np.sum(up_est * up_true, 1), -1, 1))[300:])) < 2.0
+
+
+@pytest.mark.parametrize("use_mag", [False, True])
+def test_stream_equals_batch_and_checkpoint(imu, use_mag):
+    batch = estimate(imu["acc"], imu["gyr"], imu["mag"] if use_mag else None, rate_hz=FS)
+    est = OrientationEstimator(FS)
+    out = []
+    for k in range(200):
+        if k == 120:
+            saved = est.state
+        out.append(est.update(imu["acc"][k], imu["gyr"][k], imu["mag"][k] if use_mag else None))
+    np.testing.assert_array_equal(np.array(out), batch[:200])
+    # restore the checkpoint and resume: identical continuation
+    est.state = saved
+    again = [
+        est.update(imu["acc"][k], imu["gyr"][k], imu["mag"][k] if use_mag else None)
+        for k in range(120, 200)
+    ]
+    np.testing.assert_array_equal(np.array(again), batch[120:200])
+    est.reset()
+    np.testing.assert_array_equal(
+        est.update(imu["acc"][0], imu["gyr"][0]),
+        estimate(imu["acc"][:1], imu["gyr"][:1], rate_hz=FS)[0],
+    )
+    assert est.bias_rad_s.shape == (3,)
+
+
+def test_estimate_bad_input(imu):
+    acc, gyr = imu["acc"], imu["gyr"]
+    with pytest.raises(InputError, match=r"gyr with shape \(T, 3\) = \(600, 3\).*\(599, 3\)"):
+        estimate(acc, gyr[:-1], rate_hz=FS)
+    with pytest.raises(ValueError, match=r"acc with shape \(T, 3\), got \(600, 4\)"):
+        estimate(np.zeros((600, 4)), gyr, rate_hz=FS)
+    bad = acc.copy()
+    bad[7, 1] = np.nan
+    with pytest.raises(InputError, match="finite acc.*sample 7"):
+        estimate(bad, gyr, rate_hz=FS)
+    with pytest.raises(InputError, match="float array"):
+        estimate(acc.astype(int), gyr, rate_hz=FS)
+    with pytest.raises(InputError, match="unknown orientation method 'madgwick'"):
+        estimate(acc, gyr, rate_hz=FS, method="madgwick")
+    with pytest.raises(InputError, match=r"unknown VQF parameter\(s\) \['tau_acc'\]"):
+        estimate(acc, gyr, rate_hz=FS, params={"tau_acc": 1.0})
+    with pytest.raises(InputError, match="rate_hz finite and > 0"):
+        estimate(acc, gyr, rate_hz=0.0)
+    with pytest.raises(InputError, match=r"acc with shape \(3,\)"):
+        OrientationEstimator(FS).update(acc[:2], gyr[0])
+
+
+# ---------------------------------------------------------------- gyro integration
+def test_integrate_gyro_constant_rate_matches_scipy():
+    q0 = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_quat(scalar_first=True)
+    w = np.tile([0.0, 0.0, np.pi / 2], (100, 1))  # 90 deg/s about sensor z for 1 s
+    q = integrate_gyro(q0, w, 0.01)
+    assert q.shape == (101, 4)
+    expected = Rotation.from_quat(q0, scalar_first=True) * Rotation.from_rotvec([0, 0, np.pi / 2])
+    assert (Rotation.from_quat(q[-1], scalar_first=True) * expected.inv()).magnitude() < 1e-12
+
+
+def test_integrate_gyro_inverts_rate_from_orientation(rng):
+    r = Rotation.from_rotvec(np.cumsum(0.05 * rng.standard_normal((301, 3)), axis=0))
+    q = r.as_quat(scalar_first=True)
+    dt = 0.005 + 0.01 * rng.random(300)
+    w = rate_from_orientation(q, dt)
+    q_back = integrate_gyro(q[0], w, dt)
+    assert np.max((Rotation.from_quat(q_back, scalar_first=True) * r.inv()).magnitude()) < 1e-10
+
+
+def test_integrate_gyro_bad_input():
+    with pytest.raises(InputError, match=r"dt_s as a scalar or with shape \(T,\) = \(5,\)"):
+        integrate_gyro([1.0, 0, 0, 0], np.zeros((5, 3)), np.ones(4))
+    with pytest.raises(InputError, match="unit quaternions"):
+        integrate_gyro([2.0, 0, 0, 0], np.zeros((5, 3)), 0.01)
+
+
+# ---------------------------------------------------------------- SLERP resampling
+def test_slerp_resample_midpoint_and_gaps():
+    t = np.arange(5) * 0.1
+    q = Rotation.from_rotvec(np.outer(t, [0, 0, 1.0])).as_quat(scalar_first=True)
+    q[3] = np.nan
+    out = slerp_resample(t, q, np.array([0.05, 0.15, 0.25, 0.35, 0.5]))
+    ang = Rotation.from_quat(out[:2], scalar_first=True).as_rotvec()[:, 2]
+    np.testing.assert_allclose(ang, [0.05, 0.15], atol=1e-12)
+    assert np.all(np.isnan(out[2:]))  # inside the gap around the NaN row, and past the end
+    np.testing.assert_array_equal(slerp_resample(t, q, t), q)
+
+
+# ---------------------------------------------------------------- BROAD (real data)
+BROAD_TRIALS = {  # 9D total RMSE during motion (deg), VQF defaults, BROAD's error convention
+    "03_undisturbed_slow_rotation_C": 1.93,
+    "12_undisturbed_slow_translation_C": 1.36,
+}
+
+
+@pytest.mark.parametrize("trial", sorted(BROAD_TRIALS))
+def test_broad_estimate_equals_vqf_and_accuracy(shared_data, trial):
+    sio = pytest.importorskip("scipy.io")
+    path = shared_data / "broad" / "data_mat" / f"{trial}.mat"
+    if not path.is_file():
+        pytest.skip(f"missing {path}")
+    d = sio.loadmat(path, squeeze_me=True)
+    acc = np.ascontiguousarray(d["imu_acc"])
+    gyr = np.ascontiguousarray(d["imu_gyr"])
+    mag = np.ascontiguousarray(d["imu_mag"])
+    fs = float(d["sampling_rate"])
+    q = estimate(acc, gyr, mag, rate_hz=fs)
+    np.testing.assert_array_equal(q, vqf.VQF(1 / fs).updateBatch(gyr, acc, mag)["quat9D"])
+    q6 = estimate(acc, gyr, rate_hz=fs, offline=True)
+    np.testing.assert_array_equal(q6, vqf.offlineVQF(gyr, acc, None, 1 / fs, None)["quat6D"])
+    # accuracy against the optical reference (earth-frame error, scipy as the independent oracle)
+    ok = np.all(np.isfinite(d["opt_quat"]), axis=1) & d["movement"].astype(bool)
+    err = (
+        Rotation.from_quat(q[ok], scalar_first=True)
+        * Rotation.from_quat(d["opt_quat"][ok], scalar_first=True).inv()
+    )
+    rmse = np.degrees(np.sqrt(np.mean(err.magnitude() ** 2)))
+    assert rmse == pytest.approx(BROAD_TRIALS[trial], abs=0.01)
