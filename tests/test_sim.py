@@ -1,0 +1,237 @@
+"""Virtual IMUs and camera driven by real CMU motion: exactness, error statistics, determinism."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from kinefuse.conventions import GRAVITY_ENU_M_S2, JOINTS
+from kinefuse.io.cmu import load_motion_asf_amc
+from kinefuse.io.motion import Motion
+from kinefuse.sim import PAPER_B_SEGMENTS, CameraConfig, ImuConfig, virtual_recording
+
+
+@pytest.fixture(scope="module")
+def walk(shared_data):
+    return load_motion_asf_amc(shared_data / "cmu_mocap" / "asfamc" / "02" / "02_01.amc")
+
+
+def _integrate(q0, gyr, dt):
+    """q_k = q_k-1 ⊗ exp(gyr_k dt), starting from q0 at sample 0 (gyr_0 unused)."""
+    rots = [Rotation.from_quat(q0, scalar_first=True)]
+    for w in gyr[1:]:
+        rots.append(rots[-1] * Rotation.from_rotvec(w * dt))
+    return Rotation.concatenate(rots)
+
+
+def _angle_deg(r1, r2):
+    return np.degrees((r1.inv() * r2).magnitude())
+
+
+@pytest.mark.parametrize("lowpass", [None, 15.0])
+def test_integrated_gyro_reproduces_orientation(walk, lowpass):
+    rec = virtual_recording(
+        walk,
+        imu=ImuConfig.ideal(motion_lowpass_hz=lowpass),
+        camera=None,
+        segments=("forearm_r", "shank_l"),
+    )
+    for seg in ("forearm_r", "shank_l"):
+        s = rec.imu[seg]
+        est = _integrate(s.q_world_from_sensor[0], s.gyr_rad_s, 0.01)
+        truth = Rotation.from_quat(
+            rec.reference_orientation[seg].q_world_from_sensor, scalar_first=True
+        )
+        assert _angle_deg(est, truth).max() < 0.1
+        # ideal AHRS output = truth; with raw mocap also the mocap samples at common times (every 5th)
+        np.testing.assert_allclose(
+            np.abs(np.sum(s.q_world_from_sensor * truth.as_quat(scalar_first=True), axis=1)),
+            1.0,
+            atol=1e-12,
+        )
+        if lowpass is None:
+            mocap = Rotation.from_quat(walk.orientation(seg)[::6], scalar_first=True)
+            assert _angle_deg(est[::5][: len(mocap)], mocap[: len(est[::5])]).max() < 0.1
+
+
+def _fd_specific_force(walk, seg):
+    prox, dist = walk.segment_joints[seg]
+    p = 0.5 * (walk.position(prox) + walk.position(dist))  # segment midpoint
+    a = (p[2:] - 2 * p[1:-1] + p[:-2]) * walk.rate_hz**2
+    R = Rotation.from_quat(walk.orientation(seg)[1:-1], scalar_first=True)
+    return R.inv().apply(a - GRAVITY_ENU_M_S2)
+
+
+def test_accelerometer_equals_specific_force_of_true_motion(walk):
+    # at the mocap rate the scheme is exactly the central second difference of the midpoint
+    rec = virtual_recording(
+        walk, imu=ImuConfig.ideal(rate_hz=120.0, motion_lowpass_hz=None), camera=None
+    )
+    for seg in PAPER_B_SEGMENTS:
+        np.testing.assert_allclose(
+            rec.imu[seg].acc_m_s2[1:-1], _fd_specific_force(walk, seg), atol=1e-6
+        )
+    # at 100 Hz, the samples at common times (t = 0.05 k) equal it too
+    rec = virtual_recording(
+        walk, imu=ImuConfig.ideal(motion_lowpass_hz=None), camera=None, segments=("thigh_r",)
+    )
+    f = _fd_specific_force(walk, "thigh_r")  # at mocap samples 1..T-2
+    acc = rec.imu["thigh_r"].acc_m_s2[5::5]  # t = 0.05, 0.10, ... = mocap samples 6, 12, ...
+    n = min(len(acc), len(f[5::6]))
+    np.testing.assert_allclose(acc[:n], f[5::6][:n], atol=1e-6)
+    # with the default motion low-pass the walking thigh reads about 1 g on average
+    smooth = virtual_recording(walk, imu=ImuConfig.ideal(), camera=None, segments=("thigh_r",))
+    assert np.median(np.linalg.norm(smooth.imu["thigh_r"].acc_m_s2, axis=1)) == pytest.approx(
+        9.8, abs=1.5
+    )
+
+
+def test_imu_noise_std_matches_config(walk):
+    cfg = ImuConfig.ideal(gyr_noise_dps_sqrt_hz=0.015, acc_noise_ug_sqrt_hz=230.0)
+    rec = virtual_recording(walk, imu=cfg, camera=None, seed=3)
+    truth = rec.metadata["imu_truth"]
+    gyr = np.concatenate([rec.imu[s].gyr_rad_s - truth[s]["gyr_rad_s"] for s in PAPER_B_SEGMENTS])
+    acc = np.concatenate([rec.imu[s].acc_m_s2 - truth[s]["acc_m_s2"] for s in PAPER_B_SEGMENTS])
+    assert np.degrees(gyr.std()) == pytest.approx(0.015 * np.sqrt(50.0), rel=0.05)
+    assert acc.std() == pytest.approx(230e-6 * 9.80665 * np.sqrt(50.0), rel=0.05)
+
+
+def test_default_imu_errors_within_datasheet_bounds(walk):
+    rec = virtual_recording(walk, camera=None, seed=1)
+    for seg in PAPER_B_SEGMENTS:
+        t = rec.metadata["imu_truth"][seg]
+        assert np.all(np.abs(np.degrees(t["gyr_error"]["turn_on_bias"])) <= 5.0)
+        assert np.all(np.abs(t["acc_error"]["turn_on_bias"]) <= 0.05 * 9.80665)
+        M = t["gyr_error"]["sensitivity_matrix"]
+        assert np.all(np.abs(np.diag(M) - 1) <= 0.015 + 1e-12)
+        mount = Rotation.from_quat(t["q_segment_from_sensor"], scalar_first=True).magnitude()
+        assert np.degrees(mount) < 15.0
+        err = _angle_deg(
+            Rotation.from_quat(rec.imu[seg].q_world_from_sensor, scalar_first=True),
+            Rotation.from_quat(t["q_world_from_sensor"], scalar_first=True),
+        )
+        assert 0 < np.median(err) < 2.0
+
+
+def test_reference_at_camera_timestamps(walk):
+    rec = virtual_recording(walk, imu=ImuConfig.ideal(), camera=CameraConfig(), seed=0)
+    assert np.diff(rec.vision.t_s) == pytest.approx(1 / 30.0) and rec.imu[
+        "chest"
+    ].rate_hz == pytest.approx(100.0)
+    np.testing.assert_array_equal(rec.reference.t_s, rec.vision.t_s)
+    np.testing.assert_allclose(
+        rec.reference.position_m, walk.position_m[::4][: len(rec.reference)], atol=1e-12
+    )
+    imu_ref = rec.metadata["reference_imu_rate"]
+    np.testing.assert_array_equal(imu_ref.t_s, rec.imu["chest"].t_s)
+    np.testing.assert_allclose(
+        imu_ref.position_m[::5], walk.position_m[::6][: len(imu_ref.t_s[::5])], atol=1e-12
+    )
+
+
+def test_camera_noise_std_and_camera_frame(walk):
+    cfg = CameraConfig.ideal(noise_std_m=(0.01, 0.02, 0.03), frame="camera", heading_deg=40.0)
+    rec = virtual_recording(walk, imu=None, camera=cfg, seed=5)
+    R, c = rec.metadata["R_world_from_camera"], rec.metadata["camera_position_m"]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    assert rec.vision.frame == "camera" and np.all(rec.vision.available)
+    truth_cam = (rec.reference.position_m - c) @ R
+    err = (rec.vision.position_m - truth_cam).reshape(-1, 3)
+    np.testing.assert_allclose(err.std(axis=0), [0.01, 0.02, 0.03], rtol=0.05)
+    # heading alignment is recoverable: Kabsch on noise-free data gives R_world_from_camera
+    clean = virtual_recording(
+        walk, imu=None, camera=CameraConfig.ideal(frame="camera", heading_deg=40.0)
+    )
+    a = clean.vision.position_m.reshape(-1, 3)
+    b = clean.reference.position_m.reshape(-1, 3)
+    a0, b0 = a - a.mean(0), b - b.mean(0)
+    U, _, Vt = np.linalg.svd(b0.T @ a0)
+    R_est = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
+    np.testing.assert_allclose(R_est, R, atol=1e-9)
+
+
+def _static_motion(minutes=10.0, rate_hz=30.0):
+    """A long motionless skeleton (only the outage processes matter here)."""
+    T = int(minutes * 60 * rate_hz)
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(1, len(JOINTS), 3))
+    q = np.zeros((T, 1, 4))
+    q[..., 0] = 1.0
+    return Motion(
+        t_s=np.arange(T) / rate_hz,
+        q_world_from_segment=q,
+        segments=("pelvis",),
+        position_m=np.repeat(base, T, axis=0),
+        joints=JOINTS,
+        segment_joints={"pelvis": ("pelvis", None)},
+        segment_length_m={},
+    )
+
+
+def test_occlusion_and_dropout_statistics():
+    motion = _static_motion(minutes=12.0)
+    cfg = CameraConfig(occlusion_rate_per_min=6.0, dropout_rate_per_min=6.0, bone_length_std=0.0)
+    rec = virtual_recording(motion, imu=None, camera=cfg, seed=11)
+    truth = rec.metadata["camera_truth"]
+    occl, drop = truth["occluded"], truth["dropout"]
+    mean_d = 0.5 * (0.3 + 3.0)
+    expected = lambda lam: lam * mean_d / (60.0 + lam * mean_d)  # noqa: E731
+    assert occl.mean() == pytest.approx(expected(6.0), rel=0.15)
+    assert drop.mean() == pytest.approx(expected(6.0), rel=0.35)
+    avail = rec.vision.available
+    np.testing.assert_array_equal(avail, ~(occl | drop[:, None]))
+    assert np.all(np.isnan(rec.vision.position_m[~avail]))
+    # independent per joint: occlusion correlation between joints is small
+    c = np.corrcoef(occl.T.astype(float))
+    assert np.abs(c[np.triu_indices_from(c, 1)]).mean() < 0.1
+    # every completed outage lasts 0.3-3 s
+    for mask in [*occl.T, drop]:
+        edges = np.diff(np.r_[0, mask.astype(int), 0])
+        starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+        full = stops < mask.size  # not cut by the end of the recording
+        dur = (stops - starts)[full] / 30.0
+        assert dur.size > 0 and dur.min() >= 0.3 - 1e-9 and dur.max() <= 3.0 + 1e-9
+
+
+def test_bone_length_variation_std():
+    motion = _static_motion(minutes=2.0)
+    rec = virtual_recording(
+        motion, imu=None, camera=CameraConfig.ideal(bone_length_std=0.05), seed=2
+    )
+    scale = rec.metadata["camera_truth"]["bone_scale"]
+    assert scale.std() == pytest.approx(0.05, rel=0.1)
+    v = rec.vision
+    L = np.linalg.norm(v.position("elbow_l") - v.position("shoulder_l"), axis=1)
+    L0 = np.linalg.norm(
+        rec.reference.position("elbow_l") - rec.reference.position("shoulder_l"), axis=1
+    )
+    assert np.std(L / L0) == pytest.approx(0.05, rel=0.3)
+
+
+def test_same_seed_same_output(walk):
+    a = virtual_recording(walk, seed=7)
+    b = virtual_recording(walk, seed=7)
+    c = virtual_recording(walk, seed=8)
+    for seg in a.imu:
+        for f in ("acc_m_s2", "gyr_rad_s", "q_world_from_sensor"):
+            np.testing.assert_array_equal(getattr(a.imu[seg], f), getattr(b.imu[seg], f))
+        assert not np.allclose(a.imu[seg].acc_m_s2, c.imu[seg].acc_m_s2)
+    np.testing.assert_array_equal(a.vision.position_m, b.vision.position_m)
+    np.testing.assert_array_equal(a.vision.available, b.vision.available)
+    # adding a sensor or removing the camera leaves the other streams unchanged
+    d = virtual_recording(walk, seed=7, camera=None, segments=("chest", "foot_l"))
+    np.testing.assert_array_equal(d.imu["chest"].acc_m_s2, a.imu["chest"].acc_m_s2)
+
+
+def test_bad_arguments(walk):
+    from kinefuse.exceptions import InputError
+
+    with pytest.raises(InputError, match="unknown segment 'wing'"):
+        virtual_recording(walk, segments=("wing",))
+    with pytest.raises(InputError, match="ImuConfig.rate_hz"):
+        ImuConfig(rate_hz=0.0)
+    with pytest.raises(InputError, match="CameraConfig.frame"):
+        CameraConfig(frame="NED")
+    with pytest.raises(InputError, match="expected motion"):
+        virtual_recording(np.zeros((3, 3)))
