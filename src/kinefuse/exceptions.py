@@ -36,3 +36,7 @@ class ConfigError(InputError):
 
 class NumericalWarning(UserWarning):
     """Recoverable numerical trouble (e.g. a covariance that had to be regularised)."""
+
+
+class UnitWarning(UserWarning):
+    """Data whose magnitude suggests a unit other than the declared SI one (e.g. mm, g, deg/s)."""

@@ -1,0 +1,739 @@
+"""The ``kinefuse`` command-line tool (also ``python -m kinefuse``), thin over the pipelines.
+
+Commands: ``demo``, ``run``, ``init-session``, ``evaluate``, ``experiment``, ``bench``,
+``stream``, ``replay``; ``kinefuse COMMAND --help`` documents each.
+
+Exit codes
+----------
+0
+    Success.
+1
+    Runtime failure, a feature not available in this version, or a target not met (a back-end
+    summary with ``passed = False``).
+2
+    Bad input or usage: unknown option, missing file, invalid session file, an existing output
+    that ``--force`` would overwrite. Every :class:`~kinefuse.exceptions.InputError` (and so
+    ``FormatError`` and ``ConfigError``) is shown as one red line on stderr, never a traceback;
+    ``kinefuse --debug COMMAND`` (or ``KINEFUSE_DEBUG=1``) also prints the traceback.
+
+Back-end contracts
+------------------
+Each command imports its back-end lazily, so ``--help`` is fast and a missing back-end gives a
+clear "not available in this version" message (exit 1) instead of an ImportError:
+
+============  =========================================================================
+command       back-end call
+============  =========================================================================
+demo          ``kinefuse.pipelines.demo.run_demo(out_dir, force, quiet) -> summary``
+              (until it exists: a small built-in synthetic demo, see ``_builtin_demo``)
+run           ``kinefuse.pipelines.session.run_session(path, out_dir, force) -> summary``
+evaluate      ``kinefuse.pipelines.session.evaluate_recording(path, method) -> summary``
+experiment    ``kinefuse.pipelines.experiments.run_experiment(name, data_dir) -> summary``
+bench         ``kinefuse.evaluation.bench.run_bench(quick) -> summary``
+stream        ``kinefuse.streaming.run_stream(session: SessionConfig) -> summary``
+replay        ``kinefuse.streaming.replay_recording(path) -> summary``
+============  =========================================================================
+
+A *summary* may be ``None``, a :class:`~pathlib.Path` (e.g. the report), an
+:class:`~kinefuse.evaluation.metrics.EvaluationResult`, or a mapping; a mapping may hold an
+``"evaluation"`` (EvaluationResult), a ``"report"`` path, ``"tables"`` (``ResultTable`` list)
+and ``"passed"`` (False -> exit 1). ``--json FILE`` writes the summary as JSON (``-`` for stdout).
+"""
+
+import contextlib
+import functools
+import importlib
+import json
+import os
+import sys
+import time
+import traceback
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.text import Text
+
+from kinefuse.exceptions import InputError
+
+__all__ = ["EXIT_FAILURE", "EXIT_OK", "EXIT_USAGE", "app", "main", "progress"]
+
+EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
+
+_EPILOG = (
+    "Exit codes: 0 success; 1 runtime failure, feature not available or target not met; "
+    "2 bad input or usage (one red line on stderr; add --debug for the traceback)."
+)
+
+app = typer.Typer(
+    name="kinefuse",
+    help="IMU (+ optional camera) human joint position capture: EM-KF/FIR (Sun 2024) and "
+    "ELM/FIR vision-assisted fusion (Xu 2023).",
+    epilog=_EPILOG,
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+
+_STATE = {"debug": False}
+
+# click's exception base and typer's control-flow exceptions pass through untouched
+_CLICK_EXCEPTION = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+_PASS_THROUGH = (typer.Exit, typer.Abort, _CLICK_EXCEPTION)
+
+_BACKENDS = {
+    "demo": ("kinefuse.pipelines.demo", "run_demo"),
+    "run": ("kinefuse.pipelines.session", "run_session"),
+    "evaluate": ("kinefuse.pipelines.session", "evaluate_recording"),
+    "experiment": ("kinefuse.pipelines.experiments", "run_experiment"),
+    "bench": ("kinefuse.evaluation.bench", "run_bench"),
+    "stream": ("kinefuse.streaming", "run_stream"),
+    "replay": ("kinefuse.streaming", "replay_recording"),
+}
+
+EXPERIMENTS = ("paper-a", "paper-b")
+
+
+class BackendUnavailable(RuntimeError):
+    """The back-end of a command is not part of this installation (exit 1)."""
+
+
+def _stdout() -> Console:
+    # not a terminal (pipe, file, CI log): do not squeeze tables into 80 columns
+    return Console(highlight=False, width=None if sys.stdout.isatty() else 160)
+
+
+def _stderr() -> Console:
+    return Console(stderr=True, highlight=False, soft_wrap=True)
+
+
+def _debug() -> bool:
+    return _STATE["debug"] or os.environ.get("KINEFUSE_DEBUG", "") not in ("", "0")
+
+
+def _one_line(message: str) -> str:
+    return " ".join(str(message).split())
+
+
+def _fail(message: str, code: int) -> None:
+    if _debug():
+        traceback.print_exc(file=sys.stderr)
+    _stderr().print(Text(f"kinefuse: error: {_one_line(message)}", style="bold red"))
+    raise typer.Exit(code)
+
+
+def _guarded(fn: Callable) -> Callable:
+    """Map exceptions of a command to exit codes and one-line messages (see module docs)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except _PASS_THROUGH:
+            raise
+        except (InputError, FileExistsError) as exc:  # InputError covers FormatError, ConfigError
+            _fail(str(exc), EXIT_USAGE)
+        except BackendUnavailable as exc:
+            _fail(str(exc), EXIT_FAILURE)
+        except KeyboardInterrupt:
+            _stderr().print(Text("kinefuse: interrupted", style="bold red"))
+            raise typer.Exit(130) from None
+        except Exception as exc:
+            hint = "" if _debug() else " (run `kinefuse --debug ...` for the traceback)"
+            _fail(f"{type(exc).__name__}: {exc}{hint}", EXIT_FAILURE)
+
+    return wrapper
+
+
+def _backend(command: str) -> Callable:
+    """Import the back-end function of ``command`` or raise :class:`BackendUnavailable`."""
+    module, func = _BACKENDS[command]
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        missing = exc.name or ""
+        if missing.startswith("kinefuse") or not missing:
+            raise BackendUnavailable(
+                f"`kinefuse {command}` is not available in this version ({module}.{func} is missing)"
+            ) from exc
+        raise BackendUnavailable(
+            f"`kinefuse {command}` needs the optional package {missing!r}; install it (e.g. pip install {missing})"
+        ) from exc
+    fn = getattr(mod, func, None)
+    if fn is None:
+        raise BackendUnavailable(
+            f"`kinefuse {command}` is not available in this version ({module}.{func} is missing)"
+        )
+    return fn
+
+
+@contextlib.contextmanager
+def progress(
+    description: str, total: float | None = None, *, quiet: bool = False
+) -> Iterator[Callable[..., None]]:
+    """A rich progress bar on stderr for long work; yields ``advance(n=1)``.
+
+    Parameters
+    ----------
+    description : str
+        Shown left of the bar.
+    total : float, optional
+        Number of steps (None: an indeterminate spinner).
+    quiet : bool
+        Show nothing (``advance`` is a no-op).
+
+    Examples
+    --------
+    >>> with progress("Filtering joints", total=3, quiet=True) as advance:
+    ...     for _ in range(3):
+    ...         advance()
+    """
+    if quiet:
+        yield lambda n=1: None
+        return
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        SpinnerColumn,
+        TextColumn,
+        TimeElapsedColumn,
+    )
+
+    columns = [SpinnerColumn(), TextColumn("{task.description}"), BarColumn()]
+    if total is not None:
+        columns.append(MofNCompleteColumn())
+    columns.append(TimeElapsedColumn())
+    with Progress(*columns, console=_stderr(), transient=True) as bar:
+        task = bar.add_task(description, total=total)
+        yield lambda n=1: bar.advance(task, n)
+
+
+# --------------------------------------------------------------------------------------------
+# output helpers
+# --------------------------------------------------------------------------------------------
+
+
+def _jsonable(obj: Any) -> Any:
+    if hasattr(obj, "to_dict"):
+        return _jsonable(obj.to_dict())
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        f = float(obj)
+        return f if np.isfinite(f) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    if obj is None or isinstance(obj, (str, int, bool)):
+        return obj
+    if hasattr(obj, "title") and hasattr(obj, "rows"):  # ResultTable
+        from kinefuse.evaluation.tables import to_markdown
+
+        return to_markdown(obj)
+    return str(obj)
+
+
+def _write_json(path: Path, data: Any) -> None:
+    text = json.dumps(_jsonable(data), indent=2)
+    if str(path) == "-":
+        sys.stdout.write(text + "\n")
+        return
+    if not path.parent.is_dir():
+        raise InputError(f"--json {path}: folder {path.parent} does not exist")
+    path.write_text(text + "\n", encoding="utf-8")
+
+
+def _check_report_free(out_dir: Path, force: bool) -> None:
+    from kinefuse.evaluation.report import REPORT_NAME
+
+    target = out_dir / REPORT_NAME
+    if target.exists() and not force:
+        raise FileExistsError(
+            f"{target} already exists; pass --force to overwrite it, or choose another --out folder"
+        )
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out {out_dir}: exists and is not a folder")
+
+
+def _fresh_dir(stem: str) -> Path:
+    """``./stem``, or ``./stem-2``, ``./stem-3`` ... whichever holds no report yet."""
+    from kinefuse.evaluation.report import REPORT_NAME
+
+    candidate = Path(stem)
+    n = 1
+    while (candidate / REPORT_NAME).exists() or (candidate.exists() and not candidate.is_dir()):
+        n += 1
+        candidate = Path(f"{stem}-{n}")
+    return candidate
+
+
+def _present(summary: Any, *, quiet: bool, json_file: Path | None) -> None:
+    """Print the tables of a back-end summary, write ``--json``; exit 1 if a target was missed."""
+    if json_file is not None:
+        _write_json(json_file, summary if summary is not None else {})
+        quiet = quiet or str(json_file) == "-"
+    evaluation = None
+    report = None
+    extra_tables = []
+    passed = None
+    if hasattr(summary, "to_dict") and hasattr(summary, "methods"):
+        evaluation = summary
+    elif isinstance(summary, Path):
+        report = summary
+    elif isinstance(summary, Mapping):
+        evaluation = summary.get("evaluation")
+        report = summary.get("report")
+        extra_tables = list(summary.get("tables") or [])
+        passed = summary.get("passed")
+    if not quiet:
+        from kinefuse.evaluation import tables
+
+        out = _stdout()
+        if evaluation is not None:
+            out.print(tables.to_rich(tables.joint_method_table(evaluation)))
+            if evaluation.run_time_s:
+                out.print(tables.to_rich(tables.timing_table(evaluation)))
+        for t in extra_tables:
+            out.print(tables.to_rich(t) if hasattr(t, "rows") else t)
+        if (
+            isinstance(summary, Mapping)
+            and evaluation is None
+            and not extra_tables
+            and report is None
+        ):
+            for k, v in summary.items():
+                out.print(f"{k}: {v}")
+        if report is not None:
+            out.print(Text.assemble("Report: ", (str(report), "bold")))
+    if passed is False:
+        reason = (
+            summary.get("reason", "target not met")
+            if isinstance(summary, Mapping)
+            else "target not met"
+        )
+        _fail(str(reason), EXIT_FAILURE)
+
+
+def _existing_file(path: Path, what: str) -> Path:
+    if not path.exists():
+        raise InputError(f"{what} {path}: file not found")
+    if path.is_dir():
+        raise InputError(f"{what} {path}: is a folder, expected a file")
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# commands
+# --------------------------------------------------------------------------------------------
+
+_Quiet = Annotated[
+    bool,
+    typer.Option("--quiet", "-q", help="Print no tables or progress (errors still go to stderr)."),
+]
+_Json = Annotated[
+    Path | None,
+    typer.Option(
+        "--json", metavar="FILE", help="Also write the results as JSON to FILE ('-' for stdout)."
+    ),
+]
+_Force = Annotated[
+    bool, typer.Option("--force", "-f", help="Overwrite an existing report in the output folder.")
+]
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        from kinefuse import __version__
+
+        typer.echo(f"kinefuse {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    debug: Annotated[
+        bool, typer.Option("--debug", help="Show the full traceback of errors.")
+    ] = False,
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version",
+            callback=_version_callback,
+            is_eager=True,
+            help="Print the version and exit.",
+        ),
+    ] = False,
+) -> None:
+    """IMU (+ optional camera) human joint position capture.
+
+    Start with `kinefuse demo`, then `kinefuse init-session` and `kinefuse run session.toml`.
+    """
+    _STATE["debug"] = bool(debug)
+
+
+@app.command(epilog=_EPILOG)
+@_guarded
+def demo(
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            "-o",
+            metavar="DIR",
+            help="Output folder (default: ./kinefuse-demo, or -2, -3 ... if that has a report).",
+        ),
+    ] = None,
+    force: _Force = False,
+    quiet: _Quiet = False,
+    json_file: _Json = None,
+) -> None:
+    """Run the demo on built-in data and write an HTML report (report.html) to DIR."""
+    out_dir = _fresh_dir("kinefuse-demo") if out is None else out
+    _check_report_free(out_dir, force)
+    try:
+        run = _backend("demo")
+    except BackendUnavailable:
+        run = _builtin_demo
+    summary = run(out_dir, force, quiet)
+    _present(summary, quiet=quiet, json_file=json_file)
+
+
+@app.command(epilog=_EPILOG)
+@_guarded
+def run(
+    session: Annotated[
+        Path,
+        typer.Argument(metavar="SESSION.toml", help="Session file (see `kinefuse init-session`)."),
+    ],
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out", "-o", metavar="DIR", help="Output folder (default: the session's out_dir)."
+        ),
+    ] = None,
+    force: _Force = False,
+    quiet: _Quiet = False,
+    json_file: _Json = None,
+) -> None:
+    """Process a recording described by a session file; write the results and a report."""
+    from kinefuse.session import load_session
+
+    cfg = load_session(session)
+    out_dir = cfg.out_dir if out is None else out
+    _check_report_free(out_dir, force)
+    summary = _backend("run")(cfg.path, out_dir, force)
+    _present(summary, quiet=quiet, json_file=json_file)
+
+
+@app.command("init-session", epilog=_EPILOG)
+@_guarded
+def init_session(
+    path: Annotated[
+        Path, typer.Argument(metavar="PATH", help="Where to write the template.")
+    ] = Path("session.toml"),
+    name: Annotated[
+        str | None, typer.Option("--name", help="Session name (default: from the file name).")
+    ] = None,
+    force: Annotated[
+        bool, typer.Option("--force", "-f", help="Overwrite an existing file.")
+    ] = False,
+) -> None:
+    """Write a commented session-file template to PATH (default: session.toml)."""
+    from kinefuse.session import session_template
+
+    if path.exists() and not force:
+        raise FileExistsError(
+            f"{path} already exists; pass --force to overwrite it, or give another PATH"
+        )
+    if path.is_dir():
+        raise InputError(f"{path} is a folder; give a file name such as {path / 'session.toml'}")
+    if not path.parent.is_dir():
+        raise InputError(f"folder {path.parent} does not exist; create it first")
+    session_name = name or (path.stem if path.stem != "session" else "my-session")
+    path.write_text(session_template(session_name, filename=path.name), encoding="utf-8")
+    _stdout().print(
+        Text.assemble(
+            "Wrote ",
+            (str(path), "bold"),
+            ". Edit the [imu] path and [imu.segments], then run: ",
+            (f"kinefuse run {path}", "bold"),
+        )
+    )
+
+
+@app.command(epilog=_EPILOG)
+@_guarded
+def evaluate(
+    recording: Annotated[
+        Path, typer.Argument(metavar="RECORDING", help="Recording with a reference (ground truth).")
+    ],
+    method: Annotated[
+        str,
+        typer.Option(
+            "--method",
+            "-m",
+            metavar="NAME",
+            help="Method to evaluate (see `kinefuse init-session` for the names).",
+        ),
+    ],
+    quiet: _Quiet = False,
+    json_file: _Json = None,
+) -> None:
+    """Run one method on a recording and print RMSE tables against its reference."""
+    from kinefuse.session import METHODS
+
+    _existing_file(recording, "RECORDING")
+    if method not in METHODS:
+        raise InputError(
+            f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}"
+        )
+    summary = _backend("evaluate")(recording, method)
+    _present(summary, quiet=quiet, json_file=json_file)
+
+
+@app.command(epilog=_EPILOG)
+@_guarded
+def experiment(
+    name: Annotated[
+        str,
+        typer.Argument(metavar="paper-a|paper-b", help="Which paper's experiment to reproduce."),
+    ],
+    data: Annotated[
+        Path | None,
+        typer.Option(
+            "--data", metavar="DIR", help="Data folder (default: the back-end's, ../shared/data)."
+        ),
+    ] = None,
+    quiet: _Quiet = False,
+    json_file: _Json = None,
+) -> None:
+    """Reproduce a paper's experiment and compare with the paper's tables."""
+    if name not in EXPERIMENTS:
+        raise InputError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
+    if data is not None and not data.is_dir():
+        raise InputError(f"--data {data}: folder not found")
+    summary = _backend("experiment")(name, data)
+    _present(summary, quiet=quiet, json_file=json_file)
+
+
+@app.command(epilog=_EPILOG)
+@_guarded
+def bench(
+    quick: Annotated[
+        bool, typer.Option("--quick", help="A short run (seconds) instead of the full benchmark.")
+    ] = False,
+    quiet: _Quiet = False,
+    json_file: _Json = None,
+) -> None:
+    """Measure per-step latency and batch throughput of the filters, next to peer libraries."""
+    summary = _backend("bench")(quick)
+    _present(summary, quiet=quiet, json_file=json_file)
+
+
+@app.command(epilog=_EPILOG)
+@_guarded
+def stream(
+    session: Annotated[
+        Path,
+        typer.Argument(metavar="SESSION.toml", help="Session file describing the live sources."),
+    ],
+) -> None:
+    """Run a session online on live data (e.g. LSL streams); Ctrl-C stops."""
+    from kinefuse.session import load_session
+
+    cfg = load_session(session)
+    _present(_backend("stream")(cfg), quiet=False, json_file=None)
+
+
+@app.command(epilog=_EPILOG)
+@_guarded
+def replay(
+    recording: Annotated[
+        Path, typer.Argument(metavar="RECORDING", help="Recording to play back as if live.")
+    ],
+) -> None:
+    """Play a recording back through the online (streaming) path."""
+    _existing_file(recording, "RECORDING")
+    _present(_backend("replay")(recording), quiet=False, json_file=None)
+
+
+def main() -> None:
+    """Console-script entry point (``kinefuse``)."""
+    app(prog_name="kinefuse")
+
+
+# --------------------------------------------------------------------------------------------
+# interim built-in demo (replaced by kinefuse.pipelines.demo.run_demo once that exists)
+# --------------------------------------------------------------------------------------------
+
+_DEMO_JOINTS = ("shoulder_r", "elbow_r", "wrist_r")
+_DEMO_EDGES = (("shoulder_r", "elbow_r"), ("elbow_r", "wrist_r"))
+
+
+def _demo_motion(rate_hz: float = 30.0, duration_s: float = 40.0, seed: int = 7):
+    """A seeded synthetic right arm: shoulder sway, shoulder flexion/abduction, elbow flexion.
+
+    Returns ``t_s (T,)``, reference ``(T, 3, 3)`` (shoulder, elbow, wrist; ENU, m), the noisy
+    measurement with camera outages (NaN) ``(T, 3, 3)`` and the outage mask ``(T, 3)``.
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(round(duration_s * rate_hz))) / rate_hz
+    T = t.size
+    shoulder = np.stack(
+        [
+            0.02 * np.sin(2 * np.pi * 0.11 * t),
+            0.015 * np.sin(2 * np.pi * 0.07 * t + 1.0),
+            1.40 + 0.01 * np.sin(2 * np.pi * 0.2 * t),
+        ],
+        axis=-1,
+    )
+    flex = 0.7 + 0.6 * np.sin(2 * np.pi * 0.21 * t)  # shoulder flexion, rad
+    abd = 0.35 + 0.25 * np.sin(2 * np.pi * 0.13 * t + 1.0)  # shoulder abduction, rad
+    elbow_flex = 1.0 + 0.7 * np.sin(2 * np.pi * 0.33 * t + 0.5)  # elbow flexion, rad
+
+    def direction(theta, phi):
+        d = np.stack(
+            [np.sin(theta) * np.cos(phi), np.sin(phi), -np.cos(theta) * np.cos(phi)], axis=-1
+        )
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+    elbow = shoulder + 0.30 * direction(flex, abd)
+    wrist = elbow + 0.26 * direction(flex + elbow_flex, abd)
+    ref = np.stack([shoulder, elbow, wrist], axis=1)
+    noise = 0.02 * rng.standard_normal(ref.shape)
+    spikes = rng.random(ref.shape[:2]) < 0.01  # occasional tracker glitches
+    noise[spikes] += 0.15 * rng.standard_normal((int(spikes.sum()), 3))
+    meas = ref + noise
+    outage = np.zeros((T, 3), dtype=bool)
+    for j, starts in ((1, (8.0, 27.0)), (2, (14.0, 31.5))):
+        for s in starts:
+            outage[(t >= s) & (t < s + 1.5), j] = True
+    meas[outage] = np.nan
+    return t, ref, meas, outage
+
+
+def _cv_kalman(z: np.ndarray, dt: float, q: float, r: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis constant-velocity KF on ``z (T, J, 3)`` (NaN = predict only); positions, modes."""
+    from kinefuse.conventions import MODE_KF, MODE_PREDICT
+
+    T = z.shape[0]
+    shape = z.shape[1:]
+    x = np.zeros((*shape, 2))
+    P = np.zeros((*shape, 2, 2))
+    init = np.zeros(shape, dtype=bool)
+    F = np.array([[1.0, dt], [0.0, 1.0]])
+    Q = q * np.array([[dt * dt / 4, dt / 2], [dt / 2, 1.0]])
+    out = np.full(z.shape, np.nan)
+    mode = np.full(z.shape[:2], MODE_PREDICT, dtype=np.int8)
+    for k in range(T):
+        x = x @ F.T
+        P = F @ P @ F.T + Q
+        zk = z[k]
+        obs = np.isfinite(zk)
+        new = obs & ~init
+        x[new] = np.stack([zk[new], np.zeros(int(new.sum()))], axis=-1)
+        P[new] = np.array([[r, 0.0], [0.0, 1.0]])
+        init |= new
+        upd = obs & ~new
+        S = P[..., 0, 0] + r
+        K = P[..., :, 0] / S[..., None]
+        nu = np.where(upd, np.nan_to_num(zk) - x[..., 0], 0.0)
+        x = x + np.where(upd[..., None], K * nu[..., None], 0.0)
+        IKH = np.eye(2) - K[..., :, None] * np.array([1.0, 0.0])
+        P_upd = IKH @ P @ np.swapaxes(IKH, -1, -2) + r * K[..., :, None] * K[..., None, :]
+        P = np.where(upd[..., None, None], P_upd, P)
+        out[k] = np.where(init, x[..., 0], np.nan)
+        mode[k] = np.where(np.all(obs, axis=-1), MODE_KF, MODE_PREDICT)
+    return out, mode
+
+
+def _library_filters(z: np.ndarray, dt: float, q: float, r: float, notes: list[str]):
+    """Run whichever filters of :mod:`kinefuse.filters` exist, each guarded."""
+    results, modes, times = {}, {}, {}
+    try:
+        from kinefuse import filters
+        from kinefuse.models import constant_velocity
+
+        model = constant_velocity(dt, q, r)
+    except Exception as exc:
+        notes.append(f"kinefuse.filters not usable yet: {type(exc).__name__}: {exc}")
+        return results, modes, times
+    labels = {"KalmanFilter": "KF", "UFIRFilter": "FIR", "IntegratedFilter": "EM-KF/FIR"}
+    zb = np.ascontiguousarray(np.moveaxis(z, 0, 1))  # (J, T, 3)
+    for cls_name, label in labels.items():
+        cls = getattr(filters, cls_name, None)
+        if cls is None:
+            notes.append(f"{cls_name}: not in kinefuse.filters yet")
+            continue
+        try:
+            t0 = time.perf_counter()
+            _, res = cls(model).filter(zb)
+            times[label] = time.perf_counter() - t0
+            results[label] = np.moveaxis(np.asarray(res.position, dtype=float), 0, 1)
+            if getattr(res, "mode", None) is not None:
+                modes[label] = np.moveaxis(np.asarray(res.mode), 0, 1).astype(np.int64)
+            elif getattr(res, "observed", None) is not None:
+                from kinefuse.conventions import MODE_KF, MODE_PREDICT
+
+                observed = np.moveaxis(np.asarray(res.observed, dtype=bool), 0, 1)
+                modes[label] = np.where(observed, MODE_KF, MODE_PREDICT).astype(np.int64)
+        except Exception as exc:  # a back-end under construction must not break the demo
+            notes.append(f"{cls_name} skipped: {type(exc).__name__}: {_one_line(str(exc))[:160]}")
+    return results, modes, times
+
+
+def _builtin_demo(out_dir: Path, force: bool, quiet: bool) -> dict:
+    """Interim demo: synthetic arm, noisy camera with outages, available filters, HTML report."""
+    from kinefuse.evaluation.metrics import evaluate
+    from kinefuse.evaluation.report import write_report
+
+    rate_hz, q, r = 30.0, 0.01, 0.02**2
+    dt = 1.0 / rate_hz
+    notes = [
+        "Interim built-in demo (the full IMU pipeline demo replaces it): a seeded synthetic right arm "
+        "(shoulder sway, shoulder flexion/abduction, elbow flexion) at 30 Hz for 40 s; the input is the "
+        "true joint positions plus 2 cm white noise, 1 % tracker glitches and 1.5 s camera outages at "
+        "the elbow and wrist (NaN).",
+        f"Filters: constant-velocity model, q = {q} (m/s)^2 per step, R = {r:g} m^2 * I.",
+    ]
+    with progress("Demo: filtering", total=3, quiet=quiet) as advance:
+        t, ref, meas, outage = _demo_motion(rate_hz)
+        advance()
+        estimates, modes, times = _library_filters(meas, dt, q, r, notes)
+        if "KF" not in estimates:  # kinefuse.filters.KalmanFilter not there yet
+            t0 = time.perf_counter()
+            kf, kf_mode = _cv_kalman(meas, dt, q, r)
+            times["KF"] = time.perf_counter() - t0
+            estimates["KF"] = kf
+            modes["KF"] = kf_mode.astype(np.int64)
+        estimates = {"camera input": meas, **estimates}
+        advance()
+        evaluation = evaluate(estimates, ref, outage, times, joints=_DEMO_JOINTS)
+        report = write_report(
+            out_dir,
+            evaluation,
+            estimates,
+            ref,
+            t,
+            outage,
+            modes=modes,
+            dotted=("camera input",),
+            skeleton_edges=_DEMO_EDGES,
+            title="kinefuse demo: synthetic right arm",
+            notes=notes,
+            force=force,
+        )
+        advance()
+    return {"evaluation": evaluation, "report": report, "notes": notes}

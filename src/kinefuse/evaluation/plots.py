@@ -1,0 +1,418 @@
+"""Figures of an evaluation: trajectories, error CDFs, branch/source timelines, 3-D skeletons.
+
+Every function returns a :class:`matplotlib.figure.Figure` built without ``pyplot`` and rendered
+with the Agg canvas, so nothing ever opens a window and no global pyplot state is touched
+(safe in tests, servers and threads). :func:`figure_to_png` turns a figure into PNG bytes.
+
+Conventions: the reference is drawn black, camera outages are shaded orange, each method keeps
+one colour across all figures (:func:`method_colors`).
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Patch
+
+__all__ = [
+    "cdf_figure",
+    "figure_to_png",
+    "method_colors",
+    "outage_runs",
+    "rmse_bar_figure",
+    "skeleton_figure",
+    "timeline_figure",
+    "trajectory_figure",
+]
+
+_PALETTE = (
+    "#1f77b4",
+    "#d62728",
+    "#2ca02c",
+    "#9467bd",
+    "#8c564b",
+    "#e377c2",
+    "#17becf",
+    "#bcbd22",
+    "#7f7f7f",
+    "#ff7f0e",
+)
+_REF_COLOR = "black"
+_OUTAGE_COLOR = "#ffb347"
+
+
+def method_colors(methods: Sequence[str]) -> dict[str, str]:
+    """One stable colour per method (in the given order)."""
+    return {m: _PALETTE[i % len(_PALETTE)] for i, m in enumerate(methods)}
+
+
+def _figure(width_in: float, height_in: float) -> Figure:
+    fig = Figure(figsize=(width_in, height_in), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def figure_to_png(fig: Figure, path: str | Path | None = None, *, dpi: int = 110) -> bytes:
+    """Render ``fig`` to PNG bytes (and write them to ``path`` if given)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, metadata={"Software": "kinefuse"})
+    data = buf.getvalue()
+    if path is not None:
+        Path(path).write_bytes(data)
+    return data
+
+
+def outage_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Contiguous runs of True in a 1-D boolean mask as ``[(start, stop), ...]`` (stop exclusive)."""
+    m = np.asarray(mask, dtype=bool).ravel()
+    if m.size == 0:
+        return []
+    d = np.diff(np.concatenate(([0], m.astype(np.int8), [0])))
+    starts = np.flatnonzero(d == 1)
+    stops = np.flatnonzero(d == -1)
+    return list(zip(starts.tolist(), stops.tolist(), strict=True))
+
+
+def _shade(ax, t_s: np.ndarray, mask, label: bool = False) -> None:
+    if mask is None:
+        return
+    dt = float(np.median(np.diff(t_s))) if t_s.size > 1 else 0.0
+    for i, (a, b) in enumerate(outage_runs(mask)):
+        ax.axvspan(
+            t_s[a],
+            t_s[b - 1] + dt,
+            color=_OUTAGE_COLOR,
+            alpha=0.25,
+            lw=0,
+            label="camera outage" if (label and i == 0) else None,
+        )
+
+
+def trajectory_figure(
+    t_s,
+    reference,
+    estimates: Mapping[str, np.ndarray],
+    *,
+    outage=None,
+    measurement=None,
+    joint: str = "",
+    axis_labels: Sequence[str] = ("East", "North", "Up"),
+    colors: Mapping[str, str] | None = None,
+    dotted: Sequence[str] = (),
+) -> Figure:
+    """Positions of one joint per axis (reference, each method) and the error over time.
+
+    Parameters
+    ----------
+    t_s : array_like, shape (T,)
+        Time, s.
+    reference : array_like, shape (T, 3)
+        Reference positions, m (NaN gaps are left blank).
+    estimates : mapping of str -> array_like, shape (T, 3)
+        Positions of each method, m.
+    outage : array_like of bool, shape (T,), optional
+        Camera outages, shaded.
+    measurement : array_like, shape (T, 3), optional
+        Raw input (e.g. camera) drawn as grey dots.
+    joint : str
+        Joint name for the title.
+    axis_labels : sequence of 3 str
+    colors : mapping method -> colour, optional
+    dotted : sequence of str
+        Methods drawn as small dots instead of lines (raw, noisy inputs).
+
+    Returns
+    -------
+    Figure
+        Four stacked panels: one per axis and the Euclidean error of each method.
+    """
+    t = np.asarray(t_s, dtype=float)
+    ref = np.asarray(reference, dtype=float)
+    colors = dict(colors or method_colors(list(estimates)))
+    fig = _figure(10, 8.2)
+    axs = fig.subplots(4, 1, sharex=True, gridspec_kw={"height_ratios": [1, 1, 1, 0.9]})
+    for a, ax in enumerate(axs[:3]):
+        _shade(ax, t, outage, label=(a == 0))
+        if measurement is not None:
+            ax.plot(
+                t,
+                np.asarray(measurement)[:, a],
+                ".",
+                color="0.6",
+                ms=2,
+                label="input" if a == 0 else None,
+            )
+        ax.plot(
+            t, ref[:, a], color=_REF_COLOR, lw=1.6, zorder=3, label="reference" if a == 0 else None
+        )
+        for m, est in estimates.items():
+            style = (
+                {"ls": "none", "marker": ".", "ms": 2.5}
+                if m in dotted
+                else {"lw": 1.1, "alpha": 0.9}
+            )
+            ax.plot(
+                t, np.asarray(est)[:, a], color=colors.get(m), label=m if a == 0 else None, **style
+            )
+        ax.set_ylabel(f"{axis_labels[a]} (m)")
+        ax.grid(alpha=0.3)
+    ax = axs[3]
+    _shade(ax, t, outage)
+    for m, est in estimates.items():
+        err = np.linalg.norm(np.asarray(est) - ref, axis=-1)
+        style = {"ls": "none", "marker": ".", "ms": 2.5} if m in dotted else {"lw": 1.0}
+        ax.plot(t, err, color=colors.get(m), **style)
+    ax.set_ylabel("error (m)")
+    ax.set_xlabel("time (s)")
+    ax.grid(alpha=0.3)
+    ax.set_ylim(bottom=0)
+    handles, labels = axs[0].get_legend_handles_labels()
+    fig.legend(
+        handles,
+        labels,
+        loc="outside upper center",
+        ncols=min(len(labels), 6),
+        frameon=False,
+        markerscale=3,
+    )
+    axs[0].set_title(
+        f"{joint}: position per axis and Euclidean error" if joint else "Position per axis",
+        fontweight="bold",
+    )
+    return fig
+
+
+def cdf_figure(
+    cdfs: Mapping[str, tuple[np.ndarray, np.ndarray]],
+    *,
+    outage_cdfs: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
+    p: float = 0.9,
+    joint: str = "",
+    colors: Mapping[str, str] | None = None,
+) -> Figure:
+    """Empirical CDFs of the Euclidean position error, all samples and (optionally) outages only.
+
+    Parameters
+    ----------
+    cdfs : mapping method -> (sorted_errors, probabilities)
+        As returned by :func:`kinefuse.evaluation.metrics.error_cdf`.
+    outage_cdfs : mapping method -> (sorted_errors, probabilities), optional
+        The same inside camera outages (second panel).
+    p : float
+        CDF level marked by a dashed line; each method's error there is printed in the legend.
+    joint : str
+    colors : mapping method -> colour, optional
+
+    Returns
+    -------
+    Figure
+    """
+    colors = dict(colors or method_colors(list(cdfs)))
+    panels = [("all samples", cdfs)]
+    if outage_cdfs is not None and any(x.size for x, _ in outage_cdfs.values()):
+        panels.append(("inside camera outages", outage_cdfs))
+    fig = _figure(5.0 * len(panels) + 0.5, 4.0)
+    axs = np.atleast_1d(fig.subplots(1, len(panels), sharey=True))
+    for ax, (name, data) in zip(axs, panels, strict=True):
+        for m, (x, prob) in data.items():
+            if x.size == 0:
+                continue
+            k = int(np.clip(np.ceil(p * x.size - 1e-9) - 1, 0, x.size - 1))
+            ax.plot(
+                np.concatenate(([0.0], x)),
+                np.concatenate(([0.0], prob)),
+                drawstyle="steps-post",
+                color=colors.get(m),
+                lw=1.4,
+                label=f"{m}  ({x[k]:.3f} m at {p:g})",
+            )
+            ax.plot([x[k]], [prob[k]], "o", color=colors.get(m), ms=4)
+        ax.axhline(p, color="0.4", ls="--", lw=0.8)
+        ax.set_xlim(left=0)
+        ax.set_ylim(0, 1.01)
+        ax.set_xlabel("position error (m)")
+        ax.set_title(name)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower right", fontsize="small")
+    axs[0].set_ylabel("CDF")
+    fig.suptitle(f"{joint}: error CDF" if joint else "Error CDF")
+    return fig
+
+
+def timeline_figure(
+    t_s,
+    codes: Mapping[str, np.ndarray],
+    names: Mapping[int, str],
+    joints: Sequence[str],
+    *,
+    outage=None,
+    title: str = "Active branch per sample",
+) -> Figure:
+    """Which filter branch / data source each method used at each sample, per joint.
+
+    Parameters
+    ----------
+    t_s : array_like, shape (T,)
+    codes : mapping method -> array_like of int, shape (T, J)
+        Per-sample codes (e.g. :data:`kinefuse.conventions.MODE_NAMES` keys); negative = none.
+    names : mapping int -> str
+        Legend names of the codes.
+    joints : sequence of str, length J
+    outage : array_like of bool, shape (T, J), optional
+        Adds a "camera" row per joint (orange = outage).
+    title : str
+
+    Returns
+    -------
+    Figure
+    """
+    t = np.asarray(t_s, dtype=float)
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    code_list = sorted(names)
+    cmap = {c: _PALETTE[(i + 2) % len(_PALETTE)] for i, c in enumerate(code_list)}
+    rows = []  # (label, kind, data)
+    for j, joint in enumerate(joints):
+        if outage is not None:
+            rows.append((f"{joint} · camera", "outage", np.asarray(outage)[:, j]))
+        for m, c in codes.items():
+            rows.append((f"{joint} · {m}", "code", np.asarray(c)[:, j]))
+    fig = _figure(10, 0.9 + 0.32 * max(len(rows), 1))
+    ax = fig.add_subplot()
+    for r, (_label, kind, data) in enumerate(rows):
+        y = len(rows) - 1 - r
+        if kind == "outage":
+            spans = [(t[a], t[b - 1] + dt - t[a]) for a, b in outage_runs(data)]
+            ax.broken_barh(spans, (y - 0.35, 0.7), color=_OUTAGE_COLOR)
+        else:
+            for c in code_list:
+                spans = [(t[a], t[b - 1] + dt - t[a]) for a, b in outage_runs(data == c)]
+                if spans:
+                    ax.broken_barh(spans, (y - 0.35, 0.7), color=cmap[c])
+    ax.set_yticks(range(len(rows)), [lbl for lbl, _, _ in rows][::-1], fontsize="small")
+    ax.set_ylim(-0.6, len(rows) - 0.4)
+    if t.size:
+        ax.set_xlim(t[0], t[-1] + dt)
+    ax.set_xlabel("time (s)")
+    used = set()
+    for c in codes.values():
+        used.update(np.unique(np.asarray(c)).tolist())
+    handles = [Patch(color=cmap[c], label=names[c]) for c in code_list if c in used]
+    if outage is not None:
+        handles.append(Patch(color=_OUTAGE_COLOR, label="camera outage"))
+    fig.legend(
+        handles=handles, loc="outside upper center", ncols=max(len(handles), 1), frameon=False
+    )
+    ax.set_title(title, fontweight="bold")
+    return fig
+
+
+def skeleton_figure(
+    reference,
+    estimates: Mapping[str, np.ndarray],
+    joints: Sequence[str],
+    edges: Sequence[tuple[str, str]],
+    instants: Sequence[int],
+    *,
+    t_s=None,
+    colors: Mapping[str, str] | None = None,
+) -> Figure:
+    """3-D skeleton snapshots (reference and each method) at a few sample indices.
+
+    Parameters
+    ----------
+    reference : array_like, shape (T, J, 3)
+    estimates : mapping method -> array_like, shape (T, J, 3)
+    joints : sequence of str, length J
+    edges : sequence of (str, str)
+        Bones as pairs of joint names; pairs naming unknown joints are skipped.
+    instants : sequence of int
+        Sample indices to draw (one 3-D panel each).
+    t_s : array_like, shape (T,), optional
+        For panel titles.
+    colors : mapping method -> colour, optional
+
+    Returns
+    -------
+    Figure
+    """
+    from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the 3-D projection)
+
+    ref = np.asarray(reference, dtype=float)
+    colors = dict(colors or method_colors(list(estimates)))
+    index = {n: i for i, n in enumerate(joints)}
+    bones = [(index[a], index[b]) for a, b in edges if a in index and b in index]
+    instants = list(instants)
+    fig = _figure(4.2 * max(len(instants), 1), 4.6)
+    pts = [ref[k] for k in instants] + [
+        np.asarray(e)[k] for e in estimates.values() for k in instants
+    ]
+    allp = np.concatenate([p[np.all(np.isfinite(p), axis=-1)] for p in pts] or [np.zeros((1, 3))])
+    if allp.size == 0:
+        allp = np.zeros((1, 3))
+    center = 0.5 * (allp.min(0) + allp.max(0))
+    half = max(float((allp.max(0) - allp.min(0)).max()) / 2, 0.05) * 1.1
+    series = [("reference", ref, _REF_COLOR, 2.2)] + [
+        (m, np.asarray(e), colors.get(m), 1.3) for m, e in estimates.items()
+    ]
+    for n, k in enumerate(instants):
+        ax = fig.add_subplot(1, max(len(instants), 1), n + 1, projection="3d")
+        for name, arr, col, lw in series:
+            p = arr[k]
+            for a, b in bones:
+                ax.plot(*zip(p[a], p[b], strict=True), color=col, lw=lw)
+            ax.scatter(
+                *p.T,
+                color=col,
+                s=14 if name == "reference" else 8,
+                label=name if n == 0 else None,
+                depthshade=False,
+            )
+        ax.set_xlim(center[0] - half, center[0] + half)
+        ax.set_ylim(center[1] - half, center[1] + half)
+        ax.set_zlim(center[2] - half, center[2] + half)
+        ax.set_box_aspect((1, 1, 1))
+        ax.set_xlabel("E (m)", fontsize="small")
+        ax.set_ylabel("N (m)", fontsize="small")
+        ax.set_zlabel("U (m)", fontsize="small")
+        ax.tick_params(labelsize="x-small")
+        ax.set_title(f"t = {float(np.asarray(t_s)[k]):.2f} s" if t_s is not None else f"sample {k}")
+    handles, labels = fig.axes[0].get_legend_handles_labels() if fig.axes else ([], [])
+    fig.legend(
+        handles, labels, loc="outside lower center", ncols=min(len(labels), 6), frameon=False
+    )
+    fig.suptitle("Skeleton snapshots")
+    return fig
+
+
+def rmse_bar_figure(result, *, colors: Mapping[str, str] | None = None) -> Figure:
+    """Grouped bars of the papers' mean RMSE per joint and method (overall and in outages)."""
+    colors = dict(colors or method_colors(result.methods))
+    panels = [("all samples", result.mean_rmse)]
+    if result.has_outages:
+        panels.append(("inside camera outages", result.mean_rmse_outage))
+    J, M = len(result.joints), len(result.methods)
+    fig = _figure(max(5.0, 1.1 * J * len(panels) + 3), 3.8)
+    axs = np.atleast_1d(fig.subplots(1, len(panels), sharey=True))
+    width = 0.8 / max(M, 1)
+    x = np.arange(J)
+    for ax, (name, data) in zip(axs, panels, strict=True):
+        for m, method in enumerate(result.methods):
+            ax.bar(
+                x + (m - (M - 1) / 2) * width,
+                np.nan_to_num(data[m], nan=0.0),
+                width,
+                color=colors.get(method),
+                label=method,
+            )
+        ax.set_xticks(x, result.joints, rotation=30 if J > 4 else 0)
+        ax.set_title(name)
+        ax.grid(axis="y", alpha=0.3)
+    axs[0].set_ylabel("mean RMSE (m)")
+    axs[-1].legend(fontsize="small")
+    fig.suptitle("Mean RMSE per joint (mean of per-axis RMSEs)")
+    return fig

@@ -1,0 +1,446 @@
+"""A self-contained HTML report of an evaluation (figures embedded, no external resources).
+
+:func:`write_report` writes ``out_dir/report.html`` (inline CSS, figures as base64 PNG, no
+scripts, no URLs), the same figures as PNG files in ``out_dir/figures/`` and the metrics as
+``out_dir/metrics.json``. It refuses to overwrite an existing report unless ``force=True``.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as _dt
+import html
+import json
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from kinefuse.conventions import MODE_NAMES, SOURCE_NAMES
+from kinefuse.evaluation import plots, tables
+from kinefuse.evaluation.metrics import EvaluationResult
+from kinefuse.exceptions import InputError
+
+__all__ = ["REPORT_NAME", "write_report"]
+
+#: File name of the report inside ``out_dir``.
+REPORT_NAME = "report.html"
+
+_CSS = """
+:root { --fg:#1d2330; --muted:#5b6475; --line:#d9dee7; --accent:#1f5fbf; --paper:#7a6a3a; }
+* { box-sizing: border-box; }
+body { font: 15px/1.5 system-ui, -apple-system, "Segoe UI", Roboto, "DejaVu Sans", sans-serif;
+       color: var(--fg); margin: 0; background: #f6f7f9; }
+header { background: #fff; border-bottom: 1px solid var(--line); padding: 18px 32px; }
+header h1 { margin: 0 0 4px; font-size: 24px; }
+header .meta { color: var(--muted); font-size: 13px; }
+nav { padding: 8px 32px; background: #fff; border-bottom: 1px solid var(--line); font-size: 14px; }
+nav a { margin-right: 14px; color: var(--accent); text-decoration: none; }
+main { max-width: 1180px; margin: 0 auto; padding: 8px 32px 48px; }
+section { background: #fff; border: 1px solid var(--line); border-radius: 6px; padding: 16px 20px;
+          margin: 18px 0; }
+h2 { margin: 0 0 10px; font-size: 19px; }
+h3 { margin: 16px 0 8px; font-size: 16px; }
+figure { margin: 10px 0; }
+figure img { max-width: 100%; height: auto; display: block; border: 1px solid #eef0f4; }
+figcaption { color: var(--muted); font-size: 13px; margin-top: 4px; }
+table.results { border-collapse: collapse; margin: 6px 0; font-size: 13.5px; }
+table.results caption { text-align: left; font-weight: 600; padding-bottom: 4px; }
+table.results th, table.results td { padding: 3px 10px; border-bottom: 1px solid var(--line); }
+table.results th { background: #f0f2f6; text-align: left; }
+table.results td.num, table.results th.num { text-align: right; font-variant-numeric: tabular-nums; }
+table.results td.best { font-weight: 700; color: #166534; }
+table.results tr.paper td { color: var(--paper); font-style: italic; }
+.tables { display: flex; flex-wrap: wrap; gap: 28px; }
+p.note { color: var(--muted); font-size: 12.5px; margin: 2px 0 8px; }
+.notes { white-space: pre-wrap; }
+"""
+
+
+def _slug(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "x"
+
+
+def _as_positions(value, name: str, shape: tuple[int, ...]) -> np.ndarray:
+    arr = np.asarray(getattr(value, "position_m", value), dtype=float)
+    if arr.shape != shape:
+        raise InputError(f"expected {name} with shape (T, J, 3) = {shape}, got {arr.shape}")
+    return arr
+
+
+def _codes(
+    value: Mapping | None, name: str, shape: tuple[int, int]
+) -> dict[str, np.ndarray] | None:
+    if not value:
+        return None
+    out = {}
+    for m, c in value.items():
+        arr = np.asarray(c)
+        if arr.shape != shape or not np.issubdtype(arr.dtype, np.integer):
+            raise InputError(
+                f"expected {name}[{m!r}] as integer codes with shape (T, J) = {shape}, got {arr.shape} {arr.dtype}"
+            )
+        out[m] = arr
+    return out
+
+
+def _default_instants(T: int, outage: np.ndarray | None) -> list[int]:
+    if T == 0:
+        return []
+    picks = [int(T * 0.25), int(T * 0.75)]
+    if outage is not None and np.any(outage):
+        runs = plots.outage_runs(np.any(outage, axis=1))
+        a, b = max(runs, key=lambda r: r[1] - r[0])
+        picks.insert(1, (a + b - 1) // 2)
+    else:
+        picks.insert(1, T // 2)
+    return sorted({min(max(k, 0), T - 1) for k in picks})
+
+
+def write_report(
+    out_dir: str | Path,
+    evaluation: EvaluationResult,
+    trajectories: Mapping[str, np.ndarray],
+    reference,
+    t_s=None,
+    outage_mask=None,
+    *,
+    measurement=None,
+    modes: Mapping[str, np.ndarray] | None = None,
+    mode_names: Mapping[int, str] = MODE_NAMES,
+    sources: Mapping[str, np.ndarray] | None = None,
+    source_names: Mapping[int, str] = SOURCE_NAMES,
+    skeleton_edges: Sequence[tuple[str, str]] | None = None,
+    snapshot_instants: Sequence[int] | None = None,
+    axis_labels: Sequence[str] = ("East", "North", "Up"),
+    dotted: Sequence[str] = (),
+    paper: Mapping[str, Mapping[str, Sequence[float]]] | None = None,
+    title: str = "kinefuse report",
+    notes: str | Sequence[str] | None = None,
+    force: bool = False,
+    dpi: int = 100,
+) -> Path:
+    """Write a self-contained HTML report with figures and tables of an evaluation.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        Output folder (created if needed).
+    evaluation : EvaluationResult
+        From :func:`kinefuse.evaluation.metrics.evaluate`; gives methods, joints and tables.
+    trajectories : mapping method -> array_like, shape (T, J, 3)
+        Estimated positions per method, m, in ``evaluation.joints`` order.
+    reference : JointStream or array_like, shape (T, J, 3)
+        Reference positions, m.
+    t_s : array_like, shape (T,), optional
+        Time, s (default: ``reference.t_s`` for a JointStream, else sample index).
+    outage_mask : array_like of bool, shape (T, J), optional
+        Camera outages, shaded in the figures (default: ``evaluation.outage_mask``).
+    measurement : array_like, shape (T, J, 3), optional
+        The raw input positions (e.g. camera), drawn as grey dots.
+    modes : mapping method -> int array, shape (T, J), optional
+        Active filter branch per sample (:data:`kinefuse.conventions.MODE_NAMES` codes).
+    mode_names : mapping int -> str
+        Names of the ``modes`` codes.
+    sources : mapping method -> int array, shape (T, J), optional
+        Data source per sample (:data:`kinefuse.conventions.SOURCE_NAMES` codes).
+    source_names : mapping int -> str
+        Names of the ``sources`` codes.
+    skeleton_edges : sequence of (str, str), optional
+        Bones as joint-name pairs; enables the 3-D skeleton snapshots.
+    snapshot_instants : sequence of int, optional
+        Sample indices of the snapshots (default: 25 %, the middle of the longest outage or
+        50 %, and 75 % of the recording).
+    axis_labels : sequence of 3 str
+        Axis names in tables and figures (paper B: ``("X", "Y", "Z")``).
+    dotted : sequence of str
+        Methods drawn as dots in the trajectory figures (raw, noisy inputs such as the camera).
+    paper : mapping joint -> method -> (x, y, z, mean), optional
+        The papers' RMSE numbers to show next to ours (e.g. ``tables.PAPER_B_RMSE_M``).
+    title : str
+    notes : str or sequence of str, optional
+        Free text shown under the title (settings, data source, caveats).
+    force : bool
+        Overwrite an existing ``report.html`` in ``out_dir``.
+    dpi : int
+        Resolution of the figures.
+
+    Returns
+    -------
+    Path
+        ``out_dir/report.html``.
+
+    Raises
+    ------
+    FileExistsError
+        ``out_dir/report.html`` exists and ``force`` is False (the message names the file).
+    InputError
+        Shapes do not match the evaluation.
+    """
+    out = Path(out_dir)
+    report_path = out / REPORT_NAME
+    if report_path.exists() and not force:
+        raise FileExistsError(
+            f"{report_path} already exists; pass force=True (CLI: --force) to overwrite it, or choose another output folder"
+        )
+    if not isinstance(evaluation, EvaluationResult):
+        raise InputError(
+            f"expected evaluation as an EvaluationResult, got {type(evaluation).__name__}"
+        )
+    joints = evaluation.joints
+    ref = _as_positions(reference, "reference", (evaluation.n_steps, len(joints), 3))
+    if getattr(reference, "available", None) is not None:
+        ref = ref.copy()
+        ref[~np.asarray(reference.available, dtype=bool)] = np.nan
+    T, J, _ = ref.shape
+    missing = [m for m in evaluation.methods if m not in trajectories]
+    if missing:
+        raise InputError(
+            f"trajectories lack the evaluated methods {missing}; got {list(trajectories)}"
+        )
+    traj = {
+        m: _as_positions(trajectories[m], f"trajectories[{m!r}]", ref.shape)
+        for m in evaluation.methods
+    }
+    if t_s is None:
+        t_s = getattr(reference, "t_s", None)
+    t = np.arange(T, dtype=float) if t_s is None else np.asarray(t_s, dtype=float)
+    if t.shape != (T,):
+        raise InputError(f"expected t_s with shape (T,) = ({T},), got {t.shape}")
+    outage = evaluation.outage_mask if outage_mask is None else np.asarray(outage_mask, dtype=bool)
+    if outage is not None and outage.shape != (T, J):
+        raise InputError(f"expected outage_mask with shape (T, J) = {(T, J)}, got {outage.shape}")
+    meas = None if measurement is None else _as_positions(measurement, "measurement", ref.shape)
+    mode_codes = _codes(modes, "modes", (T, J))
+    source_codes = _codes(sources, "sources", (T, J))
+
+    fig_dir = out / "figures"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    colors = plots.method_colors(evaluation.methods)
+    figures: dict[str, str] = {}  # key -> base64
+
+    def emit(key: str, fig) -> None:
+        data = plots.figure_to_png(fig, fig_dir / f"{key}.png", dpi=dpi)
+        figures[key] = base64.b64encode(data).decode("ascii")
+
+    emit("summary_rmse", plots.rmse_bar_figure(evaluation, colors=colors))
+    for j, joint in enumerate(joints):
+        slug = _slug(joint)
+        emit(
+            f"trajectory_{slug}",
+            plots.trajectory_figure(
+                t,
+                ref[:, j],
+                {m: traj[m][:, j] for m in evaluation.methods},
+                outage=None if outage is None else outage[:, j],
+                measurement=None if meas is None else meas[:, j],
+                joint=joint,
+                axis_labels=axis_labels,
+                colors=colors,
+                dotted=dotted,
+            ),
+        )
+        cdfs = {m: evaluation.cdf(m, joint) for m in evaluation.methods}
+        out_cdfs = (
+            {m: evaluation.cdf(m, joint, outage=True) for m in evaluation.methods}
+            if evaluation.has_outages
+            else None
+        )
+        emit(
+            f"cdf_{slug}",
+            plots.cdf_figure(
+                cdfs, outage_cdfs=out_cdfs, p=evaluation.p, joint=joint, colors=colors
+            ),
+        )
+    if mode_codes:
+        emit(
+            "timeline_modes",
+            plots.timeline_figure(
+                t, mode_codes, mode_names, joints, outage=outage, title="Filter branch per sample"
+            ),
+        )
+    if source_codes:
+        emit(
+            "timeline_sources",
+            plots.timeline_figure(
+                t, source_codes, source_names, joints, outage=outage, title="Data source per sample"
+            ),
+        )
+    if skeleton_edges:
+        instants = (
+            _default_instants(T, outage)
+            if snapshot_instants is None
+            else [int(k) for k in snapshot_instants]
+        )
+        bad = [k for k in instants if not 0 <= k < T]
+        if bad:
+            raise InputError(f"snapshot_instants must lie in [0, {T}), got {bad}")
+        if instants:
+            emit(
+                "skeleton",
+                plots.skeleton_figure(
+                    ref, traj, joints, skeleton_edges, instants, t_s=t, colors=colors
+                ),
+            )
+
+    doc = _html(
+        evaluation, figures, title=title, notes=notes, t=t, axis_labels=axis_labels, paper=paper
+    )
+    tmp = report_path.with_name(REPORT_NAME + ".part")
+    tmp.write_text(doc, encoding="utf-8")
+    tmp.replace(report_path)
+    (out / "metrics.json").write_text(json.dumps(evaluation.to_dict(), indent=2), encoding="utf-8")
+    return report_path
+
+
+def _img(figures: Mapping[str, str], key: str, alt: str, caption: str) -> str:
+    if key not in figures:
+        return ""
+    e = html.escape
+    return (
+        f'<figure><img alt="{e(alt)}" src="data:image/png;base64,{figures[key]}">'
+        f"<figcaption>{e(caption)} (also <code>figures/{e(key)}.png</code>)</figcaption></figure>"
+    )
+
+
+def _html(ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper) -> str:
+    from kinefuse import __version__
+
+    e = html.escape
+    duration = float(t[-1] - t[0]) if t.size > 1 else 0.0
+    meta = (
+        f"generated {_dt.datetime.now().strftime('%Y-%m-%d %H:%M')} by kinefuse {e(__version__)} · "
+        f"{ev.n_steps} samples ({duration:.1f} s) · joints: {e(', '.join(ev.joints))} · "
+        f"methods: {e(', '.join(ev.methods))}"
+    )
+    if ev.has_outages:
+        frac = float(np.mean(ev.outage_mask))
+        meta += f" · camera outage: {frac:.0%} of joint-samples"
+    parts = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        '<meta name="viewport" content="width=device-width, initial-scale=1">',
+        f"<title>{e(title)}</title><style>{_CSS}</style></head><body>",
+        f'<header><h1>{e(title)}</h1><div class="meta">{meta}</div></header>',
+    ]
+    nav = ['<a href="#summary">Summary</a>'] + [
+        f'<a href="#joint-{_slug(j)}">{e(j)}</a>' for j in ev.joints
+    ]
+    if "timeline_modes" in figures or "timeline_sources" in figures:
+        nav.append('<a href="#timelines">Timelines</a>')
+    if "skeleton" in figures:
+        nav.append('<a href="#skeleton">Skeleton</a>')
+    parts.append("<nav>" + "".join(nav) + "</nav><main>")
+    if notes:
+        text = notes if isinstance(notes, str) else "\n".join(notes)
+        parts.append(f'<section><h2>Notes</h2><div class="notes">{e(text)}</div></section>')
+
+    summary = tables.joint_method_table(
+        ev, axis_labels=axis_labels, paper=paper, title="RMSE per joint and method (m)"
+    )
+    parts.append('<section id="summary"><h2>Summary</h2>')
+    parts.append(tables.to_html(summary))
+    parts.append(
+        _img(
+            figures,
+            "summary_rmse",
+            "bar chart of mean RMSE per joint and method",
+            "Mean RMSE per joint.",
+        )
+    )
+    if ev.run_time_s:
+        parts.append(tables.to_html(tables.timing_table(ev)))
+    excluded = int(ev.n_excluded.sum())
+    if excluded:
+        parts.append(
+            f'<p class="note">{excluded} method-joint-samples were excluded because the estimate or the '
+            "reference was missing (NaN); see metrics.json for the counts.</p>"
+        )
+    parts.append("</section>")
+
+    for joint in ev.joints:
+        slug = _slug(joint)
+        parts.append(f'<section id="joint-{slug}"><h2>{e(joint)}</h2><div class="tables">')
+        parts.append(
+            tables.to_html(
+                tables.method_table(
+                    ev,
+                    joint,
+                    axis_labels=axis_labels,
+                    digits=4,
+                    include_counts=True,
+                    title="All samples",
+                )
+            )
+        )
+        if ev.has_outages:
+            parts.append(
+                tables.to_html(
+                    tables.method_table(
+                        ev,
+                        joint,
+                        outage=True,
+                        axis_labels=axis_labels,
+                        digits=4,
+                        include_counts=True,
+                        title="Inside camera outages",
+                    )
+                )
+            )
+        parts.append("</div>")
+        parts.append(
+            _img(
+                figures,
+                f"trajectory_{slug}",
+                f"{joint} position per axis",
+                "Positions per axis (reference black, camera outages shaded) and Euclidean error over time.",
+            )
+        )
+        parts.append(
+            _img(
+                figures,
+                f"cdf_{slug}",
+                f"{joint} error CDF",
+                f"Empirical CDF of the Euclidean position error; the dashed line marks CDF {ev.p:g}.",
+            )
+        )
+        parts.append("</section>")
+
+    if "timeline_modes" in figures or "timeline_sources" in figures:
+        parts.append('<section id="timelines"><h2>Branch and source timelines</h2>')
+        parts.append(
+            _img(
+                figures,
+                "timeline_modes",
+                "filter branch timeline",
+                "Active filter branch per sample and joint.",
+            )
+        )
+        parts.append(
+            _img(
+                figures,
+                "timeline_sources",
+                "data source timeline",
+                "Data source per sample and joint.",
+            )
+        )
+        parts.append("</section>")
+    if "skeleton" in figures:
+        parts.append('<section id="skeleton"><h2>3-D skeleton snapshots</h2>')
+        parts.append(
+            _img(
+                figures,
+                "skeleton",
+                "3-D skeleton snapshots",
+                "Reference (black) and estimates at a few instants.",
+            )
+        )
+        parts.append("</section>")
+    parts.append(
+        '<p class="note">RMSE per axis and "Mean" = arithmetic mean of the three per-axis RMSEs, as in '
+        "Sun et al. 2024 and Xu et al. 2023; error CDFs use the Euclidean error. Samples where the "
+        "estimate or the reference is missing are excluded.</p>"
+    )
+    parts.append("</main></body></html>")
+    return "\n".join(p for p in parts if p)

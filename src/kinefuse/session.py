@@ -1,0 +1,519 @@
+"""Session files: a TOML description of one recording and how to process it.
+
+:func:`load_session` parses and validates a session file into a frozen :class:`SessionConfig`;
+every problem is a :class:`~kinefuse.exceptions.ConfigError` naming the file, the section and
+key, what was wrong and how to fix it, e.g.::
+
+    session.toml: [imu] path: file 'x.csv' not found (relative paths are resolved against the
+    TOML's folder)
+
+:func:`session_template` returns the commented template that ``kinefuse init-session`` writes.
+Relative paths in a session file are resolved against the folder of the TOML file, so a session
+folder can be moved as a whole.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from kinefuse.conventions import SEGMENTS
+from kinefuse.exceptions import ConfigError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+__all__ = [
+    "CAMERA_METHODS",
+    "METHODS",
+    "CameraConfig",
+    "ImuConfig",
+    "MethodConfig",
+    "ReferenceConfig",
+    "SessionConfig",
+    "SkeletonConfig",
+    "load_session",
+    "session_template",
+]
+
+#: Processing methods a session can ask for.
+METHODS = ("paper-a", "elm-fir", "elm-kf", "imu-only", "camera-only", "kinefuse")
+#: Methods that cannot run without a ``[camera]`` section.
+CAMERA_METHODS = ("elm-fir", "elm-kf", "camera-only")
+
+_PATH_HINT = "relative paths are resolved against the TOML's folder"
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    """``[imu]``: the IMU recording.
+
+    Attributes
+    ----------
+    format : str
+        Reader name (see :mod:`kinefuse.io`).
+    path : Path
+        Absolute path of the recording.
+    rate_hz : float or None
+        Sampling rate, Hz, when the file has no time stamps (None: from the file).
+    segments : dict of str -> str
+        Canonical segment name (:data:`kinefuse.conventions.SEGMENTS`) -> sensor name in the file.
+    """
+
+    format: str
+    path: Path
+    rate_hz: float | None
+    segments: dict[str, str]
+
+
+@dataclass(frozen=True)
+class SkeletonConfig:
+    """``[skeleton]``: body dimensions.
+
+    Attributes
+    ----------
+    body_height_m : float or None
+        Body height, m, for anthropometric segment lengths.
+    lengths_m : dict of str -> float
+        Measured segment lengths, m, by segment name (override the anthropometric ones).
+    """
+
+    body_height_m: float | None
+    lengths_m: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """``[camera]`` (optional): a camera skeleton (Kinect, Azure Kinect, MediaPipe...).
+
+    Attributes
+    ----------
+    format : str
+    path : Path
+    availability_threshold : float or None
+        Joints whose tracker confidence is below this are treated as unavailable (None: the
+        reader's default, e.g. Kinect TrackingState == Tracked).
+    """
+
+    format: str
+    path: Path
+    availability_threshold: float | None = None
+
+
+@dataclass(frozen=True)
+class ReferenceConfig:
+    """``[reference]`` (optional): ground-truth joints (optical mocap) for evaluation."""
+
+    format: str
+    path: Path
+
+
+@dataclass(frozen=True)
+class MethodConfig:
+    """``[method]``: which pipeline and its parameters (validated by the pipeline)."""
+
+    name: str
+    parameters: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """A validated session file.
+
+    Attributes
+    ----------
+    path : Path
+        The TOML file (absolute).
+    name : str
+        Session name.
+    out_dir : Path
+        Output folder (absolute).
+    imu : ImuConfig
+    skeleton : SkeletonConfig
+    camera : CameraConfig or None
+    reference : ReferenceConfig or None
+    method : MethodConfig
+    """
+
+    path: Path
+    name: str
+    out_dir: Path
+    imu: ImuConfig
+    skeleton: SkeletonConfig
+    camera: CameraConfig | None
+    reference: ReferenceConfig | None
+    method: MethodConfig
+
+
+# --------------------------------------------------------------------------------------------
+# validation helpers
+# --------------------------------------------------------------------------------------------
+
+
+class _Ctx:
+    """Builds error messages ``"<file>: [<section>] <key>: <problem> (<fix>)"``."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.base = path.parent
+
+    def error(
+        self, section: str, key: str | None, problem: str, fix: str | None = None
+    ) -> ConfigError:
+        where = f"[{section}]" + (f" {key}" if key else "")
+        msg = f"{self.path.name}: {where}: {problem}"
+        if fix:
+            msg += f" ({fix})"
+        return ConfigError(msg)
+
+    def table(self, doc: Mapping, section: str, *, required: bool) -> dict | None:
+        value = doc.get(section)
+        if value is None:
+            if required:
+                raise self.error(
+                    section,
+                    None,
+                    "section missing",
+                    f"add a [{section}] section; `kinefuse init-session` writes a template",
+                )
+            return None
+        if not isinstance(value, dict):
+            raise self.error(
+                section,
+                None,
+                f"expected a table, got {type(value).__name__}",
+                f"write it as a [{section}] section",
+            )
+        return value
+
+    def check_keys(self, table: Mapping, section: str, allowed: tuple[str, ...]) -> None:
+        for key in table:
+            if key not in allowed:
+                close = difflib.get_close_matches(key, allowed, n=1)
+                fix = (
+                    f"did you mean {close[0]!r}?"
+                    if close
+                    else f"allowed keys: {', '.join(allowed)}"
+                )
+                raise self.error(section, key, "unknown key", fix)
+
+    def string(
+        self,
+        table: Mapping,
+        section: str,
+        key: str,
+        *,
+        required: bool = True,
+        default: str | None = None,
+    ) -> str | None:
+        if key not in table:
+            if required:
+                raise self.error(section, key, "missing", f'add {key} = "..."')
+            return default
+        value = table[key]
+        if not isinstance(value, str) or not value.strip():
+            raise self.error(
+                section, key, f"expected a non-empty string, got {value!r}", f'write {key} = "..."'
+            )
+        return value.strip()
+
+    def number(
+        self,
+        table: Mapping,
+        section: str,
+        key: str,
+        *,
+        required: bool = False,
+        positive: bool = True,
+        minimum: float | None = None,
+    ) -> float | None:
+        if key not in table:
+            if required:
+                raise self.error(section, key, "missing", f"add {key} = <number>")
+            return None
+        value = table[key]
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, (int, float))
+            or not math.isfinite(value)
+        ):
+            raise self.error(
+                section,
+                key,
+                f"expected a number, got {value!r}",
+                f"write e.g. {key} = 1.0 without quotes",
+            )
+        if positive and value <= 0:
+            raise self.error(section, key, f"expected a number > 0, got {value!r}")
+        if minimum is not None and value < minimum:
+            raise self.error(section, key, f"expected a number >= {minimum}, got {value!r}")
+        return float(value)
+
+    def file(self, table: Mapping, section: str, key: str = "path") -> Path:
+        raw = self.string(table, section, key)
+        p = Path(raw).expanduser()
+        if not p.is_absolute():
+            p = self.base / p
+        if not p.exists():
+            raise self.error(section, key, f"file {raw!r} not found", _PATH_HINT)
+        return p.resolve()
+
+
+# --------------------------------------------------------------------------------------------
+# loading
+# --------------------------------------------------------------------------------------------
+
+
+def load_session(path: str | Path) -> SessionConfig:
+    """Read and validate a session TOML file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The session file.
+
+    Returns
+    -------
+    SessionConfig
+        With absolute paths (relative ones resolved against the TOML's folder) that exist.
+
+    Raises
+    ------
+    ConfigError
+        The file is missing, is not valid TOML, or a section/key is missing, unknown, of the
+        wrong type or names a file that does not exist. The message names the file, section
+        and key, and says how to fix it.
+    """
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise ConfigError(
+            f"{p}: session file not found (create one with `kinefuse init-session {p}`)"
+        )
+    try:
+        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p.name}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{p.name}: not a UTF-8 text file") from None
+    p = p.resolve()
+    c = _Ctx(p)
+    c.check_keys(doc, "top level", ("session", "imu", "skeleton", "camera", "reference", "method"))
+
+    s = c.table(doc, "session", required=True)
+    c.check_keys(s, "session", ("name", "out_dir"))
+    name = c.string(s, "session", "name")
+    out_raw = c.string(s, "session", "out_dir", required=False, default="results")
+    out_dir = Path(out_raw).expanduser()
+    out_dir = (out_dir if out_dir.is_absolute() else p.parent / out_dir).resolve()
+
+    t = c.table(doc, "imu", required=True)
+    c.check_keys(t, "imu", ("format", "path", "rate_hz", "segments"))
+    imu_path = c.file(t, "imu")
+    seg = t.get("segments")
+    if seg is None:
+        raise c.error(
+            "imu.segments",
+            None,
+            "section missing",
+            'add [imu.segments] with lines like forearm_r = "sensor name in the file"',
+        )
+    if not isinstance(seg, dict) or not seg:
+        raise c.error(
+            "imu.segments",
+            None,
+            "expected a non-empty table segment = sensor name",
+            'e.g. forearm_r = "IMU 2"',
+        )
+    segments = {}
+    for k, v in seg.items():
+        if k not in SEGMENTS:
+            close = difflib.get_close_matches(k, SEGMENTS, n=1)
+            fix = (
+                f"did you mean {close[0]!r}?" if close else f"expected one of {', '.join(SEGMENTS)}"
+            )
+            raise c.error("imu.segments", repr(k), "unknown segment", fix)
+        if not isinstance(v, str) or not v.strip():
+            raise c.error(
+                "imu.segments", k, f"expected the sensor name as a non-empty string, got {v!r}"
+            )
+        segments[k] = v.strip()
+    imu = ImuConfig(
+        format=c.string(t, "imu", "format"),
+        path=imu_path,
+        rate_hz=c.number(t, "imu", "rate_hz"),
+        segments=segments,
+    )
+
+    k = c.table(doc, "skeleton", required=True)
+    c.check_keys(k, "skeleton", ("body_height_m", "lengths"))
+    height = c.number(k, "skeleton", "body_height_m")
+    if height is not None and not (0.5 <= height <= 2.8):
+        raise c.error(
+            "skeleton",
+            "body_height_m",
+            f"{height} m is not a plausible body height",
+            "give it in metres, e.g. 1.75",
+        )
+    lengths: dict[str, float] = {}
+    raw_lengths = k.get("lengths", {})
+    if not isinstance(raw_lengths, dict):
+        raise c.error(
+            "skeleton.lengths",
+            None,
+            "expected a table segment = length in m",
+            "e.g. [skeleton.lengths] forearm_r = 0.26",
+        )
+    for seg_name in raw_lengths:
+        if seg_name not in SEGMENTS:
+            close = difflib.get_close_matches(seg_name, SEGMENTS, n=1)
+            fix = (
+                f"did you mean {close[0]!r}?" if close else f"expected one of {', '.join(SEGMENTS)}"
+            )
+            raise c.error("skeleton.lengths", repr(seg_name), "unknown segment", fix)
+        val = c.number(raw_lengths, "skeleton.lengths", seg_name, required=True)
+        if val > 1.5:
+            raise c.error(
+                "skeleton.lengths",
+                seg_name,
+                f"{val} m is not a plausible segment length",
+                "lengths are in metres",
+            )
+        lengths[seg_name] = val
+    if height is None and not lengths:
+        raise c.error(
+            "skeleton",
+            None,
+            "needs body_height_m or [skeleton.lengths]",
+            "add e.g. body_height_m = 1.75",
+        )
+    skeleton = SkeletonConfig(body_height_m=height, lengths_m=lengths)
+
+    camera = None
+    cam = c.table(doc, "camera", required=False)
+    if cam is not None:
+        c.check_keys(cam, "camera", ("format", "path", "availability_threshold"))
+        camera = CameraConfig(
+            format=c.string(cam, "camera", "format"),
+            path=c.file(cam, "camera"),
+            availability_threshold=c.number(
+                cam, "camera", "availability_threshold", positive=False, minimum=0.0
+            ),
+        )
+
+    reference = None
+    ref = c.table(doc, "reference", required=False)
+    if ref is not None:
+        c.check_keys(ref, "reference", ("format", "path"))
+        reference = ReferenceConfig(
+            format=c.string(ref, "reference", "format"), path=c.file(ref, "reference")
+        )
+
+    m = c.table(doc, "method", required=True)
+    c.check_keys(m, "method", ("name", "parameters"))
+    mname = c.string(m, "method", "name")
+    if mname not in METHODS:
+        close = difflib.get_close_matches(mname, METHODS, n=1)
+        fix = f"did you mean {close[0]!r}?" if close else f"expected one of {', '.join(METHODS)}"
+        raise c.error("method", "name", f"unknown method {mname!r}", fix)
+    if mname in CAMERA_METHODS and camera is None:
+        raise c.error(
+            "method",
+            "name",
+            f"method {mname!r} needs a camera",
+            "add a [camera] section or choose 'imu-only' / 'paper-a'",
+        )
+    params = m.get("parameters", {})
+    if not isinstance(params, dict):
+        raise c.error("method", "parameters", "expected a table", "write it as [method.parameters]")
+    method = MethodConfig(name=mname, parameters=dict(params))
+
+    return SessionConfig(
+        path=p,
+        name=name,
+        out_dir=out_dir,
+        imu=imu,
+        skeleton=skeleton,
+        camera=camera,
+        reference=reference,
+        method=method,
+    )
+
+
+_TEMPLATE = """\
+# kinefuse session file. Edit the paths and settings, then run:
+#     kinefuse run {filename}
+# Relative paths are resolved against the folder of this file. Units are SI (m, s, Hz).
+
+[session]
+name = "{name}"                  # shown in reports
+out_dir = "results/{name}"       # output folder; kinefuse refuses to overwrite a report without --force
+
+[imu]
+format = "csv"                   # reader of the IMU file (see kinefuse.io for the formats)
+path = "data/imu.csv"            # the IMU recording
+rate_hz = 100.0                  # only used when the file has no time stamps; delete otherwise
+
+[imu.segments]
+# canonical segment = sensor name as written in the file
+# segments: chest, pelvis, upper_arm_l/_r, forearm_l/_r, thigh_l/_r, shank_l/_r, foot_l/_r
+upper_arm_r = "IMU 1"
+forearm_r = "IMU 2"
+
+[skeleton]
+body_height_m = 1.75             # anthropometric segment lengths from the body height...
+
+# [skeleton.lengths]             # ...or measured lengths in m (override the anthropometric ones)
+# upper_arm_r = 0.30
+# forearm_r = 0.26
+
+# Optional: a camera skeleton (Kinect, Azure Kinect, MediaPipe...). Needed by elm-fir, elm-kf
+# and camera-only; used by kinefuse when present.
+# [camera]
+# format = "kinect-csv"
+# path = "data/kinect.csv"
+# availability_threshold = 2     # tracker confidence below this = joint unavailable
+
+# Optional: ground truth (optical mocap) to evaluate against; enables the RMSE tables.
+# [reference]
+# format = "c3d"
+# path = "data/reference.c3d"
+
+[method]
+# paper-a     : EM-KF/FIR integrated filter, IMU only (Sun et al. 2024)
+# elm-fir     : ELM/FIR + camera, IMM fusion (Xu et al. 2023)
+# elm-kf      : the ELM/KF baseline of Xu et al. 2023
+# imu-only    : forward kinematics of the IMU chain, no filtering
+# camera-only : the camera skeleton alone
+# kinefuse    : kinefuse's recommended combination
+name = "paper-a"
+
+[method.parameters]
+# method-specific settings; leave empty for the defaults. Examples for paper-a:
+# q = 1.0          # process-noise scale (paper A elbow test 1)
+# r = 0.01         # measurement-noise variance, m^2
+"""
+
+
+def session_template(name: str = "my-session", filename: str = "session.toml") -> str:
+    """The commented session template written by ``kinefuse init-session``.
+
+    Parameters
+    ----------
+    name : str
+        Session name (also used for the default output folder).
+    filename : str
+        File name mentioned in the header comment.
+
+    Returns
+    -------
+    str
+        TOML text; it loads with :func:`load_session` once ``[imu] path`` exists.
+    """
+    safe = "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in name) or "session"
+    return _TEMPLATE.format(name=safe, filename=filename)

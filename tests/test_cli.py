@@ -1,0 +1,455 @@
+"""The command shell: help everywhere, exit codes, one-line errors, templates, overwrite protection."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from kinefuse import cli
+from kinefuse.exceptions import ConfigError
+from kinefuse.session import METHODS, load_session, session_template
+
+COMMANDS = ("demo", "run", "init-session", "evaluate", "experiment", "bench", "stream", "replay")
+
+runner = CliRunner()
+
+
+def _err(result) -> str:
+    try:
+        return result.stderr
+    except ValueError:  # older click: stderr mixed into output
+        return result.output
+
+
+def _assert_one_line_error(result, code: int, *needles: str) -> str:
+    err = _err(result)
+    assert result.exit_code == code, (result.exit_code, result.output, err)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err
+    assert lines[0].startswith("kinefuse: error: ")
+    assert "Traceback" not in result.output + err
+    for n in needles:
+        assert n in lines[0], (n, lines[0])
+    return lines[0]
+
+
+@pytest.mark.parametrize("args", [["--help"], ["-h"], *([c, "--help"] for c in COMMANDS)])
+def test_help_everywhere(args):
+    result = runner.invoke(cli.app, args)
+    assert result.exit_code == 0, result.output
+    assert "Usage" in result.output
+    assert "Exit codes" in result.output
+
+
+def test_no_arguments_shows_help():
+    result = runner.invoke(cli.app, [])
+    assert "demo" in result.output + _err(result)
+
+
+def test_version():
+    result = runner.invoke(cli.app, ["--version"])
+    assert result.exit_code == 0 and result.output.startswith("kinefuse ")
+
+
+def test_usage_error_exits_2():
+    assert runner.invoke(cli.app, ["demo", "--no-such-option"]).exit_code == 2
+    assert runner.invoke(cli.app, ["no-such-command"]).exit_code == 2
+    assert runner.invoke(cli.app, ["evaluate", "x.csv"]).exit_code == 2  # --method missing
+
+
+def test_missing_session_file_exits_2(tmp_path):
+    result = runner.invoke(cli.app, ["run", str(tmp_path / "nope.toml")])
+    _assert_one_line_error(result, 2, "nope.toml", "session file not found", "init-session")
+
+
+def test_invalid_session_exits_2_naming_key(tmp_path):
+    p = tmp_path / "session.toml"
+    p.write_text(session_template("x"), encoding="utf-8")
+    result = runner.invoke(cli.app, ["run", str(p)])
+    _assert_one_line_error(
+        result, 2, "session.toml: [imu] path: file 'data/imu.csv' not found", "TOML's folder"
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (
+            ["evaluate", "missing.c3d", "--method", "paper-a"],
+            "RECORDING missing.c3d: file not found",
+        ),
+        (["experiment", "paper-c"], "unknown experiment 'paper-c'"),
+        (
+            ["experiment", "paper-a", "--data", "no/such/dir"],
+            "--data no/such/dir: folder not found",
+        ),
+        (["replay", "missing.csv"], "RECORDING missing.csv: file not found"),
+    ],
+)
+def test_bad_input_exits_2_one_line(args, needle, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    _assert_one_line_error(runner.invoke(cli.app, args), 2, needle)
+
+
+def test_unknown_method_exits_2(tmp_path):
+    rec = tmp_path / "rec.csv"
+    rec.write_text("t\n0\n")
+    result = runner.invoke(cli.app, ["evaluate", str(rec), "--method", "paper-z"])
+    _assert_one_line_error(result, 2, "unknown method 'paper-z'", METHODS[0])
+
+
+# ------------------------------------------------------------------------------------------
+# back-ends: lazy import, errors mapped to exit codes
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def fake_backend(tmp_path, monkeypatch):
+    """Point `bench` at a module written on the fly; returns a function writing its body."""
+    monkeypatch.syspath_prepend(str(tmp_path))
+
+    def make(body: str, name: str = "kf_fake_backend") -> None:
+        (tmp_path / f"{name}.py").write_text(textwrap.dedent(body), encoding="utf-8")
+        sys.modules.pop(name, None)
+        monkeypatch.setitem(cli._BACKENDS, "bench", (name, "run_bench"))
+
+    yield make
+    sys.modules.pop("kf_fake_backend", None)
+
+
+def test_missing_backend_is_not_available_exit_1(monkeypatch):
+    monkeypatch.setitem(cli._BACKENDS, "bench", ("kinefuse.no_such_module", "run_bench"))
+    result = runner.invoke(cli.app, ["bench", "--quick"])
+    _assert_one_line_error(
+        result,
+        1,
+        "`kinefuse bench` is not available in this version",
+        "kinefuse.no_such_module.run_bench",
+    )
+
+
+def test_backend_missing_function_exit_1(fake_backend):
+    fake_backend("x = 1\n")
+    _assert_one_line_error(runner.invoke(cli.app, ["bench"]), 1, "not available in this version")
+
+
+def test_backend_missing_optional_dependency_exit_1(fake_backend):
+    fake_backend("import kf_optional_dependency_that_is_absent\n")
+    _assert_one_line_error(
+        runner.invoke(cli.app, ["bench"]),
+        1,
+        "needs the optional package 'kf_optional_dependency_that_is_absent'",
+    )
+
+
+def test_backend_input_error_exit_2_and_debug_traceback(fake_backend):
+    fake_backend(
+        """
+        from kinefuse.exceptions import FormatError
+        def run_bench(quick):
+            raise FormatError("rec.csv", "expected 7 columns, got 5", line=12)
+        """
+    )
+    _assert_one_line_error(
+        runner.invoke(cli.app, ["bench"]), 2, "rec.csv, line 12: expected 7 columns, got 5"
+    )
+    result = runner.invoke(cli.app, ["--debug", "bench"])
+    assert result.exit_code == 2
+    assert "Traceback" in _err(result) and "FormatError" in _err(result)
+
+
+def test_backend_crash_exit_1_without_traceback(fake_backend):
+    fake_backend(
+        """
+        def run_bench(quick):
+            raise RuntimeError("matrix not positive definite\\nsecond line")
+        """
+    )
+    _assert_one_line_error(
+        runner.invoke(cli.app, ["bench"]),
+        1,
+        "RuntimeError: matrix not positive definite second line",
+        "--debug",
+    )
+
+
+def test_backend_summary_json_quiet_and_target(fake_backend, tmp_path):
+    fake_backend(
+        """
+        def run_bench(quick):
+            return {"quick": quick, "speedup": 3.5, "passed": quick}
+        """
+    )
+    out = tmp_path / "bench.json"
+    result = runner.invoke(cli.app, ["bench", "--quick", "--quiet", "--json", str(out)])
+    assert result.exit_code == 0 and result.output == ""
+    assert json.loads(out.read_text()) == {"quick": True, "speedup": 3.5, "passed": True}
+    result = runner.invoke(cli.app, ["bench"])  # passed = False: target not met
+    _assert_one_line_error(result, 1, "target not met")
+    assert "speedup: 3.5" in result.stdout
+
+
+def test_json_to_missing_folder_exits_2(fake_backend, tmp_path):
+    fake_backend("def run_bench(quick):\n    return {}\n")
+    result = runner.invoke(cli.app, ["bench", "--json", str(tmp_path / "no" / "x.json")])
+    _assert_one_line_error(result, 2, "does not exist")
+
+
+def test_progress_helper():
+    seen = []
+    with cli.progress("work", total=3, quiet=True) as advance:
+        for _ in range(3):
+            seen.append(advance())
+    with cli.progress("work", total=2) as advance:
+        advance()
+        advance(1)
+    with cli.progress("spinner") as advance:
+        advance()
+    assert seen == [None, None, None]
+
+
+# ------------------------------------------------------------------------------------------
+# init-session and load_session
+# ------------------------------------------------------------------------------------------
+
+
+def test_init_session_template_loads_after_filling_paths(tmp_path):
+    target = tmp_path / "trial.toml"
+    result = runner.invoke(cli.app, ["init-session", str(target)])
+    assert result.exit_code == 0, result.output
+    assert "kinefuse run" in result.output
+    text = target.read_text(encoding="utf-8")
+    assert text.count("#") > 20  # commented
+    for section in (
+        "[session]",
+        "[imu]",
+        "[imu.segments]",
+        "[skeleton]",
+        "# [camera]",
+        "# [reference]",
+        "[method]",
+    ):
+        assert section in text
+    with pytest.raises(
+        ConfigError, match=r"trial\.toml: \[imu\] path: file 'data/imu.csv' not found"
+    ):
+        load_session(target)
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "imu.csv").write_text("t\n")
+    cfg = load_session(target)
+    assert cfg.name == "trial" and cfg.method.name == "paper-a"
+    assert cfg.imu.path == (tmp_path / "data" / "imu.csv").resolve()
+    assert cfg.imu.segments == {"upper_arm_r": "IMU 1", "forearm_r": "IMU 2"}
+    assert cfg.out_dir == (tmp_path / "results" / "trial").resolve()
+    assert cfg.skeleton.body_height_m == 1.75 and cfg.camera is None and cfg.reference is None
+
+
+def test_init_session_refuses_overwrite(tmp_path):
+    target = tmp_path / "session.toml"
+    target.write_text("keep me")
+    result = runner.invoke(cli.app, ["init-session", str(target)])
+    _assert_one_line_error(result, 2, str(target), "--force")
+    assert target.read_text() == "keep me"
+    assert runner.invoke(cli.app, ["init-session", str(target), "--force"]).exit_code == 0
+    assert "[session]" in target.read_text()
+
+
+def _session(
+    tmp_path: Path, extra: str = "", *, method: str = "imu-only", imu: str = "imu.csv"
+) -> Path:
+    (tmp_path / "imu.csv").write_text("t\n")
+    (tmp_path / "cam.csv").write_text("t\n")
+    p = tmp_path / "s.toml"
+    p.write_text(
+        textwrap.dedent(
+            f"""
+            [session]
+            name = "s"
+            [imu]
+            format = "csv"
+            path = "{imu}"
+            [imu.segments]
+            forearm_r = "A"
+            [skeleton]
+            body_height_m = 1.8
+            [method]
+            name = "{method}"
+            """
+        )
+        + textwrap.dedent(extra),
+        encoding="utf-8",
+    )
+    return p
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "extra", "message"),
+    [
+        (
+            {"imu": "x.csv"},
+            "",
+            "s.toml: [imu] path: file 'x.csv' not found (relative paths are resolved against the TOML's folder)",
+        ),
+        ({"method": "elm-fir"}, "", "s.toml: [method] name: method 'elm-fir' needs a camera"),
+        (
+            {"method": "paper-x"},
+            "",
+            "s.toml: [method] name: unknown method 'paper-x' (did you mean 'paper-a'?)",
+        ),
+        (
+            {},
+            "[camera]\nformat = 'kinect'\npath = 'cam.csv'\navailability_treshold = 2\n",
+            "[camera] availability_treshold: unknown key (did you mean 'availability_threshold'?)",
+        ),
+        ({}, "[camera]\npath = 'cam.csv'\n", "s.toml: [camera] format: missing"),
+        (
+            {},
+            "[reference]\nformat = 'c3d'\npath = 5\n",
+            "[reference] path: expected a non-empty string, got 5",
+        ),
+    ],
+)
+def test_load_session_errors_name_key_and_fix(tmp_path, kwargs, extra, message):
+    p = _session(tmp_path, extra, **kwargs)
+    with pytest.raises(ConfigError) as info:
+        load_session(p)
+    assert message in str(info.value)
+
+
+def test_load_session_more_errors(tmp_path):
+    p = _session(tmp_path)
+    text = p.read_text()
+    p.write_text(text.replace('forearm_r = "A"', 'forarm_r = "A"'))
+    with pytest.raises(
+        ConfigError,
+        match=r"\[imu.segments\] 'forarm_r': unknown segment \(did you mean 'forearm_r'\?\)",
+    ):
+        load_session(p)
+    p.write_text(text.replace("body_height_m = 1.8", "body_height_m = 180"))
+    with pytest.raises(ConfigError, match="not a plausible body height"):
+        load_session(p)
+    p.write_text(text.replace("body_height_m = 1.8", 'body_height_m = "1.8"'))
+    with pytest.raises(ConfigError, match="expected a number"):
+        load_session(p)
+    p.write_text(text + "\n[method\n")
+    with pytest.raises(ConfigError, match="s.toml: not valid TOML"):
+        load_session(p)
+    p.write_text(text.replace("[skeleton]\nbody_height_m = 1.8\n", ""))
+    with pytest.raises(ConfigError, match=r"\[skeleton\]: section missing"):
+        load_session(p)
+
+
+def test_load_session_full(tmp_path):
+    extra = """
+    [skeleton.lengths]
+    forearm_r = 0.26
+    [camera]
+    format = "kinect"
+    path = "cam.csv"
+    availability_threshold = 2
+    [reference]
+    format = "csv"
+    path = "cam.csv"
+    [method.parameters]
+    q = 0.1
+    """
+    p = _session(tmp_path, method="elm-fir")
+    p.write_text(
+        p.read_text().replace('[method]\nname = "elm-fir"\n', "")
+        + textwrap.dedent(extra)
+        + '[method]\nname = "elm-fir"\n'
+    )
+    cfg = load_session(p)
+    assert (
+        cfg.camera.availability_threshold == 2.0
+        and cfg.camera.path == (tmp_path / "cam.csv").resolve()
+    )
+    assert cfg.skeleton.lengths_m == {"forearm_r": 0.26} and cfg.reference.format == "csv"
+    assert cfg.method.name == "elm-fir"
+
+
+# ------------------------------------------------------------------------------------------
+# demo and output-overwrite protection
+# ------------------------------------------------------------------------------------------
+
+
+def test_demo_writes_report_and_protects_it(tmp_path):
+    out = tmp_path / "demo"
+    summary = tmp_path / "summary.json"
+    result = runner.invoke(cli.app, ["demo", "--out", str(out), "--quiet", "--json", str(summary)])
+    assert result.exit_code == 0, (result.output, _err(result))
+    report = out / "report.html"
+    assert report.is_file() and report.stat().st_size > 10_000
+    data = json.loads(summary.read_text())
+    assert data["evaluation"]["joints"] and Path(data["report"]) == report
+    before = report.stat().st_mtime_ns
+    result = runner.invoke(cli.app, ["demo", "--out", str(out)])
+    _assert_one_line_error(result, 2, str(report), "--force")
+    assert report.stat().st_mtime_ns == before
+
+
+def test_run_refuses_existing_report_before_running(tmp_path, monkeypatch):
+    p = _session(tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "report.html").write_text("old")
+    monkeypatch.setitem(cli._BACKENDS, "run", ("kinefuse.no_such_module", "run_session"))
+    _assert_one_line_error(
+        runner.invoke(cli.app, ["run", str(p), "--out", str(out)]), 2, "report.html already exists"
+    )
+    # with --force it gets as far as the (missing) back-end
+    _assert_one_line_error(
+        runner.invoke(cli.app, ["run", str(p), "--out", str(out), "--force"]), 1, "not available"
+    )
+
+
+def test_demo_default_folder_never_overwrites(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "kinefuse-demo").mkdir()
+    (tmp_path / "kinefuse-demo" / "report.html").write_text("old")
+    assert cli._fresh_dir("kinefuse-demo") == Path("kinefuse-demo-2")
+
+
+# ------------------------------------------------------------------------------------------
+# the real console script and python -m
+# ------------------------------------------------------------------------------------------
+
+
+def _console_script() -> list[str]:
+    exe = Path(sys.executable).parent / "kinefuse"
+    if exe.is_file():
+        return [str(exe)]
+    found = shutil.which("kinefuse")
+    return [found] if found else [sys.executable, "-m", "kinefuse"]
+
+
+def test_console_script_bad_input_subprocess(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "KINEFUSE_DEBUG"}
+    r = subprocess.run(
+        [*_console_script(), "run", str(tmp_path / "missing.toml")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert (
+        len(lines) == 1 and lines[0].startswith("kinefuse: error: ") and "missing.toml" in lines[0]
+    )
+    assert "Traceback" not in r.stderr + r.stdout
+
+
+def test_python_dash_m(tmp_path):
+    r = subprocess.run(
+        [sys.executable, "-m", "kinefuse", "--version"], capture_output=True, text=True, timeout=120
+    )
+    assert r.returncode == 0 and r.stdout.startswith("kinefuse ")
