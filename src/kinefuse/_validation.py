@@ -9,7 +9,9 @@ import numpy as np
 from kinefuse.exceptions import InputError
 
 
-def as_float_array(value, name: str, *, ndim_min: int = 0, last_dim: int | None = None) -> np.ndarray:
+def as_float_array(
+    value, name: str, *, ndim_min: int = 0, last_dim: int | None = None
+) -> np.ndarray:
     """Return ``value`` as a C-contiguous float64 array, refusing non-float dtypes.
 
     Integer, boolean and object arrays are refused rather than silently cast: an integer
@@ -25,7 +27,9 @@ def as_float_array(value, name: str, *, ndim_min: int = 0, last_dim: int | None 
         )
     if arr.ndim < ndim_min:
         shape = "(..., " + ", ".join(["T", "d"][-ndim_min:]) + ")" if ndim_min else "an array"
-        raise InputError(f"expected {name} with at least {ndim_min} dimensions {shape}, got shape {arr.shape}")
+        raise InputError(
+            f"expected {name} with at least {ndim_min} dimensions {shape}, got shape {arr.shape}"
+        )
     if last_dim is not None and (arr.ndim == 0 or arr.shape[-1] != last_dim):
         raise InputError(f"expected {name} with shape (..., {last_dim}), got {arr.shape}")
     return np.ascontiguousarray(arr, dtype=np.float64)
@@ -46,18 +50,26 @@ def psd_matrix(value, name: str, n: int, *, strict: bool = False) -> np.ndarray:
     """Return ``value`` as an ``(n, n)`` symmetric positive (semi-)definite float matrix."""
     m = np.asarray(value, dtype=float) if not isinstance(value, np.ndarray) else value
     if m.dtype == object or not np.issubdtype(np.asarray(m).dtype, np.number):
-        raise InputError(f"expected {name} as a numeric ({n}, {n}) matrix, got dtype {np.asarray(m).dtype}")
+        raise InputError(
+            f"expected {name} as a numeric ({n}, {n}) matrix, got dtype {np.asarray(m).dtype}"
+        )
     m = np.asarray(m, dtype=float)
     if m.shape != (n, n):
         raise InputError(f"expected {name} with shape ({n}, {n}), got {m.shape}")
     if not np.all(np.isfinite(m)):
         raise InputError(f"expected {name} finite, got non-finite entries")
     if not np.allclose(m, m.T, rtol=1e-10, atol=1e-14 * max(1.0, float(np.abs(m).max()))):
-        raise InputError(f"expected {name} symmetric, got max |{name} - {name}.T| = {np.abs(m - m.T).max():.3g}")
+        raise InputError(
+            f"expected {name} symmetric, got max |{name} - {name}.T| = {np.abs(m - m.T).max():.3g}"
+        )
     eig_min = float(np.linalg.eigvalsh(m).min())
     tol = 1e-12 * max(1.0, float(np.abs(m).max()))
     if strict and eig_min <= 0.0:
-        raise InputError(f"expected {name} positive definite, got smallest eigenvalue {eig_min:.3g}")
+        raise InputError(
+            f"expected {name} positive definite, got smallest eigenvalue {eig_min:.3g}"
+        )
     if eig_min < -tol:
-        raise InputError(f"expected {name} positive semi-definite, got smallest eigenvalue {eig_min:.3g}")
+        raise InputError(
+            f"expected {name} positive semi-definite, got smallest eigenvalue {eig_min:.3g}"
+        )
     return m

@@ -101,7 +101,9 @@ def check_step_measurement(z, n_z: int, batch_shape: tuple[int, ...]) -> np.ndar
     """Validate one time slice ``(..., n_z)`` against the state's batch shape."""
     arr = as_float_array(z, "z")
     if arr.shape != (*batch_shape, n_z):
-        raise InputError(f"expected z with shape {(*batch_shape, n_z)} (batch_shape + (n_z,)), got {arr.shape}")
+        raise InputError(
+            f"expected z with shape {(*batch_shape, n_z)} (batch_shape + (n_z,)), got {arr.shape}"
+        )
     if np.any(np.isinf(arr)):
         raise InputError("expected z finite or NaN (missing), got ±inf")
     return arr
@@ -159,14 +161,18 @@ def make_initial_state(model, batch_shape=(), mean=None, cov=None) -> GaussianSt
     try:
         x = np.array(np.broadcast_to(m, (*batch_shape, n_x)))
     except ValueError:
-        raise InputError(f"expected mean broadcastable to {(*batch_shape, n_x)}, got {m.shape}") from None
+        raise InputError(
+            f"expected mean broadcastable to {(*batch_shape, n_x)}, got {m.shape}"
+        ) from None
     if not np.all(np.isfinite(x)):
         raise InputError("expected a finite initial mean")
     c = initial_covariance(model) if cov is None else as_float_array(cov, "cov")
     try:
         P = np.array(np.broadcast_to(c, (*batch_shape, n_x, n_x)))
     except ValueError:
-        raise InputError(f"expected cov broadcastable to {(*batch_shape, n_x, n_x)}, got {c.shape}") from None
+        raise InputError(
+            f"expected cov broadcastable to {(*batch_shape, n_x, n_x)}, got {c.shape}"
+        ) from None
     if not np.all(np.isfinite(P)):
         raise InputError("expected a finite initial cov")
     return GaussianState(x, P, np.ones(batch_shape, dtype=bool), 0)

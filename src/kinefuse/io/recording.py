@@ -75,8 +75,15 @@ class ImuStream:
         where = f"IMU stream {self.name!r}" if self.name else "IMU stream"
         t = _time_vector(self.t_s, where)
         object.__setattr__(self, "t_s", t)
-        for fname, tail in (("q_world_from_sensor", (4,)), ("acc_m_s2", (3,)), ("gyr_rad_s", (3,)), ("mag", (3,))):
-            object.__setattr__(self, fname, _signal(getattr(self, fname), where, fname, tail, t.size))
+        for fname, tail in (
+            ("q_world_from_sensor", (4,)),
+            ("acc_m_s2", (3,)),
+            ("gyr_rad_s", (3,)),
+            ("mag", (3,)),
+        ):
+            object.__setattr__(
+                self, fname, _signal(getattr(self, fname), where, fname, tail, t.size)
+            )
         if self.q_world_from_sensor is None and (self.acc_m_s2 is None or self.gyr_rad_s is None):
             raise InputError(
                 f"{where}: expected an orientation (q_world_from_sensor) or raw data (acc_m_s2 and "
@@ -120,14 +127,21 @@ class JointStream:
     def __post_init__(self):
         t = _time_vector(self.t_s, "joint stream")
         pos = np.asarray(self.position_m)
-        if not np.issubdtype(pos.dtype, np.floating) or pos.ndim != 3 or pos.shape[0] != t.size or pos.shape[2] != 3:
+        if (
+            not np.issubdtype(pos.dtype, np.floating)
+            or pos.ndim != 3
+            or pos.shape[0] != t.size
+            or pos.shape[2] != 3
+        ):
             raise InputError(
                 f"joint stream: expected position_m as floats with shape (T, J, 3) = ({t.size}, J, 3), "
                 f"got {pos.shape} {pos.dtype}"
             )
         joints = tuple(self.joints)
         if len(joints) != pos.shape[1]:
-            raise InputError(f"joint stream: expected {pos.shape[1]} joint names, got {len(joints)}")
+            raise InputError(
+                f"joint stream: expected {pos.shape[1]} joint names, got {len(joints)}"
+            )
         if len(set(joints)) != len(joints):
             raise InputError(f"joint stream: duplicate joint names in {joints}")
         finite = np.all(np.isfinite(pos), axis=-1)
@@ -136,7 +150,9 @@ class JointStream:
         else:
             avail = np.asarray(self.available)
             if avail.shape != pos.shape[:2]:
-                raise InputError(f"joint stream: expected available with shape {pos.shape[:2]}, got {avail.shape}")
+                raise InputError(
+                    f"joint stream: expected available with shape {pos.shape[:2]}, got {avail.shape}"
+                )
             avail = avail.astype(bool) & finite
         object.__setattr__(self, "t_s", t)
         object.__setattr__(self, "position_m", np.asarray(pos, dtype=np.float64))
@@ -148,7 +164,9 @@ class JointStream:
         try:
             return self.joints.index(joint)
         except ValueError:
-            raise InputError(f"unknown joint {joint!r}; this stream has {list(self.joints)}") from None
+            raise InputError(
+                f"unknown joint {joint!r}; this stream has {list(self.joints)}"
+            ) from None
 
     def position(self, joint: str, *, masked: bool = True) -> np.ndarray:
         """Positions ``(T, 3)`` of one joint; NaN where unavailable when ``masked``."""
@@ -161,7 +179,12 @@ class JointStream:
     def subset(self, joints: Sequence[str]) -> JointStream:
         """A stream with only ``joints`` (in that order)."""
         idx = [self.index(j) for j in joints]
-        return replace(self, position_m=self.position_m[:, idx], available=self.available[:, idx], joints=tuple(joints))
+        return replace(
+            self,
+            position_m=self.position_m[:, idx],
+            available=self.available[:, idx],
+            joints=tuple(joints),
+        )
 
     def __len__(self) -> int:
         return int(self.t_s.size)
@@ -194,7 +217,9 @@ class Recording:
 
     def __post_init__(self):
         if not isinstance(self.imu, Mapping):
-            raise InputError(f"expected imu as a mapping segment -> ImuStream, got {type(self.imu).__name__}")
+            raise InputError(
+                f"expected imu as a mapping segment -> ImuStream, got {type(self.imu).__name__}"
+            )
         for k, v in self.imu.items():
             if not isinstance(v, ImuStream):
                 raise InputError(f"imu[{k!r}]: expected ImuStream, got {type(v).__name__}")

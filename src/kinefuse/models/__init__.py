@@ -143,7 +143,11 @@ def constant_velocity(dt_s: float, q, r, n_axes: int = 3) -> LinearGaussianModel
         raise InputError(f"expected q as a number >= 0, got {q!r}") from None
     if not np.isfinite(q) or q < 0:
         raise InputError(f"expected q finite and >= 0, got {q!r}")
-    r_arr = np.asarray(r, dtype=float) if np.isscalar(r) or isinstance(r, (list, tuple, np.ndarray)) else None
+    r_arr = (
+        np.asarray(r, dtype=float)
+        if np.isscalar(r) or isinstance(r, (list, tuple, np.ndarray))
+        else None
+    )
     if r_arr is None:
         raise InputError(f"expected r as a number or an ({n_axes}, {n_axes}) matrix, got {r!r}")
     if r_arr.ndim == 0:

@@ -1,0 +1,59 @@
+"""Readers and writers of real recording formats, one :class:`Recording` container, alignment.
+
+Entry point: :func:`load` (format detected from content, extension and folder layout; see
+:data:`FORMATS` and ``docs/formats.md``). Reader and writer functions are re-exported lazily,
+so ``import kinefuse.io`` stays cheap and optional dependencies (``ezc3d``) are imported only
+when used.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from kinefuse.io._registry import FORMATS, detect_format, load
+from kinefuse.io.recording import ImuStream, JointStream, Recording
+
+_LAZY = {
+    "read_utd_mhad": "utd_mhad",
+    "read_opensense": "opensense",
+    "read_qmt": "qmt",
+    "read_ximu3": "ximu3",
+    "read_broad": "broad",
+    "read_c3d": "c3d",
+    "read_trc": "trc",
+    "write_trc": "trc",
+    "read_kinect_v2_csv": "kinect",
+    "read_azure_kinect_json": "kinect",
+    "read_mediapipe": "mediapipe",
+    "read_generic_csv": "generic_csv",
+    "read_imu_csv": "generic_csv",
+    "read_joint_csv": "generic_csv",
+    "write_imu_csv": "generic_csv",
+    "write_joint_csv": "generic_csv",
+    "resample_orientation": "align",
+    "resample_positions": "align",
+    "resample_recording": "align",
+    "common_timeline": "align",
+    "estimate_clock_offset": "align",
+    "ClockOffset": "align",
+    "check_units": "_common",
+    # other engineers' readers (resolved when their modules are present)
+    "read_neura": "neura",
+    "read_asf_amc": "cmu",
+    "read_bvh": "bvh",
+}
+
+__all__ = ["FORMATS", "ImuStream", "JointStream", "Recording", "detect_format", "load", *_LAZY]
+
+
+def __getattr__(name: str):
+    mod = _LAZY.get(name)
+    if mod is None:
+        raise AttributeError(f"module 'kinefuse.io' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"kinefuse.io.{mod}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

@@ -1,0 +1,254 @@
+"""Xsens MT Manager text exports (as shipped with the OpenSim OpenSense example).
+
+One tab-separated file per sensor, ``//`` header lines (``Update Rate: 100.0Hz``), then columns
+``PacketCounter``, ``SampleTimeFine``, ..., ``Acc_X..Z`` (m/s²), optionally ``Gyr_X..Z`` (rad/s),
+``Mag_X..Z`` (a.u.), and the orientation either as ``Mat[1][1] ... Mat[3][3]`` (matrix listed
+column by column) or as ``Quat_q0..q3`` (wxyz).
+"""
+
+from __future__ import annotations
+
+import re
+import xml.etree.ElementTree as ET
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from kinefuse.exceptions import FormatError
+from kinefuse.io._common import (
+    Table,
+    canonical_segment,
+    check_time,
+    check_units,
+    make_metadata,
+    map_segments,
+    read_table,
+)
+from kinefuse.io.recording import ImuStream, Recording
+
+__all__ = ["OPENSENSE_EXAMPLE_SENSORS", "XSENS_FRAME", "read_opensense", "read_xsens_txt"]
+
+#: Sensor id -> segment of the OpenSense example (from ``myIMUMappings.xml`` in opensim-core).
+OPENSENSE_EXAMPLE_SENSORS = {
+    "00B42268": "chest",  # torso
+    "00B42279": "pelvis",
+    "00B4227C": "thigh_r",  # femur_r
+    "00B4227D": "shank_r",  # tibia_r
+    "00B421EE": "thigh_l",
+    "00B421ED": "shank_l",
+    "00B421EF": "foot_r",  # calcn_r
+    "00B421E6": "foot_l",
+}
+#: World frame label of Xsens orientations: z up (verified: R @ acc = +g z at rest); the
+#: horizontal axes follow the MT Manager setting (ENU by default in MT Manager 4.x, NWU in older
+#: versions) and cannot be verified without a magnetometer column.
+XSENS_FRAME = "xsens_global_z_up"
+
+_MAT_COLS = [f"Mat[{r}][{c}]" for c in (1, 2, 3) for r in (1, 2, 3)]
+_RATE = re.compile(r"update\s*rate\s*:\s*([0-9.]+)\s*hz", re.IGNORECASE)
+_COUNTER_WRAP = 65536
+
+
+def _is_xsens(path: Path) -> bool:
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            head = fh.read(4096)
+    except OSError:
+        return False
+    return "PacketCounter" in head and ("Mat[1][1]" in head or "Quat_q0" in head or "Acc_X" in head)
+
+
+def _sensor_id(path: Path) -> str:
+    return path.stem.split("_")[-1]
+
+
+def read_xsens_txt(path, *, rate_hz: float | None = None) -> dict:
+    """Parse one Xsens text export into arrays (no time origin, no mapping).
+
+    Returns
+    -------
+    dict
+        ``counter`` (N,) unwrapped packet counter, ``rate_hz``, ``acc`` (N, 3) m/s² or None,
+        ``gyr`` (N, 3) rad/s or None, ``mag`` (N, 3) or None, ``q`` (N, 4) wxyz sensor -> Xsens
+        global, or None; ``lines`` (N,) file line numbers.
+    """
+    path = Path(path)
+    tab: Table = read_table(path, delimiter="\t", comment_prefixes=("//",))
+    rate = rate_hz
+    if rate is None:
+        for c in tab.comments:
+            m = _RATE.search(c)
+            if m:
+                rate = float(m.group(1))
+        if rate is None:
+            raise FormatError(
+                path, "missing '// Update Rate: <x>Hz' header line; pass rate_hz=", line=1
+            )
+    counter = tab.floats("PacketCounter", allow_empty=False)
+    d = np.diff(counter)
+    wraps = np.concatenate([[0], np.cumsum(d < -_COUNTER_WRAP // 2)])
+    counter = counter + _COUNTER_WRAP * wraps
+    check_time(path, counter, tab.lines, "PacketCounter")
+
+    def group(names):
+        present = [tab.has(n) for n in names]
+        if not any(present):
+            return None
+        if not all(present):
+            missing = [n for n, p in zip(names, present, strict=True) if not p]
+            raise FormatError(
+                path,
+                f"missing column {missing[0]!r} (found {names[0]!r})",
+                line=tab.header_line,
+                field=missing[0],
+            )
+        return np.stack([tab.floats(n) for n in names], axis=1)
+
+    acc = group(["Acc_X", "Acc_Y", "Acc_Z"])
+    gyr = group(["Gyr_X", "Gyr_Y", "Gyr_Z"])
+    mag = group(["Mag_X", "Mag_Y", "Mag_Z"])
+    q = None
+    mat = group(_MAT_COLS)
+    if mat is not None:
+        R = mat.reshape(-1, 3, 3).transpose(0, 2, 1)  # listed column by column -> R[n][row][col]
+        q = np.full((R.shape[0], 4), np.nan)
+        ok = np.all(np.isfinite(mat), axis=1)
+        if np.any(ok):
+            dev = np.abs(R[ok] @ R[ok].transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+            if np.any(dev > 1e-2):
+                i = int(np.flatnonzero(ok)[int(np.argmax(dev))])
+                raise FormatError(
+                    path,
+                    f"expected an orthonormal orientation matrix, found |R R^T - I| = {dev.max():.3g}",
+                    line=int(tab.lines[i]),
+                    field="Mat[1][1]",
+                )
+            q[ok] = Rotation.from_matrix(R[ok]).as_quat(scalar_first=True)
+    else:
+        q = group(["Quat_q0", "Quat_q1", "Quat_q2", "Quat_q3"])
+    if q is None and (acc is None or gyr is None):
+        raise FormatError(
+            path,
+            "expected an orientation (Mat[i][j] or Quat_q0..3) or both Acc_X..Z and Gyr_X..Z columns, found neither",
+            line=tab.header_line,
+        )
+    return {
+        "counter": counter,
+        "rate_hz": rate,
+        "acc": acc,
+        "gyr": gyr,
+        "mag": mag,
+        "q": q,
+        "lines": tab.lines,
+    }
+
+
+def _xml_mapping(folder: Path) -> dict[str, str]:
+    """Sensor id -> OpenSim body name from an OpenSense ``*Mappings*.xml`` file, if present."""
+    out: dict[str, str] = {}
+    for xml in sorted(folder.glob("*.xml")):
+        try:
+            root = ET.parse(xml).getroot()
+        except ET.ParseError:
+            continue
+        for el in root.iter("ExperimentalSensor"):
+            name = (el.get("name") or "").lstrip("_")
+            model = el.findtext("name_in_model") or ""
+            if name and model:
+                out[name] = re.sub(r"_imu$", "", model.strip())
+    return out
+
+
+def read_opensense(
+    path, *, sensor_map: Mapping[str, str] | None = None, rate_hz: float | None = None
+) -> Recording:
+    """Read Xsens MT Manager exports: one ``.txt`` file or a folder of them (one per sensor).
+
+    Parameters
+    ----------
+    path : str or Path
+        A ``MT_<...>_<sensorID>.txt`` file or a folder of such files.
+    sensor_map : mapping or None
+        Sensor id (file-name suffix, e.g. ``00B4227C``) -> segment key or OpenSim body name
+        (``femur_r``). Default: an OpenSense ``*.xml`` mapping file in the folder if there is
+        one, else :data:`OPENSENSE_EXAMPLE_SENSORS` for the ids it knows; unknown ids keep
+        their own name.
+    rate_hz : float or None
+        Sampling rate; default from the ``// Update Rate`` header line.
+
+    Returns
+    -------
+    Recording
+        ``imu[key]``: ``q_world_from_sensor`` (N, 4) wxyz from the orientation matrix (via
+        :class:`scipy.spatial.transform.Rotation`), frame :data:`XSENS_FRAME`; ``acc_m_s2``
+        (N, 3); ``gyr_rad_s``/``mag`` when the export has them. Times
+        ``t = (PacketCounter - c0) / rate`` with ``c0`` the smallest first counter over all
+        sensors, so sensors stay aligned by packet counter (they start at different counters).
+
+    Raises
+    ------
+    FormatError
+        Missing columns, truncated lines, non-numeric fields, non-monotonic counters,
+        non-orthonormal matrices; a folder without Xsens files.
+    """
+    path = Path(path)
+    if path.is_dir():
+        files = sorted(p for p in path.glob("*.txt") if _is_xsens(p))
+        if not files:
+            raise FormatError(
+                path,
+                "expected Xsens MT Manager .txt exports (with a PacketCounter column), found none",
+            )
+        folder = path
+    else:
+        files = [path]
+        folder = path.parent
+    parsed = {_sensor_id(f): (f, read_xsens_txt(f, rate_hz=rate_hz)) for f in files}
+    xml_map = _xml_mapping(folder)
+    overrides = {}
+    for sid in parsed:
+        target = None
+        if sensor_map is not None and sid in sensor_map:
+            target = sensor_map[sid]
+        elif sensor_map is None and sid in xml_map:
+            target = xml_map[sid]
+        elif sensor_map is None and sid in OPENSENSE_EXAMPLE_SENSORS:
+            target = OPENSENSE_EXAMPLE_SENSORS[sid]
+        if target is not None:
+            overrides[sid] = canonical_segment(target) or target
+    mapping, notes = map_segments(list(parsed), overrides)
+    c0 = min(p["counter"][0] for _, p in parsed.values())
+    rates = {p["rate_hz"] for _, p in parsed.values()}
+    if len(rates) > 1:
+        notes.append(f"sensors report different update rates {sorted(rates)}")
+    imu = {}
+    for sid, (_f, p) in parsed.items():
+        t = (p["counter"] - c0) / p["rate_hz"]
+        imu[mapping[sid]] = ImuStream(
+            t_s=t,
+            q_world_from_sensor=p["q"],
+            acc_m_s2=p["acc"],
+            gyr_rad_s=p["gyr"],
+            mag=p["mag"],
+            name=sid,
+            frame=XSENS_FRAME,
+        )
+    md = make_metadata(
+        path,
+        "opensense",
+        subject=None,
+        units_converted=["orientation matrix -> quaternion wxyz"],
+        segment_map=mapping,
+        files=[str(f) for f, _ in parsed.values()],
+        packet_counter_origin=int(c0),
+        frame_notes=(
+            "orientation frame: Xsens global, z up (R @ acc = +g z at rest); heading axes as set in MT Manager "
+            "(ENU default in 4.x), not converted"
+        ),
+        notes=notes,
+    )
+    rec = Recording(imu=imu, metadata=md)
+    check_units(rec, where=str(path))
+    return rec

@@ -1,0 +1,256 @@
+"""TRC (OpenSim / Motion Analysis track row column) marker files: read and write.
+
+Layout (tab-separated)::
+
+    PathFileType  4  (X/Y/Z)  <file name>
+    DataRate  CameraRate  NumFrames  NumMarkers  Units  OrigDataRate  OrigDataStartFrame  OrigNumFrames
+    100.0     100.0       955        3           m      100.0         1                   955
+    Frame#  Time  elbow_r          wrist_r          ...
+                  X1   Y1   Z1     X2   Y2   Z2
+    1       0.00  ...
+
+Missing markers are empty fields.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from kinefuse.exceptions import FormatError, InputError
+from kinefuse.io._common import (
+    _read_text,
+    check_time,
+    check_units,
+    fmt_float,
+    make_metadata,
+    map_joints,
+    write_text_safely,
+)
+from kinefuse.io.recording import JointStream, Recording
+
+__all__ = ["read_trc", "write_trc"]
+
+_TO_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "meters": 1.0, "millimeters": 1e-3}
+_HEADER_KEYS = ("DataRate", "CameraRate", "NumFrames", "NumMarkers", "Units")
+
+
+def read_trc(path, *, role: str = "reference", map_names: bool = True) -> Recording:
+    """Read a TRC marker file.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.trc`` file.
+    role : {"reference", "vision"}
+        Where the markers go in the Recording.
+    map_names : bool
+        Map marker names that name a joint to canonical joint names (``metadata["joint_map"]``);
+        others are kept.
+
+    Returns
+    -------
+    Recording
+        ``reference`` (or ``vision``): positions (T, M, 3) in m (converted from the header's
+        ``Units``), frame ``"trc_lab"``, times from the ``Time`` column; ``available`` = all
+        three coordinates present.
+
+    Raises
+    ------
+    FormatError
+        Missing header keys, unknown units, wrong field counts, fewer rows than ``NumFrames``
+        (truncated), non-numeric fields, non-monotonic time.
+    """
+    path = Path(path)
+    if role not in ("reference", "vision"):
+        raise InputError(f"expected role 'reference' or 'vision', got {role!r}")
+    lines = _read_text(path).splitlines()
+    if len(lines) < 5:
+        raise FormatError(
+            path,
+            f"expected at least 5 header lines (PathFileType, keys, values, names, XYZ), found {len(lines)}",
+        )
+    if not lines[0].startswith("PathFileType"):
+        raise FormatError(
+            path, f"expected 'PathFileType' on the first line, found {lines[0][:40]!r}", line=1
+        )
+    keys = [k.strip() for k in lines[1].split("\t")]
+    vals = [v.strip() for v in lines[2].split("\t")]
+    hdr = dict(zip(keys, vals, strict=False))
+    for k in _HEADER_KEYS:
+        if k not in hdr or not hdr[k]:
+            raise FormatError(path, f"missing header key {k!r}; found keys {keys}", line=2, field=k)
+    try:
+        rate = float(hdr["DataRate"])
+        n_frames = int(float(hdr["NumFrames"]))
+        n_markers = int(float(hdr["NumMarkers"]))
+    except ValueError:
+        raise FormatError(
+            path, f"expected numbers for DataRate/NumFrames/NumMarkers, found {vals}", line=3
+        ) from None
+    unit = hdr["Units"]
+    factor = _TO_M.get(unit.lower())
+    if factor is None:
+        raise FormatError(
+            path, f"expected Units one of {sorted(_TO_M)}, found {unit!r}", line=3, field="Units"
+        )
+    names_f = lines[3].split("\t")
+    if len(names_f) < 2 or names_f[0].strip() != "Frame#" or names_f[1].strip() != "Time":
+        raise FormatError(
+            path, f"expected 'Frame#<tab>Time<tab><markers>', found {lines[3][:60]!r}", line=4
+        )
+    markers = [m.strip() for m in names_f[2:] if m.strip()]
+    if len(markers) != n_markers:
+        raise FormatError(
+            path,
+            f"expected {n_markers} marker names (NumMarkers), found {len(markers)}",
+            line=4,
+            field="NumMarkers",
+        )
+    n_fields = 2 + 3 * n_markers
+    rows = []
+    line_no = []
+    for j in range(5, len(lines)):
+        ln = lines[j]
+        if not ln.strip():
+            continue
+        f = ln.split("\t")
+        if len(f) > n_fields and not any(x.strip() for x in f[n_fields:]):
+            f = f[:n_fields]
+        if len(f) != n_fields:
+            raise FormatError(
+                path,
+                f"expected {n_fields} fields (Frame#, Time, 3 x {n_markers} markers), found {len(f)}",
+                line=j + 1,
+            )
+        row = np.empty(n_fields)
+        for i, v in enumerate(f):
+            v = v.strip()
+            if not v:
+                if i < 2:
+                    raise FormatError(
+                        path,
+                        "expected a value, found an empty field",
+                        line=j + 1,
+                        field=("Frame#", "Time")[i],
+                    )
+                row[i] = np.nan
+                continue
+            try:
+                row[i] = float(v)
+            except ValueError:
+                fld = (
+                    ("Frame#", "Time")[i]
+                    if i < 2
+                    else f"{markers[(i - 2) // 3]}.{'XYZ'[(i - 2) % 3]}"
+                )
+                raise FormatError(
+                    path, f"expected a number, found {v!r}", line=j + 1, field=fld
+                ) from None
+        rows.append(row)
+        line_no.append(j + 1)
+    if len(rows) != n_frames:
+        what = "truncated file" if len(rows) < n_frames else "extra rows"
+        raise FormatError(
+            path,
+            f"expected {n_frames} frames (NumFrames), found {len(rows)} ({what})",
+            field="NumFrames",
+        )
+    data = np.asarray(rows).reshape(len(rows), n_fields)
+    t = check_time(path, data[:, 1], np.asarray(line_no), "Time")
+    pos = data[:, 2:].reshape(-1, n_markers, 3) * factor
+    if map_names:
+        joints, jmap = map_joints(markers)
+    else:
+        joints, jmap = tuple(markers), {m: m for m in markers}
+    js = JointStream(t_s=t, position_m=pos, joints=joints, frame="trc_lab")
+    md = make_metadata(
+        path,
+        "trc",
+        units_converted=[f"positions {unit} -> m"] if factor != 1.0 else [],
+        joint_map=jmap,
+        rate_hz=rate,
+        header=hdr,
+    )
+    rec = Recording(**{role: js}, metadata=md)
+    check_units(rec, where=str(path))
+    return rec
+
+
+def write_trc(
+    path,
+    stream: JointStream,
+    *,
+    units: str = "m",
+    decimals: int | None = None,
+    force: bool = False,
+    masked: bool = True,
+) -> Path:
+    """Write a joint stream as a TRC file.
+
+    Parameters
+    ----------
+    path : str or Path
+        Destination ``.trc``; never overwritten unless ``force``.
+    stream : JointStream
+        Positions (T, J, 3) in m; joint names become marker names.
+    units : {"m", "mm", "cm"}
+        Unit written in the header and used for the values.
+    decimals : int or None
+        Digits after the decimal point; default 6 for m, 3 for mm, 4 for cm (µm resolution).
+    force : bool
+        Replace an existing file.
+    masked : bool
+        Write unavailable samples as empty fields (TRC's missing-marker convention).
+
+    Returns
+    -------
+    Path
+
+    Raises
+    ------
+    FileExistsError
+        ``path`` exists and ``force`` is False.
+    """
+    if not isinstance(stream, JointStream):
+        raise InputError(f"expected a JointStream, got {type(stream).__name__}")
+    factor = {"m": 1.0, "mm": 1e3, "cm": 1e2}.get(units)
+    if factor is None:
+        raise InputError(f"expected units 'm', 'mm' or 'cm', got {units!r}")
+    if decimals is None:
+        decimals = {"m": 6, "mm": 3, "cm": 4}[units]
+    for j in stream.joints:
+        if "\t" in j or not j.strip():
+            raise InputError(f"joint name {j!r} cannot be written to TRC (empty or contains a tab)")
+    path = Path(path)
+    T, J = len(stream), len(stream.joints)
+    p = stream.position_m * factor
+    if masked:
+        p = np.where(stream.available[..., None], p, np.nan)
+    rate = float(1.0 / np.median(np.diff(stream.t_s))) if T > 1 else 0.0
+    out = [
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        "\t".join(
+            (
+                "DataRate",
+                "CameraRate",
+                "NumFrames",
+                "NumMarkers",
+                "Units",
+                "OrigDataRate",
+                "OrigDataStartFrame",
+                "OrigNumFrames",
+            )
+        ),
+        "\t".join(
+            (f"{rate:.6f}", f"{rate:.6f}", str(T), str(J), units, f"{rate:.6f}", "1", str(T))
+        ),
+        "\t".join(["Frame#", "Time"] + [f"{j}\t\t" for j in stream.joints]).rstrip("\t"),
+        "\t".join(["", ""] + [f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(J)]),
+        "",
+    ]
+    for k in range(T):
+        vals = [fmt_float(v, decimals) for v in p[k].reshape(-1)]
+        out.append("\t".join([str(k + 1), repr(float(stream.t_s[k])), *vals]))
+    return write_text_safely(path, "\n".join(out) + "\n", force=force)

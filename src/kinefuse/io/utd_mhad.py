@@ -1,0 +1,274 @@
+"""UTD-MHAD reader: wearable inertial ``.mat`` + Kinect v1 skeleton ``.mat`` of one trial.
+
+Files are named ``a<action>_s<subject>_t<trial>_inertial.mat`` (folder ``Inertial/``) and
+``a<action>_s<subject>_t<trial>_skeleton.mat`` (folder ``Skeleton/``). Either file may be given;
+the partner is found by that naming.
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import scipy.io
+
+from kinefuse.exceptions import FormatError
+from kinefuse.io._common import DEG2RAD, G, check_units, make_metadata
+from kinefuse.io.recording import ImuStream, JointStream, Recording
+
+__all__ = ["KINECT_V1_JOINTS", "KINECT_V1_TO_CANONICAL", "read_utd_mhad", "utd_mhad_partner"]
+
+#: Kinect v1 joint order of UTD-MHAD (``Skeleton_joint_order.txt``, 1-based there).
+KINECT_V1_JOINTS = (
+    "head",
+    "shoulder_center",
+    "spine",
+    "hip_center",
+    "left_shoulder",
+    "left_elbow",
+    "left_wrist",
+    "left_hand",
+    "right_shoulder",
+    "right_elbow",
+    "right_wrist",
+    "right_hand",
+    "left_hip",
+    "left_knee",
+    "left_ankle",
+    "left_foot",
+    "right_hip",
+    "right_knee",
+    "right_ankle",
+    "right_foot",
+)
+#: The same joints under kinefuse's canonical names (ShoulderCenter -> spine_shoulder, Spine ->
+#: spine_mid, HipCenter -> spine_base, as Kinect v2 renamed them).
+KINECT_V1_TO_CANONICAL = (
+    "head",
+    "spine_shoulder",
+    "spine_mid",
+    "spine_base",
+    "shoulder_l",
+    "elbow_l",
+    "wrist_l",
+    "hand_l",
+    "shoulder_r",
+    "elbow_r",
+    "wrist_r",
+    "hand_r",
+    "hip_l",
+    "knee_l",
+    "ankle_l",
+    "foot_l",
+    "hip_r",
+    "knee_r",
+    "ankle_r",
+    "foot_r",
+)
+
+_NAME = re.compile(r"^a(\d+)_s(\d+)_t(\d+)_(inertial|skeleton)\.mat$", re.IGNORECASE)
+_KIND_DIR = {"inertial": "Inertial", "skeleton": "Skeleton"}
+
+
+def _parse_name(path: Path):
+    m = _NAME.match(path.name)
+    if not m:
+        return None
+    return int(m.group(1)), int(m.group(2)), int(m.group(3)), m.group(4).lower()
+
+
+def utd_mhad_partner(path) -> Path | None:
+    """The partner file (inertial <-> skeleton) of a UTD-MHAD trial file, or None if absent.
+
+    Looks in the sibling folder (``Inertial/`` <-> ``Skeleton/``) and in the same folder.
+    """
+    path = Path(path)
+    parsed = _parse_name(path)
+    if parsed is None:
+        return None
+    a, s, t, kind = parsed
+    other = "skeleton" if kind == "inertial" else "inertial"
+    name = f"a{a}_s{s}_t{t}_{other}.mat"
+    candidates = [path.parent.parent / _KIND_DIR[other] / name, path.parent / name]
+    for c in candidates:
+        if c.is_file():
+            return c
+    return None
+
+
+def _loadmat(path: Path, var: str, expected: str) -> np.ndarray:
+    try:
+        d = scipy.io.loadmat(path)
+    except Exception as e:  # scipy raises ValueError/TypeError/MatReadError on corrupt files
+        raise FormatError(
+            path, f"expected a MATLAB v5 file with variable {var!r}, could not read it: {e}"
+        ) from None
+    if var not in d:
+        found = sorted(k for k in d if not k.startswith("__"))
+        raise FormatError(
+            path, f"missing variable {var!r} {expected}; found variables {found}", field=var
+        )
+    a = d[var]
+    if not isinstance(a, np.ndarray) or not np.issubdtype(a.dtype, np.number):
+        raise FormatError(
+            path,
+            f"expected {var} as a numeric array {expected}, found {type(a).__name__}",
+            field=var,
+        )
+    return np.asarray(a, dtype=np.float64)
+
+
+def read_utd_mhad(
+    path,
+    skeleton_path=None,
+    *,
+    imu_rate_hz: float = 50.0,
+    skeleton_rate_hz: float | None = None,
+    segment: str | None = None,
+) -> Recording:
+    """Read one UTD-MHAD trial (inertial and/or Kinect v1 skeleton).
+
+    Parameters
+    ----------
+    path : str or Path
+        ``..._inertial.mat`` or ``..._skeleton.mat``; the partner is looked up by name.
+    skeleton_path : str or Path or None
+        Explicit skeleton file when ``path`` is the inertial file (overrides the lookup).
+    imu_rate_hz : float
+        Inertial sampling rate (the dataset description says 50 Hz; the files hold no times).
+    skeleton_rate_hz : float or None
+        Skeleton frame rate. ``None`` (default) stretches the skeleton frames uniformly over the
+        inertial duration (first to last sample), as the dataset's SOURCE.md advises because the
+        ratio of samples does not match 50/30 Hz. Without an inertial file, ``None`` means 30 Hz.
+    segment : str or None
+        Key of the IMU. ``None`` -> ``forearm_r`` for actions 1-21 (right wrist) and ``thigh_r``
+        for actions 22-27 (right thigh).
+
+    Returns
+    -------
+    Recording
+        ``imu[segment]``: ``acc_m_s2`` (T, 3) in m/s² (file: g), ``gyr_rad_s`` (T, 3) in rad/s
+        (file: deg/s), sensor frame, no orientation. ``vision``: 20 Kinect v1 joints (T, 20, 3)
+        in metres in the Kinect v1 camera frame (x toward the sensor's left, y up, z away from
+        the sensor), canonical joint names; ``available`` = finite and not all-zero (Kinect v1
+        exports have no tracking state).
+
+    Raises
+    ------
+    FormatError
+        Unreadable file, missing variable, wrong shape.
+    """
+    path = Path(path)
+    parsed = _parse_name(path)
+    kind = parsed[3] if parsed else None
+    if kind is None:
+        try:
+            names = {n for n, _, _ in scipy.io.whosmat(path)}
+        except Exception as e:
+            raise FormatError(
+                path, f"expected a UTD-MHAD MATLAB file, could not read it: {e}"
+            ) from None
+        kind = "inertial" if "d_iner" in names else ("skeleton" if "d_skel" in names else None)
+        if kind is None:
+            raise FormatError(
+                path, f"expected variable 'd_iner' or 'd_skel', found {sorted(names)}"
+            )
+    if kind == "inertial":
+        iner_path = path
+        skel_path = Path(skeleton_path) if skeleton_path is not None else utd_mhad_partner(path)
+    else:
+        skel_path = path
+        iner_path = utd_mhad_partner(path)
+        if skeleton_path is not None:
+            raise FormatError(path, "skeleton_path given but path is already the skeleton file")
+    notes = []
+    units = []
+    imu = {}
+    t_end = None
+    action = parsed[0] if parsed else None
+    if iner_path is not None:
+        x = _loadmat(iner_path, "d_iner", "(N, 6): acc x,y,z [g], gyro x,y,z [deg/s]")
+        if x.ndim != 2 or x.shape[1] != 6 or x.shape[0] < 2:
+            raise FormatError(
+                iner_path, f"expected d_iner with shape (N>=2, 6), found {x.shape}", field="d_iner"
+            )
+        t = np.arange(x.shape[0]) / float(imu_rate_hz)
+        t_end = float(t[-1])
+        if segment is None:
+            if action is None:
+                segment = "imu"
+                notes.append("action unknown (file name not a<A>_s<S>_t<T>); IMU kept as 'imu'")
+            else:
+                segment = "forearm_r" if action <= 21 else "thigh_r"
+        imu[segment] = ImuStream(
+            t_s=t,
+            acc_m_s2=x[:, :3] * G,
+            gyr_rad_s=x[:, 3:] * DEG2RAD,
+            name="utd_mhad_inertial",
+            frame="ENU",
+        )
+        units += ["acc g -> m/s^2", "gyr deg/s -> rad/s"]
+        notes.append(f"inertial times assumed: t = n / {imu_rate_hz} Hz (files have no timestamps)")
+    else:
+        warnings.warn(
+            f"{path}: inertial partner file not found; reading the skeleton only",
+            UserWarning,
+            stacklevel=2,
+        )
+    vision = None
+    if skel_path is not None:
+        s = _loadmat(skel_path, "d_skel", "(20, 3, T) joint positions [m]")
+        if s.ndim != 3 or s.shape[:2] != (20, 3) or s.shape[2] < 1:
+            raise FormatError(
+                skel_path, f"expected d_skel with shape (20, 3, T), found {s.shape}", field="d_skel"
+            )
+        pos = np.transpose(s, (2, 0, 1)).copy()  # (T, 20, 3)
+        T = pos.shape[0]
+        if skeleton_rate_hz is not None:
+            ts = np.arange(T) / float(skeleton_rate_hz)
+            notes.append(f"skeleton times assumed: t = n / {skeleton_rate_hz} Hz")
+        elif t_end is not None and T > 1:
+            ts = np.linspace(0.0, t_end, T)
+            notes.append(
+                f"skeleton frames stretched uniformly over the inertial duration 0..{t_end:.3f} s "
+                f"(effective {(T - 1) / t_end:.2f} Hz); expect some timing error"
+            )
+        else:
+            ts = np.arange(T) / 30.0
+            notes.append("skeleton times assumed: t = n / 30 Hz")
+        avail = np.all(np.isfinite(pos), axis=-1) & np.any(pos != 0.0, axis=-1)
+        vision = JointStream(
+            t_s=ts,
+            position_m=pos,
+            available=avail,
+            joints=KINECT_V1_TO_CANONICAL,
+            frame="kinect_v1_camera",
+        )
+    elif kind == "inertial":
+        warnings.warn(
+            f"{path}: skeleton partner file not found; reading the inertial data only",
+            UserWarning,
+            stacklevel=2,
+        )
+    md = make_metadata(
+        path,
+        "utd_mhad",
+        subject=f"s{parsed[1]}" if parsed else None,
+        units_converted=units,
+        action=action,
+        trial=parsed[2] if parsed else None,
+        files={
+            "inertial": str(iner_path) if iner_path else None,
+            "skeleton": str(skel_path) if skel_path else None,
+        },
+        segment_map={"utd_mhad_inertial": segment} if imu else {},
+        joint_map=dict(zip(KINECT_V1_JOINTS, KINECT_V1_TO_CANONICAL, strict=True)),
+        availability_rule="finite and not all-zero (Kinect v1 has no tracking state)",
+        frame_notes="vision in Kinect v1 camera frame: x toward the sensor's left, y up, z away from the sensor",
+        notes=notes,
+    )
+    rec = Recording(imu=imu, vision=vision, metadata=md)
+    check_units(rec, where=str(path))
+    return rec

@@ -1,0 +1,245 @@
+"""x-IMU3 (x-io Technologies) logged CSV files: one folder per sensor.
+
+Each sensor folder holds ``Inertial.csv`` (``Timestamp (us), Gyroscope X/Y/Z (deg/s),
+Accelerometer X/Y/Z (g)``), optionally ``Quaternion.csv`` (``Timestamp (us), W, X, Y, Z``, the
+on-board AHRS) and ``Magnetometer.csv`` (``Timestamp (us), X/Y/Z (a.u.)``).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from kinefuse.exceptions import FormatError, InputError
+from kinefuse.io._common import (
+    DEG2RAD,
+    G,
+    Table,
+    check_time,
+    check_units,
+    make_metadata,
+    map_segments,
+    read_table,
+)
+from kinefuse.io.align import resample_orientation, resample_positions
+from kinefuse.io.recording import ImuStream, Recording
+
+__all__ = ["EARTH_TO_ENU", "read_ximu3"]
+
+#: Rotation taking vectors from an AHRS earth frame to ENU (``q_ENU_from_earth``), wxyz.
+EARTH_TO_ENU = {
+    "ENU": np.array([1.0, 0.0, 0.0, 0.0]),
+    # NWU -> ENU: north (x) -> +y, west (y) -> -x, up -> up: +90 deg about z
+    "NWU": Rotation.from_euler("z", 90, degrees=True).as_quat(scalar_first=True),
+    # NED -> ENU: north -> +y, east -> +x, down -> -z
+    "NED": Rotation.from_matrix([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]).as_quat(
+        scalar_first=True
+    ),
+}
+
+_UNIT = re.compile(r"\(([^)]*)\)\s*$")
+
+
+def _sensor_dirs(path: Path) -> list[Path]:
+    if path.is_file():
+        return [path.parent]
+    if (path / "Inertial.csv").is_file():
+        return [path]
+    dirs = sorted(p for p in path.iterdir() if p.is_dir() and (p / "Inertial.csv").is_file())
+    if not dirs:
+        raise FormatError(
+            path, "expected sensor folders containing Inertial.csv (x-IMU3 log), found none"
+        )
+    return dirs
+
+
+def _sensor_name(folder: Path) -> str:
+    return re.sub(r"\s*\(UDP\)\s*$", "", folder.name)
+
+
+def _triplet(tab: Table, prefix: str) -> tuple[np.ndarray, str]:
+    names = []
+    units = set()
+    for ax in "XYZ":
+        hit = [c for c in tab.columns if c.startswith(f"{prefix} {ax}")]
+        if not hit:
+            raise FormatError(
+                tab.path,
+                f"missing column '{prefix} {ax} (...)'; found {tab.columns}",
+                line=tab.header_line,
+                field=f"{prefix} {ax}",
+            )
+        names.append(hit[0])
+        m = _UNIT.search(hit[0])
+        units.add(m.group(1).strip().lower() if m else "")
+    if len(units) != 1:
+        raise FormatError(
+            tab.path,
+            f"expected one unit for {prefix} X/Y/Z, found {sorted(units)}",
+            line=tab.header_line,
+        )
+    return np.stack([tab.floats(n) for n in names], axis=1), units.pop()
+
+
+def _time(tab: Table) -> np.ndarray:
+    col = next((c for c in tab.columns if c.lower().startswith("timestamp")), None)
+    if col is None:
+        raise FormatError(
+            tab.path,
+            f"missing column 'Timestamp (us)'; found {tab.columns}",
+            line=tab.header_line,
+            field="Timestamp (us)",
+        )
+    m = _UNIT.search(col)
+    unit = m.group(1).strip().lower() if m else "us"
+    factor = {"us": 1e-6, "µs": 1e-6, "ms": 1e-3, "s": 1.0}.get(unit)
+    if factor is None:
+        raise FormatError(
+            tab.path, f"expected timestamp unit us, ms or s, found {unit!r}", field=col
+        )
+    return check_time(tab.path, tab.floats(col, allow_empty=False), tab.lines, col) * factor
+
+
+def read_ximu3(
+    path,
+    *,
+    sensor_map: Mapping[str, str] | None = None,
+    earth_frame: str = "NWU",
+    include_mag: bool = True,
+) -> Recording:
+    """Read an x-IMU3 log: a folder of sensor folders, one sensor folder, or a file inside one.
+
+    Parameters
+    ----------
+    path : str or Path
+        Log folder (e.g. ``xio_imu_mocap_lower_body/``), a sensor folder
+        (``Right_Upper_Leg_64F61C2E/``), or a CSV file inside a sensor folder.
+    sensor_map : mapping or None
+        Folder name -> key overrides. Default: folder names mapped to canonical segments
+        (``Right_Upper_Leg_64F61C2E`` -> ``thigh_r``, ``pelvis_64F0EDBF`` -> ``pelvis``); others
+        keep their folder name.
+    earth_frame : {"NWU", "ENU", "NED"}
+        Earth frame of the on-board AHRS quaternion; converted to ENU. x-IMU3 default is NWU
+        (verified on the shared log: the magnetic field rotated to the earth frame points
+        along +x with a downward component).
+    include_mag : bool
+        Read ``Magnetometer.csv`` (its own, slower timestamps) linearly resampled to the inertial
+        timestamps; NaN where the two magnetometer samples around a time are more than
+        1.5 median magnetometer intervals apart.
+
+    Returns
+    -------
+    Recording
+        ``imu[key]``: ``gyr_rad_s`` (N, 3) rad/s (file deg/s), ``acc_m_s2`` (N, 3) m/s²
+        (file g), ``q_world_from_sensor`` (N, 4) wxyz sensor -> ENU, ``mag`` (N, 3) a.u.
+        Times are the device timestamps in s relative to the earliest first inertial sample of
+        all sensors (``metadata["t0_us"]``).
+
+    Raises
+    ------
+    FormatError
+        Missing files/columns, unknown units, truncated lines, non-monotonic timestamps.
+    """
+    path = Path(path)
+    if earth_frame not in EARTH_TO_ENU:
+        raise InputError(f"expected earth_frame one of {sorted(EARTH_TO_ENU)}, got {earth_frame!r}")
+    dirs = _sensor_dirs(path)
+    names = [_sensor_name(d) for d in dirs]
+    mapping, notes = map_segments(names, sensor_map)
+    raw = {}
+    for d, name in zip(dirs, names, strict=True):
+        tab = read_table(d / "Inertial.csv", delimiter=",")
+        t = _time(tab)
+        gyr, gu = _triplet(tab, "Gyroscope")
+        acc, au = _triplet(tab, "Accelerometer")
+        gf = {"deg/s": DEG2RAD, "dps": DEG2RAD, "rad/s": 1.0}.get(gu)
+        af = {"g": G, "m/s^2": 1.0, "m/s2": 1.0, "m/s²": 1.0}.get(au)
+        if gf is None:
+            raise FormatError(
+                tab.path,
+                f"expected gyroscope unit deg/s or rad/s, found {gu!r}",
+                line=tab.header_line,
+            )
+        if af is None:
+            raise FormatError(
+                tab.path,
+                f"expected accelerometer unit g or m/s^2, found {au!r}",
+                line=tab.header_line,
+            )
+        q = None
+        qf = d / "Quaternion.csv"
+        if qf.is_file():
+            qt = read_table(qf, delimiter=",")
+            tq = _time(qt)
+            qq = np.stack([qt.floats(c) for c in ("W", "X", "Y", "Z")], axis=1)
+            if tq.shape == t.shape and np.array_equal(tq, t):
+                q = qq
+            else:
+                q = resample_orientation(tq, qq, t)
+                notes.append(
+                    f"{name}: Quaternion.csv timestamps differ from Inertial.csv; SLERP-resampled"
+                )
+            q = _to_enu(q, earth_frame)
+        mag = None
+        mf = d / "Magnetometer.csv"
+        if include_mag and mf.is_file():
+            mt = read_table(mf, delimiter=",")
+            tm = _time(mt)
+            mv = np.stack([mt.floats(c) for c in _mag_cols(mt)], axis=1)
+            mag, _ = resample_positions(tm, mv, t)
+        raw[name] = (t, gyr * gf, acc * af, q, mag, (gu, au))
+    t0 = min(v[0][0] for v in raw.values())
+    imu = {}
+    units = set()
+    for name, (t, gyr, acc, q, mag, (gu, au)) in raw.items():
+        imu[mapping[name]] = ImuStream(
+            t_s=t - t0, q_world_from_sensor=q, acc_m_s2=acc, gyr_rad_s=gyr, mag=mag, name=name
+        )
+        if gu != "rad/s":
+            units.add("gyr deg/s -> rad/s")
+        if au == "g":
+            units.add("acc g -> m/s^2")
+        if q is not None and earth_frame != "ENU":
+            units.add(f"quaternion earth frame {earth_frame} -> ENU")
+    md = make_metadata(
+        path,
+        "ximu3",
+        subject=None,
+        units_converted=sorted(units),
+        segment_map=mapping,
+        t0_us=t0 * 1e6,
+        notes=notes,
+    )
+    rec = Recording(imu=imu, metadata=md)
+    check_units(rec, where=str(path))
+    return rec
+
+
+def _mag_cols(tab: Table) -> list[str]:
+    out = []
+    for ax in "XYZ":
+        hit = [c for c in tab.columns if c == ax or c.startswith(f"{ax} ")]
+        if not hit:
+            raise FormatError(
+                tab.path,
+                f"missing column '{ax} (a.u.)'; found {tab.columns}",
+                line=tab.header_line,
+                field=ax,
+            )
+        out.append(hit[0])
+    return out
+
+
+def _to_enu(q: np.ndarray, earth_frame: str) -> np.ndarray:
+    out = np.full_like(q, np.nan)
+    ok = np.all(np.isfinite(q), axis=1) & (np.linalg.norm(q, axis=1) > 0)
+    if np.any(ok):
+        r = Rotation.from_quat(EARTH_TO_ENU[earth_frame], scalar_first=True) * Rotation.from_quat(
+            q[ok], scalar_first=True
+        )
+        out[ok] = r.as_quat(scalar_first=True)
+    return out

@@ -1,0 +1,79 @@
+"""kinefuse.io.load: format registry, detection, clear errors."""
+
+from __future__ import annotations
+
+import pytest
+
+import kinefuse.io as kio
+from kinefuse.exceptions import FormatError
+
+
+def test_formats_listing():
+    for name in (
+        "utd_mhad",
+        "opensense",
+        "qmt",
+        "ximu3",
+        "broad",
+        "c3d",
+        "trc",
+        "kinect_v2",
+        "azure_kinect",
+        "mediapipe",
+        "imu_csv",
+        "joint_csv",
+        "neura",
+        "cmu",
+        "bvh",
+    ):
+        assert name in kio.FORMATS and kio.FORMATS[name]
+    assert (
+        callable(kio.read_trc)
+        and callable(kio.write_joint_csv)
+        and callable(kio.estimate_clock_offset)
+    )
+    with pytest.raises(AttributeError):
+        kio.read_nonexistent  # noqa: B018
+
+
+def test_unknown_format_lists_known(tmp_path):
+    f = tmp_path / "x.csv"
+    f.write_text("a,b\n1,2\n")
+    with pytest.raises(
+        ValueError, match=r"unknown format 'vicon_x'; known formats: azure_kinect, broad, bvh, c3d"
+    ):
+        kio.load(f, format="vicon_x")
+
+
+def test_undetectable_and_missing(tmp_path):
+    f = tmp_path / "notes.xyz"
+    f.write_text("hello\n")
+    with pytest.raises(
+        FormatError,
+        match=r"notes.xyz: could not detect the format; pass format= \(known formats: .*trc",
+    ):
+        kio.load(f)
+    with pytest.raises(FileNotFoundError, match="nope.csv: no such file"):
+        kio.load(tmp_path / "nope.csv")
+    empty = tmp_path / "empty.csv"
+    empty.write_text("")
+    with pytest.raises(FormatError, match="could not detect"):
+        kio.load(empty)
+    with pytest.raises(FormatError, match="empty or truncated"):
+        kio.load(empty, format="joint_csv")
+
+
+def test_dataset_root_and_asf_hints(shared_data):
+    with pytest.raises(FormatError, match="UTD-MHAD dataset root; pass one trial's file"):
+        kio.load(shared_data / "utd_mhad")
+    asf = shared_data / "cmu_mocap" / "asfamc" / "02" / "02.asf"
+    with pytest.raises(FormatError, match=r"pass the motion \(.amc\) file"):
+        kio.load(asf)
+
+
+def test_explicit_format_and_options(shared_data):
+    f = shared_data / "utd_mhad" / "Inertial" / "a1_s1_t1_inertial.mat"
+    rec = kio.load(f, format="utd_mhad", skeleton_rate_hz=30.0, segment="forearm_r")
+    assert rec.vision.t_s[1] == pytest.approx(1 / 30)
+    assert rec.metadata["units_converted"] == ["acc g -> m/s^2", "gyr deg/s -> rad/s"]
+    assert {"subject", "source", "format", "units_converted"} <= set(rec.metadata)
