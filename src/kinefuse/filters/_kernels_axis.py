@@ -1,0 +1,497 @@
+"""Compiled batch kernels of the Kalman filter and the RTS smoother (numba), dense and per-axis.
+
+Two forms of each loop over ``(B, T)``:
+
+* ``*_dense``: the reference, built on the single-element kernels of :mod:`._kernels`
+  (matrices, Cholesky solves). Used for models that are not block-diagonal per axis (full R).
+* ``*_axis``: the exact per-axis decoupling of SPEC §1. When F, Q, H, R and P are block-diagonal
+  per axis, the ``n_x``-state problem splits into ``n_axes`` independent 2-state problems with a
+  scalar measurement; every line below is scalar arithmetic on the 2x2 block
+  ``[[p00, p01], [p01, p11]]`` and no 6x6 matrix is formed. Covariances are still stored as full
+  ``(n_x, n_x)`` arrays (off-block entries are zero) so both forms share one data layout.
+
+Textbook symbols (``x, P, F, Q, H, R, K, S, nu, C``), no validation: the callers in
+:mod:`kinefuse.filters.kalman` and :mod:`kinefuse.filters.smoothing` validate. Arrays are
+float64, C-contiguous; leading batch axes are flattened to ``B``. A measurement row with any NaN
+is missing (SPEC §4.2): predict only. Outputs of an element before its first valid measurement
+(no initial state) are NaN.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from kinefuse._compile import njit
+from kinefuse.filters._kernels import chol_solve_spd, kf_predict, kf_update, mahalanobis
+
+__all__ = [
+    "axis_block_params",
+    "state_is_block_diagonal",
+    "kf_filter_axis",
+    "kf_filter_dense",
+    "rts_axis",
+    "rts_dense",
+]
+
+
+def axis_block_params(F, Q, H, R, P0):
+    """Per-axis blocks of an axis-blocked model (plain NumPy, not compiled).
+
+    Returns ``Fb (n_a, 2, 2)``, ``Qb (n_a, 2, 2)``, ``Hb (n_a, 2)``, ``r (n_a,)``,
+    ``P0b (n_a, 2, 2)`` with ``n_a = n_z``; axis ``a`` owns state components ``2a, 2a+1`` and
+    measurement component ``a``.
+    """
+    n_a = H.shape[0]
+    Fb = np.empty((n_a, 2, 2))
+    Qb = np.empty((n_a, 2, 2))
+    P0b = np.empty((n_a, 2, 2))
+    Hb = np.empty((n_a, 2))
+    r = np.empty(n_a)
+    for a in range(n_a):
+        s = slice(2 * a, 2 * a + 2)
+        Fb[a] = F[s, s]
+        Qb[a] = Q[s, s]
+        P0b[a] = P0[s, s]
+        Hb[a] = H[a, s]
+        r[a] = R[a, a]
+    return Fb, Qb, Hb, r, P0b
+
+
+# --------------------------------------------------------------------------------------------
+# Kalman filter
+# --------------------------------------------------------------------------------------------
+
+
+@njit
+def state_is_block_diagonal(P, init):
+    """True when every initialised ``P[b] (n_x, n_x)`` is zero outside the per-axis 2x2 blocks."""
+    B, n_x, _ = P.shape
+    for b in range(B):
+        if not init[b]:
+            continue
+        for i in range(n_x):
+            for j in range(n_x):
+                if i // 2 != j // 2 and P[b, i, j] != 0.0:
+                    return False
+    return True
+
+
+@njit
+def _fill_nan_step(mean, cov, pos, obs, nu, dist, b, t):
+    mean[b, t, :] = np.nan
+    cov[b, t, :, :] = np.nan
+    pos[b, t, :] = np.nan
+    obs[b, t] = False
+    nu[b, t, :] = np.nan
+    dist[b, t] = np.nan
+
+
+@njit
+def kf_filter_axis(z, x, P, init, Fb, Qb, Hb, r, P0b, mean, cov, pos, obs, nu, dist):
+    """Per-axis KF over ``z (B, T, n_z)``; state ``x (B, n_x)``, ``P``, ``init (B,)`` in place.
+
+    Outputs (preallocated; ``cov`` zero-filled by the caller): ``mean (B, T, n_x)``,
+    ``cov (B, T, n_x, n_x)``, ``pos (B, T, n_z)``, ``obs (B, T)``, ``nu (B, T, n_z)``,
+    ``dist (B, T)`` (NIS ``νᵀS⁻¹ν = Σ_a ν_a²/S_a``, S diagonal).
+    """
+    B, T, n_z = z.shape
+    n_a = Fb.shape[0]
+    xs = np.empty((n_a, 2))  # per-axis state [position, velocity]
+    Ps = np.empty((n_a, 3))  # per-axis covariance [p00, p01, p11]
+    for b in range(B):
+        for a in range(n_a):
+            i = 2 * a
+            xs[a, 0] = x[b, i]
+            xs[a, 1] = x[b, i + 1]
+            Ps[a, 0] = P[b, i, i]
+            Ps[a, 1] = 0.5 * (P[b, i, i + 1] + P[b, i + 1, i])
+            Ps[a, 2] = P[b, i + 1, i + 1]
+        ini = init[b]
+        for t in range(T):
+            valid = True
+            for a in range(n_z):
+                if np.isnan(z[b, t, a]):
+                    valid = False
+            if not ini:
+                if not valid:
+                    _fill_nan_step(mean, cov, pos, obs, nu, dist, b, t)
+                    continue
+                # SPEC §4.2 initialisation [J]: x₀ = H⁺ z (positions = z, velocities = 0), P₀
+                for a in range(n_a):
+                    h0 = Hb[a, 0]
+                    h1 = Hb[a, 1]
+                    hh = h0 * h0 + h1 * h1
+                    xs[a, 0] = h0 * z[b, t, a] / hh
+                    xs[a, 1] = h1 * z[b, t, a] / hh
+                    Ps[a, 0] = P0b[a, 0, 0]
+                    Ps[a, 1] = P0b[a, 0, 1]
+                    Ps[a, 2] = P0b[a, 1, 1]
+                    nu[b, t, a] = np.nan
+                ini = True
+                obs[b, t] = True
+                dist[b, t] = np.nan
+            else:
+                d = 0.0
+                updated = valid
+                for a in range(n_a):
+                    f00 = Fb[a, 0, 0]
+                    f01 = Fb[a, 0, 1]
+                    f10 = Fb[a, 1, 0]
+                    f11 = Fb[a, 1, 1]
+                    x0 = xs[a, 0]
+                    x1 = xs[a, 1]
+                    p00 = Ps[a, 0]
+                    p01 = Ps[a, 1]
+                    p11 = Ps[a, 2]
+                    # SPEC §4.2 kf_predict / paper A Eq. 5 (no noise term): x⁻ = F x
+                    xp0 = f00 * x0 + f01 * x1
+                    xp1 = f10 * x0 + f11 * x1
+                    # paper A Eq. 6 with P_{k-1}: P⁻ = F P Fᵀ + Q
+                    fp00 = f00 * p00 + f01 * p01
+                    fp01 = f00 * p01 + f01 * p11
+                    fp10 = f10 * p00 + f11 * p01
+                    fp11 = f10 * p01 + f11 * p11
+                    pp00 = fp00 * f00 + fp01 * f01 + Qb[a, 0, 0]
+                    pp01 = fp00 * f10 + fp01 * f11 + Qb[a, 0, 1]
+                    pp11 = fp10 * f10 + fp11 * f11 + Qb[a, 1, 1]
+                    if valid:
+                        h0 = Hb[a, 0]
+                        h1 = Hb[a, 1]
+                        ra = r[a]
+                        ph0 = pp00 * h0 + pp01 * h1  # P⁻ Hᵀ
+                        ph1 = pp01 * h0 + pp11 * h1
+                        S = h0 * ph0 + h1 * ph1 + ra  # Eq. 7: S = H P⁻ Hᵀ + R (scalar)
+                        if not (S > 0.0 and np.isfinite(S)):
+                            updated = False  # SPEC §13: cannot factorise S -> predict only
+                            xs[a, 0] = xp0
+                            xs[a, 1] = xp1
+                            Ps[a, 0] = pp00
+                            Ps[a, 1] = pp01
+                            Ps[a, 2] = pp11
+                            continue
+                        iS = 1.0 / S  # scalar S: its inverse is exact, no solve needed
+                        k0 = ph0 * iS  # Eq. 7: K = P⁻ Hᵀ S⁻¹
+                        k1 = ph1 * iS
+                        v = z[b, t, a] - (h0 * xp0 + h1 * xp1)  # ν = z − H x⁻
+                        xs[a, 0] = xp0 + k0 * v  # Eq. 8: x = x⁻ + K ν
+                        xs[a, 1] = xp1 + k1 * v
+                        a00 = 1.0 - k0 * h0  # A = I − K H
+                        a01 = -k0 * h1
+                        a10 = -k1 * h0
+                        a11 = 1.0 - k1 * h1
+                        ap00 = a00 * pp00 + a01 * pp01
+                        ap01 = a00 * pp01 + a01 * pp11
+                        ap10 = a10 * pp00 + a11 * pp01
+                        ap11 = a10 * pp01 + a11 * pp11
+                        # Eq. 9 (Joseph): P = A P⁻ Aᵀ + K R Kᵀ
+                        Ps[a, 0] = ap00 * a00 + ap01 * a01 + ra * k0 * k0
+                        Ps[a, 1] = ap00 * a10 + ap01 * a11 + ra * k0 * k1
+                        Ps[a, 2] = ap10 * a10 + ap11 * a11 + ra * k1 * k1
+                        nu[b, t, a] = v
+                        d += v * v * iS  # NIS νᵀS⁻¹ν, S diagonal across axes
+                    else:
+                        xs[a, 0] = xp0
+                        xs[a, 1] = xp1
+                        Ps[a, 0] = pp00
+                        Ps[a, 1] = pp01
+                        Ps[a, 2] = pp11
+                        nu[b, t, a] = np.nan
+                obs[b, t] = updated
+                if updated:
+                    dist[b, t] = d
+                else:
+                    dist[b, t] = np.nan
+                    for a in range(n_z):
+                        nu[b, t, a] = np.nan
+            for a in range(n_a):
+                i = 2 * a
+                mean[b, t, i] = xs[a, 0]
+                mean[b, t, i + 1] = xs[a, 1]
+                cov[b, t, i, i] = Ps[a, 0]
+                cov[b, t, i, i + 1] = Ps[a, 1]
+                cov[b, t, i + 1, i] = Ps[a, 1]
+                cov[b, t, i + 1, i + 1] = Ps[a, 2]
+                pos[b, t, a] = Hb[a, 0] * xs[a, 0] + Hb[a, 1] * xs[a, 1]
+        init[b] = ini
+        if ini:
+            x[b, :] = 0.0
+            P[b, :, :] = 0.0
+            for a in range(n_a):
+                i = 2 * a
+                x[b, i] = xs[a, 0]
+                x[b, i + 1] = xs[a, 1]
+                P[b, i, i] = Ps[a, 0]
+                P[b, i, i + 1] = Ps[a, 1]
+                P[b, i + 1, i] = Ps[a, 1]
+                P[b, i + 1, i + 1] = Ps[a, 2]
+
+
+@njit
+def kf_filter_dense(z, x, P, init, F, Q, H, R, P0, Hpinv, mean, cov, pos, obs, nu, dist):
+    """Dense reference KF over ``z (B, T, n_z)`` (SPEC §4.2); same in/out contract as the axis form.
+
+    ``Hpinv (n_x, n_z)`` is the pseudo-inverse of H used for ``x₀ = H⁺ z``.
+    """
+    B, T, n_z = z.shape
+    for b in range(B):
+        xb = x[b].copy()
+        Pb = P[b].copy()
+        ini = init[b]
+        for t in range(T):
+            zt = z[b, t].copy()
+            valid = not np.any(np.isnan(zt))
+            if not ini:
+                if not valid:
+                    _fill_nan_step(mean, cov, pos, obs, nu, dist, b, t)
+                    continue
+                xb = Hpinv @ zt  # SPEC §4.2 initialisation [J]
+                Pb = P0.copy()
+                ini = True
+                obs[b, t] = True
+                nu[b, t, :] = np.nan
+                dist[b, t] = np.nan
+            else:
+                xb, Pb = kf_predict(xb, Pb, F, Q)  # paper A Eqs. 5-6 (SPEC §4.1 form)
+                ok = False
+                if valid:
+                    xn, Pn, v, S, ok = kf_update(xb, Pb, zt, H, R)  # Eqs. 7-9, Joseph
+                    if ok:
+                        xb = xn
+                        Pb = Pn
+                        nu[b, t, :] = v
+                        dist[b, t] = mahalanobis(v, S)  # NIS νᵀS⁻¹ν
+                obs[b, t] = ok
+                if not ok:
+                    nu[b, t, :] = np.nan
+                    dist[b, t] = np.nan
+            mean[b, t, :] = xb
+            cov[b, t, :, :] = Pb
+            pos[b, t, :] = H @ xb
+        x[b, :] = xb
+        P[b, :, :] = Pb
+        init[b] = ini
+
+
+# --------------------------------------------------------------------------------------------
+# RTS smoother (SPEC §9): fixed interval (lag < 0) or fixed lag (lag >= 0)
+# --------------------------------------------------------------------------------------------
+
+
+@njit
+def _segment_ends(mean, mask, b):
+    """``end[t]``: last index of the usable run containing ``t`` (-1 where not usable)."""
+    T = mean.shape[1]
+    end = np.empty(T, dtype=np.int64)
+    nxt = -1
+    for t in range(T - 1, -1, -1):
+        if mask[b, t] and np.isfinite(mean[b, t, 0]):
+            if nxt < 0:
+                nxt = t
+            end[t] = nxt
+        else:
+            end[t] = -1
+            nxt = -1
+    return end
+
+
+@njit
+def _copy_filtered(mean, cov, sm_mean, sm_cov, b, t):
+    sm_mean[b, t, :] = mean[b, t, :]
+    sm_cov[b, t, :, :] = cov[b, t, :, :]
+
+
+@njit
+def _offblock_abs_sum(cov2, b, t, off):
+    """Sum of |entries| of ``cov[b, t]`` outside the axis blocks (``cov2`` = cov as (B, T, n_x²))."""
+    acc = 0.0
+    for k in range(off.shape[0]):
+        acc += abs(cov2[b, t, off[k]])
+    return acc
+
+
+@njit
+def _rts_axis_pass(mean, cov, cov2, off, Fb, Qb, b, e, t0, sx, sP, sm_mean, sm_cov, write_all):
+    """Backward RTS pass on every axis from the filtered estimate at ``e`` down to ``t0``.
+
+    Stores every sample ``t0..e`` (``write_all``) or only ``t0``. Returns False if a stored
+    sample's filtered covariance has cross-axis entries (``write_all`` only).
+    """
+    n_a = Fb.shape[0]
+    for a in range(n_a):  # x̃_e = x̂_e, P̃_e = P̂_e
+        i = 2 * a
+        sx[a, 0] = mean[b, e, i]
+        sx[a, 1] = mean[b, e, i + 1]
+        sP[a, 0] = cov[b, e, i, i]
+        sP[a, 1] = cov[b, e, i, i + 1]
+        sP[a, 2] = cov[b, e, i + 1, i + 1]
+    for t in range(e, t0 - 1, -1):
+        store = write_all or t == t0
+        if write_all and _offblock_abs_sum(cov2, b, t, off) != 0.0:
+            return False
+        if t < e:
+            for a in range(n_a):
+                i = 2 * a
+                f00 = Fb[a, 0, 0]
+                f01 = Fb[a, 0, 1]
+                f10 = Fb[a, 1, 0]
+                f11 = Fb[a, 1, 1]
+                m0 = mean[b, t, i]
+                m1 = mean[b, t, i + 1]
+                p00 = cov[b, t, i, i]
+                p01 = cov[b, t, i, i + 1]
+                p11 = cov[b, t, i + 1, i + 1]
+                # SPEC §9: P⁻_{t+1} = F P̂_t Fᵀ + Q (the filter's own prediction, recomputed)
+                fp00 = f00 * p00 + f01 * p01  # M = F P̂_t
+                fp01 = f00 * p01 + f01 * p11
+                fp10 = f10 * p00 + f11 * p01
+                fp11 = f10 * p01 + f11 * p11
+                pp00 = fp00 * f00 + fp01 * f01 + Qb[a, 0, 0]
+                pp01 = fp00 * f10 + fp01 * f11 + Qb[a, 0, 1]
+                pp11 = fp10 * f10 + fp11 * f11 + Qb[a, 1, 1]
+                # C_t = P̂_t Fᵀ (P⁻)⁻¹: solve Cᵀ = (P⁻)⁻¹ M by LDLᵀ of P⁻ (Cholesky, no sqrt)
+                l10 = pp01 / pp00
+                d1 = pp11 - l10 * pp01
+                if not (pp00 > 0.0 and d1 > 0.0):
+                    # P⁻ not PD: restart from the filtered estimate at t
+                    sx[a, 0] = m0
+                    sx[a, 1] = m1
+                    sP[a, 0] = p00
+                    sP[a, 1] = p01
+                    sP[a, 2] = p11
+                    continue
+                id0 = 1.0 / pp00
+                id1 = 1.0 / d1
+                c01 = (fp10 - l10 * fp00) * id1
+                c00 = fp00 * id0 - l10 * c01
+                c11 = (fp11 - l10 * fp01) * id1
+                c10 = fp01 * id0 - l10 * c11
+                # x̃_t = x̂_t + C (x̃_{t+1} − F x̂_t)
+                e0 = sx[a, 0] - (f00 * m0 + f01 * m1)
+                e1 = sx[a, 1] - (f10 * m0 + f11 * m1)
+                sx[a, 0] = m0 + c00 * e0 + c01 * e1
+                sx[a, 1] = m1 + c10 * e0 + c11 * e1
+                # P̃_t = P̂_t + C (P̃_{t+1} − P⁻_{t+1}) Cᵀ
+                d00 = sP[a, 0] - pp00
+                d01 = sP[a, 1] - pp01
+                d11 = sP[a, 2] - pp11
+                cd00 = c00 * d00 + c01 * d01
+                cd01 = c00 * d01 + c01 * d11
+                cd10 = c10 * d00 + c11 * d01
+                cd11 = c10 * d01 + c11 * d11
+                sP[a, 0] = p00 + cd00 * c00 + cd01 * c01
+                sP[a, 1] = p01 + cd00 * c10 + cd01 * c11
+                sP[a, 2] = p11 + cd10 * c10 + cd11 * c11
+        if store:
+            for a in range(n_a):
+                i = 2 * a
+                sm_mean[b, t, i] = sx[a, 0]
+                sm_mean[b, t, i + 1] = sx[a, 1]
+                sm_cov[b, t, i, i] = sP[a, 0]
+                sm_cov[b, t, i, i + 1] = sP[a, 1]
+                sm_cov[b, t, i + 1, i] = sP[a, 1]
+                sm_cov[b, t, i + 1, i + 1] = sP[a, 2]
+    return True
+
+
+@njit
+def rts_axis(mean, cov, mask, Fb, Qb, lag, sm_mean, sm_cov):
+    """Per-axis RTS over filtered ``mean (B, T, n_x)``, ``cov (B, T, n_x, n_x)``.
+
+    Smooths independently within each maximal run of samples where ``mask (B, T)`` is True and
+    the filtered mean is finite; other samples are copied. ``lag < 0``: fixed interval; else the
+    estimate at ``t`` conditions on measurements up to ``min(t + lag, end of run)`` (O(T·lag)).
+    ``sm_cov`` must be zero-filled by the caller. A step whose ``P⁻`` is not positive definite
+    restarts the pass from the filtered estimate at that sample.
+
+    Returns False (outputs incomplete) as soon as a smoothed sample's filtered covariance has
+    cross-axis entries: the decoupling is then not exact and the caller must use the dense form.
+    """
+    B, T, n_x = mean.shape
+    n_a = Fb.shape[0]
+    cov2 = cov.reshape(B, T, n_x * n_x)
+    off = np.empty(n_x * n_x - 4 * n_a, dtype=np.int64)
+    k = 0
+    for i in range(n_x):
+        for j in range(n_x):
+            if i // 2 != j // 2:
+                off[k] = i * n_x + j
+                k += 1
+    sx = np.empty((n_a, 2))
+    sP = np.empty((n_a, 3))
+    for b in range(B):
+        end = _segment_ends(mean, mask, b)
+        if lag < 0:
+            t = T - 1
+            while t >= 0:
+                if end[t] < 0:
+                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t)
+                    t -= 1
+                    continue
+                t0 = t  # start of the run ending at t
+                while t0 > 0 and end[t0 - 1] == t:
+                    t0 -= 1
+                if not _rts_axis_pass(
+                    mean, cov, cov2, off, Fb, Qb, b, t, t0, sx, sP, sm_mean, sm_cov, True
+                ):
+                    return False
+                t = t0 - 1
+        else:
+            for t in range(T):
+                if end[t] < 0:
+                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t)
+                    continue
+                if _offblock_abs_sum(cov2, b, t, off) != 0.0:
+                    return False
+                e = min(end[t], t + lag)
+                _rts_axis_pass(
+                    mean, cov, cov2, off, Fb, Qb, b, e, t, sx, sP, sm_mean, sm_cov, False
+                )
+    return True
+
+
+@njit
+def _rts_dense_step(F, Q, m, Pf, s, Ps):
+    """One backward RTS step (SPEC §9), dense; returns ``(x̃_t, P̃_t, ok)``."""
+    Pp = F @ Pf @ F.T + Q  # P⁻_{t+1} = F P̂_t Fᵀ + Q
+    Pp = 0.5 * (Pp + Pp.T)
+    Ct, ok = chol_solve_spd(Pp, F @ Pf)  # Cᵀ = (P⁻)⁻¹ F P̂_t, i.e. C = P̂_t Fᵀ (P⁻)⁻¹
+    if not ok:
+        return m.copy(), Pf.copy(), False
+    C = Ct.T.copy()
+    x = m + C @ (s - F @ m)  # x̃_t = x̂_t + C (x̃_{t+1} − F x̂_t)
+    Pn = Pf + C @ (Ps - Pp) @ C.T  # P̃_t = P̂_t + C (P̃_{t+1} − P⁻) Cᵀ
+    return x, 0.5 * (Pn + Pn.T), True
+
+
+@njit
+def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
+    """Dense reference RTS; same contract as :func:`rts_axis`."""
+    B, T, n_x = mean.shape
+    for b in range(B):
+        end = _segment_ends(mean, mask, b)
+        s = np.empty(n_x)
+        Ps = np.empty((n_x, n_x))
+        if lag < 0:
+            for t in range(T - 1, -1, -1):
+                if end[t] < 0:
+                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t)
+                    continue
+                if t == end[t]:
+                    s = mean[b, t].copy()  # x̃_{t_end} = x̂_{t_end}
+                    Ps = cov[b, t].copy()
+                else:
+                    s, Ps, _ok = _rts_dense_step(F, Q, mean[b, t].copy(), cov[b, t].copy(), s, Ps)
+                sm_mean[b, t, :] = s
+                sm_cov[b, t, :, :] = Ps
+        else:
+            for t in range(T):
+                if end[t] < 0:
+                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t)
+                    continue
+                e = min(end[t], t + lag)
+                s = mean[b, e].copy()
+                Ps = cov[b, e].copy()
+                for u in range(e - 1, t - 1, -1):
+                    s, Ps, _ok = _rts_dense_step(F, Q, mean[b, u].copy(), cov[b, u].copy(), s, Ps)
+                sm_mean[b, t, :] = s
+                sm_cov[b, t, :, :] = Ps

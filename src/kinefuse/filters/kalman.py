@@ -1,0 +1,337 @@
+"""Linear Kalman filter (paper A: Sun 2024, Eqs. 5-9 and Algorithm 1; SPEC §4).
+
+Layer 2 of the three-layer filter API (see STYLE.md): a frozen configuration object with
+``init`` / ``step`` / ``filter``. The compiled loops live in :mod:`._kernels_axis`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kinefuse.exceptions import InputError
+from kinefuse.filters._base import (
+    FilterResult,
+    GaussianState,
+    check_measurements,
+    check_not_all_missing,
+    check_state_batch,
+    check_step_measurement,
+    initial_covariance,
+    make_initial_state,
+)
+from kinefuse.filters._kernels_axis import (
+    axis_block_params,
+    kf_filter_axis,
+    kf_filter_dense,
+    state_is_block_diagonal,
+)
+from kinefuse.models import LinearGaussianModel
+
+__all__ = ["KalmanFilter", "check_gaussian_state"]
+
+_METHODS = ("auto", "axis", "dense")
+
+
+def check_gaussian_state(state, n_x: int) -> GaussianState:
+    """Validate a :class:`GaussianState` given to ``step`` / ``filter``; return it as float64.
+
+    Raises
+    ------
+    ValueError
+        If ``state`` is not a GaussianState or its arrays have inconsistent shapes or dtypes.
+    """
+    if not isinstance(state, GaussianState):
+        raise InputError(
+            f"expected state as a GaussianState (from KalmanFilter.init or a previous step), "
+            f"got {type(state).__name__}"
+        )
+    init = np.asarray(state.initialized)
+    if init.dtype != np.bool_:
+        raise InputError(f"expected state.initialized as a bool array, got dtype {init.dtype}")
+    batch = init.shape
+    x = np.asarray(state.x)
+    P = np.asarray(state.P)
+    if x.shape != (*batch, n_x):
+        raise InputError(f"expected state.x with shape {(*batch, n_x)}, got {x.shape}")
+    if P.shape != (*batch, n_x, n_x):
+        raise InputError(f"expected state.P with shape {(*batch, n_x, n_x)}, got {P.shape}")
+    for name, arr in (("state.x", x), ("state.P", P)):
+        if arr.dtype.kind != "f":
+            raise InputError(f"expected {name} as a float array, got dtype {arr.dtype}")
+    if init.all():
+        finite = np.isfinite(x).all() and np.isfinite(P).all()
+    else:
+        finite = np.isfinite(x[init]).all() and np.isfinite(P[init]).all()
+    if not finite:
+        raise InputError(
+            "expected finite state.x and state.P for initialised elements, got NaN/inf"
+        )
+    k = state.k
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 0:
+        raise InputError(f"expected state.k as a non-negative int, got {k!r}")
+    return GaussianState(x, P, init, int(k))
+
+
+@dataclass(frozen=True, eq=False)
+class KalmanFilter:
+    """Linear Kalman filter for a :class:`~kinefuse.models.LinearGaussianModel`, batched.
+
+    Implements paper A (Sun 2024) Eqs. 5-9 / Algorithm 1 in the corrected form of SPEC §4, the
+    "KF" baseline of both papers and the dead-zone filter of paper B's Algorithm 1 (lines 3-9).
+
+    Parameters
+    ----------
+    model : LinearGaussianModel
+        ``F (n_x, n_x)``, ``H (n_z, n_x)``, ``Q``, ``R``; e.g.
+        :func:`kinefuse.models.constant_velocity` (positions in m, velocities in m/s).
+    method : {"auto", "axis", "dense"}
+        Compiled loop to use. ``"auto"`` takes the exact per-axis decoupling (SPEC §1: one
+        2-state problem per axis, scalar arithmetic) when ``model.axis_blocks`` is True and the
+        state covariance is block-diagonal per axis, else the dense reference. ``"axis"``
+        requires an axis-blocked model; ``"dense"`` always uses the reference form.
+
+    Notes
+    -----
+    Per step ``k`` (one time slice ``z_k (..., n_z)``, m)::
+
+        x⁻ = F x_{k-1}                          (Eq. 5, corrected)
+        P⁻ = F P_{k-1} Fᵀ + Q                   (Eq. 6, corrected)
+        ν  = z_k − H x⁻ ;  S = H P⁻ Hᵀ + R
+        K  = P⁻ Hᵀ S⁻¹   (Cholesky solve)      (Eq. 7)
+        x_k = x⁻ + K ν                          (Eq. 8)
+        P_k = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ  (Eq. 9, Joseph)
+
+    A measurement row containing any NaN is missing: predict only, ``observed = False``,
+    ``innovation`` and ``distance`` NaN. ``distance`` is the NIS ``νᵀ S⁻¹ ν`` (χ²(n_z) under
+    the model). If ``S`` cannot be factorised even after the SPEC §13 regularisation the update
+    is skipped and the sample reported as not observed.
+
+    Initialisation: unless a state is given, an element is uninitialised (outputs NaN) until its
+    first valid measurement row ``z``; there ``x = H⁺ z`` (positions = z, velocities = 0) and
+    ``P = P₀ =`` :func:`~kinefuse.filters._base.initial_covariance` (R on positions,
+    1 (m/s)² on velocities); that sample is reported ``observed = True`` with NaN innovation and
+    distance (no prior existed). A state given through ``init(mean=..., cov=...)`` is the
+    posterior *before* the first sample: the first step predicts and then updates.
+
+    ``filter`` runs the same compiled loop as ``step``, so ``filter`` equals repeated ``step``
+    and split-and-resume equals one run, to the bit.
+
+    Deviations from the paper
+    -------------------------
+    * Eq. 5 / Algorithm 1 line 3 add the noise ``w`` to the prediction; the prediction is
+      ``F x`` (SPEC §4.1).
+    * Algorithm 1 line 4 uses ``P_k``; the recursion uses ``P_{k-1}`` (SPEC §4.1).
+    * Algorithm 1 line 7 uses ``(I − K H) P⁻``; the Joseph form of Eq. 9 is used (SPEC §4.1).
+    * The papers do not specify the initialisation; SPEC §4.2 / §12.2 [J] is used (above).
+    * Missing measurements (NaN) are not treated by the papers; SPEC §1 / §13: predict only.
+    * SPEC §13's optional divergence re-initialisation is not implemented.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from kinefuse.models import constant_velocity
+    >>> kf = KalmanFilter(constant_velocity(1 / 30, q=1.0, r=0.01))
+    >>> z = np.zeros((8, 100, 3))                       # 8 joints, 100 samples, ENU m
+    >>> state, res = kf.filter(z)
+    >>> res.position.shape, res.cov.shape
+    ((8, 100, 3), (8, 100, 6, 6))
+    """
+
+    model: LinearGaussianModel
+    method: str = "auto"
+    _P0: np.ndarray = field(init=False, repr=False, compare=False)
+    _Hpinv: np.ndarray = field(init=False, repr=False, compare=False)
+    _blocks: tuple | None = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        if not isinstance(self.model, LinearGaussianModel):
+            raise InputError(
+                f"expected model as a LinearGaussianModel (e.g. kinefuse.models.constant_velocity(...)), "
+                f"got {type(self.model).__name__}"
+            )
+        if self.method not in _METHODS:
+            raise InputError(f"expected method in {_METHODS}, got {self.method!r}")
+        if self.method == "axis" and not self.model.axis_blocks:
+            raise InputError(
+                "expected an axis-blocked model for method='axis' (F, Q, H, R block-diagonal per "
+                "axis), got a model with cross-axis terms; use method='auto' or 'dense'"
+            )
+        m = self.model
+        P0 = initial_covariance(m)
+        object.__setattr__(self, "_P0", P0)
+        object.__setattr__(self, "_Hpinv", np.ascontiguousarray(np.linalg.pinv(m.H)))
+        if m.axis_blocks and self.method != "dense":
+            blocks = tuple(
+                np.ascontiguousarray(b) for b in axis_block_params(m.F, m.Q, m.H, m.R, P0)
+            )
+        else:
+            blocks = None
+        object.__setattr__(self, "_blocks", blocks)
+
+    # ---------------------------------------------------------------------------------------
+    @property
+    def n_x(self) -> int:
+        """State dimension."""
+        return self.model.n_x
+
+    @property
+    def n_z(self) -> int:
+        """Measurement dimension."""
+        return self.model.n_z
+
+    def init(self, batch_shape=(), mean=None, cov=None) -> GaussianState:
+        """Initial state for a batch of independent elements (joints, trials).
+
+        Parameters
+        ----------
+        batch_shape : tuple of int
+            Leading axes of the measurements, e.g. ``(n_joints,)``; ``()`` for one series.
+        mean : array_like, shape (..., n_x), optional
+            Posterior mean before the first sample (m, m/s), broadcast to ``batch_shape``.
+            Without it each element initialises itself from its first valid measurement.
+        cov : array_like, shape (..., n_x, n_x), optional
+            Posterior covariance before the first sample; defaults to ``P₀``.
+
+        Returns
+        -------
+        GaussianState
+        """
+        return make_initial_state(self.model, batch_shape, mean, cov)
+
+    def step(self, state: GaussianState, z) -> tuple[GaussianState, FilterResult]:
+        """One filter step on a time slice (online use).
+
+        Parameters
+        ----------
+        state : GaussianState
+            From :meth:`init` or the previous ``step`` / ``filter``; batch shape ``(...)``.
+        z : array_like of float, shape (..., n_z)
+            Measurement at this step, m; a row with NaN is missing (predict only).
+
+        Returns
+        -------
+        state : GaussianState
+            Posterior after this step (the input state is not modified).
+        out : FilterResult
+            The same fields as :meth:`filter` without the time axis: ``mean (..., n_x)``,
+            ``cov (..., n_x, n_x)``, ``position (..., n_z)``, ``observed (...)``,
+            ``innovation (..., n_z)``, ``distance (...)``.
+        """
+        st = check_gaussian_state(state, self.n_x)
+        zs = check_step_measurement(z, self.n_z, st.initialized.shape)
+        new_state, res = self._run(zs[..., None, :], st)
+        out = FilterResult(
+            mean=res.mean[..., 0, :],
+            cov=res.cov[..., 0, :, :],
+            position=res.position[..., 0, :],
+            observed=res.observed[..., 0],
+            innovation=res.innovation[..., 0, :],
+            distance=res.distance[..., 0],
+        )
+        return new_state, out
+
+    def filter(self, z, state: GaussianState | None = None) -> tuple[GaussianState, FilterResult]:
+        """Filter whole series (batch use); equals repeated :meth:`step`.
+
+        Parameters
+        ----------
+        z : array_like of float, shape (..., T, n_z)
+            Measurements, m; leading axes are batch (joints, trials); NaN rows are missing.
+        state : GaussianState, optional
+            State to continue from (batch shape ``z.shape[:-2]``), e.g. the state returned by
+            a previous call (split-and-resume). Without it, :meth:`init` with that batch shape;
+            then every element needs at least one valid row.
+
+        Returns
+        -------
+        state : GaussianState
+            Posterior after the last sample.
+        result : FilterResult
+            ``mean (..., T, n_x)``, ``cov (..., T, n_x, n_x)``, ``position (..., T, n_z)``,
+            ``observed (..., T)``, ``innovation (..., T, n_z)``, ``distance (..., T)`` (NIS).
+
+        Raises
+        ------
+        ValueError
+            Wrong shape/dtype, ±inf, a batch-shape mismatch with ``state``, or (without
+            ``state``) an element whose series is all NaN.
+        """
+        zz = check_measurements(z, self.n_z)
+        if state is None:
+            st = self.init(zz.shape[:-2])
+        else:
+            st = check_gaussian_state(state, self.n_x)
+            check_state_batch(st, zz)
+        new_state, result = self._run(zz, st)
+        if state is None and not np.all(new_state.initialized):
+            check_not_all_missing(zz, None)  # raises, naming the first all-NaN element
+        return new_state, result
+
+    # ---------------------------------------------------------------------------------------
+    def _use_axis(self, P: np.ndarray, init: np.ndarray) -> bool:
+        """Axis path if the model is axis-blocked and every initialised ``P (B, n_x, n_x)`` is too."""
+        if self._blocks is None:
+            return False
+        ok = state_is_block_diagonal(P, init)
+        if not ok and self.method == "axis":
+            raise InputError(
+                "expected a state covariance block-diagonal per axis for method='axis', "
+                "got cross-axis entries; use method='auto' or 'dense'"
+            )
+        return ok
+
+    def _run(self, z: np.ndarray, st: GaussianState) -> tuple[GaussianState, FilterResult]:
+        """Run the compiled loop on validated ``z (..., T, n_z)`` from validated ``st``."""
+        m = self.model
+        n_x, n_z = m.n_x, m.n_z
+        batch = z.shape[:-2]
+        T = z.shape[-2]
+        z3 = np.ascontiguousarray(z.reshape(-1, T, n_z))
+        B = z3.shape[0]
+        x = np.array(st.x, dtype=np.float64, order="C").reshape(B, n_x)
+        P = np.array(st.P, dtype=np.float64, order="C").reshape(B, n_x, n_x)
+        init = np.array(st.initialized, dtype=bool).reshape(B)
+        use_axis = self._use_axis(P, init)
+        mean = np.empty((B, T, n_x))
+        pos = np.empty((B, T, n_z))
+        obs = np.empty((B, T), dtype=bool)
+        nu = np.empty((B, T, n_z))
+        dist = np.empty((B, T))
+        if use_axis:
+            cov = np.zeros((B, T, n_x, n_x))
+            Fb, Qb, Hb, r, P0b = self._blocks
+            kf_filter_axis(z3, x, P, init, Fb, Qb, Hb, r, P0b, mean, cov, pos, obs, nu, dist)
+        else:
+            cov = np.empty((B, T, n_x, n_x))
+            kf_filter_dense(
+                z3,
+                x,
+                P,
+                init,
+                m.F,
+                m.Q,
+                m.H,
+                m.R,
+                self._P0,
+                self._Hpinv,
+                mean,
+                cov,
+                pos,
+                obs,
+                nu,
+                dist,
+            )
+        new_state = GaussianState(
+            x.reshape(*batch, n_x), P.reshape(*batch, n_x, n_x), init.reshape(batch), st.k + T
+        )
+        result = FilterResult(
+            mean=mean.reshape(*batch, T, n_x),
+            cov=cov.reshape(*batch, T, n_x, n_x),
+            position=pos.reshape(*batch, T, n_z),
+            observed=obs.reshape(*batch, T),
+            innovation=nu.reshape(*batch, T, n_z),
+            distance=dist.reshape(*batch, T),
+        )
+        return new_state, result
