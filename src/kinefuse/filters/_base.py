@@ -131,6 +131,19 @@ def check_not_all_missing(z: np.ndarray, state: GaussianState | None) -> None:
         )
 
 
+def check_batch_shape(batch_shape) -> tuple[int, ...]:
+    """Validate ``batch_shape`` (an int or a tuple of non-negative ints) and return a tuple."""
+    if isinstance(batch_shape, (int, np.integer)):
+        batch_shape = (int(batch_shape),)
+    try:
+        batch_shape = tuple(int(b) for b in batch_shape)
+    except TypeError:
+        raise InputError(f"expected batch_shape as a tuple of ints, got {batch_shape!r}") from None
+    if any(b < 0 for b in batch_shape):
+        raise InputError(f"expected non-negative batch_shape, got {batch_shape}")
+    return batch_shape
+
+
 def make_initial_state(model, batch_shape=(), mean=None, cov=None) -> GaussianState:
     """Build the state returned by ``init``: uninitialised (NaN) unless ``mean`` is given.
 
@@ -142,14 +155,7 @@ def make_initial_state(model, batch_shape=(), mean=None, cov=None) -> GaussianSt
     cov : array_like, shape (..., n_x, n_x), optional
         Initial covariance; defaults to :func:`initial_covariance`.
     """
-    if isinstance(batch_shape, (int, np.integer)):
-        batch_shape = (int(batch_shape),)
-    try:
-        batch_shape = tuple(int(b) for b in batch_shape)
-    except TypeError:
-        raise InputError(f"expected batch_shape as a tuple of ints, got {batch_shape!r}") from None
-    if any(b < 0 for b in batch_shape):
-        raise InputError(f"expected non-negative batch_shape, got {batch_shape}")
+    batch_shape = check_batch_shape(batch_shape)
     n_x = model.n_x
     if mean is None:
         if cov is not None:

@@ -27,22 +27,25 @@ def kf_predict(x, P, F, Q):
 
 
 @njit
-def chol_solve_spd(S, B):
-    """Solve ``S X = B`` for SPD ``S`` by Cholesky, regularising per SPEC §13 if needed.
+def chol_lower(S):
+    """Lower Cholesky factor of SPD ``S`` with the SPEC §13 regularisation ladder.
 
-    Returns ``(X, ok)``; ``ok`` is False when ``S`` stayed indefinite after adding
-    ``ε·tr(S)/n·I`` with ε from 1e-12 up to 1e-6.
+    SPEC §13: on failure add ``ε·tr(S)/n·I`` with ε = 1e-12, ×10 up to 1e-6. Every kernel that
+    factorises an innovation covariance uses this ladder, so gains and likelihoods agree.
+    Returns ``(L, ok)``.
     """
     n = S.shape[0]
     scale = max(np.trace(S) / n, 1e-300)
     eps = 0.0
+    L = np.zeros_like(S)
     for _attempt in range(8):
-        Se = S + eps * scale * np.eye(n)
-        L = np.zeros_like(S)
+        L[:, :] = 0.0
         good = True
         for i in range(n):
             for j in range(i + 1):
-                s = Se[i, j]
+                s = S[i, j]
+                if i == j:
+                    s += eps * scale
                 for k in range(j):
                     s -= L[i, k] * L[j, k]
                 if i == j:
@@ -55,26 +58,37 @@ def chol_solve_spd(S, B):
             if not good:
                 break
         if good:
-            # forward / back substitution, column by column
-            m = B.shape[1]
-            X = np.empty_like(B)
-            for c in range(m):
-                y = np.empty(n)
-                for i in range(n):
-                    s = B[i, c]
-                    for k in range(i):
-                        s -= L[i, k] * y[k]
-                    y[i] = s / L[i, i]
-                for i in range(n - 1, -1, -1):
-                    s = y[i]
-                    for k in range(i + 1, n):
-                        s -= L[k, i] * X[k, c]
-                    X[i, c] = s / L[i, i]
-            return X, True
+            return L, True
         eps = 1e-12 if eps == 0.0 else eps * 10.0
         if eps > 1e-6 * 1.0000001:
             break
-    return np.full_like(B, np.nan), False
+    return L, False
+
+
+@njit
+def chol_solve_spd(S, B):
+    """Solve ``S X = B`` for SPD ``S`` via :func:`chol_lower` (SPEC §13 regularisation).
+
+    Returns ``(X, ok)``; ``ok`` is False (and ``X`` NaN) when ``S`` stayed indefinite.
+    """
+    L, ok = chol_lower(S)
+    if not ok:
+        return np.full_like(B, np.nan), False
+    n = S.shape[0]
+    X = np.empty_like(B)
+    y = np.empty(n)
+    for c in range(B.shape[1]):
+        for i in range(n):
+            s = B[i, c]
+            for k in range(i):
+                s -= L[i, k] * y[k]
+            y[i] = s / L[i, i]
+        for i in range(n - 1, -1, -1):
+            s = y[i]
+            for k in range(i + 1, n):
+                s -= L[k, i] * X[k, c]
+            X[i, c] = s / L[i, i]
+    return X, True
 
 
 @njit

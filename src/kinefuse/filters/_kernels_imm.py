@@ -11,47 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit
-from kinefuse.filters._kernels import kf_predict, kf_update, symmetrize
+from kinefuse.filters._kernels import chol_lower, kf_predict, kf_update, symmetrize
 
 LOG_2PI = float(np.log(2.0 * np.pi))
-
-
-@njit
-def chol_lower(S):
-    """Lower Cholesky factor of SPD ``S`` with the SPEC §13 regularisation ladder.
-
-    Same ladder as :func:`._kernels.chol_solve_spd` (``ε·tr(S)/n·I``, ε = 0, 1e-12 ... 1e-6), so
-    the likelihood uses the same ``S`` the gain was computed with. Returns ``(L, ok)``.
-    """
-    n = S.shape[0]
-    scale = max(np.trace(S) / n, 1e-300)
-    eps = 0.0
-    L = np.zeros_like(S)
-    for _attempt in range(8):
-        L[:, :] = 0.0
-        good = True
-        for i in range(n):
-            for j in range(i + 1):
-                s = S[i, j]
-                if i == j:
-                    s += eps * scale
-                for k in range(j):
-                    s -= L[i, k] * L[j, k]
-                if i == j:
-                    if s <= 0.0 or not np.isfinite(s):
-                        good = False
-                        break
-                    L[i, i] = np.sqrt(s)
-                else:
-                    L[i, j] = s / L[j, j]
-            if not good:
-                break
-        if good:
-            return L, True
-        eps = 1e-12 if eps == 0.0 else eps * 10.0
-        if eps > 1e-6 * 1.0000001:
-            break
-    return L, False
 
 
 @njit

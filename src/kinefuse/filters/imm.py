@@ -15,6 +15,7 @@ from kinefuse._validation import as_float_array
 from kinefuse.exceptions import InputError
 from kinefuse.filters._base import (
     FilterResult,
+    check_batch_shape,
     check_measurements,
     check_not_all_missing,
     check_step_measurement,
@@ -322,7 +323,7 @@ class IMM:
         -------
         IMMState
         """
-        batch_shape = _batch_shape(batch_shape)
+        batch_shape = check_batch_shape(batch_shape)
         M, n_x = self.n_models, self.n_x
         mu_arr = self.mu0 if mu is None else as_float_array(mu, "mu", last_dim=M)
         _check_mu(mu_arr, M, "mu")
@@ -556,18 +557,6 @@ def lag_posteriors(mean, cov) -> tuple[np.ndarray, np.ndarray]:
     x_prev[..., 1:, :, :] = x[..., :-1, :, :]
     P_prev[..., 1:, :, :, :] = P[..., :-1, :, :, :]
     return x_prev, P_prev
-
-
-def _batch_shape(batch_shape) -> tuple[int, ...]:
-    if isinstance(batch_shape, (int, np.integer)):
-        batch_shape = (int(batch_shape),)
-    try:
-        batch_shape = tuple(int(b) for b in batch_shape)
-    except TypeError:
-        raise InputError(f"expected batch_shape as a tuple of ints, got {batch_shape!r}") from None
-    if any(b < 0 for b in batch_shape):
-        raise InputError(f"expected non-negative batch_shape, got {batch_shape}")
-    return batch_shape
 
 
 def _check_mu(mu: np.ndarray, M: int, name: str) -> None:
