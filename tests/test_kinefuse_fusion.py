@@ -1,0 +1,173 @@
+"""Tests of the ``"kinefuse"`` fusion (IMU chain + camera, learned chain-error model)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED
+from kinefuse.pipelines.features import chain_features, imu_features, joint_segments
+from kinefuse.pipelines.kinefuse_fusion import RidgeCorrection, estimate_noise, kinefuse_fusion
+
+DT = 1 / 30
+
+
+def _scenario(T=600, J=2, seed=0, cam_std=0.01, outage=(300, 360)):
+    """Smooth motion; chain error = a known function of a feature; camera = truth + noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(T) * DT
+    ang = 1.2 * np.sin(2 * np.pi * 0.4 * t)[:, None] + np.arange(J)[None] * 0.5  # (T, J)
+    truth = np.stack([0.3 * np.cos(ang), 0.3 * np.sin(ang), 0.1 * np.sin(0.5 * ang)], -1)
+    feats = np.stack([np.cos(ang), np.sin(ang), np.cos(2 * ang)], -1)  # (T, J, 3)
+    err = 0.05 * feats[..., 2:3] * np.array([1.0, -0.5, 0.3]) + 0.02  # function of a feature
+    z_imu = truth - err
+    z_cam = truth + rng.normal(0.0, cam_std, truth.shape)
+    av = np.ones((T, J), dtype=bool)
+    av[outage[0] : outage[1]] = False
+    return z_imu, z_cam, av, truth, feats
+
+
+def _rmse(a, b, m=None):
+    e = np.sum((a - b) ** 2, -1)
+    return float(np.sqrt(np.mean(e if m is None else e[m])))
+
+
+def test_learned_correction_recovers_known_chain_error():
+    zi, zc, av, truth, feats = _scenario()
+    res = kinefuse_fusion(zi, zc, av, DT, features=feats)
+    out = ~av
+    raw = _rmse(zi, truth, out)
+    fused = _rmse(res.position, truth, out)
+    assert raw > 0.03
+    assert fused < 0.2 * raw  # outage RMSE far below the raw chain
+    assert np.all(res.source[out] == SOURCE_BRIDGED) and np.all(res.source[av] == SOURCE_FUSED)
+    assert res.position.shape == zi.shape and res.cov.shape == (*zi.shape, 3)
+
+
+def test_causal_mode_recovers_it_too():
+    zi, zc, av, truth, feats = _scenario()
+    res = kinefuse_fusion(zi, zc, av, DT, features=feats, causal=True)
+    assert _rmse(res.position, truth, ~av) < 0.3 * _rmse(zi, truth, ~av)
+
+
+def test_no_outage_output_close_to_camera():
+    zi, zc, av, truth, feats = _scenario(cam_std=0.005, outage=(0, 0))
+    res = kinefuse_fusion(zi, zc, av, DT, features=feats)
+    assert _rmse(res.position, zc) < 0.01  # within ~2 camera noise std
+    assert _rmse(res.position, truth) <= _rmse(zc, truth) * 1.05
+
+
+@pytest.mark.parametrize("lag", [0, 5])
+def test_causal_outputs_do_not_depend_on_the_future(lag):
+    zi, zc, av, _, feats = _scenario(T=300, outage=(150, 190))
+    t_cut = 170
+    ref = kinefuse_fusion(zi, zc, av, DT, features=feats, causal=True, lag=lag).position
+    zi2, zc2, f2 = zi.copy(), zc.copy(), feats.copy()
+    rng = np.random.default_rng(5)
+    zi2[t_cut + 1 :] += rng.normal(0, 0.2, zi2[t_cut + 1 :].shape)
+    zc2[t_cut + 1 :] += rng.normal(0, 0.2, zc2[t_cut + 1 :].shape)
+    f2[t_cut + 1 :] += rng.normal(0, 1.0, f2[t_cut + 1 :].shape)
+    av2 = av.copy()
+    av2[t_cut + 1 :] = ~av2[t_cut + 1 :]
+    new = kinefuse_fusion(zi2, zc2, av2, DT, features=f2, causal=True, lag=lag).position
+    upto = t_cut + 1 - lag
+    np.testing.assert_array_equal(new[:upto], ref[:upto])
+    assert not np.allclose(new[t_cut + 1 :], ref[t_cut + 1 :])
+
+
+def test_offline_is_not_causal_and_default_features_work():
+    zi, zc, av, truth, _ = _scenario()
+    res = kinefuse_fusion(zi, zc, av, DT)  # fallback features from the chain
+    assert np.all(np.isfinite(res.position))
+    assert _rmse(res.position, truth, ~av) < _rmse(zi, truth, ~av)
+
+
+def test_outage_at_start_falls_back_to_chain():
+    zi, zc, av, truth, feats = _scenario(outage=(0, 40))
+    res = kinefuse_fusion(zi, zc, av, DT, features=feats, causal=True)
+    assert np.all(np.isfinite(res.position))
+    np.testing.assert_allclose(res.position[5:40], zi[5:40], atol=0.02)
+
+
+def test_noise_estimation_recovers_white_noise_levels():
+    rng = np.random.default_rng(1)
+    T = 3000
+    t = np.arange(T) * DT
+    p = np.stack([0.3 * np.sin(2 * np.pi * f * t) for f in (0.3, 0.5, 0.7)], -1)
+    zc = p + rng.normal(0, 0.02, p.shape)
+    zi = p + rng.normal(0, 0.005, p.shape)
+    prm = estimate_noise(zc, zi, np.ones(T, bool), DT, max_lag=30)
+    # half the model variogram of each sensor's error, r + σ² (1 − φ^k), equals σ_white²; the
+    # small chain noise is only resolved at short lags (the motion dominates the estimate's
+    # variance at long lags)
+    for k in (1, 30):
+        vc = prm.r_cam + prm.var_c * (1 - prm.phi_c**k)
+        np.testing.assert_allclose(np.sqrt(vc), 0.02, rtol=0.25)
+    vi = prm.r_imu + prm.var_b * (1 - prm.phi_b)
+    np.testing.assert_allclose(np.sqrt(vi), 0.005, rtol=0.6)
+
+
+def test_ridge_partial_fit_equals_fit():
+    rng = np.random.default_rng(2)
+    X = rng.normal(size=(200, 4))
+    Y = X @ rng.normal(size=(4, 2)) + 0.1 * rng.normal(size=(200, 2))
+    a = RidgeCorrection(block=20).fit(X, Y)
+    b = RidgeCorrection(block=20).partial_fit(X[:90], Y[:90], np.arange(90))
+    b.partial_fit(X[90:], Y[90:], np.arange(90, 200))
+    np.testing.assert_allclose(a.coef_, b.coef_, rtol=1e-9, atol=1e-12)
+    assert a.alpha_ == b.alpha_
+    assert np.all(np.isfinite(a.cv_error_))
+
+
+def test_features_helpers():
+    from kinefuse.io.recording import ImuStream
+    from kinefuse.kinematics import upper_limb
+
+    sk = upper_limb("r", lengths={"upper_arm_r": 0.3, "forearm_r": 0.25})
+    assert joint_segments(sk, "elbow_r") == ("upper_arm_r", "forearm_r")
+    t = np.arange(50) / 100.0
+    ang = np.linspace(0, 1, 50)
+    q = np.stack([np.cos(ang / 2), np.zeros(50), np.zeros(50), np.sin(ang / 2)], -1)
+    streams = {s: ImuStream(t_s=t, q_world_from_sensor=q) for s in sk.segments}
+    f = imu_features(streams, sk, ["elbow_r", "wrist_r"], t[::3])
+    assert f.shape == (17, 2, 2 * 12 + 9)
+    rate = 1.0 / 0.49  # rad/s about z
+    np.testing.assert_allclose(f[1:, 0, 9:12], [[0.0, 0.0, rate]] * 16, rtol=1e-9, atol=1e-9)
+    c = chain_features(np.ones((5, 2, 3)), DT, parents=[-1, 0])
+    assert c.shape == (5, 2, 10) and np.all(c[0, :, -3:] == 0)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"z_imu": np.zeros((10, 2))}, "shape"),
+        ({"z_cam": np.zeros((10, 3, 3))}, "shape"),
+        ({"available": np.ones((10, 2))}, "bool"),
+        ({"dt_s": 0.0}, "dt_s"),
+        ({"dt_s": "x"}, "dt_s"),
+        ({"features": np.zeros((9, 2, 4))}, "features"),
+        ({"lag": 3}, "lag"),
+        ({"causal": "yes"}, "causal"),
+    ],
+)
+def test_bad_input(kwargs, match):
+    args = dict(
+        z_imu=np.zeros((10, 2, 3)),
+        z_cam=np.zeros((10, 2, 3)),
+        available=np.ones((10, 2), bool),
+        dt_s=DT,
+    )
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        kinefuse_fusion(
+            args.pop("z_imu"), args.pop("z_cam"), args.pop("available"), args.pop("dt_s"), **args
+        )
+
+
+def test_bad_input_inf_and_unknown_joint():
+    with pytest.raises(ValueError, match="inf"):
+        kinefuse_fusion(np.full((4, 1, 3), np.inf), np.zeros((4, 1, 3)), np.ones((4, 1), bool), DT)
+    from kinefuse.kinematics import upper_limb
+
+    with pytest.raises(ValueError, match="distal"):
+        joint_segments(upper_limb("r", lengths={"upper_arm_r": 0.3, "forearm_r": 0.25}), "knee_l")
