@@ -1,0 +1,825 @@
+"""EM-adaptive KF and EM-KF/FIR integrated filter kernels (numba).
+
+Paper A §3.2 (Eqs. 10-23, Algorithm 2) and §3.4 (Eq. 29) as corrected by SPEC §5.3 and §7.3.
+Textbook symbols, no validation. The EM-KF does not decouple per axis (``Ω₁``, ``Ω₂`` hold outer
+products of the innovation, SPEC §1), so these are tight dense loops on preallocated scratch
+arrays. ``F`` and ``H`` are passed as sparse triplets ``(rows, cols, vals)`` of their non-zero
+entries (9 and 3 entries for the 3-D constant-velocity model); any dense matrix works too.
+
+Status bits returned by :func:`em_update`: 1 = R floor bound, 2 = P⁻ floor bound,
+4 = ``S`` had to be regularised (SPEC §13), 8 = ``S`` could not be factorised (update skipped).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from kinefuse._compile import njit
+from kinefuse.filters._kernels_ufir import _chol, fir_estimate
+
+FLOOR_R, FLOOR_P, S_REGULARISED, S_FAILED = 1, 2, 4, 8
+
+
+def sparse_triplets(M):
+    """Non-zero entries of ``M`` as tuples ``(rows, cols, vals)``.
+
+    Tuples (not arrays) so that their length, like the sizes ``tx = (0,) * n_x`` and
+    ``tz = (0,) * n_z`` passed to the kernels, is a compile-time constant: numba specialises the
+    kernels per model size and LLVM unrolls the 6×6 / 3×3 loops.
+    """
+    r, c = np.nonzero(M)
+    return tuple(int(i) for i in r), tuple(int(i) for i in c), tuple(float(v) for v in M[r, c])
+
+
+def size_tuple(n: int) -> tuple:
+    """``(0,) * n``: carries a matrix size as a compile-time constant (see :func:`sparse_triplets`)."""
+    return (0,) * int(n)
+
+
+@njit
+def _chol_t(A, L, tn):
+    """Lower Cholesky of ``A[:n, :n]`` (``n = len(tn)``) into ``L``; False if not PD."""
+    n = len(tn)
+    for j in range(n):  # column by column, one reciprocal per pivot
+        s = A[j, j]
+        for p in range(j):
+            s -= L[j, p] * L[j, p]
+        if not (s > 0.0):
+            return False
+        d = np.sqrt(s)
+        L[j, j] = d
+        inv = 1.0 / d
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for p in range(j):
+                s -= L[i, p] * L[j, p]
+            L[i, j] = s * inv
+    return True
+
+
+@njit
+def _chol_solve(L, B, tn, tm):
+    """In place ``B[:n, :m] <- (L Lᵀ)⁻¹ B`` for a lower Cholesky factor ``L``.
+
+    Row-major order so the ``m`` independent right-hand sides share each reciprocal pivot.
+    """
+    n = len(tn)
+    m = len(tm)
+    for i in range(n):
+        d = 1.0 / L[i, i]
+        for c in range(m):
+            s = B[i, c]
+            for p in range(i):
+                s -= L[i, p] * B[p, c]
+            B[i, c] = s * d
+    for i in range(n - 1, -1, -1):
+        d = 1.0 / L[i, i]
+        for c in range(m):
+            s = B[i, c]
+            for p in range(i + 1, n):
+                s -= L[p, i] * B[p, c]
+            B[i, c] = s * d
+
+
+@njit
+def _chol_reg(S, L, work, tn):
+    """Cholesky of ``S`` with SPEC §13 regularisation: 0 ok, 1 regularised, 2 failed."""
+    n = len(tn)
+    if _chol_t(S, L, tn):
+        return 0
+    tr = 0.0
+    for i in range(n):
+        tr += S[i, i]
+    scale = max(tr / n, 1e-300)
+    eps = 1e-12
+    while eps <= 1e-6 * 1.0000001:
+        for i in range(n):
+            for j in range(n):
+                work[i, j] = S[i, j]
+            work[i, i] += eps * scale  # S + ε·tr(S)/n·I
+        if _chol_t(work, L, tn):
+            return 1
+        eps *= 10.0
+    return 2
+
+
+@njit
+def _quad_inv(L, v, tmp, tn):
+    """``vᵀ (L Lᵀ)⁻¹ v`` by forward substitution only: ``‖L⁻¹ v‖²``."""
+    n = len(tn)
+    acc = 0.0
+    for i in range(n):
+        s = v[i]
+        for p in range(i):
+            s -= L[i, p] * tmp[p]
+        tmp[i] = s / L[i, i]
+        acc += tmp[i] * tmp[i]
+    return acc
+
+
+@njit
+def floor_clip(A, Nom, c, n):
+    """Raise the generalised eigenvalues of ``A`` w.r.t. ``Nom`` to at least ``c`` (SPEC §5.4).
+
+    ``A ← L (V max(Λ, c) Vᵀ) Lᵀ`` with ``Nom = L Lᵀ`` and ``L⁻¹ A L⁻ᵀ = V Λ Vᵀ``. Returns False
+    (``A`` untouched) when ``Nom`` is not positive definite or ``A`` is not finite.
+    """
+    for i in range(n):
+        for j in range(n):
+            if not np.isfinite(A[i, j]):
+                return False
+    L = np.zeros((n, n))
+    if not _chol(Nom, L, n):
+        return False
+    Li = np.linalg.inv(L)
+    LiT = np.ascontiguousarray(Li.T)
+    Ac = np.ascontiguousarray(A[:n, :n])
+    Aw = Li @ Ac @ LiT
+    Aw = 0.5 * (Aw + Aw.T)
+    w, V = np.linalg.eigh(Aw)
+    for i in range(n):
+        if w[i] < c:
+            w[i] = c
+    Vw = np.ascontiguousarray(V * w)
+    VT = np.ascontiguousarray(V.T)
+    LT = np.ascontiguousarray(L.T)
+    Ar = L @ (Vw @ VT) @ LT
+    for i in range(n):
+        for j in range(n):
+            A[i, j] = 0.5 * (Ar[i, j] + Ar[j, i])
+    return True
+
+
+@njit
+def _floor_binds(A, Nom, c, W, L, tn):
+    """True when ``A - c·Nom`` is not positive definite (cheap Cholesky test)."""
+    n = len(tn)
+    for i in range(n):
+        for j in range(n):
+            W[i, j] = A[i, j] - c * Nom[i, j]
+    return not _chol_t(W, L, tn)
+
+
+@njit
+def _copy_vec(src, dst):
+    for i in range(src.shape[0]):
+        dst[i] = src[i]
+
+
+@njit
+def _copy_mat(src, dst):
+    for i in range(src.shape[0]):
+        for j in range(src.shape[1]):
+            dst[i, j] = src[i, j]
+
+
+@njit
+def _get(x, P, b, xb, Pb):
+    """Element ``b`` of the batched state into local arrays."""
+    n = xb.shape[0]
+    for i in range(n):
+        xb[i] = x[b, i]
+        for j in range(n):
+            Pb[i, j] = P[b, i, j]
+
+
+@njit
+def _set(x, P, b, xb, Pb):
+    n = xb.shape[0]
+    for i in range(n):
+        x[b, i] = xb[i]
+        for j in range(n):
+            P[b, i, j] = Pb[i, j]
+
+
+@njit
+def _put(o_mean, o_cov, b, t, xb, Pb):
+    n = xb.shape[0]
+    for i in range(n):
+        o_mean[b, t, i] = xb[i]
+        for j in range(n):
+            o_cov[b, t, i, j] = Pb[i, j]
+
+
+@njit
+def _fill(o_nu, o_dist, o_R, b, t):
+    """NaN diagnostics for a step without update."""
+    n_z = o_nu.shape[2]
+    for r1 in range(n_z):
+        o_nu[b, t, r1] = np.nan
+        if o_R.shape[0] > 0:
+            for r2 in range(n_z):
+                o_R[b, t, r1, r2] = np.nan
+    o_dist[b, t] = np.nan
+
+
+@njit
+def kf_predict_sparse(tx, x, P, Fr, Fc, Fv, Q, xp, Pp, FP):
+    """SPEC §4.2 ``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q`` (Eqs. 5-6 without the noise term), symmetrised."""
+    n = len(tx)
+    for i in range(n):
+        xp[i] = 0.0
+        for j in range(n):
+            FP[i, j] = 0.0
+    for t in range(len(Fv)):
+        i = Fr[t]
+        c = Fc[t]
+        v = Fv[t]
+        xp[i] += v * x[c]  # Eq. 5: x⁻ = F x
+        for j in range(n):
+            FP[i, j] += v * P[c, j]
+    for i in range(n):
+        for j in range(n):
+            Pp[i, j] = Q[i, j]
+    for t in range(len(Fv)):
+        j = Fr[t]
+        c = Fc[t]
+        v = Fv[t]
+        for i in range(n):
+            Pp[i, j] += v * FP[i, c]  # Eq. 6: P⁻ = F P Fᵀ + Q
+    for i in range(n):
+        for j in range(i + 1, n):
+            s = 0.5 * (Pp[i, j] + Pp[j, i])
+            Pp[i, j] = s
+            Pp[j, i] = s
+
+
+def em_scratch(n_x, n_z):
+    """Scratch arrays of :func:`em_update`: ``(mats, vecs)`` tuples (allocated once per run)."""
+    mats = (
+        np.zeros((n_x, n_x)),  # Pm  P̄⁻
+        np.zeros((n_z, n_x)),  # M   H P̄⁻ / H P
+        np.zeros((n_z, n_z)),  # S
+        np.zeros((n_z, n_z)),  # LS  chol(S)
+        np.zeros((n_z, n_x)),  # Kt  Kᵀ
+        np.zeros((n_x, n_x)),  # AP  (I − K H) P̄⁻
+        np.zeros((n_x, n_z)),  # D   K R − AP Hᵀ
+        np.zeros((n_x, n_x)),  # W   work
+        np.zeros((n_x, n_x)),  # L6  work factor
+    )
+    vecs = (np.zeros(n_z), np.zeros(n_z), np.zeros(n_x))  # nu, e, tmp
+    return mats, vecs
+
+
+em_scratch_jit = njit(em_scratch)
+
+
+@njit
+def em_update(
+    tx,
+    tz,
+    xp,
+    Pp,
+    z,
+    Hr,
+    Hc,
+    Hv,
+    R0,
+    Rnom,
+    Uprior,
+    u_prior,
+    n_iter,
+    regularized,
+    tau,
+    floor_c,
+    want_R,
+    x,
+    P,
+    Rj,
+    Om1,
+    mats,
+    vecs,
+):
+    """EM-KF measurement update at one time step (SPEC §5.3; paper A Algorithm 2 lines 5-17).
+
+    Parameters
+    ----------
+    tx, tz : tuple
+        ``size_tuple(n_x)``, ``size_tuple(n_z)`` (compile-time sizes).
+    xp, Pp : ndarray, shape (n_x,), (n_x, n_x)
+        Prediction ``x⁻``, ``P⁻`` (fixed through the iterations).
+    z : ndarray, shape (n_z,)
+        Valid measurement.
+    Hr, Hc, Hv : ndarray
+        Non-zeros of ``H``.
+    R0 : ndarray, shape (n_z, n_z)
+        ``R^{(0)}``: nominal R (option A) or the inverse-Wishart prior mean (option B).
+    Rnom : ndarray, shape (n_z, n_z)
+        Nominal R, reference of the R floor.
+    Uprior, u_prior : ndarray, shape (n_z, n_z), and float
+        ``Û⁻`` and ``û⁻`` (option B only).
+    n_iter : int
+        ``N_EM``; ``n_iter=1`` is exactly the KF update (SPEC §5.2-6).
+    regularized : bool
+        Option B blending: ``P̄⁻ ← (τP⁻ + Ω₂)/(τ+1)``, ``R ← (Û⁻ + Ω₁)/(û⁻ − n_z)``.
+    tau : float
+        τ (option B only).
+    floor_c : float
+        Floors: ``R ⪰ c·R_nom`` and ``P̄⁻ ⪰ c·P⁻`` in the generalised-eigenvalue sense.
+    want_R : bool
+        Compute ``R^{(N_EM)}`` after the last iteration (False for a plain KF update).
+    x, P, Rj, Om1 : ndarray
+        Outputs: posterior, ``R^{(N_EM)}`` and the last ``Ω₁``.
+    mats, vecs : tuple of ndarray
+        Scratch from :func:`em_scratch`; ``vecs[0]`` holds ``ν`` on return.
+
+    Returns
+    -------
+    status : int
+        Bit set of ``FLOOR_R``, ``FLOOR_P``, ``S_REGULARISED``, ``S_FAILED``.
+    nis : float
+        ``νᵀS⁻¹ν`` with the first-iteration (nominal) S.
+
+    Notes
+    -----
+    The Joseph product ``(I − K H) P̄⁻ (I − K H)ᵀ + K R Kᵀ`` is evaluated through the sparsity
+    of ``H``: ``AP = P̄⁻ − K (H P̄⁻)``, then ``P = AP + (K R − AP Hᵀ) Kᵀ`` (upper triangle,
+    mirrored) — the same product, not the short form.
+    """
+    Pm, M, S, LS, Kt, AP, D, W, L6 = mats
+    nu, e, tmp = vecs
+    n_x = len(tx)
+    n_z = len(tz)
+    nnz = len(Hv)
+    status = 0
+    nis = np.nan
+    # ν = z − H x⁻ (fixed: x⁻ does not change through the iterations, SPEC §5.3)
+    for r in range(n_z):
+        nu[r] = z[r]
+    for t in range(nnz):
+        nu[Hr[t]] -= Hv[t] * xp[Hc[t]]
+    for i in range(n_x):
+        x[i] = xp[i]
+        for j in range(n_x):
+            P[i, j] = Pp[i, j]
+            Pm[i, j] = Pp[i, j]  # P̄⁻^{(0)} = P⁻ (Alg. 2 line 6)
+    for r1 in range(n_z):
+        for r2 in range(n_z):
+            Rj[r1, r2] = R0[r1, r2]  # R^{(0)} = nominal, reset every step (SPEC §5.2-6)
+    for jit in range(n_iter):
+        # M = H P̄⁻ (n_z, n_x)
+        for r in range(n_z):
+            for c in range(n_x):
+                M[r, c] = 0.0
+        for t in range(nnz):
+            r = Hr[t]
+            cc = Hc[t]
+            v = Hv[t]
+            for c in range(n_x):
+                M[r, c] += v * Pm[cc, c]
+        # S = H P̄⁻ Hᵀ + R^{(j)}
+        for r1 in range(n_z):
+            for r2 in range(n_z):
+                S[r1, r2] = Rj[r1, r2]
+        for t in range(nnz):
+            r2 = Hr[t]
+            cc = Hc[t]
+            v = Hv[t]
+            for r1 in range(n_z):
+                S[r1, r2] += v * M[r1, cc]
+        for r1 in range(n_z):
+            for r2 in range(r1 + 1, n_z):
+                sym = 0.5 * (S[r1, r2] + S[r2, r1])
+                S[r1, r2] = sym
+                S[r2, r1] = sym
+        st = _chol_reg(S, LS, W, tz)
+        if st == 2:  # SPEC §13: skip the update; later iterations keep the previous one
+            status |= S_FAILED if jit == 0 else S_REGULARISED
+            break
+        if st == 1:
+            status |= S_REGULARISED
+        # Kᵀ = S⁻¹ H P̄⁻  → K^{(j+1)} (Alg. 2 line 8; SPEC §5.2-4 gain index)
+        for r in range(n_z):
+            for c in range(n_x):
+                Kt[r, c] = M[r, c]
+        _chol_solve(LS, Kt, tz, tx)
+        if jit == 0:
+            nis = _quad_inv(LS, nu, tmp, tz)
+        # x^{(j+1)} = x⁻ + K^{(j+1)} ν  (Alg. 2 line 9, Eq. 8)
+        for i in range(n_x):
+            acc = xp[i]
+            for r in range(n_z):
+                acc += Kt[r, i] * nu[r]
+            x[i] = acc
+        # AP = (I − K H) P̄⁻ = P̄⁻ − K (H P̄⁻)
+        for i in range(n_x):
+            for c in range(n_x):
+                acc = Pm[i, c]
+                for r in range(n_z):
+                    acc -= Kt[r, i] * M[r, c]
+                AP[i, c] = acc
+        # D = K R^{(j)} − AP Hᵀ  (n_x, n_z)
+        for i in range(n_x):
+            for r2 in range(n_z):
+                acc = 0.0
+                for r1 in range(n_z):
+                    acc += Kt[r1, i] * Rj[r1, r2]
+                D[i, r2] = acc
+        for t in range(nnz):
+            r = Hr[t]
+            cc = Hc[t]
+            v = Hv[t]
+            for i in range(n_x):
+                D[i, r] -= v * AP[i, cc]
+        # P^{(j+1)} = AP (I − K H)ᵀ + K R Kᵀ = AP + D Kᵀ  (Joseph, Eq. 9; SPEC §5.3)
+        for i in range(n_x):
+            for j in range(i, n_x):
+                acc = AP[i, j]
+                for r in range(n_z):
+                    acc += D[i, r] * Kt[r, j]
+                P[i, j] = acc
+        for i in range(n_x):
+            for j in range(i + 1, n_x):
+                P[j, i] = P[i, j]  # upper triangle computed: P is exactly symmetric
+        if jit == n_iter - 1 and not want_R:
+            break
+        # e = z − H x^{(j+1)}  (posterior residual, SPEC §5.2-2)
+        for r in range(n_z):
+            e[r] = z[r]
+        for t in range(nnz):
+            e[Hr[t]] -= Hv[t] * x[Hc[t]]
+        # Ω₁ = e eᵀ + H P Hᵀ  (Eq. 17 corrected) → R^{(j+1)} (SPEC §5.2-1)
+        for r in range(n_z):
+            for c in range(n_x):
+                M[r, c] = 0.0
+        for t in range(nnz):
+            r = Hr[t]
+            cc = Hc[t]
+            v = Hv[t]
+            for c in range(n_x):
+                M[r, c] += v * P[cc, c]
+        for r1 in range(n_z):
+            for r2 in range(n_z):
+                Om1[r1, r2] = e[r1] * e[r2]
+        for t in range(nnz):
+            r2 = Hr[t]
+            cc = Hc[t]
+            v = Hv[t]
+            for r1 in range(n_z):
+                Om1[r1, r2] += v * M[r1, cc]
+        for r1 in range(n_z):
+            for r2 in range(r1 + 1, n_z):
+                sym = 0.5 * (Om1[r1, r2] + Om1[r2, r1])
+                Om1[r1, r2] = sym
+                Om1[r2, r1] = sym
+        if regularized:  # option B: inverse-Wishart mean (Û⁻ + Ω₁)/(û⁻ − n_z)
+            den = u_prior - n_z
+            for r1 in range(n_z):
+                for r2 in range(n_z):
+                    Rj[r1, r2] = (Uprior[r1, r2] + Om1[r1, r2]) / den
+        else:
+            for r1 in range(n_z):
+                for r2 in range(n_z):
+                    Rj[r1, r2] = Om1[r1, r2]
+        if _floor_binds(Rj, Rnom, floor_c, W, LS, tz):  # SPEC §5.4 floor
+            if floor_clip(Rj, Rnom, floor_c, n_z):
+                status |= FLOOR_R
+        if jit == n_iter - 1:
+            break
+        # Ω₂ = P + (x − x⁻)(x − x⁻)ᵀ  (Eq. 18) → P̄⁻^{(j+1)} (SPEC §5.2-1)
+        for i in range(n_x):
+            tmp[i] = x[i] - xp[i]
+        for i in range(n_x):
+            for j in range(n_x):
+                Pm[i, j] = P[i, j] + tmp[i] * tmp[j]
+        if regularized:  # option B: (τ P⁻ + Ω₂)/(τ + 1)
+            for i in range(n_x):
+                for j in range(n_x):
+                    Pm[i, j] = (tau * Pp[i, j] + Pm[i, j]) / (tau + 1.0)
+        if _floor_binds(Pm, Pp, floor_c, W, L6, tx):
+            if floor_clip(Pm, Pp, floor_c, n_x):
+                status |= FLOOR_P
+    return status, nis
+
+
+@njit
+def em_kf_run(
+    tx,
+    tz,
+    z,
+    x,
+    P,
+    init,
+    u,
+    U,
+    Fr,
+    Fc,
+    Fv,
+    Hr,
+    Hc,
+    Hv,
+    Q,
+    Rnom,
+    Hpinv,
+    P0,
+    n_iter,
+    regularized,
+    tau,
+    rho,
+    floor_c,
+    o_mean,
+    o_cov,
+    o_obs,
+    o_nu,
+    o_dist,
+    o_Rem,
+):
+    """Run the EM-KF over ``z (B, T, n_z)``; state arrays updated in place.
+
+    ``tx``, ``tz``: :func:`size_tuple` of ``n_x``, ``n_z``; ``Fr, Fc, Fv`` / ``Hr, Hc, Hv``:
+    :func:`sparse_triplets` of ``F`` / ``H``.
+
+    Returns counts ``[R floor bound, P⁻ floor bound, S regularised, S failed]``.
+    """
+    B, T = z.shape[0], z.shape[1]
+    n_x = len(tx)
+    n_z = len(tz)
+    mats, vecs = em_scratch_jit(n_x, n_z)
+    nu = vecs[0]
+    xb = np.empty(n_x)
+    Pb = np.empty((n_x, n_x))
+    zt = np.empty(n_z)
+    xp = np.empty(n_x)
+    Pp = np.empty((n_x, n_x))
+    FP = np.empty((n_x, n_x))
+    xn = np.empty(n_x)
+    Pn = np.empty((n_x, n_x))
+    Rj = np.empty((n_z, n_z))
+    Om1 = np.empty((n_z, n_z))
+    R0 = np.empty((n_z, n_z))
+    Ub = np.empty((n_z, n_z))
+    counts = np.zeros(4, np.int64)
+    nz3 = n_z + 1.0
+    for b in range(B):
+        _get(x, P, b, xb, Pb)
+        ub = u[b]
+        _copy_mat(U[b], Ub)
+        initialized = init[b]
+        for t in range(T):
+            valid = True
+            for c in range(n_z):
+                zt[c] = z[b, t, c]
+                if not np.isfinite(zt[c]):
+                    valid = False
+            if not initialized:
+                if valid:  # SPEC §4.2 initialisation
+                    for i in range(n_x):
+                        acc = 0.0
+                        for c in range(n_z):
+                            acc += Hpinv[i, c] * zt[c]
+                        xb[i] = acc
+                    _copy_mat(P0, Pb)
+                    initialized = True
+                _put(o_mean, o_cov, b, t, xb, Pb)
+                o_obs[b, t] = valid
+                _fill(o_nu, o_dist, o_Rem, b, t)
+                continue
+            kf_predict_sparse(tx, xb, Pb, Fr, Fc, Fv, Q, xp, Pp, FP)
+            u_pr = 0.0
+            if regularized:  # option B time update of (û, Û) (SPEC §5.3)
+                u_pr = rho * (ub - nz3) + nz3
+                for r1 in range(n_z):
+                    for r2 in range(n_z):
+                        Ub[r1, r2] *= rho
+            ok = False
+            if valid:
+                if regularized:  # R^{(0)} = IW prior mean Û⁻/(û⁻ − n_z − 1)
+                    for r1 in range(n_z):
+                        for r2 in range(n_z):
+                            R0[r1, r2] = Ub[r1, r2] / (u_pr - nz3)
+                else:
+                    _copy_mat(Rnom, R0)
+                status, nis = em_update(
+                    tx, tz, xp, Pp, zt, Hr, Hc, Hv, R0, Rnom, Ub, u_pr, n_iter, regularized, tau, floor_c, True, xn, Pn,
+                    Rj, Om1, mats, vecs,
+                )  # fmt: skip
+                if status:
+                    for bit in range(4):
+                        if status & (1 << bit):
+                            counts[bit] += 1
+                ok = not (status & S_FAILED)
+            if ok:
+                _copy_vec(xn, xb)
+                _copy_mat(Pn, Pb)
+                if regularized:  # û = û⁻ + 1, Û = Û⁻ + Ω₁
+                    ub = u_pr + 1.0
+                    for r1 in range(n_z):
+                        for r2 in range(n_z):
+                            Ub[r1, r2] += Om1[r1, r2]
+                for r1 in range(n_z):
+                    o_nu[b, t, r1] = nu[r1]
+                    for r2 in range(n_z):
+                        o_Rem[b, t, r1, r2] = Rj[r1, r2]
+                o_dist[b, t] = nis
+            else:
+                _copy_vec(xp, xb)
+                _copy_mat(Pp, Pb)
+                if regularized:
+                    ub = u_pr
+                _fill(o_nu, o_dist, o_Rem, b, t)
+            _put(o_mean, o_cov, b, t, xb, Pb)
+            o_obs[b, t] = ok
+        _set(x, P, b, xb, Pb)
+        u[b] = ub
+        _copy_mat(Ub, U[b])
+        init[b] = initialized
+    return counts
+
+
+@njit
+def integrated_run(
+    tx,
+    tz,
+    z,
+    x,
+    P,
+    init,
+    zring,
+    k0,
+    N,
+    K,
+    Fr,
+    Fc,
+    Fv,
+    Hr,
+    Hc,
+    Hv,
+    Q,
+    Rnom,
+    LR,
+    Hpinv,
+    P0,
+    n_em,
+    th1,
+    th2,
+    gate_S,
+    feedback,
+    floor_c,
+    axis_blocks,
+    W,
+    P_full,
+    F,
+    Finv,
+    H,
+    Fa,
+    Finva,
+    Ha,
+    Qa,
+    Ra,
+    o_mean,
+    o_cov,
+    o_obs,
+    o_nu,
+    o_d1,
+    o_d2,
+    o_mode,
+):
+    """Run the EM-KF/FIR integrated filter over ``z (B, T, n_z)`` (SPEC §7.3); state in place.
+
+    Per element and step: shared prediction ``x⁻, P⁻``; ``D₁`` (Eq. 29 with ``R``, or with ``S``
+    when ``gate_S``); KF update if ``D₁ < th1``; else EM-KF (``N_EM`` iterations) and
+    ``D₂ = νᵀ R_em⁻¹ ν``; EM-KF if ``D₂ < th2`` or the FIR is not available (``k < N−1`` or
+    ``fir_ready=False``), else the batch-initialised UFIR computed on demand from the ring
+    (:func:`~kinefuse.filters._kernels_ufir.fir_estimate`). ``LR`` is the Cholesky factor of
+    ``Rnom``; the other arguments as in :func:`em_kf_run` and
+    :func:`~kinefuse.filters._kernels_ufir.ufir_run`.
+
+    Returns counts ``[R floor bound, P⁻ floor bound, S regularised, S failed]``.
+    """
+    B, T = z.shape[0], z.shape[1]
+    n_x = len(tx)
+    n_z = len(tz)
+    mats, vecs = em_scratch_jit(n_x, n_z)
+    xb = np.empty(n_x)
+    Pb = np.empty((n_x, n_x))
+    zt = np.empty(n_z)
+    xp = np.empty(n_x)
+    Pp = np.empty((n_x, n_x))
+    FP = np.empty((n_x, n_x))
+    xn = np.empty(n_x)
+    Pn = np.empty((n_x, n_x))
+    xf = np.empty(n_x)
+    Pf = np.empty((n_x, n_x))
+    Rj = np.empty((n_z, n_z))
+    Om1 = np.empty((n_z, n_z))
+    LRj = np.empty((n_z, n_z))
+    Sg = np.empty((n_z, n_z))
+    nu = np.empty(n_z)
+    tmp = np.empty(n_z)
+    xs = np.empty((0, n_x))
+    Ps = np.empty((0, n_x, n_x))
+    counts = np.zeros(4, np.int64)
+    for b in range(B):
+        _get(x, P, b, xb, Pb)
+        initialized = init[b]
+        zr = zring[b]
+        for t in range(T):
+            k = k0 + t
+            sl = k % N
+            valid = True
+            for c in range(n_z):
+                zt[c] = z[b, t, c]
+                if not np.isfinite(zt[c]):
+                    valid = False
+            for c in range(n_z):
+                zr[sl, c] = zt[c] if valid else np.nan
+            o_d1[b, t] = np.nan
+            o_d2[b, t] = np.nan
+            for r in range(n_z):
+                o_nu[b, t, r] = np.nan
+            if not initialized:
+                if valid:  # SPEC §4.2 initialisation
+                    for i in range(n_x):
+                        acc = 0.0
+                        for c in range(n_z):
+                            acc += Hpinv[i, c] * zt[c]
+                        xb[i] = acc
+                    _copy_mat(P0, Pb)
+                    initialized = True
+                _put(o_mean, o_cov, b, t, xb, Pb)
+                o_obs[b, t] = valid
+                o_mode[b, t] = 0 if valid else 3
+                continue
+            # Eqs. 5-6: x⁻, P⁻ shared by all branches
+            kf_predict_sparse(tx, xb, Pb, Fr, Fc, Fv, Q, xp, Pp, FP)
+            if not valid:  # predict only (SPEC §7.3)
+                _copy_vec(xp, xb)
+                _copy_mat(Pp, Pb)
+                _put(o_mean, o_cov, b, t, xb, Pb)
+                o_obs[b, t] = False
+                o_mode[b, t] = 3
+                continue
+            for r in range(n_z):
+                nu[r] = zt[r]
+            for q in range(len(Hv)):
+                nu[Hr[q]] -= Hv[q] * xp[Hc[q]]
+            for r in range(n_z):
+                o_nu[b, t, r] = nu[r]
+            if gate_S:  # SPEC §7.2-2 option: νᵀ S⁻¹ ν with S = H P⁻ Hᵀ + R
+                for r1 in range(n_z):
+                    for r2 in range(n_z):
+                        Sg[r1, r2] = Rnom[r1, r2]
+                for q1 in range(len(Hv)):
+                    for q2 in range(len(Hv)):
+                        Sg[Hr[q1], Hr[q2]] += Hv[q1] * Pp[Hc[q1], Hc[q2]] * Hv[q2]
+                if _chol_t(Sg, LRj, tz):
+                    d1 = _quad_inv(LRj, nu, tmp, tz)
+                else:
+                    d1 = np.inf
+            else:  # Eq. 29: D₁ = νᵀ R⁻¹ ν
+                d1 = _quad_inv(LR, nu, tmp, tz)
+            o_d1[b, t] = d1
+            mode = 0
+            if d1 < th1:  # KF update, Eqs. 7-9
+                status, _nis = em_update(
+                    tx, tz, xp, Pp, zt, Hr, Hc, Hv, Rnom, Rnom, Rnom, 0.0, 1, False, 0.0, floor_c, False, xn, Pn, Rj,
+                    Om1, mats, vecs,
+                )  # fmt: skip
+            else:  # EM-KF, Alg. 2 lines 8-12 from P̄⁻^{(0)} = P⁻
+                mode = 1
+                status, _nis = em_update(
+                    tx, tz, xp, Pp, zt, Hr, Hc, Hv, Rnom, Rnom, Rnom, 0.0, n_em, False, 0.0, floor_c, True, xn, Pn,
+                    Rj, Om1, mats, vecs,
+                )  # fmt: skip
+            if status:
+                for bit in range(4):
+                    if status & (1 << bit):
+                        counts[bit] += 1
+            if status & S_FAILED:
+                _copy_vec(xp, xb)
+                _copy_mat(Pp, Pb)
+                _put(o_mean, o_cov, b, t, xb, Pb)
+                o_obs[b, t] = False
+                o_mode[b, t] = 3
+                continue
+            use_fir = False
+            if mode == 1:
+                # D₂ = νᵀ R_em⁻¹ ν (Eq. 29 with the EM-updated R, SPEC §7.2-1); ν is unchanged
+                if _chol_t(Rj, LRj, tz):
+                    d2 = _quad_inv(LRj, nu, tmp, tz)
+                else:
+                    d2 = np.inf
+                o_d2[b, t] = d2
+                if not (d2 < th2) and k >= N - 1:  # FIR disabled while k < N−1 (SPEC §7.2-5)
+                    use_fir = fir_estimate(
+                        zr, k, N, K, True, axis_blocks, W, P_full, F, Finv, H, Q, Rnom, Fa, Finva, Ha, Qa, Ra, xs,
+                        Ps, False, xf, Pf,
+                    )  # fmt: skip
+            if use_fir:
+                o_mode[b, t] = 2
+                _put(o_mean, o_cov, b, t, xf, Pf)
+                if feedback:  # SPEC §7.2-4: the KF recursion continues from the FIR estimate
+                    _copy_vec(xf, xb)
+                    _copy_mat(Pf, Pb)
+                else:
+                    _copy_vec(xn, xb)
+                    _copy_mat(Pn, Pb)
+            else:
+                o_mode[b, t] = mode
+                _copy_vec(xn, xb)
+                _copy_mat(Pn, Pb)
+                _put(o_mean, o_cov, b, t, xb, Pb)
+            o_obs[b, t] = True
+        _set(x, P, b, xb, Pb)
+        init[b] = initialized
+    return counts

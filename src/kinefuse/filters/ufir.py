@@ -1,0 +1,342 @@
+"""Iterative unbiased FIR (UFIR) filter of paper A §3.3 / paper B §3.3, as corrected by SPEC §6."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+from kinefuse.exceptions import InputError, NumericalWarning
+from kinefuse.filters._base import (
+    FilterResult,
+    check_measurements,
+    check_not_all_missing,
+    check_step_measurement,
+    make_initial_state,
+    positions,
+)
+from kinefuse.filters._kernels_ufir import ufir_gains, ufir_run
+from kinefuse.filters.em_kalman import (
+    batch_shape_of,
+    check_int,
+    check_model,
+    check_state,
+    flat,
+    model_arrays,
+    take_step,
+)
+from kinefuse.models import LinearGaussianModel
+
+__all__ = ["UFIRFilter", "UFIRResult", "UFIRState"]
+
+_INITS = ("batch", "stored")
+
+
+class UFIRState(NamedTuple):
+    """State of :class:`UFIRFilter`, batched over leading axes.
+
+    Attributes
+    ----------
+    x : ndarray, shape (..., n_x)
+        Last output ``x̂_{k-1}`` (NaN until initialised).
+    P : ndarray, shape (..., n_x, n_x)
+        Last output covariance.
+    initialized : ndarray of bool, shape (...)
+    k : int
+        Number of steps taken (time index of the next sample).
+    z_buf : ndarray, shape (..., N, n_z)
+        Ring buffer of the last N measurements; time ``t`` in slot ``t % N``; NaN = missing.
+    x_buf : ndarray, shape (..., N, n_x) for ``init="stored"``, else (..., 0, n_x)
+        Ring buffer of the last N outputs (slot ``t % N``).
+    P_buf : ndarray, shape (..., N, n_x, n_x) for ``init="stored"``, else (..., 0, n_x, n_x)
+        Ring buffer of the last N output covariances.
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    initialized: np.ndarray
+    k: int
+    z_buf: np.ndarray
+    x_buf: np.ndarray
+    P_buf: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class UFIRResult(FilterResult):
+    """:class:`~kinefuse.filters.FilterResult` plus the FIR readiness flag.
+
+    Attributes
+    ----------
+    fir_ready : ndarray of bool, shape (..., T)
+        True where the output is the FIR estimate; False in the dead zone (``k < N−1``) and
+        where the horizon held fewer than K valid samples (the KF step was used instead).
+    """
+
+    fir_ready: np.ndarray | None = None
+
+
+def ufir_model_arrays(model: LinearGaussianModel, horizon: int) -> dict:
+    """Model arrays plus ``F⁻¹``, per-axis blocks and the precomputed full-horizon taps."""
+    a = model_arrays(model)
+    F = a["F"]
+    n_x = model.n_x
+    cond = np.linalg.cond(F)
+    if not np.isfinite(cond) or cond > 1e12:
+        raise InputError(
+            f"expected an invertible transition matrix F for the UFIR, got cond(F) = {cond:.3g}"
+        )
+    Finv = np.linalg.inv(F)
+    a["Finv"] = np.ascontiguousarray(Finv)
+    K = n_x
+    W, P_full = ufir_gains(F, Finv, a["H"], a["Q"], a["R"], horizon, K)
+    a["W"] = np.ascontiguousarray(W)
+    a["P_full"] = np.ascontiguousarray(P_full)
+    a["K"] = K
+    if model.axis_blocks:
+        n_ax = model.n_z
+        blk = [slice(2 * i, 2 * i + 2) for i in range(n_ax)]
+        a["Fa"] = np.ascontiguousarray([F[s, s] for s in blk])
+        a["Finva"] = np.ascontiguousarray([Finv[s, s] for s in blk])
+        a["Ha"] = np.ascontiguousarray([a["H"][i : i + 1, s] for i, s in enumerate(blk)])
+        a["Qa"] = np.ascontiguousarray([a["Q"][s, s] for s in blk])
+        a["Ra"] = np.ascontiguousarray([a["R"][i : i + 1, i : i + 1] for i in range(n_ax)])
+    else:
+        a["Fa"] = np.zeros((0, 2, 2))
+        a["Finva"] = np.zeros((0, 2, 2))
+        a["Ha"] = np.zeros((0, 1, 2))
+        a["Qa"] = np.zeros((0, 2, 2))
+        a["Ra"] = np.zeros((0, 1, 1))
+    return a
+
+
+def check_horizon(horizon, n_x: int) -> int:
+    """``horizon`` must be an integer ≥ state dimension + 1 (SPEC §6.3: ``N ≥ K + 1``)."""
+    if isinstance(horizon, (bool, np.bool_)) or not isinstance(horizon, (int, np.integer)):
+        raise InputError(
+            f"expected horizon as an integer number of samples >= {n_x + 1}, got {horizon!r} "
+            f"({type(horizon).__name__})"
+        )
+    if horizon < n_x + 1:
+        raise InputError(
+            f"expected horizon >= state dimension + 1 = {n_x + 1} samples (UFIR needs K = n_x = {n_x} "
+            f"samples for its batch initialisation plus one), got {horizon}"
+        )
+    return check_int(horizon, "horizon", n_x + 1)
+
+
+@dataclass(frozen=True, eq=False, init=False)
+class UFIRFilter:
+    r"""Iterative unbiased FIR filter with KF dead zone (paper A §3.3, Eqs. 24-28, Algorithm 3).
+
+    Parameters
+    ----------
+    model : LinearGaussianModel
+        ``F`` (must be invertible), ``H``, ``Q``, ``R``. Q and R enter only the error
+        covariance, never the estimate (UFIR).
+    horizon : int, default 20
+        ``N`` (paper A ``N_FIR``, paper B ``L``), samples; ≥ ``n_x + 1`` (SPEC §6.4: 20 at 30 Hz).
+    init : {"batch", "stored"}, default "batch"
+        Stored as the attribute ``init_mode`` (``init()`` is the state factory). Initialisation of each horizon (SPEC §6.2-3): "batch" least squares over the first K
+        valid samples (a true FIR); "stored" starts from the filter's own output at ``s``
+        (paper B, Algorithm 1 lines 11-12), with ``G_s`` still from the batch form.
+
+    Notes
+    -----
+    For ``k ≥ N − 1``, with ``m = k − N + 1`` and ``K = n_x`` (SPEC §6.3)::
+
+        s = m + K − 1   (generalised: the K-th valid sample of the horizon)
+        C = [H F^{-(s-i₁)}; …; H]   G_s = (CᵀC)⁻¹   x̂_s = G_s Cᵀ [z_{i₁}; …; z_s]
+        P_s = G_s Cᵀ (I_K ⊗ R) C G_s
+        for l = s+1 … k:
+            x⁻ = F x ; P⁻ = F P Fᵀ + Q                                   (Eqs. 24-25)
+            z_l missing: x, P, G = x⁻, P⁻, F G Fᵀ ; continue
+            G = (HᵀH + (F G Fᵀ)⁻¹)⁻¹ ;  K = G Hᵀ                          (Eq. 26 corrected)
+            x = x⁻ + K (z_l − H x⁻)                                       (Eq. 27)
+            P = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ                          (Eq. 28, Joseph)
+
+    ``G`` is propagated in information form (``G⁻¹ = HᵀH + F⁻ᵀ G⁻¹ F⁻¹``). With batch init the
+    output is the least-squares fit of the model through the valid samples of the horizon
+    (for the constant-velocity model: per axis, the straight line's position and slope at the
+    newest sample). For ``k < N − 1`` (dead zone), and when the horizon holds fewer than K valid
+    samples or ``C`` is rank deficient, a KF step (SPEC §4.2, Joseph) is taken and
+    ``fir_ready`` is False. A missing newest sample yields the FIR prediction through the
+    horizon (``observed=False``).
+
+    Speed: with ``model.axis_blocks`` and batch init, a complete horizon is evaluated as
+    precomputed taps ``x̂_k = Σ_i W_i z_{m+i}`` with the data-independent ``P̂_k`` (exact,
+    SPEC §6.3 "Fast exact forms"); horizons with missing samples use the per-axis 2-state
+    iterative form; the dense ``n_x``-state iterative form is the reference.
+
+    ``result.innovation`` is ``z_k − H F x̂_{k−1}``.
+
+    Deviations from the paper
+    -------------------------
+    * Gain: ``G = (HᵀH + (F G Fᵀ)⁻¹)⁻¹``, ``K = G Hᵀ`` (Shmaliy & Simon 2013); paper A's Eq. 26
+      ``(HHᵀ + (T H Tᵀ)⁻¹)⁻¹ H`` is dimensionally impossible (SPEC §6.2-1).
+    * Horizon indices: Algorithm 3's ``m2 = M_FIR + N_FIR − 1`` is a typo for
+      ``s = m1 + M_FIR − 1`` (SPEC §6.2-2); with a constant m2 the filter would not be FIR.
+    * Batch initialisation of each horizon (``x̂_s``, ``G_s``, ``P_s`` from least squares),
+      which the paper never initialises (SPEC §6.2-3); "stored" is paper B's variant.
+    * Covariance by the Joseph form (Eq. 28) everywhere; Algorithm 3 line 10's short form is
+      wrong for a non-Kalman gain (SPEC §6.2-4).
+    * KF in the dead zone ``k < N − 1`` (paper B's choice; paper A starts at ``k = N − 1``;
+      SPEC §6.2-5); generalised batch init and KF fallback for horizons with missing samples
+      (SPEC §6.3).
+    * The prediction drops the noise term (SPEC §6.2-6).
+    """
+
+    model: LinearGaussianModel
+    horizon: int = 20
+    init_mode: str = "batch"
+    _arrays: dict = field(default=None, init=False, repr=False, compare=False)
+
+    def __init__(
+        self,
+        model: LinearGaussianModel,
+        horizon: int = 20,
+        init: str = "batch",
+        *,
+        init_mode: str | None = None,
+    ):
+        # hand-written so that the constructor takes ``init=`` while ``init()`` stays the
+        # state factory shared by all filters; the choice is stored as ``init_mode``
+        # (also accepted as a keyword so that ``dataclasses.replace`` works)
+        object.__setattr__(self, "model", model)
+        object.__setattr__(self, "horizon", horizon)
+        object.__setattr__(self, "init_mode", init if init_mode is None else init_mode)
+        self.__post_init__()
+
+    def __post_init__(self):
+        check_model(self.model)
+        object.__setattr__(self, "horizon", check_horizon(self.horizon, self.model.n_x))
+        if not isinstance(self.init_mode, str) or self.init_mode not in _INITS:
+            raise InputError(f"expected init one of {_INITS}, got {self.init_mode!r}")
+        object.__setattr__(self, "_arrays", ufir_model_arrays(self.model, self.horizon))
+
+    @property
+    def _n_stored(self) -> int:
+        return self.horizon if self.init_mode == "stored" else 0
+
+    def init(self, batch_shape=(), mean=None, cov=None) -> UFIRState:
+        """Initial state for ``batch_shape`` elements (empty horizon; see ``EMKalmanFilter.init``).
+
+        Parameters
+        ----------
+        batch_shape : tuple of int
+        mean : array_like, shape (..., n_x), optional
+        cov : array_like, shape (..., n_x, n_x), optional
+        """
+        g = make_initial_state(self.model, batch_shape, mean, cov)
+        bs = g.initialized.shape
+        n_x, n_z, N = self.model.n_x, self.model.n_z, self.horizon
+        ns = self._n_stored
+        return UFIRState(
+            g.x,
+            g.P,
+            g.initialized,
+            g.k,
+            np.full((*bs, N, n_z), np.nan),
+            np.full((*bs, ns, n_x), np.nan),
+            np.full((*bs, ns, n_x, n_x), np.nan),
+        )
+
+    def filter(self, z, state: UFIRState | None = None) -> tuple[UFIRState, UFIRResult]:
+        """Filter a series.
+
+        Parameters
+        ----------
+        z : array_like of float, shape (..., T, n_z)
+            Position measurements, m; NaN rows are missing.
+        state : UFIRState, optional
+            State to resume from (default: fresh state for ``z.shape[:-2]``).
+
+        Returns
+        -------
+        state : UFIRState
+        result : UFIRResult
+            ``mean``, ``cov``, ``position``, ``observed``, ``innovation``, ``fir_ready (..., T)``.
+        """
+        z = check_measurements(z, self.model.n_z)
+        if state is None:
+            state = self.init(z.shape[:-2])
+        else:
+            self._check_state(state, z.shape[:-2])
+        check_not_all_missing(z, state)
+        return self._run(z, state)
+
+    def step(self, state: UFIRState, z) -> tuple[UFIRState, UFIRResult]:
+        """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis."""
+        self._check_state(state, None)
+        bs = batch_shape_of(state)
+        z = check_step_measurement(z, self.model.n_z, bs)
+        state, res = self._run(z[..., None, :], state)
+        return state, take_step(res, len(bs))
+
+    def _check_state(self, state, bs):
+        n_x, n_z, N, ns = self.model.n_x, self.model.n_z, self.horizon, self._n_stored
+        check_state(
+            state,
+            UFIRState,
+            bs,
+            {
+                "x": (n_x,),
+                "P": (n_x, n_x),
+                "z_buf": (N, n_z),
+                "x_buf": (ns, n_x),
+                "P_buf": (ns, n_x, n_x),
+            },
+        )
+
+    def _run(self, z: np.ndarray, state: UFIRState, fast: bool = True):
+        a = self._arrays
+        bs = z.shape[:-2]
+        nb = len(bs)
+        T, n_z = z.shape[-2:]
+        n_x, N, ns = self.model.n_x, self.horizon, self._n_stored
+        zf = np.ascontiguousarray(z.reshape(-1, T, n_z))
+        B = zf.shape[0]
+        x = flat(state.x, nb)
+        P = flat(state.P, nb)
+        init = flat(state.initialized, nb, bool)
+        zring = flat(state.z_buf, nb)
+        xring = flat(state.x_buf, nb)
+        Pring = flat(state.P_buf, nb)
+        o_mean = np.empty((B, T, n_x))
+        o_cov = np.empty((B, T, n_x, n_x))
+        o_obs = np.empty((B, T), bool)
+        o_nu = np.empty((B, T, n_z))
+        o_ready = np.empty((B, T), bool)
+        n_fail = ufir_run(
+            zf, x, P, init, zring, xring, Pring, int(state.k), N, a["K"], self.init_mode == "stored", bool(fast),
+            bool(self.model.axis_blocks), a["W"], a["P_full"], a["F"], a["Finv"], a["H"], a["Q"], a["R"],
+            a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"], a["Hpinv"], a["P0"],
+            o_mean, o_cov, o_obs, o_nu, o_ready,
+        )  # fmt: skip
+        if n_fail:
+            import warnings
+
+            warnings.warn(
+                f"UFIRFilter: KF update skipped on {n_fail} step(s): S could not be factorised (SPEC §13)",
+                NumericalWarning,
+                stacklevel=3,
+            )
+        new_state = UFIRState(
+            x.reshape(*bs, n_x),
+            P.reshape(*bs, n_x, n_x),
+            init.reshape(bs),
+            int(state.k) + T,
+            zring.reshape(*bs, N, n_z),
+            xring.reshape(*bs, ns, n_x),
+            Pring.reshape(*bs, ns, n_x, n_x),
+        )
+        mean = o_mean.reshape(*bs, T, n_x)
+        res = UFIRResult(
+            mean=mean,
+            cov=o_cov.reshape(*bs, T, n_x, n_x),
+            position=positions(mean, self.model.H),
+            observed=o_obs.reshape(*bs, T),
+            innovation=o_nu.reshape(*bs, T, n_z),
+            fir_ready=o_ready.reshape(*bs, T),
+        )
+        return new_state, res
