@@ -1,0 +1,405 @@
+"""Per-frame processors of the online engine: paper A's integrated filter and a KF fusion baseline.
+
+A processor turns, once per output frame, the IMU-chain joint positions and the camera joint
+positions into fused joint positions with covariance and a per-joint source code. It is the
+only algorithmic part of :class:`~kinefuse.streaming.engine.Engine`; buffering, time alignment
+and fault handling live in the engine.
+
+Protocol (:class:`Processor`)
+-----------------------------
+``step(t_s, z_imu (J, 3), z_cam (J, 3), available (J,))`` -> ``(position (J, 3), cov (J, 3, 3),
+source (J,) int8)`` for the frame ``lag_frames`` frames back, or None while the fixed-lag
+smoother fills; ``flush()`` -> the outputs still held back (end of run); ``run(t_s (T,), z_imu
+(T, J, 3), z_cam (T, J, 3), available (T, J))`` -> the same outputs for a whole series from the
+initial state, offline and causal (equal to ``step`` repeated then ``flush``); ``checkpoint()``
+-> pickle-able dict; ``restore(checkpoint)``; ``reset()``.
+
+The causal paper-B pipeline (:func:`kinefuse.pipelines.vision_assisted` with ``causal=True``)
+fits this protocol as it stands: its per-frame inputs are exactly the IMU-chain joints, the
+camera joints and their availability, and its per-joint source codes are
+:data:`kinefuse.conventions.SOURCE_NAMES`. An adapter only has to hold the pipeline's online
+state, implement ``step``/``run`` with it and return ``(position, cov, source)``.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections import deque
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from kinefuse.conventions import SOURCE_CAMERA, SOURCE_FUSED, SOURCE_IMU
+from kinefuse.exceptions import InputError
+from kinefuse.filters._base import FilterResult, GaussianState
+from kinefuse.filters.integrated import IntegratedFilter
+from kinefuse.filters.kalman import KalmanFilter
+from kinefuse.filters.smoothing import fixed_lag_smooth
+from kinefuse.models import constant_velocity
+
+__all__ = [
+    "SOURCE_PREDICT",
+    "IntegratedProcessor",
+    "KalmanFusionProcessor",
+    "Processor",
+]
+
+#: Source code of a joint that had no measurement in its frame (predict only). Not in
+#: :data:`kinefuse.conventions.SOURCE_NAMES` (which describes the paper-B pipelines).
+SOURCE_PREDICT = -1
+
+_CHECKPOINT_VERSION = 1
+
+
+@runtime_checkable
+class Processor(Protocol):
+    """What :class:`~kinefuse.streaming.engine.Engine` needs from a per-frame processor."""
+
+    lag_frames: int
+
+    def step(self, t_s: float, z_imu: np.ndarray, z_cam: np.ndarray, available: np.ndarray):
+        """One frame -> ``(position (J, 3), cov (J, 3, 3), source (J,) int8)`` or None."""
+
+    def flush(self) -> list:
+        """Outputs still held back by a lag (end of run), oldest first."""
+
+    def run(self, t_s, z_imu, z_cam, available):
+        """Offline causal equivalent of ``step`` repeated and ``flush`` over a series."""
+
+    def checkpoint(self) -> dict:
+        """Pickle-able snapshot of the mutable state."""
+
+    def restore(self, checkpoint: dict) -> None:
+        """Return to a snapshot taken by :meth:`checkpoint`."""
+
+    def reset(self) -> None:
+        """Back to the initial state."""
+
+
+def _check_frame(z_imu, z_cam, available):
+    z_imu = np.asarray(z_imu, dtype=float)
+    z_cam = np.asarray(z_cam, dtype=float)
+    available = np.asarray(available, dtype=bool)
+    if z_imu.ndim != 2 or z_imu.shape[1] != 3 or z_cam.shape != z_imu.shape:
+        raise InputError(
+            f"expected z_imu and z_cam with the same shape (J, 3), got {z_imu.shape} and {z_cam.shape}"
+        )
+    if available.shape != z_imu.shape[:1]:
+        raise InputError(
+            f"expected available with shape ({z_imu.shape[0]},), got {available.shape}"
+        )
+    return z_imu, z_cam, available
+
+
+def _check_series(t_s, z_imu, z_cam, available):
+    t = np.asarray(t_s, dtype=float)
+    z_imu = np.asarray(z_imu, dtype=float)
+    z_cam = np.asarray(z_cam, dtype=float)
+    available = np.asarray(available, dtype=bool)
+    if z_imu.ndim != 3 or z_imu.shape[2] != 3 or z_cam.shape != z_imu.shape:
+        raise InputError(
+            f"expected z_imu and z_cam with the same shape (T, J, 3), got {z_imu.shape} and {z_cam.shape}"
+        )
+    if t.shape != z_imu.shape[:1] or available.shape != z_imu.shape[:2]:
+        raise InputError(
+            f"expected t_s (T,) and available (T, J) for z (T, J, 3) = {z_imu.shape}, got "
+            f"{t.shape} and {available.shape}"
+        )
+    return t, z_imu, z_cam, available
+
+
+class _LinearProcessor:
+    """Shared machinery: a linear model per joint, optional fixed-lag smoothing, checkpoints."""
+
+    lag_frames: int
+
+    def __init__(self, model, lag: int):
+        if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 0:
+            raise InputError(f"expected lag as an int >= 0 (frames), got {lag!r}")
+        self.model = model
+        self.lag_frames = int(lag)
+        self._H = np.asarray(model.H)
+        self.reset()
+
+    # -- to implement: filtered step and batch -> (mean (J,n), cov (J,n,n), source (J,))
+    def _filter_step(self, z_imu, z_cam, available):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _init_state(self, n_joints: int):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def reset(self) -> None:
+        """Back to the initial state (lazily sized on the next step)."""
+        self._state = None
+        self._window: deque = deque()
+        self._n_steps = 0
+
+    def _output(self, mean, cov):
+        H = self._H
+        pos = mean @ H.T
+        pcov = np.einsum("ij,...jk,lk->...il", H, cov, H)
+        return pos, pcov
+
+    def step(self, t_s, z_imu, z_cam, available):
+        """Process one frame.
+
+        Parameters
+        ----------
+        t_s : float
+            Frame time, s (unused by these fixed-rate models; kept for the protocol).
+        z_imu : array_like, shape (J, 3)
+            IMU-chain joint positions, m; NaN rows = no IMU measurement.
+        z_cam : array_like, shape (J, 3)
+            Camera joint positions, m; ignored where ``available`` is False.
+        available : array_like of bool, shape (J,)
+            Camera availability per joint.
+
+        Returns
+        -------
+        tuple or None
+            ``(position (J, 3) m, cov (J, 3, 3) m², source (J,) int8)`` of the frame
+            ``lag_frames`` back; None while the lag window fills.
+        """
+        z_imu, z_cam, available = _check_frame(z_imu, z_cam, available)
+        if self._state is None:
+            self._state = self._init_state(z_imu.shape[0])
+        mean, cov, source = self._filter_step(z_imu, z_cam, available)
+        self._n_steps += 1
+        L = self.lag_frames
+        if L == 0:
+            pos, pcov = self._output(mean, cov)
+            return pos, pcov, source
+        self._window.append((mean, cov, source))
+        if len(self._window) < L + 1:
+            return None
+        sm_mean, sm_cov = self._smooth_window()
+        out = self._output(sm_mean[:, 0], sm_cov[:, 0])
+        src = self._window[0][2]
+        self._window.popleft()
+        return out[0], out[1], src
+
+    def _smooth_window(self):
+        means = np.stack([w[0] for w in self._window], axis=1)  # (J, W, n)
+        covs = np.stack([w[1] for w in self._window], axis=1)
+        res = FilterResult(
+            mean=means,
+            cov=covs,
+            position=means @ self._H.T,
+            observed=np.ones(means.shape[:2], bool),
+        )
+        sm = fixed_lag_smooth(self.model, res, self.lag_frames)
+        return sm.mean, sm.cov
+
+    def flush(self) -> list:
+        """The outputs held back by the lag (fixed-interval smoothed to the last frame)."""
+        if self.lag_frames == 0 or not self._window:
+            return []
+        sm_mean, sm_cov = self._smooth_window()
+        outs = []
+        for i, w in enumerate(self._window):
+            pos, pcov = self._output(sm_mean[:, i], sm_cov[:, i])
+            outs.append((pos, pcov, w[2]))
+        self._window.clear()
+        return outs
+
+    def run(self, t_s, z_imu, z_cam, available):
+        """Offline causal run over a series from the initial state (online state untouched).
+
+        Parameters
+        ----------
+        t_s : array_like, shape (T,)
+        z_imu, z_cam : array_like, shape (T, J, 3)
+        available : array_like of bool, shape (T, J)
+
+        Returns
+        -------
+        position : ndarray, shape (T, J, 3)
+        cov : ndarray, shape (T, J, 3, 3)
+        source : ndarray of int8, shape (T, J)
+            Equal to ``step`` over the frames followed by ``flush`` (fixed-lag smoothing
+            applied with :func:`kinefuse.filters.fixed_lag_smooth`).
+        """
+        t, z_imu, z_cam, available = _check_series(t_s, z_imu, z_cam, available)
+        mean, cov, source = self._filter_batch(
+            t, z_imu, z_cam, available
+        )  # (J,T,n), (J,T,n,n), (T,J)
+        if self.lag_frames:
+            res = FilterResult(mean=mean, cov=cov, position=mean @ self._H.T,
+                               observed=np.ones(mean.shape[:2], bool))  # fmt: skip
+            sm = fixed_lag_smooth(self.model, res, self.lag_frames)
+            mean, cov = sm.mean, sm.cov
+        pos, pcov = self._output(mean, cov)
+        return np.swapaxes(pos, 0, 1), np.swapaxes(pcov, 0, 1), source
+
+    def _filter_batch(self, t, z_imu, z_cam, available):
+        """Default batch: repeated filtered steps on a copy (subclasses may use ``filter``)."""
+        saved = (self._state, self._window, self._n_steps)
+        try:
+            self._state = self._init_state(z_imu.shape[1])
+            ms, cs, ss = [], [], []
+            for k in range(t.size):
+                m, c, s = self._filter_step(z_imu[k], z_cam[k], available[k])
+                ms.append(m)
+                cs.append(c)
+                ss.append(s)
+        finally:
+            self._state, self._window, self._n_steps = saved
+        return np.stack(ms, axis=1), np.stack(cs, axis=1), np.stack(ss)
+
+    def checkpoint(self) -> dict:
+        """Pickle-able snapshot: ``{"version", "type", "state", "window", "n_steps"}``."""
+        return {
+            "version": _CHECKPOINT_VERSION,
+            "type": type(self).__name__,
+            "state": copy.deepcopy(self._state),
+            "window": [tuple(np.copy(a) for a in w) for w in self._window],
+            "n_steps": self._n_steps,
+        }
+
+    def restore(self, checkpoint: dict) -> None:
+        """Return to a snapshot from :meth:`checkpoint` (of a processor of the same type)."""
+        if not isinstance(checkpoint, dict) or checkpoint.get("type") != type(self).__name__:
+            got = (
+                checkpoint.get("type")
+                if isinstance(checkpoint, dict)
+                else type(checkpoint).__name__
+            )
+            raise InputError(f"expected a checkpoint of a {type(self).__name__}, got {got!r}")
+        if checkpoint.get("version") != _CHECKPOINT_VERSION:
+            raise InputError(
+                f"expected checkpoint version {_CHECKPOINT_VERSION}, got {checkpoint.get('version')!r}"
+            )
+        self._state = copy.deepcopy(checkpoint["state"])
+        self._window = deque(tuple(np.copy(a) for a in w) for w in checkpoint["window"])
+        self._n_steps = int(checkpoint["n_steps"])
+
+
+class IntegratedProcessor(_LinearProcessor):
+    """Paper A's EM-KF/FIR integrated filter per joint on the IMU-chain positions.
+
+    Parameters
+    ----------
+    dt_s : float
+        Frame interval, s (the camera or output period).
+    q : float
+        Process-noise scale of :func:`kinefuse.models.constant_velocity`, (m/s)² per frame.
+    r : float
+        Nominal measurement variance of the IMU-chain positions, m².
+    lag : int
+        Fixed-lag smoothing lag, frames (0 = filtered output, no delay).
+    **filter_kwargs
+        Passed to :class:`~kinefuse.filters.integrated.IntegratedFilter` (``horizon``,
+        ``threshold1``, ``threshold2``, ``n_em_iter``, ``gate``, ``fir_feedback``).
+
+    Notes
+    -----
+    Implements Sun 2024 (paper A) §3.4 through :class:`IntegratedFilter` batched over the J
+    joints: ``step`` calls ``IntegratedFilter.step`` and ``run`` calls
+    ``IntegratedFilter.filter`` (the same compiled loop). The camera is not a measurement here
+    (paper A has none); it only places the chain root (engine). Source per joint:
+    ``SOURCE_IMU`` where the filter was updated, :data:`SOURCE_PREDICT` where the IMU chain had
+    no valid position (stale stream). The branch of the last step is in :attr:`last_mode`.
+    """
+
+    def __init__(
+        self, dt_s: float, q: float = 0.05, r: float = 4e-4, *, lag: int = 0, **filter_kwargs
+    ):
+        self.filter = IntegratedFilter(constant_velocity(dt_s, q=q, r=r), **filter_kwargs)
+        self.last_mode = None
+        super().__init__(self.filter.model, lag)
+
+    def _init_state(self, n_joints):
+        return self.filter.init((n_joints,))
+
+    def _filter_step(self, z_imu, z_cam, available):
+        self._state, res = self.filter.step(self._state, z_imu)
+        self.last_mode = res.mode
+        source = np.where(res.observed, SOURCE_IMU, SOURCE_PREDICT).astype(np.int8)
+        return res.mean, res.cov, source
+
+    def _filter_batch(self, t, z_imu, z_cam, available):
+        z = np.ascontiguousarray(np.swapaxes(z_imu, 0, 1))  # (J, T, 3)
+        if not np.all(np.any(np.all(np.isfinite(z), axis=-1), axis=-1)):
+            return super()._filter_batch(t, z_imu, z_cam, available)  # a joint never observed
+        _, res = self.filter.filter(z)
+        source = np.where(res.observed, SOURCE_IMU, SOURCE_PREDICT).astype(np.int8).T
+        return res.mean, res.cov, source
+
+
+class KalmanFusionProcessor(_LinearProcessor):
+    """IMU + camera fusion baseline: one constant-velocity Kalman filter per joint.
+
+    Parameters
+    ----------
+    dt_s : float
+        Frame interval, s.
+    q : float
+        Process-noise scale, (m/s)² per frame.
+    r_imu, r_camera : float
+        Measurement variances of the IMU-chain and camera positions, m².
+    lag : int
+        Fixed-lag smoothing lag, frames.
+
+    Notes
+    -----
+    Both sensors measure the joint position (``H`` of :func:`constant_velocity`). The stacked
+    update with ``z = [z_cam; z_imu]``, ``R = diag(r_c I, r_i I)`` equals one update with the
+    information-weighted measurement::
+
+        z_eq = (z_cam / r_c + z_imu / r_i) / (1 / r_c + 1 / r_i),   r_eq = r_c r_i / (r_c + r_i)
+
+    so each joint takes, per frame, one of three :class:`~kinefuse.filters.KalmanFilter`
+    updates (both, camera only, IMU only) or a prediction; joints are grouped by case and each
+    group is stepped batched. Source per joint: ``SOURCE_FUSED`` (both), ``SOURCE_CAMERA``,
+    ``SOURCE_IMU``, :data:`SOURCE_PREDICT`. The two sensors' errors are taken as independent
+    and unbiased (a baseline, not paper B's learned bridge).
+    """
+
+    def __init__(
+        self,
+        dt_s: float,
+        q: float = 0.05,
+        r_imu: float = 4e-4,
+        r_camera: float = 9e-4,
+        *,
+        lag: int = 0,
+    ):
+        self.r_imu, self.r_camera = float(r_imu), float(r_camera)
+        r_both = self.r_imu * self.r_camera / (self.r_imu + self.r_camera)
+        self._kf_imu = KalmanFilter(constant_velocity(dt_s, q=q, r=self.r_imu))
+        self._kf_cam = KalmanFilter(constant_velocity(dt_s, q=q, r=self.r_camera))
+        self._kf_both = KalmanFilter(constant_velocity(dt_s, q=q, r=r_both))
+        super().__init__(self._kf_imu.model, lag)
+
+    def _init_state(self, n_joints):
+        return self._kf_imu.init((n_joints,))
+
+    def _filter_step(self, z_imu, z_cam, available):
+        has_imu = np.all(np.isfinite(z_imu), axis=1)
+        has_cam = available & np.all(np.isfinite(z_cam), axis=1)
+        both = has_imu & has_cam
+        cam_only = has_cam & ~has_imu
+        rest = ~has_cam  # IMU only, or nothing (NaN rows -> predict)
+        st = self._state
+        x, P, init = st.x.copy(), st.P.copy(), st.initialized.copy()
+        J = z_imu.shape[0]
+        mean = np.empty((J, self.model.n_x))
+        cov = np.empty((J, self.model.n_x, self.model.n_x))
+        wi, wc = 1.0 / self.r_imu, 1.0 / self.r_camera
+        for kf, idx, z in (
+            (self._kf_both, both, (z_cam * wc + z_imu * wi) / (wc + wi)),
+            (self._kf_cam, cam_only, z_cam),
+            (self._kf_imu, rest, z_imu),
+        ):
+            if not np.any(idx):
+                continue
+            sub = GaussianState(st.x[idx], st.P[idx], st.initialized[idx], st.k)
+            sub, res = kf.step(sub, z[idx])
+            x[idx], P[idx], init[idx] = sub.x, sub.P, sub.initialized
+            mean[idx], cov[idx] = res.mean, res.cov
+        self._state = GaussianState(x, P, init, st.k + 1)
+        source = np.full(J, SOURCE_PREDICT, np.int8)
+        source[has_imu] = SOURCE_IMU
+        source[cam_only] = SOURCE_CAMERA
+        source[both] = SOURCE_FUSED
+        return mean, cov, source

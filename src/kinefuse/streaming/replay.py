@@ -1,0 +1,216 @@
+"""Publish a recording as live LSL streams (for tests, demos and latency measurements)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from kinefuse.exceptions import InputError
+from kinefuse.io.recording import Recording
+from kinefuse.streaming.config import import_pylsl
+from kinefuse.streaming.lsl import (
+    CAMERA_TYPE,
+    IMU_CHANNELS,
+    IMU_TYPE,
+    RAW_CHANNELS,
+    camera_channels,
+    make_outlet,
+)
+
+__all__ = ["demo_recording", "load_recording", "run_replay"]
+
+log = logging.getLogger("kinefuse.streaming")
+
+
+def demo_recording(stop_s: float | None = None, seed: int = 0) -> Recording:
+    """The packaged CMU clip as a virtual recording: 9 IMUs at 100 Hz, a camera at 30 Hz with
+    occlusions and dropouts (:func:`kinefuse.sim.virtual_recording`), first ``stop_s`` s."""
+    from kinefuse.data import demo_motion
+    from kinefuse.sim import virtual_recording
+
+    return virtual_recording(demo_motion(None, stop_s), seed=seed)
+
+
+def load_recording(recording) -> Recording:
+    """A :class:`Recording`, a path readable by :func:`kinefuse.io.load`, or ``"demo"``."""
+    if isinstance(recording, Recording):
+        return recording
+    if isinstance(recording, str) and recording == "demo":
+        return demo_recording()
+    if isinstance(recording, (str, Path)):
+        from kinefuse.io import load
+
+        return load(Path(recording))
+    raise InputError(f"expected a Recording, a path or 'demo', got {type(recording).__name__}")
+
+
+def _streams(rec: Recording, prefix: str, include_raw: bool):
+    """(name, type, channels, t (N,), values (N, C), rate_hz, desc) per stream."""
+    out = []
+    for seg, st in rec.imu.items():
+        cols, chans = [], []
+        if st.q_world_from_sensor is not None:
+            cols.append(st.q_world_from_sensor)
+            chans += list(IMU_CHANNELS)
+        if (
+            (include_raw or st.q_world_from_sensor is None)
+            and st.acc_m_s2 is not None
+            and st.gyr_rad_s is not None
+        ):
+            cols += [st.acc_m_s2, st.gyr_rad_s]
+            chans += list(RAW_CHANNELS)
+        out.append((f"{prefix}_imu_{seg}", IMU_TYPE, chans, st.t_s, np.hstack(cols), st.rate_hz,
+                    {"segment": seg}))  # fmt: skip
+    v = rec.vision
+    if v is not None:
+        vals = np.concatenate([v.position_m, v.available[..., None].astype(float)], axis=2)
+        out.append((f"{prefix}_camera", CAMERA_TYPE, camera_channels(v.joints), v.t_s,
+                    vals.reshape(len(v), -1), float(1.0 / np.median(np.diff(v.t_s))),
+                    {"joints": list(v.joints), "frame": v.frame}))  # fmt: skip
+    return out
+
+
+def run_replay(
+    recording,
+    rate: float = 1.0,
+    name_prefix: str = "kinefuse",
+    loop: bool = False,
+    duration_s: float | None = None,
+    *,
+    include_raw: bool = True,
+    wait_for_consumers_s: float | None = None,
+    stop_event=None,
+    quiet: bool = True,
+    linger_s: float = 0.5,
+) -> dict:
+    """Publish a recording to LSL at its real rate (or ``rate`` times faster).
+
+    Parameters
+    ----------
+    recording : Recording, path or "demo"
+        What to publish (a path is read with :func:`kinefuse.io.load`; ``"demo"`` is
+        :func:`demo_recording`).
+    rate : float
+        Speed-up factor (2 = twice real time).
+    name_prefix : str
+        Streams are ``{prefix}_imu_{segment}`` (type ``IMU``: ``qw qx qy qz`` and, if present
+        and ``include_raw``, ``acc_*`` m/s², ``gyr_*`` rad/s) and ``{prefix}_camera`` (type
+        ``MoCap``: x, y, z, available per joint); source ids ``{name}@kinefuse-replay``.
+    loop : bool
+        Start again at the end (timestamps keep increasing).
+    duration_s : float, optional
+        Stop after this much recording time, s (default: the recording once, or forever with
+        ``loop``).
+    include_raw : bool
+        Publish acc/gyr channels next to the orientation.
+    wait_for_consumers_s : float, optional
+        Before publishing, wait up to this long until every outlet has a consumer.
+    stop_event : threading.Event, optional
+        Set it to stop early (tests).
+    quiet : bool
+        No progress log lines.
+    linger_s : float
+        Keep the outlets open this long after the last sample (in-flight data), s.
+
+    Returns
+    -------
+    dict
+        ``streams`` (names), ``samples`` (pushed per stream), ``duration_s`` (wall),
+        ``recording_s`` (published recording time), ``interrupted`` (Ctrl-C).
+
+    Notes
+    -----
+    Sample k of a stream is pushed when ``local_clock() >= t_start + (t_k − t_0) / rate`` and
+    carries exactly that value as its LSL timestamp: the original timestamps, shifted to
+    ``local_clock`` and compressed by ``rate``; nominal rates are multiplied by ``rate``. The
+    camera's NaN positions (unavailable joints) are sent as NaN with ``available = 0``.
+    Ctrl-C stops publishing and closes the outlets.
+    """
+    if not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
+        raise InputError(f"expected rate > 0, got {rate!r}")
+    if duration_s is not None and not duration_s > 0:
+        raise InputError(f"expected duration_s > 0, got {duration_s!r}")
+    rec = load_recording(recording)
+    streams = _streams(rec, name_prefix, include_raw)
+    if not streams:
+        raise InputError("the recording has no IMU or camera stream to publish")
+    pylsl = import_pylsl()
+    outlets = [
+        make_outlet(
+            name,
+            stype,
+            chans,
+            rate_hz * rate,
+            source_id=f"{name}@kinefuse-replay",
+            desc=desc,
+            chunk_size=1,
+        )
+        for name, stype, chans, _t, _v, rate_hz, desc in streams
+    ]
+    # one merged, time-ordered schedule
+    t_all = np.concatenate([s[3] for s in streams])
+    which = np.concatenate([np.full(len(s[3]), k) for k, s in enumerate(streams)])
+    row = np.concatenate([np.arange(len(s[3])) for s in streams])
+    order = np.lexsort((which, t_all))
+    t_all, which, row = t_all[order], which[order], row[order]
+    t0 = float(t_all[0])
+    span = float(t_all[-1] - t0) + float(np.median(np.diff(streams[0][3])))
+    limit = math.inf if duration_s is None else float(duration_s)
+    pushed = [0] * len(streams)
+    interrupted = False
+    start_wall = time.monotonic()
+    try:
+        if wait_for_consumers_s:
+            deadline = time.monotonic() + wait_for_consumers_s
+            for o in outlets:
+                o.wait_for_consumers(max(0.0, deadline - time.monotonic()))
+        start = pylsl.local_clock() + 0.05
+        rep = 0
+        done = False
+        while not done:
+            base = rep * span
+            for k in range(t_all.size):
+                rt = float(t_all[k] - t0) + base
+                if rt >= limit:
+                    done = True
+                    break
+                due = start + rt / rate
+                while True:
+                    now = pylsl.local_clock()
+                    if now >= due:
+                        break
+                    if stop_event is not None and stop_event.is_set():
+                        raise _Stop
+                    time.sleep(min(due - now, 0.005))
+                s = which[k]
+                outlets[s].push_sample(streams[s][4][row[k]], due)
+                pushed[s] += 1
+            rep += 1
+            if not loop:
+                done = True
+            elif not quiet:
+                log.info("replay: loop %d done", rep)
+    except _Stop:
+        pass
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        if not interrupted:
+            time.sleep(linger_s)  # let the last samples reach the inlets before closing
+        del outlets[:]
+    published = min(limit, rep * span if loop else span)
+    return {
+        "streams": [s[0] for s in streams],
+        "samples": dict(zip([s[0] for s in streams], pushed, strict=True)),
+        "duration_s": time.monotonic() - start_wall,
+        "recording_s": published,
+        "interrupted": interrupted,
+    }
+
+
+class _Stop(Exception):
+    pass

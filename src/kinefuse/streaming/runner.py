@@ -1,0 +1,403 @@
+"""``run_stream``: the engine on live LSL inputs, publishing the fused joints (Ctrl-C stops)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+from kinefuse.conventions import SOURCE_NAMES
+from kinefuse.exceptions import ConfigError, InputError
+from kinefuse.kinematics import full_body
+from kinefuse.streaming.config import (
+    StreamConfig,
+    import_pylsl,
+    load_stream_config,
+    stream_config_from_session,
+)
+from kinefuse.streaming.engine import Engine, EngineConfig
+from kinefuse.streaming.processors import SOURCE_PREDICT, IntegratedProcessor, KalmanFusionProcessor
+
+__all__ = ["build_engine", "run_loop", "run_stream", "stream_config"]
+
+log = logging.getLogger("kinefuse.streaming")
+
+_SOURCE_SHORT = {**{k: v for k, v in SOURCE_NAMES.items()}, SOURCE_PREDICT: "predict"}
+
+
+def stream_config(session) -> StreamConfig:
+    """A :class:`StreamConfig` from a path (TOML), a SessionConfig, a StreamConfig or None."""
+    if session is None:
+        return StreamConfig()
+    if isinstance(session, StreamConfig):
+        return session
+    if isinstance(session, (str, Path)):
+        return load_stream_config(session)
+    if hasattr(session, "method") and hasattr(session, "skeleton"):
+        return stream_config_from_session(session)
+    raise ConfigError(
+        f"expected a session path, SessionConfig or StreamConfig, got {type(session).__name__}"
+    )
+
+
+def build_engine(
+    cfg: StreamConfig, *, camera: bool, camera_rate_hz: float, imu_rate_hz, record=False
+):
+    """The :class:`Engine` (skeleton, processor, timing) a :class:`StreamConfig` describes."""
+    skeleton = full_body(height_m=cfg.body_height_m, lengths=cfg.lengths_m or None)
+    rate = camera_rate_hz if camera else cfg.output_rate_hz
+    if cfg.processor == "paper-a":
+        proc = IntegratedProcessor(1.0 / rate, q=cfg.q, r=cfg.r_imu, lag=cfg.lag)
+    else:
+        proc = KalmanFusionProcessor(
+            1.0 / rate, q=cfg.q, r_imu=cfg.r_imu, r_camera=cfg.r_camera, lag=cfg.lag
+        )
+    ecfg = EngineConfig(
+        skeleton, joints=cfg.joints, camera=camera, camera_rate_hz=camera_rate_hz,
+        output_rate_hz=cfg.output_rate_hz, imu_rate_hz=imu_rate_hz, max_latency_s=cfg.max_latency_s,
+        stale_after_s=cfg.stale_after_s, gap_factor=cfg.gap_factor, record=record,
+    )  # fmt: skip
+    return Engine(ecfg, proc)
+
+
+def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=None, stop_event=None,
+             on_output=None, status=None, reattach=None) -> dict:  # fmt: skip
+    """Pull every input, feed the engine, push its outputs, until a stop condition.
+
+    Parameters
+    ----------
+    engine : Engine
+    inputs : list of :class:`~kinefuse.streaming.lsl.Input`-like objects
+        ``pull() -> (data, ts)``, ``feed(engine, data, ts, now)``, ``refresh_clock()``,
+        ``close()``, ``lost``.
+    outlet : object with ``push(output)`` and ``close()``, or None
+    clock : callable
+        Current time on the samples' clock (``pylsl.local_clock``).
+    duration_s, idle_timeout_s : float, optional
+        Stop after this wall time / after this long without any input sample (once some
+        arrived).
+    stop_event : threading.Event, optional
+    on_output : callable, optional
+        Called with every :class:`EngineOutput` after it was pushed.
+    status : callable, optional
+        Called about 4 times a second with ``(engine, latencies_s)``.
+    reattach : callable, optional
+        Called with a lost input every 0.5 s until it returns True.
+
+    Returns
+    -------
+    dict
+        ``interrupted`` (Ctrl-C), ``latency_s`` (array: first pull of an iteration -> output
+        pushed, per output), ``outputs`` (count).
+
+    Notes
+    -----
+    Ctrl-C (KeyboardInterrupt, i.e. SIGINT in the main thread) ends the loop; pending frames
+    are then processed (:meth:`Engine.flush`) and pushed, and inputs and outlet are closed.
+    """
+    start = time.monotonic()
+    last_data = None
+    latencies: deque = deque(maxlen=200_000)
+    n_out = 0
+    interrupted = False
+    next_status = 0.0
+    next_reattach = 0.0
+
+    def push(outs, t_pull):
+        nonlocal n_out
+        for o in outs:
+            if outlet is not None:
+                outlet.push(o)
+            if t_pull is not None:
+                latencies.append(time.perf_counter() - t_pull)
+            n_out += 1
+            if on_output is not None:
+                on_output(o)
+
+    try:
+        while True:
+            t_first = None
+            got = False
+            for inp in inputs:
+                if inp.lost:
+                    continue
+                data, ts = inp.pull()
+                if len(ts):
+                    if t_first is None:
+                        t_first = time.perf_counter()
+                    got = True
+                    inp.feed(engine, data, ts, clock())
+            push(engine.poll(clock()), t_first)
+            mono = time.monotonic()
+            if got:
+                last_data = mono
+            for inp in inputs:
+                if not inp.lost:
+                    inp.refresh_clock()
+            if reattach is not None and mono >= next_reattach:
+                next_reattach = mono + 0.5
+                for inp in inputs:
+                    if inp.lost:
+                        reattach(inp)
+            if status is not None and mono >= next_status:
+                next_status = mono + 0.25
+                status(engine, latencies)
+            if duration_s is not None and mono - start >= duration_s:
+                break
+            if (
+                idle_timeout_s is not None
+                and last_data is not None
+                and mono - last_data >= idle_timeout_s
+            ):
+                break
+            if stop_event is not None and stop_event.is_set():
+                break
+            if not got:
+                time.sleep(0.0005)
+    except KeyboardInterrupt:
+        interrupted = True
+        log.warning("interrupted (Ctrl-C): flushing pending frames and closing streams")
+    finally:
+        try:
+            push(engine.flush(clock()), None)
+        finally:
+            for inp in inputs:
+                inp.close()
+            if outlet is not None:
+                outlet.close()
+    return {"interrupted": interrupted, "latency_s": np.asarray(latencies), "outputs": n_out}
+
+
+def _status_printer(console, cfg):
+    from rich.live import Live
+    from rich.table import Table
+
+    live = Live(console=console, refresh_per_second=4, transient=False)
+    live.start()
+    last = {"t": time.monotonic(), "n": {}}
+
+    def show(engine, latencies):
+        now_m = time.monotonic()
+        dt = max(now_m - last["t"], 1e-3)
+        st = engine.stream_status()
+        tab = Table(title=f"kinefuse stream -> {cfg.output_stream_name}", expand=False)
+        for col in ("stream", "samples", "rate Hz", "age s", "state"):
+            tab.add_column(col)
+        for name, s in st.items():
+            rate = (s["samples"] - last["n"].get(name, s["samples"])) / dt
+            last["n"][name] = s["samples"]
+            age = s["age_s"]
+            tab.add_row(name, str(s["samples"]), f"{rate:.0f}", "-" if not math.isfinite(age) else f"{age:.2f}",
+                        "[red]stale[/red]" if s["stale"] else "ok")  # fmt: skip
+        last["t"] = now_m
+        lat = np.asarray(latencies)
+        lat_txt = (
+            "-"
+            if lat.size == 0
+            else f"p50 {1e3 * np.median(lat):.3f} ms, p99 {1e3 * np.percentile(lat, 99):.3f} ms"
+        )
+        src = getattr(engine, "_last_sources", None)
+        joints = " ".join(
+            f"{j}:{_SOURCE_SHORT.get(int(c), '?')}" for j, c in zip(engine.config.joints, src, strict=True)
+        ) if src is not None else "-"  # fmt: skip
+        c = engine.counters
+        tab.caption = (f"outputs {c['outputs']}  latency {lat_txt}\n{joints}\n"
+                       f"late {c['late']} dup {c['duplicate']} reordered {c['reordered']} jumps {c['time_jump']} "
+                       f"stale {c['stream_stale']} forced {c['forced_frames']} synthesized {c['synthesized_frames']}")  # fmt: skip
+        live.update(tab)
+
+    return live, show
+
+
+def run_stream(
+    session=None,
+    duration_s: float | None = None,
+    out: str | Path | None = None,
+    status: bool = True,
+    *,
+    idle_timeout_s: float | None = None,
+    wait_for_reader_s: float | None = None,
+    stop_event=None,
+    record: bool = False,
+    return_engine: bool = False,
+) -> dict:
+    """Run the online engine on LSL inputs and publish the fused joints.
+
+    Parameters
+    ----------
+    session : path, SessionConfig, StreamConfig or None
+        A streaming session TOML (:func:`~kinefuse.streaming.config.load_stream_config`), an
+        offline session (:func:`~kinefuse.streaming.config.stream_config_from_session`), a
+        :class:`StreamConfig`, or None for the defaults (the streams of
+        ``run_replay(..., name_prefix="kinefuse")``).
+    duration_s : float, optional
+        Stop after this wall time, s (default: until Ctrl-C, ``idle_timeout_s`` or
+        ``stop_event``).
+    out : path, optional
+        Write the outputs (``t_s``, ``position_m``, ``std_m``, ``source``, ``flags``) to this
+        ``.npz`` file and the summary next to it (``.json``).
+    status : bool
+        Live terminal status (rich): streams, rates, per-joint source, latency.
+    idle_timeout_s : float, optional
+        Stop once no input sample arrived for this long.
+    wait_for_reader_s : float, optional
+        Wait up to this long for a consumer of the output stream before pulling inputs (inputs
+        are buffered meanwhile).
+    stop_event : threading.Event, optional
+        Stop when set (tests, embedding).
+    record : bool
+        Keep the accepted samples in ``engine.accepted`` (tests).
+    return_engine : bool
+        Put the :class:`Engine` in the summary (key ``"engine"``).
+
+    Returns
+    -------
+    dict
+        ``outputs``, ``frames``, ``counters``, ``events`` (last 50, as text), ``latency_ms``
+        (``p50``, ``p99``, ``max`` over outputs: first input pull of the loop iteration ->
+        output pushed), ``streams``, ``missing`` (streams not found), ``interrupted``.
+
+    Notes
+    -----
+    Inputs are resolved by name (timeout ``resolve_timeout_s``); a missing IMU stream leaves
+    its joints predict-only and is looked for again in the loop; a camera stream is required
+    unless the configuration has ``camera_stream = ""``. The camera's nominal rate sets the
+    output rate (one output per camera frame). Each inlet is opened with ``recover=True``, so a
+    stream re-created with the same source id is reattached by liblsl; a lost stream without
+    source id is resolved again by name. Timestamps: see :mod:`kinefuse.streaming.lsl`.
+    """
+    cfg = stream_config(session)
+    pylsl = import_pylsl()
+    from kinefuse.streaming.lsl import IMU_TYPE, FusedOutlet, Input, resolve_many
+
+    inputs, missing = [], []
+    segments = EngineConfig(
+        full_body(height_m=cfg.body_height_m, lengths=cfg.lengths_m or None), joints=cfg.joints
+    ).segments
+    cam_name = cfg.camera_stream_name
+    cam = None
+    wanted = {cfg.imu_stream_name(seg): seg for seg in segments}
+    found = resolve_many(([cam_name] if cam_name else []) + list(wanted), cfg.resolve_timeout_s)
+    try:
+        if cam_name:
+            if cam_name not in found:
+                raise InputError(f"camera stream {cam_name!r} not found within {cfg.resolve_timeout_s:g} s "
+                                 "(set [stream] camera_stream = \"\" to run without a camera)")  # fmt: skip
+            cam = Input.open("camera", "camera", cam_name, info=found[cam_name], clock=cfg.clock)
+            inputs.append(cam)
+        for name, seg in wanted.items():
+            if name in found:
+                inputs.append(Input.open("imu", seg, name, info=found[name], clock=cfg.clock))
+            else:
+                log.warning(
+                    "LSL stream %s not found: its joints stay predict-only until it appears", name
+                )
+                missing.append(name)
+    except Exception:
+        for inp in inputs:
+            inp.close()
+        raise
+    # first clock-offset estimates in parallel (each takes a few probe round trips)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=max(1, len(inputs))) as pool:
+        list(pool.map(lambda i: i.refresh_clock(first=True), inputs))
+    if not any(i.kind == "imu" for i in inputs):
+        for inp in inputs:
+            inp.close()
+        raise InputError(
+            f"no IMU stream found (looked for {[cfg.imu_stream_name(s) for s in segments]})"
+        )
+    imu_rates = {s: 100.0 for s in segments}
+    for inp in inputs:
+        if inp.kind == "imu" and inp.info.nominal_srate() > 0:
+            imu_rates[inp.key] = inp.info.nominal_srate()
+    cam_rate = (
+        cam.info.nominal_srate()
+        if cam is not None and cam.info.nominal_srate() > 0
+        else cfg.output_rate_hz
+    )
+    engine = build_engine(
+        cfg, camera=cam is not None, camera_rate_hz=cam_rate, imu_rate_hz=imu_rates, record=record
+    )
+    outlet = FusedOutlet(cfg.output_stream_name, cfg.joints, cam_rate, processor=cfg.processor,
+                         lag_frames=cfg.lag)  # fmt: skip
+    if wait_for_reader_s:
+        outlet.outlet.wait_for_consumers(wait_for_reader_s)
+
+    pending_missing = {seg: cfg.imu_stream_name(seg) for seg in segments
+                       if cfg.imu_stream_name(seg) in missing}  # fmt: skip
+
+    def reattach(inp):
+        return inp.reattach(0.05)
+
+    collected = [] if out is not None else None
+
+    def on_output(o):
+        engine._last_sources = o.source
+        if collected is not None:
+            collected.append(o)
+        if pending_missing and (o.index % 150) == 0:
+            for seg, name in list(pending_missing.items()):
+                try:
+                    inputs.append(
+                        Input.open(
+                            "imu", seg, name, stype=IMU_TYPE, timeout_s=0.02, clock=cfg.clock
+                        )
+                    )
+                    del pending_missing[seg]
+                    log.warning("LSL stream %s appeared: attached", name)
+                except TimeoutError:
+                    pass
+
+    live = show = None
+    if status:
+        from rich.console import Console
+
+        live, show = _status_printer(Console(stderr=True), cfg)
+    try:
+        res = run_loop(engine, inputs, outlet, clock=pylsl.local_clock, duration_s=duration_s,
+                       idle_timeout_s=idle_timeout_s, stop_event=stop_event, on_output=on_output,
+                       status=show, reattach=reattach)  # fmt: skip
+    finally:
+        if live is not None:
+            live.stop()
+    lat = res["latency_s"]
+    summary = {
+        "outputs": res["outputs"],
+        "frames": engine.counters["frames"],
+        "counters": dict(engine.counters),
+        "events": [str(e) for e in list(engine.events)[-50:]],
+        "latency_ms": {
+            "p50": float(1e3 * np.median(lat)) if lat.size else None,
+            "p99": float(1e3 * np.percentile(lat, 99)) if lat.size else None,
+            "max": float(1e3 * lat.max()) if lat.size else None,
+            "n": int(lat.size),
+        },
+        "streams": [i.name for i in inputs],
+        "missing": sorted(pending_missing.values()),
+        "output_stream": cfg.output_stream_name,
+        "interrupted": res["interrupted"],
+    }
+    if out is not None:
+        p = Path(out)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(
+            p.with_suffix(".npz"),
+            t_s=np.array([o.t_s for o in collected]),
+            position_m=np.array([o.position_m for o in collected]).reshape(-1, len(cfg.joints), 3),
+            std_m=np.array([o.std_m for o in collected]).reshape(-1, len(cfg.joints), 3),
+            source=np.array([o.source for o in collected], np.int8).reshape(-1, len(cfg.joints)),
+            flags=np.array([o.flags for o in collected], np.uint8).reshape(-1, len(cfg.joints)),
+            joints=np.array(cfg.joints),
+        )
+        p.with_suffix(".json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+        summary["out"] = str(p.with_suffix(".npz"))
+    if return_engine:
+        summary["engine"] = engine
+    return summary
