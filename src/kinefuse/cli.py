@@ -516,6 +516,10 @@ def experiment(
             "--data", metavar="DIR", help="Data folder (default: the back-end's, ../shared/data)."
         ),
     ] = None,
+    quick: Annotated[
+        bool,
+        typer.Option("--quick", help="A reduced configuration (seconds) instead of the full run."),
+    ] = False,
     quiet: _Quiet = False,
     json_file: _Json = None,
 ) -> None:
@@ -524,7 +528,7 @@ def experiment(
         raise InputError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
     if data is not None and not data.is_dir():
         raise InputError(f"--data {data}: folder not found")
-    summary = _backend("experiment")(name, data)
+    summary = _backend("experiment")(name, data, quick=quick, quiet=quiet)
     _present(summary, quiet=quiet, json_file=json_file)
 
 

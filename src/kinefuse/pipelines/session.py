@@ -1,0 +1,1102 @@
+"""``kinefuse run`` and ``kinefuse evaluate``: a user's own recording, end to end.
+
+:func:`run_session` processes the recording a session TOML describes
+(:func:`kinefuse.session.load_session`): it loads the IMU file and the optional camera and
+reference, maps sensors to segments, estimates missing orientations from raw data, builds the
+skeleton, calibrates, runs the method, writes the joint positions as CSV (with per-sample source,
+filter branch and standard deviation) and TRC (OpenSim), and, with a reference, the metrics and
+an HTML report. :func:`evaluate_recording` runs one method on any loadable recording that has a
+reference and returns the per-joint tables. :func:`process_recording` is the shared core.
+
+Method parameters (``[method.parameters]`` of the session file; all optional)
+-----------------------------------------------------------------------------
+``calibration``
+    ``"static"``, ``"reference"``, ``"vision"`` or ``"none"`` (default: ``"vision"`` with a
+    camera, else ``"reference"`` with a reference, else ``"static"``).
+``calibration_window_s``, ``calibration_start_s``
+    Calibration window, s (default 2 s from the first sample).
+``pose``
+    Static calibration pose, ``"n"`` (arms hanging, default) or ``"t"``.
+``align``
+    Camera/reference frame alignment of the calibration: ``"auto"`` (default), ``"none"``,
+    ``"heading"``, ``"rotation"``.
+``root``
+    Stream giving the positions of the chain roots (shoulders, hips, or the proximal joint of
+    any segment without a mapped parent): ``"camera"`` or ``"reference"`` (default: the camera if
+    there is one, else the reference).
+``rate_hz``
+    Output/filter rate, Hz (default 30 for ``paper-a`` and the camera methods, else the root
+    stream's own timeline).
+``filter``
+    ``imu-only`` only: ``"none"`` (default), ``"kf"``, ``"fir"``, ``"em-kf"``, ``"em-kf-fir"``;
+    ``paper-a`` uses ``"em-kf-fir"`` unless told otherwise.
+``q``, ``r``, ``horizon``, ``threshold1``, ``threshold2``, ``n_em_iter``
+    Paper A filter settings (:func:`kinefuse.pipelines.upper_limb`); ``q`` and ``r`` may be
+    one number or a table per joint or joint kind (``{knee = 0.1, ankle = 0.2}``).
+``q``, ``r_imu``, ``r_cam``, ``horizon``, ``n_hidden``, ``train_window``, ...
+    Paper B settings (:class:`kinefuse.pipelines.VisionParams`) for ``elm-fir``, ``elm-kf``,
+    ``imu-only`` / ``camera-only`` with a camera, and ``kinefuse``.
+``measured_lengths``
+    Use the segment lengths measured in the calibration window (reference/vision calibration;
+    default true). Explicit ``[skeleton.lengths]`` always win; ``body_height_m`` fills the rest.
+``orientation_params``
+    VQF parameters for sensors without an orientation (:func:`kinefuse.orientation.estimate`).
+``strict_units``
+    Default true: magnitudes that look like wrong units (acc in g, gyro in deg/s, positions in
+    mm; :func:`kinefuse.io.check_units`) are an error instead of a warning.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from kinefuse.conventions import (
+    MODE_NAMES,
+    SEGMENTS,
+    SOURCE_IMU,
+    SOURCE_NAMES,
+)
+from kinefuse.exceptions import ConfigError, InputError, UnitWarning
+
+__all__ = [
+    "FORMAT_ALIASES",
+    "SEGMENT_JOINTS",
+    "SessionOutput",
+    "build_chain",
+    "evaluate_recording",
+    "load_streams",
+    "process_recording",
+    "run_session",
+]
+
+#: Session-file format names accepted besides the :data:`kinefuse.io.FORMATS` keys.
+FORMAT_ALIASES = {
+    "csv": "imu_csv",
+    "imu-csv": "imu_csv",
+    "joint-csv": "joint_csv",
+    "joints-csv": "joint_csv",
+    "kinect": "kinect_v2",
+    "kinect-csv": "kinect_v2",
+    "kinect-v2": "kinect_v2",
+    "azure-kinect": "azure_kinect",
+    "utd-mhad": "utd_mhad",
+    "gaittoolbox": "neura",
+    "asf-amc": "cmu",
+}
+
+#: Proximal and distal joint of every limb segment (segments with a length).
+SEGMENT_JOINTS = {
+    **{f"upper_arm_{s}": (f"shoulder_{s}", f"elbow_{s}") for s in "lr"},
+    **{f"forearm_{s}": (f"elbow_{s}", f"wrist_{s}") for s in "lr"},
+    **{f"thigh_{s}": (f"hip_{s}", f"knee_{s}") for s in "lr"},
+    **{f"shank_{s}": (f"knee_{s}", f"ankle_{s}") for s in "lr"},
+    **{f"foot_{s}": (f"ankle_{s}", f"foot_{s}") for s in "lr"},
+}
+
+_FILTERS = ("none", "kf", "fir", "em-kf", "em-kf-fir")
+_CALIBRATIONS = ("static", "reference", "vision", "none")
+_CAMERA_METHODS = ("elm-fir", "elm-kf", "camera-only", "kinefuse")
+_PAPER_A_KEYS = ("q", "r", "horizon", "threshold1", "threshold2", "n_em_iter")
+_VISION_KEYS = (
+    "q",
+    "r_imu",
+    "r_cam",
+    "horizon",
+    "transition",
+    "mu_floor",
+    "n_hidden",
+    "alpha",
+    "linear_skip",
+    "train_window",
+    "elm2_input",
+    "clip_factor",
+    "min_train",
+    "fixed_lag",
+    "seed",
+)
+_GENERAL_KEYS = (
+    "calibration",
+    "calibration_window_s",
+    "calibration_start_s",
+    "pose",
+    "align",
+    "root",
+    "rate_hz",
+    "filter",
+    "measured_lengths",
+    "orientation_params",
+    "strict_units",
+    "causal",
+)
+_METHOD_LABELS = {
+    "paper-a": "EM-KF/FIR",
+    "elm-fir": "ELM/FIR",
+    "elm-kf": "ELM/KF",
+    "imu-only": "IMU only",
+    "camera-only": "camera only",
+    "kinefuse": "kinefuse",
+}
+
+
+@dataclass(eq=False)
+class SessionOutput:
+    """Result of :func:`process_recording`.
+
+    Attributes
+    ----------
+    t_s : ndarray, shape (T,)
+        Output timeline, s.
+    joints : tuple of str
+        Output joints (distal joints of the mapped segments).
+    position : ndarray, shape (T, J, 3)
+        Estimated joint positions, m, in ``frame``.
+    std_m : ndarray, shape (T, J, 3)
+        Per-axis standard deviation, m (NaN where the method gives none).
+    source : ndarray of int, shape (T, J)
+        :data:`kinefuse.conventions.SOURCE_NAMES` code per sample (-1: no estimate).
+    mode : ndarray of int, shape (T, J)
+        :data:`kinefuse.conventions.MODE_NAMES` filter branch per sample (-1: no filter).
+    frame : str
+        Frame of the positions (the root stream's, or ``"ENU chest-relative"``).
+    method : str
+        Method name; ``label`` is its table label.
+    label : str
+    chain : ndarray, shape (T, J, 3)
+        The unfiltered IMU chain, m (same frame).
+    camera : ndarray, shape (T, J, 3) or None
+        Camera positions of the output joints in the same frame (NaN where unavailable).
+    reference : ndarray, shape (T, J, 3) or None
+        Reference positions at ``t_s`` in the same frame (NaN where unavailable).
+    run_time_s : float
+        Wall-clock time of the method (chain excluded), s.
+    edges : tuple of (str, str)
+        Bones between output joints (report skeleton).
+    notes : list of str
+        What was done (calibration, lengths, alignments) and warnings.
+    """
+
+    t_s: np.ndarray
+    joints: tuple[str, ...]
+    position: np.ndarray
+    std_m: np.ndarray
+    source: np.ndarray
+    mode: np.ndarray
+    frame: str
+    method: str
+    label: str
+    chain: np.ndarray
+    camera: np.ndarray | None = None
+    reference: np.ndarray | None = None
+    run_time_s: float = float("nan")
+    edges: tuple[tuple[str, str], ...] = ()
+    notes: list[str] = field(default_factory=list)
+
+    def evaluation(self):
+        """Metrics of the method, the unfiltered IMU chain and the camera vs the reference.
+
+        Returns
+        -------
+        EvaluationResult or None
+            None without a reference.
+        """
+        from kinefuse.evaluation import evaluate
+
+        if self.reference is None:
+            return None
+        est = {self.label: self.position}
+        if self.method != "camera-only" and not np.array_equal(
+            self.position, self.chain, equal_nan=True
+        ):
+            est["IMU chain"] = self.chain
+        if (
+            self.camera is not None
+            and self.method != "camera-only"
+            and not np.array_equal(self.camera, self.reference, equal_nan=True)
+        ):
+            est["camera"] = self.camera
+        outage = None
+        if self.camera is not None:
+            outage = ~np.all(np.isfinite(self.camera), axis=-1)
+        return evaluate(
+            est,
+            self.reference,
+            outage,
+            {self.label: self.run_time_s} if math.isfinite(self.run_time_s) else None,
+            joints=self.joints,
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# loading
+# --------------------------------------------------------------------------------------------
+
+
+def _format_name(fmt: str, section: str, source: str) -> str:
+    from kinefuse.io import FORMATS
+
+    key = fmt.strip().lower()
+    key = FORMAT_ALIASES.get(key, key.replace("-", "_"))
+    if key not in FORMATS:
+        known = ", ".join(sorted({*FORMATS, *FORMAT_ALIASES}))
+        raise ConfigError(
+            f"{source}: [{section}] format: unknown format {fmt!r} (known formats: {known})"
+        )
+    return key
+
+
+def _load(path: Path, fmt: str, section: str, source: str, strict_units: bool, pair=None):
+    """``kinefuse.io.load`` with session context in every error and unit checks escalated."""
+    from kinefuse.exceptions import FormatError
+    from kinefuse.io import load
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UnitWarning)
+        try:
+            rec = load(path if pair is None else (path, pair), format=fmt)
+        except FileNotFoundError as exc:
+            raise ConfigError(f"{source}: [{section}] path: {exc}") from None
+        except FormatError as exc:
+            raise ConfigError(f"{source}: [{section}] path: {exc}") from None
+        except InputError as exc:
+            raise ConfigError(f"{source}: [{section}]: {exc}") from None
+    msgs = []
+    for w in caught:
+        if issubclass(w.category, UnitWarning) and strict_units:
+            raise ConfigError(
+                f"{source}: [{section}] path: wrong units? {w.message} (kinefuse expects SI "
+                "units; fix the file, declare its unit in the file header, or set "
+                "strict_units = false in [method.parameters])"
+            )
+        if not issubclass(w.category, DeprecationWarning):
+            msgs.append(f"{section}: {w.message}")
+    return rec, msgs
+
+
+def load_streams(cfg, *, strict_units: bool = True):
+    """Load the IMU, camera and reference files of a session into one Recording.
+
+    Parameters
+    ----------
+    cfg : SessionConfig
+        From :func:`kinefuse.session.load_session`.
+    strict_units : bool
+        Raise on magnitudes that suggest wrong units instead of warning.
+
+    Returns
+    -------
+    recording : Recording
+        ``imu`` keyed by the session's canonical segments (only the mapped ones), ``vision``
+        and ``reference`` as configured (a reference file without a reference stream, e.g. a
+        UTD-MHAD skeleton, gives its camera joints as the reference).
+    notes : list of str
+
+    Raises
+    ------
+    ConfigError
+        Unknown format, unreadable file (the reader's message with file, line and field), a
+        sensor name not in the file, a stream without valid samples, wrong units.
+    """
+    from kinefuse.io import Recording
+
+    src = cfg.path.name
+    notes: list[str] = []
+    fmt = _format_name(cfg.imu.format, "imu", src)
+    cam_fmt = _format_name(cfg.camera.format, "camera", src) if cfg.camera else None
+    pair = None
+    if fmt == "utd_mhad" and cam_fmt == "utd_mhad":
+        pair = cfg.camera.path  # one trial: inertial + skeleton, timed together
+    rec, msgs = _load(cfg.imu.path, fmt, "imu", src, strict_units, pair)
+    notes += msgs
+    if not rec.imu:
+        raise ConfigError(f"{src}: [imu] path: the file holds no IMU data ({cfg.imu.path.name})")
+    imu = {}
+    available = {}
+    for key, st in rec.imu.items():
+        available.setdefault(st.name, key)
+        available.setdefault(key, key)
+    sensor_names = (rec.metadata or {}).get("sensor_names") or {}
+    for seg, key in sensor_names.items():
+        available.setdefault(key, seg)
+    for seg, sensor in cfg.imu.segments.items():
+        key = available.get(sensor)
+        if key is None:
+            names = sorted({st.name or k for k, st in rec.imu.items()} | set(rec.imu))
+            raise ConfigError(
+                f"{src}: [imu.segments] {seg}: sensor {sensor!r} not in {cfg.imu.path.name} "
+                f"(its sensors: {', '.join(names)})"
+            )
+        st = rec.imu[key]
+        _check_stream(st, seg, sensor, src)
+        imu[seg] = st
+    vision = None
+    if cfg.camera is not None:
+        if pair is not None:
+            vision = rec.vision
+        else:
+            crec, msgs = _load(cfg.camera.path, cam_fmt, "camera", src, strict_units)
+            notes += msgs
+            vision = crec.vision if crec.vision is not None else crec.reference
+        if vision is None:
+            raise ConfigError(
+                f"{src}: [camera] path: {cfg.camera.path.name} holds no joint positions"
+            )
+        if cfg.camera.availability_threshold is not None:
+            notes.append(
+                "camera availability_threshold is applied by the reader's tracking state; "
+                "the generic readers use finite samples"
+            )
+        _check_joints(vision, "camera", src)
+    reference = None
+    if cfg.reference is not None:
+        ref_fmt = _format_name(cfg.reference.format, "reference", src)
+        rrec, msgs = _load(cfg.reference.path, ref_fmt, "reference", src, strict_units)
+        notes += msgs
+        reference = rrec.reference if rrec.reference is not None else rrec.vision
+        if reference is None:
+            raise ConfigError(
+                f"{src}: [reference] path: {cfg.reference.path.name} holds no joint positions"
+            )
+        if rrec.reference is None:
+            notes.append(
+                f"reference: {cfg.reference.path.name} has no separate reference; its camera "
+                "joints are used as the reference (as paper A uses Kinect)"
+            )
+        _check_joints(reference, "reference", src)
+    md = dict(rec.metadata or {})
+    md["session"] = str(cfg.path)
+    return Recording(imu=imu, vision=vision, reference=reference, metadata=md), notes
+
+
+def _check_stream(st, seg: str, sensor: str, src: str) -> None:
+    arrays = [a for a in (st.q_world_from_sensor, st.acc_m_s2, st.gyr_rad_s) if a is not None]
+    if not arrays:
+        raise ConfigError(
+            f"{src}: [imu.segments] {seg}: sensor {sensor!r} has neither an orientation nor raw "
+            "acc + gyr data"
+        )
+    if st.q_world_from_sensor is not None:
+        ok = np.all(np.isfinite(st.q_world_from_sensor), axis=1)
+    else:
+        ok = np.all(np.isfinite(st.acc_m_s2), axis=1) & np.all(np.isfinite(st.gyr_rad_s), axis=1)
+    if not np.any(ok):
+        raise ConfigError(
+            f"{src}: [imu.segments] {seg}: sensor {sensor!r} has no valid sample (all NaN)"
+        )
+
+
+def _check_joints(stream, what: str, src: str) -> None:
+    if not np.any(stream.available):
+        raise ConfigError(f"{src}: [{what}] path: no valid joint position in the file (all NaN)")
+
+
+# --------------------------------------------------------------------------------------------
+# chain
+# --------------------------------------------------------------------------------------------
+
+
+def _ensure_orientations(recording, params: Mapping, notes: list[str]):
+    """Estimate ``q_world_from_sensor`` with VQF for every stream that has raw data only."""
+    from dataclasses import replace
+
+    from kinefuse.orientation import estimate
+
+    vqf_params = params.get("orientation_params")
+    for seg, st in list(recording.imu.items()):
+        if st.q_world_from_sensor is not None:
+            continue
+        ok = np.all(np.isfinite(st.acc_m_s2), axis=1) & np.all(np.isfinite(st.gyr_rad_s), axis=1)
+        acc, gyr = st.acc_m_s2, st.gyr_rad_s
+        if not np.all(ok):  # hold the last valid sample across gaps (VQF needs finite input)
+            idx = np.maximum.accumulate(np.where(ok, np.arange(ok.size), 0))
+            first = int(np.flatnonzero(ok)[0])
+            idx[:first] = first
+            acc, gyr = acc[idx], gyr[idx]
+        mag = None
+        if st.mag is not None and np.all(np.isfinite(st.mag)):
+            mag = st.mag
+        try:
+            q = estimate(acc, gyr, mag, rate_hz=st.rate_hz, params=vqf_params)
+        except InputError as exc:
+            raise InputError(f"IMU {seg!r}: orientation estimation failed: {exc}") from None
+        q[~ok] = np.nan
+        recording.imu[seg] = replace(st, q_world_from_sensor=q)
+        notes.append(
+            f"{seg}: orientation estimated from raw data with VQF "
+            f"({'9D, magnetometer' if mag is not None else '6D, arbitrary heading'})"
+        )
+
+
+def build_chain(
+    segments: Sequence[str],
+    lengths: Mapping[str, float],
+    axes: Mapping[str, object] | None = None,
+):
+    """A Skeleton over the given limb segments, rooted at the proximal joints of unparented ones.
+
+    Parameters
+    ----------
+    segments : sequence of str
+        Limb segments (:data:`SEGMENT_JOINTS` keys), e.g. ``("thigh_l", "shank_l")`` or
+        ``("forearm_r",)``; a segment's parent is the segment whose distal joint is its
+        proximal joint, if given.
+    lengths : mapping of str -> float
+        Length of every segment, m.
+    axes : mapping, optional
+        Segment axis in each sensor frame (default ``+e2``).
+
+    Returns
+    -------
+    Skeleton
+        Parents before children; the first root joint is ``root``, further roots are offset
+        joints of unknown offset (to be given as root positions, e.g. from a camera).
+    roots : tuple of str
+        The root joints, whose positions must be supplied.
+    """
+    from kinefuse.kinematics import Skeleton
+
+    segs = [s for s in SEGMENT_JOINTS if s in set(segments)]
+    unknown = sorted(set(segments) - set(SEGMENT_JOINTS))
+    if unknown:
+        raise InputError(f"segments {unknown} have no length; expected limb segments")
+    order: list[str] = []
+    pending = list(segs)
+    distal = {SEGMENT_JOINTS[s][1]: s for s in segs}
+    while pending:
+        for s in list(pending):
+            parent = distal.get(SEGMENT_JOINTS[s][0])
+            if parent is None or parent in order:
+                order.append(s)
+                pending.remove(s)
+    parents = []
+    roots: list[str] = []
+    for s in order:
+        parent = distal.get(SEGMENT_JOINTS[s][0])
+        parents.append(-1 if parent is None else order.index(parent))
+        if parent is None and SEGMENT_JOINTS[s][0] not in roots:
+            roots.append(SEGMENT_JOINTS[s][0])
+    axes = dict(axes or {})
+    sk = Skeleton(
+        segments=tuple(order),
+        parents=tuple(parents),
+        proximal=tuple(SEGMENT_JOINTS[s][0] for s in order),
+        distal=tuple(SEGMENT_JOINTS[s][1] for s in order),
+        lengths_m=tuple(float(lengths[s]) for s in order),
+        axes=np.array([axes.get(s, (0.0, 1.0, 0.0)) for s in order], dtype=float),
+        root=roots[0],
+        root_segment="pelvis" if len(roots) > 1 else None,
+        offsets_m={j: (np.nan,) * 3 for j in roots[1:]},
+    )
+    return sk, tuple(roots)
+
+
+def _lengths(segs, cfg_lengths, height, measured, stream, notes) -> dict[str, float]:
+    from kinefuse.kinematics import ANTHROPOMETRIC_RATIOS, lengths_from_joints
+
+    out, how = {}, {}
+    for s in segs:
+        kind = s.rsplit("_", 1)[0]
+        if s in cfg_lengths:
+            out[s], how[s] = float(cfg_lengths[s]), "session"
+        elif s in measured:
+            out[s], how[s] = float(measured[s]), "measured in the calibration window"
+        elif height is not None and kind in ANTHROPOMETRIC_RATIOS:
+            out[s], how[s] = ANTHROPOMETRIC_RATIOS[kind] * height, "from body height"
+    rest = [s for s in segs if s not in out]
+    if rest and stream is not None:
+        got = lengths_from_joints(stream, [(s, *SEGMENT_JOINTS[s]) for s in rest], missing="skip")
+        for s, v in got.items():
+            out[s], how[s] = v, "median from the root stream"
+    rest = [s for s in segs if s not in out]
+    if rest:
+        raise ConfigError(
+            f"no length for segment(s) {rest}: add them to [skeleton.lengths] (m) or give "
+            "body_height_m"
+        )
+    notes.append("segment lengths (m): " + ", ".join(f"{s} {out[s]:.3f} ({how[s]})" for s in segs))
+    return out
+
+
+def _timeline(t_src: np.ndarray, rate_hz: float | None) -> np.ndarray:
+    if rate_hz is None or t_src.size < 2:
+        return t_src
+    src_rate = 1.0 / float(np.median(np.diff(t_src)))
+    if abs(src_rate - rate_hz) <= 0.05 * rate_hz:
+        return t_src
+    n = int(np.floor((t_src[-1] - t_src[0]) * rate_hz + 1e-9)) + 1
+    return t_src[0] + np.arange(n) / rate_hz
+
+
+def _at(stream, joint: str, t: np.ndarray, *, fill: bool) -> np.ndarray:
+    """Positions of one joint at ``t``: linear interpolation (across gaps if ``fill``)."""
+    from kinefuse.io import resample_positions
+
+    p = stream.position(joint)
+    ok = np.all(np.isfinite(p), axis=1)
+    if not np.any(ok):
+        return np.full((t.size, 3), np.nan)
+    if fill:
+        return np.stack([np.interp(t, stream.t_s[ok], p[ok, k]) for k in range(3)], axis=-1)
+    out, _ = resample_positions(stream.t_s, p, t)
+    return out
+
+
+def _number_or_table(value, joints: Sequence[str], name: str) -> list[float]:
+    if isinstance(value, Mapping):
+        out = []
+        for j in joints:
+            v = value.get(j, value.get(j.rsplit("_", 1)[0]))
+            if v is None:
+                raise ConfigError(
+                    f"[method.parameters] {name}: no value for joint {j!r} (give {j} or "
+                    f"{j.rsplit('_', 1)[0]})"
+                )
+            out.append(v)
+        return out
+    return [value] * len(joints)
+
+
+def _check_params(params: Mapping, method: str) -> None:
+    allowed = set(_GENERAL_KEYS) | set(_PAPER_A_KEYS) | set(_VISION_KEYS)
+    unknown = sorted(set(params) - allowed)
+    if unknown:
+        import difflib
+
+        close = difflib.get_close_matches(unknown[0], sorted(allowed), n=1)
+        hint = f"did you mean {close[0]!r}?" if close else f"allowed: {', '.join(sorted(allowed))}"
+        raise ConfigError(f"[method.parameters] {unknown[0]}: unknown parameter ({hint})")
+    for key, choices in (("calibration", _CALIBRATIONS), ("filter", _FILTERS)):
+        if key in params and params[key] not in choices:
+            raise ConfigError(
+                f"[method.parameters] {key}: expected one of {', '.join(choices)}, got "
+                f"{params[key]!r}"
+            )
+    if "root" in params and params["root"] not in ("camera", "reference"):
+        raise ConfigError(
+            f"[method.parameters] root: expected 'camera' or 'reference', got {params['root']!r}"
+        )
+    if "rate_hz" in params:
+        v = params["rate_hz"]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+            raise ConfigError(f"[method.parameters] rate_hz: expected a number > 0, got {v!r}")
+
+
+def _rigid_align(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, float]:
+    """Best rotation + translation of ``est (T, J, 3)`` onto ``ref``; aligned copy and RMS (m)."""
+    from kinefuse.kinematics import kabsch_rotation
+
+    P, Q = est.reshape(-1, 3), ref.reshape(-1, 3)
+    ok = np.all(np.isfinite(P), axis=1) & np.all(np.isfinite(Q), axis=1)
+    cp, cq = P[ok].mean(axis=0), Q[ok].mean(axis=0)
+    R = kabsch_rotation(P[ok] - cp, Q[ok] - cq)
+    out = (est - cp) @ R.T + cq
+    return out, float(np.sqrt(np.nanmean(np.sum((out - ref) ** 2, axis=-1))))
+
+
+# --------------------------------------------------------------------------------------------
+# the core
+# --------------------------------------------------------------------------------------------
+
+
+def process_recording(
+    recording,
+    method: str,
+    parameters: Mapping | None = None,
+    *,
+    lengths: Mapping[str, float] | None = None,
+    body_height_m: float | None = None,
+) -> SessionOutput:
+    """Run one method on a recording whose IMUs are keyed by canonical segment.
+
+    Parameters
+    ----------
+    recording : Recording
+        ``imu`` keyed by canonical segment (orientation or raw acc + gyr), optional ``vision``
+        (camera) and ``reference``.
+    method : str
+        A :data:`kinefuse.session.METHODS` name.
+    parameters : mapping, optional
+        ``[method.parameters]`` (see the module docstring).
+    lengths : mapping of str -> float, optional
+        Measured segment lengths, m (win over everything else).
+    body_height_m : float, optional
+        Body height for anthropometric lengths of the segments without one.
+
+    Returns
+    -------
+    SessionOutput
+
+    Raises
+    ------
+    ConfigError
+        Bad parameters, a method that needs a camera without one, no root stream, no limb
+        segment, a segment without a length.
+    InputError
+        Problems found in the data (no valid calibration sample, missing root joints...).
+
+    Notes
+    -----
+    The IMU chain (SPEC §2.1) starts at the *root joints*, the proximal joints of segments
+    whose parent segment carries no IMU (e.g. the hips for thigh + shank, the elbow for a
+    forearm alone); their positions come from the camera (gaps linearly interpolated) or the
+    reference (:func:`kinefuse.kinematics.chain_positions`). Paper A measures the shoulder the
+    same way. Camera methods run paper B's per-joint pipeline
+    (:func:`kinefuse.pipelines.vision_assisted`) on this chain and the camera joints, or
+    :func:`kinefuse.pipelines.vision_assisted_from_recording` (chest-rooted, as in the paper)
+    when the chest and all eight limb segments carry IMUs and the camera has
+    ``spine_shoulder``.
+    """
+    from kinefuse.session import METHODS
+
+    if method not in METHODS:
+        raise ConfigError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}")
+    params = dict(parameters or {})
+    _check_params(params, method)
+    notes: list[str] = []
+    has_cam = recording.vision is not None
+    if method in _CAMERA_METHODS and not has_cam:
+        raise ConfigError(f"method {method!r} needs a camera; add a [camera] section")
+    _ensure_orientations(recording, params, notes)
+
+    segs = [s for s in SEGMENT_JOINTS if s in recording.imu]
+    if not segs:
+        raise ConfigError(
+            "no limb segment among the mapped sensors "
+            f"{sorted(recording.imu)}; map at least one of {', '.join(SEGMENT_JOINTS)}"
+        )
+    root_name = params.get("root", "camera" if has_cam else "reference")
+    root_stream = recording.vision if root_name == "camera" else recording.reference
+    if root_stream is None:
+        raise ConfigError(
+            "the chain needs root joint positions (shoulders, hips or elbows) from a [camera] "
+            "or a [reference]; the session has neither"
+            if not has_cam and recording.reference is None
+            else f"[method.parameters] root = {root_name!r}, but the session has no such stream"
+        )
+
+    calib = params.get(
+        "calibration",
+        "vision" if has_cam else ("reference" if recording.reference is not None else "static"),
+    )
+    default_rate = 30.0 if method in ("paper-a", *_CAMERA_METHODS) else None
+    rate = params.get("rate_hz", default_rate)
+    t = _timeline(root_stream.t_s, None if rate is None else float(rate))
+
+    # skeleton, calibration
+    from kinefuse.kinematics import calibrate, chain_positions
+
+    provisional = {s: 0.3 for s in segs}
+    sk, roots = build_chain(segs, provisional)
+    cal = None
+    measured: dict[str, float] = {}
+    if calib != "none":
+        window = float(params.get("calibration_window_s", 2.0))
+        start = params.get("calibration_start_s")
+        kw = {"window_s": window, "start_s": None if start is None else float(start)}
+        if calib == "static":
+            kw["pose"] = params.get("pose", "n")
+        else:
+            kw["align"] = params.get("align", "auto")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            cal = calibrate(recording, sk, calib, **kw)
+        notes += [f"calibration: {w.message}" for w in caught]
+        res = ", ".join(f"{s} {v:.1f}" for s, v in cal.residual_deg.items())
+        notes.append(
+            f"calibration {calib!r} over {cal.window_s[0]:.2f}-{cal.window_s[1]:.2f} s, "
+            f"alignment {cal.align!r}; RMS residual (deg): {res}"
+        )
+        if params.get("measured_lengths", True):
+            measured = dict(cal.lengths_m)
+    seg_lengths = _lengths(segs, lengths or {}, body_height_m, measured, root_stream, notes)
+    sk, roots = build_chain(segs, seg_lengths)
+    if cal is not None:
+        sk = cal.apply(sk, lengths=False)
+    lack = [j for j in roots if j not in root_stream.joints]
+    if lack:
+        raise InputError(
+            f"the chain starts at {list(roots)}, but the {root_name} stream lacks {lack} "
+            f"(it has {list(root_stream.joints)})"
+        )
+    root_pos = {j: _at(root_stream, j, t, fill=True) for j in roots}
+    source = "vision" if root_name == "camera" else "reference"
+    chain_st = chain_positions(recording, sk, cal, root=root_pos, source=source, t_s=t)
+    frame = root_stream.frame
+    joints = tuple(s for s in sk.distal)
+    chain = np.stack([chain_st.position(j, masked=False) for j in joints], axis=1)
+    notes.append(
+        f"IMU chain from {', '.join(roots)} ({root_name}{', gaps interpolated' if root_name == 'camera' else ''})"
+        f" through {', '.join(sk.segments)}; {t.size} samples at "
+        f"{1.0 / float(np.median(np.diff(t))) if t.size > 1 else float('nan'):.1f} Hz"
+    )
+
+    T, J = t.size, len(joints)
+    camera = None
+    if has_cam:
+        cam = recording.vision
+        camera = np.stack(
+            [
+                _at(cam, j, t, fill=False) if j in cam.joints else np.full((T, 3), np.nan)
+                for j in joints
+            ],
+            axis=1,
+        )
+        if cal is not None and cal.R_world_from_camera is not None and root_name != "camera":
+            camera = camera @ np.asarray(cal.R_world_from_camera).T
+    reference = None
+    if recording.reference is not None:
+        ref = recording.reference
+        reference = np.stack(
+            [
+                _at(ref, j, t, fill=False) if j in ref.joints else np.full((T, 3), np.nan)
+                for j in joints
+            ],
+            axis=1,
+        )
+
+    out = SessionOutput(
+        t_s=t,
+        joints=joints,
+        position=chain.copy(),
+        std_m=np.full((T, J, 3), np.nan),
+        source=np.where(np.all(np.isfinite(chain), -1), SOURCE_IMU, -1).astype(np.int64),
+        mode=np.full((T, J), -1, dtype=np.int64),
+        frame=frame,
+        method=method,
+        label=_METHOD_LABELS[method],
+        chain=chain,
+        camera=camera,
+        reference=reference,
+        edges=tuple((p, d) for p, d in zip(sk.proximal, sk.distal, strict=True) if p in joints),
+        notes=notes,
+    )
+    dt = float(np.median(np.diff(t))) if T > 1 else 1.0 / 30.0
+    t0 = time.perf_counter()
+    flt = params.get("filter", "em-kf-fir" if method == "paper-a" else "none")
+    if method in ("paper-a", "imu-only"):
+        if flt != "none":
+            t0 = _paper_a_filter(out, chain, dt, flt, params)
+            out.label = {"kf": "KF", "fir": "FIR", "em-kf": "EM-KF", "em-kf-fir": "EM-KF/FIR"}[flt]
+            if method == "imu-only":
+                out.label = f"IMU only + {out.label}"
+    else:
+        _vision(out, recording, chain, camera, dt, method, params, cal)
+    out.run_time_s = time.perf_counter() - t0
+    if (
+        reference is not None
+        and recording.reference.frame != frame
+        and out.frame != "ENU chest-relative"
+    ):
+        for name in ("position", "chain", "camera"):
+            arr = getattr(out, name)
+            if arr is not None and np.any(np.isfinite(arr)):
+                setattr(out, name, _rigid_align(arr, reference)[0])
+        notes.append(
+            f"the output frame ({frame}) differs from the reference frame "
+            f"({recording.reference.frame}); estimates were rigidly aligned (Kabsch rotation + "
+            "translation over all samples) before evaluation"
+        )
+    return out
+
+
+def _paper_a_filter(out: SessionOutput, chain, dt, flt: str, params: Mapping) -> float:
+    """Paper A's filter per joint, in place; returns the start time of the timed run."""
+    from kinefuse.pipelines import upper_limb
+
+    kw = {k: params[k] for k in ("horizon", "threshold1", "threshold2", "n_em_iter") if k in params}
+    q = _number_or_table(params.get("q", 0.1), out.joints, "q")
+    r = _number_or_table(params.get("r", 0.01), out.joints, "r")
+    ok = np.any(np.all(np.isfinite(chain), axis=-1), axis=0)
+    if not np.all(ok):
+        bad = [j for j, o in zip(out.joints, ok, strict=True) if not o]
+        raise InputError(f"the IMU chain has no valid sample for {bad}")
+    method = "em-kf-fir" if flt == "em-kf-fir" else flt
+    try:
+        # compile outside the timed run (numba compiles on the first call)
+        z0 = chain[:, 0][np.all(np.isfinite(chain[:, 0]), axis=1)][:30]
+        upper_limb(z0, None, dt, method, q=q[0], r=r[0], **kw)
+        t0 = time.perf_counter()
+        for j, name in enumerate(out.joints):
+            res = upper_limb(chain[:, j], None, dt, method, q=q[j], r=r[j], joints=(name,), **kw)
+            out.position[:, j] = res.position[:, 0]
+            out.std_m[:, j] = np.sqrt(np.diagonal(res.cov[:, 0], axis1=-2, axis2=-1))
+            out.mode[:, j] = res.mode[:, 0]
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"[method.parameters]: {exc}") from None
+    out.notes.append(
+        f"filter {flt} (paper A) per joint, dt = {dt * 1e3:.1f} ms, q = {params.get('q', 0.1)}, "
+        f"r = {params.get('r', 0.01)}"
+    )
+    return t0
+
+
+def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, cal) -> None:
+    from kinefuse.pipelines import METHODS, VisionParams, vision_assisted
+
+    if method == "kinefuse" and "kinefuse" not in METHODS:
+        import contextlib
+        import importlib
+
+        with contextlib.suppress(ImportError):
+            importlib.import_module("kinefuse.pipelines.kinefuse_fusion")
+    if method not in METHODS:
+        raise ConfigError(
+            f"method {method!r} is not available in this installation (available: "
+            f"{', '.join(sorted(METHODS))})"
+        )
+    vp = {k: params[k] for k in _VISION_KEYS if k in params}
+    try:
+        vparams = VisionParams(**vp)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"[method.parameters]: {exc}") from None
+    causal = bool(params.get("causal", False))
+    full = {"chest", "upper_arm_l", "upper_arm_r", "forearm_l", "forearm_r"} | {
+        "thigh_l",
+        "thigh_r",
+        "shank_l",
+        "shank_r",
+    }
+    cam = recording.vision
+    if full <= set(recording.imu) and "spine_shoulder" in cam.joints:
+        from kinefuse.pipelines import vision_assisted_from_recording
+
+        joints = tuple(j for j in out.joints if j in cam.joints)
+        rate = 1.0 / dt
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fused = vision_assisted_from_recording(
+                recording, None, cal, method, rate, joints=joints, causal=causal, params=vparams
+            )
+        if fused.t_s.size != out.t_s.size:
+            raise InputError(
+                f"camera timeline ({fused.t_s.size} samples) differs from the output timeline"
+            )
+        out.joints = joints
+        out.position = fused.result.position
+        out.chain = fused.z_imu
+        out.camera = fused.z_cam
+        out.reference = fused.reference
+        out.std_m = np.sqrt(np.diagonal(fused.result.cov, axis1=-2, axis2=-1))
+        out.source = fused.result.source.astype(np.int64)
+        out.mode = np.full(out.source.shape, -1, dtype=np.int64)
+        out.frame = "ENU chest-relative"
+        out.notes.append(
+            f"paper B pipeline {method!r} from the chest IMU (Xu 2023, SPEC §10.3); positions "
+            "relative to spine_shoulder"
+        )
+        return
+    avail = np.all(np.isfinite(camera), axis=-1)
+    keep = [j for j in range(len(out.joints)) if np.any(avail[:, j]) or method != "camera-only"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = vision_assisted(
+            chain[:, keep],
+            camera[:, keep],
+            avail[:, keep],
+            dt,
+            method,
+            joints=[out.joints[j] for j in keep],
+            causal=causal,
+            params=vparams,
+        )
+    out.position = np.full_like(chain, np.nan)
+    out.position[:, keep] = res.position
+    out.std_m[:, keep] = np.sqrt(np.diagonal(res.cov, axis1=-2, axis2=-1))
+    out.source[:, keep] = res.source
+    out.notes.append(
+        f"paper B pipeline {method!r} per joint (Xu 2023, SPEC §10.3) on the IMU chain and the "
+        "camera joints"
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# back-ends
+# --------------------------------------------------------------------------------------------
+
+
+def _outputs(out_dir: Path, stem: str) -> dict[str, Path]:
+    from kinefuse.evaluation.report import REPORT_NAME
+
+    return {
+        "csv": out_dir / f"{stem}_joints.csv",
+        "trc": out_dir / f"{stem}_joints.trc",
+        "report": out_dir / REPORT_NAME,
+    }
+
+
+def run_session(path, out_dir=None, force: bool = False) -> dict:
+    """Back-end of ``kinefuse run``: process the recording a session file describes.
+
+    Parameters
+    ----------
+    path : str or Path
+        Session TOML (:func:`kinefuse.session.load_session`).
+    out_dir : str or Path, optional
+        Output folder (default the session's ``out_dir``); created if needed.
+    force : bool
+        Overwrite existing outputs.
+
+    Returns
+    -------
+    dict
+        ``outputs`` (paths of the CSV and TRC), ``evaluation`` (EvaluationResult, with a
+        reference), ``report`` (Path, with a reference), ``notes``.
+
+    Raises
+    ------
+    ConfigError
+        Invalid session, unknown format, unreadable file, unknown sensor, wrong units, no
+        valid samples, a method that needs a camera without one.
+    InputError
+        Data that cannot be processed (the message says what and where).
+    FileExistsError
+        An output exists and ``force`` is False (nothing is written).
+
+    Notes
+    -----
+    Outputs in ``out_dir``: ``<name>_joints.csv`` (kinefuse joint CSV: ``t_s``, per joint
+    ``_x/_y/_z`` in m, ``_available``, ``_source`` (:data:`kinefuse.conventions.SOURCE_NAMES`),
+    ``_mode`` (:data:`kinefuse.conventions.MODE_NAMES`, -1 without a filter), ``_std_m_x/y/z``
+    (m)); ``<name>_joints.trc`` (OpenSim, m); with a reference ``report.html``, ``figures/``,
+    ``metrics.json``.
+    """
+    from kinefuse.io import JointStream, write_joint_csv, write_trc
+    from kinefuse.session import load_session
+
+    cfg = load_session(path)
+    out_dir = Path(cfg.out_dir if out_dir is None else out_dir)
+    stem = "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in cfg.name) or "session"
+    targets = _outputs(out_dir, stem)
+    if not force:
+        for p in targets.values():
+            if p.exists():
+                raise FileExistsError(
+                    f"{p} already exists; pass --force to overwrite it, or choose another --out "
+                    "folder"
+                )
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"output folder {out_dir} exists and is not a folder")
+    params = dict(cfg.method.parameters)
+    strict = params.get("strict_units", True)
+    recording, notes = load_streams(cfg, strict_units=bool(strict))
+    try:
+        out = process_recording(
+            recording,
+            cfg.method.name,
+            params,
+            lengths=cfg.skeleton.lengths_m,
+            body_height_m=cfg.skeleton.body_height_m,
+        )
+    except ConfigError as exc:
+        raise ConfigError(f"{cfg.path.name}: {exc}") from None
+    out.notes[:0] = notes
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stream = JointStream(
+        t_s=out.t_s,
+        position_m=out.position,
+        available=np.all(np.isfinite(out.position), axis=-1),
+        joints=out.joints,
+        frame=out.frame,
+    )
+    csv = write_joint_csv(
+        targets["csv"],
+        stream,
+        {"source": out.source, "mode": out.mode, "std_m": out.std_m},
+        force=force,
+        metadata={
+            "session": cfg.name,
+            "method": cfg.method.name,
+            "source_codes": ", ".join(f"{k}={v}" for k, v in SOURCE_NAMES.items()),
+            "mode_codes": ", ".join(f"{k}={v}" for k, v in MODE_NAMES.items()),
+        },
+    )
+    trc = write_trc(targets["trc"], stream, force=force)
+    summary: dict = {"outputs": [csv, trc], "notes": out.notes}
+    ev = out.evaluation()
+    if ev is not None:
+        from kinefuse.evaluation import write_report
+
+        summary["evaluation"] = ev
+        summary["report"] = write_report(
+            out_dir,
+            ev,
+            {m: _trajectory(out, m) for m in ev.methods},
+            out.reference,
+            out.t_s,
+            modes={ev.methods[0]: out.mode} if np.any(out.mode >= 0) else None,
+            sources={ev.methods[0]: out.source},
+            skeleton_edges=out.edges or None,
+            title=f"kinefuse: {cfg.name} ({cfg.method.name})",
+            notes=out.notes,
+            force=force,
+        )
+    return summary
+
+
+def _trajectory(out: SessionOutput, label: str) -> np.ndarray:
+    if label == out.label:
+        return out.position
+    if label == "camera":
+        return out.camera
+    return out.chain
+
+
+def evaluate_recording(path, method: str, parameters: Mapping | None = None):
+    """Back-end of ``kinefuse evaluate``: one method on a recording with a reference.
+
+    Parameters
+    ----------
+    path : str or Path
+        Any recording :func:`kinefuse.io.load` reads (format detected), with a reference (or
+        a camera, which then serves as the reference, as in paper A).
+    method : str
+        A :data:`kinefuse.session.METHODS` name.
+    parameters : mapping, optional
+        As ``[method.parameters]``; defaults: every IMU on a limb segment, lengths measured
+        from the reference, calibration against the reference (or camera).
+
+    Returns
+    -------
+    EvaluationResult
+        The method, the unfiltered IMU chain and the camera (if any) per joint.
+
+    Raises
+    ------
+    InputError
+        Unreadable file, no reference, no limb IMU.
+    """
+    from dataclasses import replace
+
+    from kinefuse.io import load
+
+    rec = load(path)
+    imu = {k: v for k, v in rec.imu.items() if k in SEGMENTS}
+    if not imu:
+        raise InputError(f"{path}: no IMU on a canonical segment (found {sorted(rec.imu)})")
+    params = dict(parameters or {})
+    if rec.reference is None:
+        if rec.vision is None:
+            raise InputError(f"{path}: the recording has no reference to evaluate against")
+        if method in _CAMERA_METHODS:
+            raise InputError(
+                f"{path}: no reference besides the camera, so camera method {method!r} cannot "
+                "be evaluated; try 'imu-only' or 'paper-a'"
+            )
+        rec = replace(rec, reference=rec.vision)
+    rec = replace(rec, imu=imu)
+    if method not in _CAMERA_METHODS:
+        params.setdefault("root", "reference")
+        params.setdefault("calibration", "reference")
+        if rec.vision is not None and method not in _CAMERA_METHODS:
+            rec = replace(rec, vision=None)
+    try:
+        out = process_recording(rec, method, params)
+    except ConfigError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    return out.evaluation()

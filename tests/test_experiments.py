@@ -1,0 +1,77 @@
+"""`kinefuse experiment paper-a|paper-b` back-end on reduced (quick) configurations."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from kinefuse import cli
+from kinefuse.exceptions import InputError
+from kinefuse.pipelines.experiments import PAPER_A_TESTS, run_experiment
+
+runner = CliRunner()
+
+
+def test_paper_a_quick_packaged_clip(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # no ../shared/data here: packaged clip only
+    out = run_experiment("paper-a", quick=True, quiet=True)
+    assert out["data_dir"] is None and out["quick"]
+    res = out["results"]["CMU (virtual IMUs)"]
+    assert set(res) == set(PAPER_A_TESTS)
+    for test, v in res.items():
+        assert set(v["rmse_m"]) == {"KF", "FIR", "EM-KF/FIR", "IMU chain"}, test
+        for m in v["rmse_m"].values():
+            assert 0.0 < m["mean"] < 0.5
+        assert abs(sum(v["branch_fractions"].values()) - 1.0) < 1e-9
+    timing = out["results"]["time_per_step_ms"]
+    for label in ("KF", "FIR", "EM-KF/FIR"):
+        assert 0 < timing[label]["elbow"]["batch_ms"] < 33.3
+    titles = [t.title for t in out["tables"]]
+    assert any("Table 4" in t for t in titles) and any("Table 6" in t for t in titles)
+
+
+def test_paper_a_quick_with_utd(shared_data):
+    out = run_experiment("paper-a", shared_data, quick=True, quiet=True)
+    utd = out["results"]["UTD-MHAD (real wrist IMU)"]
+    assert set(utd) == {"wrist, test 1", "wrist, test 2"}
+    assert utd["wrist, test 1"]["n_samples"] > 100
+
+
+def test_paper_b_quick(shared_data):
+    out = run_experiment("paper-b", shared_data, quick=True, quiet=True)
+    res = out["results"]
+    assert {"CMU (virtual)", "UTD-MHAD (real IMU)", "Neura walk (real IMUs)"} <= set(res)
+    ev = res["CMU (virtual)"]["evaluation"]
+    assert len(ev["joints"]) == 8 and {"ELM/FIR", "ELM/KF"} <= set(ev["methods"])
+    for d in res.values():
+        r = d["evaluation"]["results"]
+        for m in ("ELM/FIR", "ELM/KF"):
+            for joint in d["evaluation"]["joints"]:
+                mean = r[m][joint]["overall"]["mean"]
+                assert mean is not None and 0 < mean < 0.5
+                assert r[m][joint]["outage"]["n_samples"] > 0
+    assert "wrist_r" in res["CMU (virtual)"]["cdf_0.9"]
+
+
+def test_experiment_through_cli_json(shared_data, tmp_path, monkeypatch):
+    monkeypatch.setenv("KINEFUSE_EXPERIMENT_QUICK", "1")
+    target = tmp_path / "b.json"
+    res = runner.invoke(
+        cli.app, ["experiment", "paper-a", "--data", str(shared_data), "--json", str(target)]
+    )
+    assert res.exit_code == 0, res.output
+    assert "Table 6" in res.output and "EM-KF/FIR" in res.output
+    data = json.loads(target.read_text())
+    assert data["quick"] is True
+    v = data["results"]["CMU (virtual IMUs)"]["elbow, test 1"]["rmse_m"]["KF"]["mean"]
+    assert np.isfinite(v)
+
+
+def test_unknown_experiment_and_missing_folder(tmp_path):
+    with pytest.raises(InputError, match="unknown experiment"):
+        run_experiment("paper-c")
+    with pytest.raises(InputError, match="not found"):
+        run_experiment("paper-a", tmp_path / "nope")
