@@ -11,7 +11,14 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit
-from kinefuse.filters._kernels import chol_lower, kf_predict, kf_update, symmetrize
+from kinefuse.filters._kernels import (
+    add_outer,
+    chol_lower,
+    kf_predict,
+    kf_update,
+    matvec,
+    symmetrize,
+)
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -116,7 +123,8 @@ def imm_mix(mu, Gamma, xs, Ps):
             x0[m] += w[i] * xs[i]  # Eq. 27: x0_m = Σ_i μ_{i|m} x_i
         for i in range(M):
             d = xs[i] - x0[m]
-            P0[m] += w[i] * (Ps[i] + np.outer(d, d))  # Eq. 28: P0_m = Σ_i μ_{i|m}(P_i + d dᵀ)
+            P0[m] += w[i] * Ps[i]  # Eq. 28: P0_m = Σ_i μ_{i|m}(P_i + d dᵀ)
+            add_outer(P0[m], w[i], d)
         P0[m] = symmetrize(P0[m])
     return cbar, x0, P0
 
@@ -181,7 +189,8 @@ def imm_combine(mu, xs, Ps):
     P = np.zeros((n_x, n_x))
     for m in range(M):
         d = xs[m] - x
-        P += mu[m] * (Ps[m] + np.outer(d, d))  # Eq. 48
+        P += mu[m] * Ps[m]  # Eq. 48
+        add_outer(P, mu[m], d)
     return x, symmetrize(P)
 
 
@@ -281,7 +290,7 @@ def imm_run(
                         src0 = m
                 for m in range(M):  # initialise at the measurement, zero unmeasured states
                     src = m if valid[m] else src0
-                    xs[b, m] = Hpinv[src] @ z[b, t, src]
+                    xs[b, m] = matvec(Hpinv[src], z[b, t, src])
                     Ps[b, m] = P_init[src]
                     out_mobs[b, t, m] = valid[m]
                 init[b] = True
