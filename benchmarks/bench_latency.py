@@ -9,9 +9,16 @@ Printed next to it: the engine's own per-frame cost without LSL, and a peer (fil
 ``predict``/``update`` per joint) per frame. All LSL traffic is machine-local
 (``ensure_local_lsl_config``). Target: p99 <= 1 ms.
 
+Processors: ``kf-fusion``, ``paper-a`` (:mod:`kinefuse.streaming.processors`) and ``paper-b``
+(:class:`kinefuse.streaming.paper_b.VisionAssistedProcessor`, ELM/FIR). ``paper-b`` is not a
+:class:`StreamConfig` choice yet, so for the loopback the engine the runner builds gets that
+processor here instead. For paper B the engine-only figures are also given separately for the
+frames with an outage onset (ELM training, once per episode and joint).
+
 Usage::
 
-    python benchmarks/bench_latency.py [--duration 60] [--processor kf-fusion|paper-a]
+    python benchmarks/bench_latency.py [--duration 60] [--processor kf-fusion|paper-a|paper-b]
+        [--engine-only] [--cpu 1]
 """
 
 from __future__ import annotations
@@ -27,40 +34,68 @@ import numpy as np
 
 from kinefuse.streaming.config import ensure_local_lsl_config
 
+PROCESSOR_CHOICES = ("kf-fusion", "paper-a", "paper-b")
 
-def engine_only(rec, processor: str, n_frames: int = 600) -> np.ndarray:
-    """Per-frame processing time of Engine.poll (no LSL), s."""
+
+def make_engine(processor: str, **kw):
+    """The runner's engine for ``processor`` (``paper-b``: the runner's engine, processor swapped)."""
     from kinefuse.streaming.config import StreamConfig
     from kinefuse.streaming.runner import build_engine
 
-    eng = build_engine(
-        StreamConfig(processor=processor), camera=True, camera_rate_hz=30.0, imu_rate_hz=100.0
-    )
-    ev = []
-    for seg, st in rec.imu.items():
-        ev += [(float(t), 0, seg, q) for t, q in zip(st.t_s, st.q_world_from_sensor, strict=True)]
+    if processor != "paper-b":
+        return build_engine(StreamConfig(processor=processor), **kw)
+    from kinefuse.streaming.engine import Engine
+    from kinefuse.streaming.paper_b import VisionAssistedProcessor
+
+    eng = build_engine(StreamConfig(), **kw)
+    rate = kw.get("camera_rate_hz", 30.0)
+    proc = VisionAssistedProcessor("elm-fir", dt_s=1.0 / rate, joints=eng.config.joints)
+    return Engine(eng.config, proc)
+
+
+def engine_only(rec, processor: str, n_frames: int = 600, loops: int = 1):
+    """Per-frame processing time of Engine.poll (no LSL), s: wall clock and this thread's CPU
+    time (on a loaded machine the wall-clock tail is other processes' time slices; the CPU
+    time is what the frame costs on an idle core); and which frames had an outage onset.
+
+    The recording is replayed ``loops`` times back to back (timestamps shifted).
+    """
+    eng = make_engine(processor, camera=True, camera_rate_hz=30.0, imu_rate_hz=100.0)
     v = rec.vision
+    span = float(v.t_s[-1] - v.t_s[0]) + 1.0 / 30.0
+    ev = []
+    for r in range(loops):
+        off = r * span
+        for seg, st in rec.imu.items():
+            ev += [(float(t) + off, 0, seg, q) for t, q in zip(st.t_s, st.q_world_from_sensor, strict=True)]  # fmt: skip
+        ev += [(float(t) + off, 1, k, None) for k, t in enumerate(v.t_s)]
+    ev.sort(key=lambda e: (e[0], e[1]))
     cj = eng.config.camera_joints
     idx = [v.joints.index(j) for j in cj]
-    ev += [(float(t), 1, k, None) for k, t in enumerate(v.t_s)]
-    ev.sort(key=lambda e: (e[0], e[1]))
-    times = []
+    proc = eng.processor
+    if hasattr(proc, "warm_up"):
+        proc.warm_up()
+    times, cpu, onset = [], [], []
     for t, kind, key, q in ev:
         if kind == 0:
             eng.push_imu(key, t, q)
         else:
             eng.push_camera(t, v.position_m[key][idx], v.available[key][idx])
-        a = time.perf_counter()
+        n_ep = sum(len(e) for e in getattr(proc, "_episodes", None) or ())
+        a, c = time.perf_counter(), time.thread_time()
         outs = eng.poll()
         if outs:
             times.append(time.perf_counter() - a)
+            cpu.append(time.thread_time() - c)
+            onset.append(sum(len(e) for e in getattr(proc, "_episodes", None) or ()) > n_ep)
         if len(times) >= n_frames:
             break
-    return np.asarray(times[30:])  # skip compilation / warm-up
+    # skip warm-up
+    return np.asarray(times[30:]), np.asarray(cpu[30:]), np.asarray(onset[30:], bool)
 
 
-def peer_filterpy(n_frames: int = 600) -> np.ndarray | None:
-    """filterpy KalmanFilter, 8 joints x (predict + update) per frame, s."""
+def peer_filterpy(n_frames: int = 600):
+    """filterpy KalmanFilter, 8 joints x (predict + update) per frame, s: (wall, CPU)."""
     try:
         from filterpy.kalman import KalmanFilter as FKF
     except ImportError:
@@ -74,14 +109,15 @@ def peer_filterpy(n_frames: int = 600) -> np.ndarray | None:
         f.F, f.Q, f.H, f.R = np.array(m.F), np.array(m.Q), np.array(m.H), np.array(m.R)
         kfs.append(f)
     z = np.random.default_rng(0).normal(0, 0.01, (n_frames, 8, 3))
-    out = []
+    out, cpu = [], []
     for k in range(n_frames):
-        a = time.perf_counter()
+        a, c = time.perf_counter(), time.thread_time()
         for j, f in enumerate(kfs):
             f.predict()
             f.update(z[k, j])
         out.append(time.perf_counter() - a)
-    return np.asarray(out[30:])
+        cpu.append(time.thread_time() - c)
+    return np.asarray(out[30:]), np.asarray(cpu[30:])
 
 
 def fmt(x: np.ndarray) -> str:
@@ -93,8 +129,21 @@ def main() -> None:
     ap.add_argument(
         "--duration", type=float, default=60.0, help="loopback run time, s (default 60)"
     )
-    ap.add_argument("--processor", default="kf-fusion", choices=("kf-fusion", "paper-a"))
+    ap.add_argument("--processor", default="kf-fusion", choices=PROCESSOR_CHOICES)
+    ap.add_argument(
+        "--engine-only", action="store_true", help="engine-only figures of all processors, no LSL"
+    )
+    ap.add_argument(
+        "--cpu",
+        type=int,
+        default=None,
+        help="pin this process (engine, LSL inlets/outlet) to one core; the replay child keeps "
+        "the original affinity (unlike `taskset`, which it would inherit)",
+    )
     args = ap.parse_args()
+    all_cpus = os.sched_getaffinity(0)
+    if args.cpu is not None:
+        os.sched_setaffinity(0, {args.cpu})
     ensure_local_lsl_config(
         tempfile.mkdtemp(prefix="kinefuse-bench-"), session_id=f"kinefuse-bench-{os.getpid()}"
     )
@@ -103,14 +152,37 @@ def main() -> None:
     from kinefuse.streaming.replay import demo_recording
 
     rec = demo_recording()
-    print(
-        f"engine only ({args.processor}, no LSL), per frame:  {fmt(engine_only(rec, args.processor))}"
-    )
+    print(f"load average {os.getloadavg()} on {os.cpu_count()} cores")
+    for name in PROCESSOR_CHOICES if args.engine_only else (args.processor,):
+        x, c, onset = engine_only(rec, name, n_frames=3000, loops=8)
+        print(f"engine only ({name}, no LSL), per frame, wall: {fmt(x)}")
+        print(f"{'':>{len(name) + 24}}thread CPU: {fmt(c)}")
+        if onset.any():
+            print(f"    frames without an outage onset, CPU: {fmt(c[~onset])}")
+            print(f"    frames with an onset (ELM training), CPU: {fmt(c[onset])}")
     peer = peer_filterpy()
     if peer is not None:
-        print(f"peer: filterpy KF, 8 joints predict+update per frame: {fmt(peer)}")
+        print(f"peer: filterpy KF, 8 joints predict+update per frame, wall: {fmt(peer[0])}")
+        print(f"{'':>50}thread CPU: {fmt(peer[1])}")
     print("Sun 2024 Table 6 (MATLAB, per step): KF 0.037 ms, FIR 0.237 ms, EM-KF/FIR 7.954 ms")
 
+    if args.engine_only:
+        return
+    if args.processor == "paper-b":
+        from kinefuse.streaming import runner
+
+        build = runner.build_engine
+
+        def build_paper_b(cfg, **kw):
+            eng = build(cfg, **kw)
+            from kinefuse.streaming.engine import Engine
+            from kinefuse.streaming.paper_b import VisionAssistedProcessor
+
+            rate = kw["camera_rate_hz"] if kw.get("camera") else cfg.output_rate_hz
+            proc = VisionAssistedProcessor("elm-fir", dt_s=1.0 / rate, joints=eng.config.joints)
+            return Engine(eng.config, proc)
+
+        runner.build_engine = build_paper_b  # this process only
     prefix = f"kfbench{os.getpid()}"
     # the replay runs in its own process (own GIL), with the same machine-local LSL config
     code = (
@@ -118,9 +190,14 @@ def main() -> None:
         f"run_replay('demo', rate=1.0, name_prefix={prefix!r}, loop=True, duration_s={args.duration + 30},"
         " wait_for_consumers_s=60)\n"
     )
-    rep = subprocess.Popen([sys.executable, "-c", code], env=dict(os.environ))
+    rep = subprocess.Popen(
+        [sys.executable, "-c", code],
+        env=dict(os.environ),
+        preexec_fn=lambda: os.sched_setaffinity(0, all_cpus),
+    )
     try:
-        cfg = StreamConfig(name_prefix=prefix, processor=args.processor, resolve_timeout_s=30)
+        proc_name = "kf-fusion" if args.processor == "paper-b" else args.processor  # swapped above
+        cfg = StreamConfig(name_prefix=prefix, processor=proc_name, resolve_timeout_s=30)
         t0 = time.monotonic()
         summary = run_stream(cfg, duration_s=args.duration, status=False)
     finally:

@@ -331,6 +331,10 @@ class _Chain:
         self.deps = deps
         self.out_joints = config.joints
         self.out_deps = [sorted(deps.get(j, set())) for j in config.joints]
+        # (J, S) mask of the segments each output joint depends on (vectorised worst status)
+        self.dep_mask = np.zeros((len(config.joints), max(len(self.segments), 1)), bool)
+        for j, d in enumerate(self.out_deps):
+            self.dep_mask[j, d] = True
         self.computable = np.array([j in deps for j in config.joints])
         self.Rc = config.R_world_from_camera
 
@@ -525,7 +529,7 @@ class Engine:
                 buf.estimator = OrientationEstimator(1.0 / buf.period_s, self.config.vqf_params)
             q = buf.estimator.update(acc, gyr, mag)
         q = np.array(q, dtype=float)
-        n = float(np.linalg.norm(q)) if q.shape == (4,) else float("nan")
+        n = math.sqrt(float(q @ q)) if q.shape == (4,) else float("nan")  # = np.linalg.norm
         if not (math.isfinite(n) and abs(n - 1.0) < 1e-2):
             raise InputError(
                 f"push_imu({segment!r}): expected a unit quaternion wxyz (4,), got {q}"
@@ -770,10 +774,11 @@ class Engine:
             if self._cam_root >= 0 and cam_avail[self._cam_root]:
                 self._root = cam_pos[self._cam_root].copy()
         z_imu = self._chain.positions(R, self._root)
-        # flags
-        jstat = np.array(
-            [max((status[s] for s in d), default=IMU_FRESH) for d in self._chain.out_deps], np.int8
-        )
+        # flags: worst status over each joint's segments (IMU_FRESH = 0 without any)
+        if S:
+            jstat = np.where(self._chain.dep_mask, status, IMU_FRESH).max(axis=1).astype(np.int8)
+        else:
+            jstat = np.full(J, IMU_FRESH, np.int8)
         jstat[~self._chain.computable] = IMU_STALE
         flags = np.zeros(J, np.uint8)
         flags[jstat == IMU_HELD] |= FLAG_IMU_HELD

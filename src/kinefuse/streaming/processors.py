@@ -15,10 +15,10 @@ initial state, offline and causal (equal to ``step`` repeated then ``flush``); `
 -> pickle-able dict; ``restore(checkpoint)``; ``reset()``.
 
 The causal paper-B pipeline (:func:`kinefuse.pipelines.vision_assisted` with ``causal=True``)
-fits this protocol as it stands: its per-frame inputs are exactly the IMU-chain joints, the
-camera joints and their availability, and its per-joint source codes are
-:data:`kinefuse.conventions.SOURCE_NAMES`. An adapter only has to hold the pipeline's online
-state, implement ``step``/``run`` with it and return ``(position, cov, source)``.
+is :class:`kinefuse.streaming.paper_b.VisionAssistedProcessor`.
+
+Speed: ``step`` validates the frame once, then calls the filters' unchecked ``_run`` (the same
+compiled loop as their ``step``/``filter``) on all joints at once.
 """
 
 from __future__ import annotations
@@ -119,6 +119,11 @@ class _LinearProcessor:
         self.model = model
         self.lag_frames = int(lag)
         self._H = np.asarray(model.H)
+        # H is a 0/1 selector of the position components (constant-velocity models): H x and
+        # H P Hᵀ are then plain gathers (the same numbers as the products, without the zeros)
+        H = self._H
+        rows = np.argmax(H != 0, axis=1)
+        self._sel = rows if np.array_equal(H, np.eye(H.shape[1])[rows]) else None
         self.reset()
 
     # -- to implement: filtered step and batch -> (mean (J,n), cov (J,n,n), source (J,))
@@ -135,6 +140,9 @@ class _LinearProcessor:
         self._n_steps = 0
 
     def _output(self, mean, cov):
+        sel = self._sel
+        if sel is not None:
+            return mean[..., sel], cov[..., sel[:, None], sel]
         H = self._H
         pos = mean @ H.T
         pcov = np.einsum("ij,...jk,lk->...il", H, cov, H)
@@ -163,6 +171,11 @@ class _LinearProcessor:
         z_imu, z_cam, available = _check_frame(z_imu, z_cam, available)
         if self._state is None:
             self._state = self._init_state(z_imu.shape[0])
+        elif self._state.x.shape[0] != z_imu.shape[0]:
+            raise InputError(
+                f"expected {self._state.x.shape[0]} joints as in the previous frames, got "
+                f"{z_imu.shape[0]}"
+            )
         mean, cov, source = self._filter_step(z_imu, z_cam, available)
         self._n_steps += 1
         L = self.lag_frames
@@ -312,10 +325,11 @@ class IntegratedProcessor(_LinearProcessor):
         return self.filter.init((n_joints,))
 
     def _filter_step(self, z_imu, z_cam, available):
-        self._state, res = self.filter.step(self._state, z_imu)
-        self.last_mode = res.mode
-        source = np.where(res.observed, SOURCE_IMU, SOURCE_PREDICT).astype(np.int8)
-        return res.mean, res.cov, source
+        # unchecked: the frame was validated by step and the state is the filter's own
+        self._state, res = self.filter._run(z_imu[:, None, :], self._state)
+        self.last_mode = res.mode[:, 0]
+        source = np.where(res.observed[:, 0], SOURCE_IMU, SOURCE_PREDICT).astype(np.int8)
+        return res.mean[:, 0], res.cov[:, 0], source
 
     def _filter_batch(self, t, z_imu, z_cam, available):
         z = np.ascontiguousarray(np.swapaxes(z_imu, 0, 1))  # (J, T, 3)
@@ -381,23 +395,33 @@ class KalmanFusionProcessor(_LinearProcessor):
         cam_only = has_cam & ~has_imu
         rest = ~has_cam  # IMU only, or nothing (NaN rows -> predict)
         st = self._state
-        x, P, init = st.x.copy(), st.P.copy(), st.initialized.copy()
         J = z_imu.shape[0]
-        mean = np.empty((J, self.model.n_x))
-        cov = np.empty((J, self.model.n_x, self.model.n_x))
         wi, wc = 1.0 / self.r_imu, 1.0 / self.r_camera
-        for kf, idx, z in (
-            (self._kf_both, both, (z_cam * wc + z_imu * wi) / (wc + wi)),
-            (self._kf_cam, cam_only, z_cam),
-            (self._kf_imu, rest, z_imu),
-        ):
-            if not np.any(idx):
-                continue
-            sub = GaussianState(st.x[idx], st.P[idx], st.initialized[idx], st.k)
-            sub, res = kf.step(sub, z[idx])
-            x[idx], P[idx], init[idx] = sub.x, sub.P, sub.initialized
-            mean[idx], cov[idx] = res.mean, res.cov
-        self._state = GaussianState(x, P, init, st.k + 1)
+        groups = []
+        for kf, idx in ((self._kf_both, both), (self._kf_cam, cam_only), (self._kf_imu, rest)):
+            n = int(np.count_nonzero(idx))
+            if n:
+                groups.append((kf, idx, n))
+        if len(groups) == 1 and groups[0][2] == J:  # the usual case: one batched step
+            kf, idx, _ = groups[0]
+            z = (z_cam * wc + z_imu * wi) / (wc + wi) if kf is self._kf_both else (
+                z_cam if kf is self._kf_cam else z_imu
+            )  # fmt: skip
+            self._state, res = kf._run(z[:, None, :], st)  # unchecked: validated by step
+            mean, cov = res.mean[:, 0], res.cov[:, 0]
+        else:
+            x, P, init = st.x.copy(), st.P.copy(), st.initialized.copy()
+            mean = np.empty((J, self.model.n_x))
+            cov = np.empty((J, self.model.n_x, self.model.n_x))
+            for kf, idx, _ in groups:
+                z = (z_cam[idx] * wc + z_imu[idx] * wi) / (wc + wi) if kf is self._kf_both else (
+                    z_cam[idx] if kf is self._kf_cam else z_imu[idx]
+                )  # fmt: skip
+                sub = GaussianState(st.x[idx], st.P[idx], st.initialized[idx], st.k)
+                sub, res = kf._run(z[:, None, :], sub)
+                x[idx], P[idx], init[idx] = sub.x, sub.P, sub.initialized
+                mean[idx], cov[idx] = res.mean[:, 0], res.cov[:, 0]
+            self._state = GaussianState(x, P, init, st.k + 1)
         source = np.full(J, SOURCE_PREDICT, np.int8)
         source[has_imu] = SOURCE_IMU
         source[cam_only] = SOURCE_CAMERA
