@@ -528,7 +528,7 @@ def experiment(
         raise InputError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
     if data is not None and not data.is_dir():
         raise InputError(f"--data {data}: folder not found")
-    summary = _backend("experiment")(name, data, quick=quick, quiet=quiet)
+    summary = _backend("experiment")(name, data, quick=quick or None, quiet=quiet)
     _present(summary, quiet=quiet, json_file=json_file)
 
 
