@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED
+from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED, SOURCE_IMU
 from kinefuse.pipelines.features import chain_features, imu_features, joint_segments
 from kinefuse.pipelines.kinefuse_fusion import RidgeCorrection, estimate_noise, kinefuse_fusion
 
@@ -73,6 +73,94 @@ def test_causal_outputs_do_not_depend_on_the_future(lag):
     upto = t_cut + 1 - lag
     np.testing.assert_array_equal(new[:upto], ref[:upto])
     assert not np.allclose(new[t_cut + 1 :], ref[t_cut + 1 :])
+
+
+def _drifting_chain(T=900, J=2, seed=3, cam_std=0.01, cam_start=0):
+    """Chain with a slowly wandering error (heading-drift-like random walk, ~5 cm) that is not a
+    function of the features, plus a feature-driven part; camera = truth + white noise."""
+    zi, zc, av, truth, feats = _scenario(T=T, J=J, seed=seed, cam_std=cam_std, outage=(0, 0))
+    rng = np.random.default_rng(seed + 100)
+    walk = np.cumsum(rng.normal(0.0, 0.004, (T, J, 3)), axis=0)
+    zi = zi + walk - walk.mean(axis=0)
+    av[:cam_start] = False
+    return zi, zc, av, truth, feats
+
+
+@pytest.mark.parametrize("cam_start", [0, 45])
+def test_causal_no_drift_when_the_camera_always_sees(cam_start):
+    # the chain error wanders by several cm and the camera sees every sample from cam_start:
+    # the causal output must stay within about the camera's own error (here 1 cm per axis),
+    # also right after a short first history (cam_start > 0: first fit on ~1 s of camera)
+    zi, zc, av, truth, feats = _drifting_chain(cam_start=cam_start)
+    res = kinefuse_fusion(zi, zc, av, DT, features=feats, causal=True)
+    seen = av.copy()
+    cam = _rmse(zc, truth, seen)
+    assert _rmse(zi, truth, seen) > 2 * cam  # the chain alone is far off
+    assert _rmse(res.position, truth, seen) <= 1.05 * cam
+    # per 1 s window, never far from the camera (no transient drift after a refit)
+    for t0 in range(cam_start, zi.shape[0] - 30, 30):
+        w = np.zeros_like(seen)
+        w[t0 : t0 + 30] = seen[t0 : t0 + 30]
+        assert _rmse(res.position, truth, w) <= 1.5 * _rmse(zc, truth, w) + 0.002
+
+
+def test_causal_short_history_start():
+    # camera from sample 40 (1.3 s), first outage after 1.2 s of camera history: the causal
+    # output is finite, the chain before the camera, near the camera while it sees, and in the
+    # outage no worse than the raw chain
+    zi, zc, av, truth, feats = _drifting_chain(T=400, cam_start=40)
+    av[76:120] = False
+    res = kinefuse_fusion(zi, zc, av, DT, features=feats, causal=True)
+    assert np.all(np.isfinite(res.position)) and np.all(np.isfinite(res.cov))
+    np.testing.assert_allclose(res.position[5:40], zi[5:40], atol=0.02)
+    assert np.all(res.source[:40] == SOURCE_IMU)
+    seen = av.copy()
+    assert _rmse(res.position, truth, seen) <= 1.05 * _rmse(zc, truth, seen)
+    out = ~av
+    out[:40] = False
+    assert _rmse(res.position, truth, out) <= _rmse(zi, truth, out)
+
+
+def test_causal_streaming_refits_and_lag_use_the_same_filter():
+    # the carried filter: with lag > 0 the output is the fixed-lag smoothing of the same
+    # forward filter, so at the last sample (nothing after it) both agree exactly
+    zi, zc, av, _, feats = _scenario(T=300, outage=(150, 190))
+    a = kinefuse_fusion(zi, zc, av, DT, features=feats, causal=True)
+    b = kinefuse_fusion(zi, zc, av, DT, features=feats, causal=True, lag=5)
+    np.testing.assert_allclose(a.position[-1], b.position[-1], rtol=0, atol=1e-12)
+    assert a.info["n_refits"] == b.info["n_refits"] and min(a.info["n_refits"]) >= 4
+    assert np.all(np.linalg.eigvalsh(a.cov) >= 0)
+
+
+def test_noise_prior_is_used_before_history():
+    from kinefuse.pipelines.kinefuse_fusion import _Moments
+
+    prm = _Moments(30).noise(DT, prior_pairs=60)  # no data: the prior alone
+    assert np.all(prm.var_b > 0) and np.all(prm.phi_b < 1)  # stationary chain error
+    assert np.all(prm.var_c == 0)  # white camera
+    np.testing.assert_allclose(prm.r_cam, 1e-3, rtol=1e-6)
+
+
+def test_registered_in_vision_assisted():
+    from kinefuse.pipelines import METHODS, FusionResult, VisionParams, vision_assisted
+
+    assert "kinefuse" in METHODS
+    zi, zc, av, truth, feats = _scenario()
+    for causal in (False, True):
+        res = vision_assisted(zi, zc, av, DT, method="kinefuse", causal=causal, features=feats)
+        direct = kinefuse_fusion(zi, zc, av, DT, features=feats, causal=causal)
+        assert isinstance(res, FusionResult)
+        assert res.method == "kinefuse" and res.causal is causal
+        assert res.joints == ("joint_0", "joint_1")
+        np.testing.assert_array_equal(res.position, direct.position)
+        np.testing.assert_array_equal(res.source, direct.source)
+        assert res.cov.shape == (*zi.shape, 3)
+        assert res.outages[0] == ((300, 360),)
+    lagged = vision_assisted(
+        zi, zc, av, DT, method="kinefuse", causal=True, params=VisionParams(fixed_lag=3)
+    )
+    direct = kinefuse_fusion(zi, zc, av, DT, causal=True, lag=3)
+    np.testing.assert_array_equal(lagged.position, direct.position)
 
 
 def test_offline_is_not_causal_and_default_features_work():

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 
 from kinefuse._compile import njit
 from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED, SOURCE_IMU
@@ -34,58 +35,102 @@ _VAR_FLOOR_M2 = (
 )
 #: Default ridge penalties of :class:`RidgeCorrection` (last: intercept only).
 _ALPHAS = (*np.logspace(-4, 3, 15).tolist(), float("inf"))
+# causal mode (see kinefuse_fusion, Notes "Causal")
+_N_FOLDS_CAUSAL = 10  # CV folds of the streaming ridge (bounded cost per re-solve)
+_PRIOR_S = 2.0  # weight of the conservative noise prior, seconds of pseudo-data
+_PRIOR_R_CAM = 1e-3  # prior camera white noise, m² (SPEC §12.2 R_V)
+_PRIOR_R_IMU = 1e-4  # prior white noise of the corrected chain, m² (1 cm)²
+_PRIOR_VAR_B = 2.5e-3  # prior stationary variance of the chain error b, m² (5 cm)²
+_PRIOR_TAU_B_S = 1.0  # prior correlation time of b, s (b decays in an outage)
+_PRIOR_Q = 0.1  # prior q (SPEC §12.2)
+_MIN_FIT_S = 3.0  # camera-seen history before the correction uses more than an intercept, s
 _TAU_GRID = np.exp(np.linspace(np.log(1.0), np.log(3.0e4), 48))  # GM correlation times, samples
 
 
 # --------------------------------------------------------------------------- kernels (numba)
 @njit
 def _scalar_update(x, P, z, h, r):
-    ph = P @ h  # P Hᵀ
-    s = h @ ph + r  # S = H P Hᵀ + R   (scalar)
+    """Scalar measurement update in place (no allocation): ``x (n,)``, ``P (n, n)``."""
+    n = x.shape[0]
+    ph = np.zeros(n)
+    for i in range(n):
+        for j in range(n):
+            ph[i] += P[i, j] * h[j]  # P Hᵀ
+    s = r  # S = H P Hᵀ + R   (scalar)
+    nu = z  # ν = z − H x
+    for i in range(n):
+        s += h[i] * ph[i]
+        nu -= h[i] * x[i]
     k = ph / s  # K = P Hᵀ S⁻¹
-    x = x + k * (z - h @ x)  # x⁺ = x⁻ + K ν
-    A = np.eye(P.shape[0]) - np.outer(k, h)
-    P = A @ P @ A.T + r * np.outer(k, k)  # Joseph form (SPEC §1 numerical hygiene)
-    return x, 0.5 * (P + P.T)
+    for i in range(n):
+        x[i] += k[i] * nu  # x⁺ = x⁻ + K ν
+    # Joseph form (SPEC §1 numerical hygiene), expanded for a scalar update:
+    # (I − K H) P (I − K H)ᵀ + K R Kᵀ = P − K (P Hᵀ)ᵀ − (P Hᵀ) Kᵀ + S K Kᵀ   (symmetric)
+    for i in range(n):
+        for j in range(i, n):
+            v = P[i, j] - k[i] * ph[j] - ph[i] * k[j] + s * k[i] * k[j]
+            P[i, j] = v
+            P[j, i] = v
 
 
 @njit
-def _kf_two_sensors(z_cam, z_imu, F, Q, r_cam, r_imu, x0, P0, h_cam, h_imu, x_out, P_out):
-    """Forward KF, batch (B, T); each sample has two scalar measurements, either may be NaN."""
-    B, T = z_cam.shape
+def _predict(x, P, F, Q):
+    """Prediction in place: ``x ← F x``, ``P ← F P Fᵀ + Q`` (symmetrised)."""
+    n = x.shape[0]
+    xn = F @ x  # x⁻ = F x
+    FP = F @ P
+    for i in range(n):
+        x[i] = xn[i]
+        for j in range(i, n):
+            v = Q[i, j]
+            for m in range(n):
+                v += FP[i, m] * F[j, m]  # P⁻ = F P Fᵀ + Q
+            P[i, j] = v
+            P[j, i] = v
+
+
+@njit
+def _kf_segment(z_cam, z_imu, F, Q, r_cam, r_imu, x, P, predict_first, h_cam, h_imu, x_out, P_out):
+    """Forward KF over one segment, batch (B, L), continuing from ``x (B, n)``, ``P (B, n, n)``.
+
+    Each sample has two scalar measurements, either may be NaN (not measured). The first
+    sample is predicted from ``(x, P)`` when ``predict_first`` (a continuation), else ``(x, P)``
+    is the prior of the first sample. ``x`` and ``P`` are overwritten with the last posterior.
+    """
+    B, L = z_cam.shape
     for b in range(B):
-        x = x0[b].copy()
-        P = P0[b].copy()
-        for t in range(T):
-            if t > 0:
-                x = F[b] @ x  # x⁻ = F x
-                P = F[b] @ P @ F[b].T + Q[b]  # P⁻ = F P Fᵀ + Q
-                P = 0.5 * (P + P.T)
+        xb = x[b].copy()
+        Pb = P[b].copy()
+        for t in range(L):
+            if t > 0 or predict_first:
+                _predict(xb, Pb, F[b], Q[b])
             if np.isfinite(z_cam[b, t]):
-                x, P = _scalar_update(x, P, z_cam[b, t], h_cam, r_cam[b])
+                _scalar_update(xb, Pb, z_cam[b, t], h_cam, r_cam[b])
             if np.isfinite(z_imu[b, t]):
-                x, P = _scalar_update(x, P, z_imu[b, t], h_imu, r_imu[b])
-            x_out[b, t] = x
-            P_out[b, t] = P
+                _scalar_update(xb, Pb, z_imu[b, t], h_imu, r_imu[b])
+            x_out[b, t] = xb
+            P_out[b, t] = Pb
+        x[b] = xb
+        P[b] = Pb
 
 
 @njit
-def _rts_backward(xf, Pf, F, Q, t_end, t_stop, xs_end, Ps_end):
-    """RTS from ``t_end`` (smoothed = given) down to ``t_stop``; returns the value at t_stop."""
-    xs = xs_end.copy()
-    Ps = Ps_end.copy()
-    for t in range(t_end - 1, t_stop - 1, -1):
-        Pp = F @ Pf[t] @ F.T + Q  # P⁻_{t+1}
-        C = np.linalg.solve(Pp + 1e-15 * np.eye(Pp.shape[0]), F @ Pf[t]).T  # C = P̂ Fᵀ (P⁻)⁻¹
-        xs = xf[t] + C @ (xs - F @ xf[t])
-        Ps = Pf[t] + C @ (Ps - Pp) @ C.T
-        Ps = 0.5 * (Ps + Ps.T)
-    return xs, Ps
+def _rts_step(xf, Pf, F, Q, xs, Ps):
+    """One RTS step back: filtered ``(xf, Pf)`` at t, smoothed ``(xs, Ps)`` at t+1, F, Q: t -> t+1."""
+    Pp = F @ Pf @ F.T + Q  # P⁻_{t+1}
+    C = np.linalg.solve(Pp + 1e-15 * np.eye(Pp.shape[0]), F @ Pf).T  # C = P̂ Fᵀ (P⁻)⁻¹
+    xs = xf + C @ (xs - F @ xf)  # x̃_t = x̂_t + C (x̃_{t+1} − F x̂_t)
+    Ps = Pf + C @ (Ps - Pp) @ C.T  # P̃_t = P̂_t + C (P̃_{t+1} − P⁻) Cᵀ
+    return xs, 0.5 * (Ps + Ps.T)
 
 
 @njit
 def _smooth(xf, Pf, F, Q, lag, x_out, P_out):
-    """Fixed-interval RTS (lag < 0) or fixed-lag RTS with ``lag`` samples, batch (B, T)."""
+    """RTS over a batch (B, T): fixed-interval (``lag < 0``) or fixed-lag with ``lag`` samples.
+
+    ``F[b, t], Q[b, t]`` are the transition into sample t (from t − 1); time-varying, so the
+    causal mode's piecewise-constant parameters are smoothed with the model that was filtered.
+    """
     B, T = xf.shape[0], xf.shape[1]
     for b in range(B):
         if lag < 0:
@@ -94,15 +139,50 @@ def _smooth(xf, Pf, F, Q, lag, x_out, P_out):
             x_out[b, T - 1] = xs
             P_out[b, T - 1] = Ps
             for t in range(T - 2, -1, -1):
-                xs, Ps = _rts_backward(xf[b], Pf[b], F[b], Q[b], t + 1, t, xs, Ps)
+                xs, Ps = _rts_step(xf[b, t], Pf[b, t], F[b, t + 1], Q[b, t + 1], xs, Ps)
                 x_out[b, t] = xs
                 P_out[b, t] = Ps
         else:
             for t in range(T):
                 e = min(t + lag, T - 1)
-                xs, Ps = _rts_backward(xf[b], Pf[b], F[b], Q[b], e, t, xf[b, e], Pf[b, e])
+                xs = xf[b, e].copy()
+                Ps = Pf[b, e].copy()
+                for s in range(e - 1, t - 1, -1):
+                    xs, Ps = _rts_step(xf[b, s], Pf[b, s], F[b, s + 1], Q[b, s + 1], xs, Ps)
                 x_out[b, t] = xs
                 P_out[b, t] = Ps
+
+
+@njit
+def _accumulate_moments(zc, zi, ok, t0, t1, S, D):
+    """Add the lag-k products of the pairs ``(t − k, t)``, t in [t0, t1), to S and D (in place).
+
+    ``S (K, 4, 3)``: per lag k = 1..K and axis: number of pairs, Σ Δzc², Σ Δzc Δzi, Σ Δzi².
+    ``D (3, 3)``: per axis: number of triples, Σ Δ²zc Δ²zi, Σ Δ²zi² (second differences).
+    Only samples with ``ok`` enter; ``zc, zi (T, 3)``.
+    """
+    K = S.shape[0]
+    for t in range(t0, t1):
+        if not ok[t]:
+            continue
+        for k in range(1, K + 1):
+            if t - k < 0:
+                break
+            if ok[t - k]:
+                for a in range(3):
+                    dc = zc[t, a] - zc[t - k, a]
+                    di = zi[t, a] - zi[t - k, a]
+                    S[k - 1, 0, a] += 1.0
+                    S[k - 1, 1, a] += dc * dc
+                    S[k - 1, 2, a] += dc * di
+                    S[k - 1, 3, a] += di * di
+        if t >= 2 and ok[t - 1] and ok[t - 2]:
+            for a in range(3):
+                d2c = zc[t, a] - 2.0 * zc[t - 1, a] + zc[t - 2, a]
+                d2i = zi[t, a] - 2.0 * zi[t - 1, a] + zi[t - 2, a]
+                D[0, a] += 1.0
+                D[1, a] += d2c * d2i
+                D[2, a] += d2i * d2i
 
 
 # --------------------------------------------------------------------------- noise model
@@ -142,34 +222,153 @@ class NoiseParameters:
         return cls(f(0.1), f(1e-3), f(1e-4), f(0.0), f(0.0), f(0.0), f(0.0))
 
 
-def _gm_fit(V: np.ndarray, w: np.ndarray, tau_max: float = np.inf) -> tuple[float, float, float]:
+def _gm_fit(V, w, tau_max=np.inf):
     """Fit ``V(k) = 2 r + 2 σ² (1 − φ^k)`` (k = 1..K) with r, σ² >= 0; weighted least squares.
 
-    Grid over the correlation time τ (φ = e^{−1/τ}); for each τ a 2-parameter non-negative
-    least-squares fit; the best τ is kept. Returns ``(r, σ², φ)``.
+    Grid over the correlation time τ (φ = e^{−1/τ}, τ <= ``tau_max`` samples); for each τ the
+    2-parameter non-negative least-squares fit in closed form (the unconstrained solution, or
+    one parameter at zero); the best τ is kept. ``V, w`` of shape ``(K,)`` or ``(m, K)`` (m
+    independent fits, ``tau_max`` scalar or ``(m,)``). Returns ``(r, σ², φ)``, floats or
+    arrays ``(m,)``; φ = 0 where σ² = 0.
     """
-    k = np.arange(1, V.size + 1, dtype=float)
-    sw = np.sqrt(w)
-    best = (np.inf, max(0.5 * V[0], 0.0) if V.size else 0.0, 0.0, 0.0)
-    for tau in _TAU_GRID[_TAU_GRID <= tau_max]:
-        phi = np.exp(-1.0 / tau)
-        A = np.stack([np.full_like(k, 2.0), 2.0 * (1.0 - phi**k)], axis=1) * sw[:, None]
-        y = V * sw
-        cands = []
-        sol, *_ = np.linalg.lstsq(A, y, rcond=None)
-        if np.all(sol >= 0):
-            cands.append(sol)
-        for i in range(2):  # one parameter at zero
-            a = A[:, 1 - i]
-            c = max(float(a @ y) / max(float(a @ a), 1e-300), 0.0)
-            s = np.zeros(2)
-            s[1 - i] = c
-            cands.append(s)
-        for s in cands:
-            sse = float(np.sum((A @ s - y) ** 2))
-            if sse < best[0]:
-                best = (sse, float(s[0]), float(s[1]), float(phi))
-    return best[1], best[2], best[3]
+    V = np.asarray(V, dtype=float)
+    single = V.ndim == 1
+    V = np.atleast_2d(V)
+    m, K = V.shape
+    if K == 0:
+        z = np.zeros(m)
+        return (0.0, 0.0, 0.0) if single else (z, z, z)
+    k = np.arange(1, K + 1, dtype=float)
+    sw = np.sqrt(np.atleast_2d(np.asarray(w, dtype=float)))  # (m, K)
+    phi = np.exp(-1.0 / _TAU_GRID)  # (G,)
+    allowed = _TAU_GRID[None] <= np.broadcast_to(np.asarray(tau_max, float), (m,))[:, None]
+    basis = 2.0 * (1.0 - phi[:, None] ** k)  # σ² column per τ, (G, K)
+    x1 = 2.0 * sw  # r column, (m, K)
+    y = V * sw
+    s11 = np.sum(x1 * x1, 1)[:, None]  # (m, 1)
+    s12 = (x1 * sw) @ basis.T  # (m, G)
+    s22 = (sw * sw) @ (basis * basis).T
+    b1 = np.sum(x1 * y, 1)[:, None]
+    b2 = (y * sw) @ basis.T
+    yy = np.sum(y * y, 1)[:, None]
+    det = s11 * s22 - s12**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r_f = (s22 * b1 - s12 * b2) / det
+        s_f = (s11 * b2 - s12 * b1) / det
+        s_only = np.maximum(b2 / s22, 0.0)
+        r_only = np.maximum(b1 / s11, 0.0)
+    zero = np.zeros_like(r_f)
+    cand_r = np.stack([r_f, zero, np.broadcast_to(r_only, r_f.shape)])  # (3, m, G)
+    cand_s = np.stack([s_f, s_only, zero])
+    valid = np.isfinite(cand_r) & np.isfinite(cand_s) & (cand_r >= 0) & (cand_s >= 0)
+    valid[0] &= det > 1e-12 * s11 * s22
+    valid &= allowed[None]
+    sse = yy - 2 * (cand_r * b1 + cand_s * b2) + cand_r**2 * s11
+    sse = sse + 2 * cand_r * cand_s * s12 + cand_s**2 * s22
+    sse = np.where(valid, sse, np.inf).transpose(1, 0, 2).reshape(m, -1)  # (m, 3 G)
+    best = np.argmin(sse, axis=1)
+    i, g = np.unravel_index(best, (3, phi.size))
+    r = cand_r[i, np.arange(m), g]
+    s2 = cand_s[i, np.arange(m), g]
+    ph = np.where(s2 > 0, phi[g], 0.0)
+    if single:
+        return float(r[0]), float(s2[0]), float(ph[0])
+    return r, s2, ph
+
+
+class _Moments:
+    """Lag-k cross moments of a camera series and a chain series, accumulated as data arrive.
+
+    ``add(zc, zi, ok, t0, t1)`` adds the pairs ``(t − k, t)`` and the triples ending at t in
+    ``[t0, t1)`` (all samples ``ok``); the arrays are read at indices ``< t1`` only.
+    """
+
+    def __init__(self, max_lag: int):
+        self.S = np.zeros((max(int(max_lag), 1), 4, 3))
+        self.D = np.zeros((3, 3))
+
+    def add(self, zc, zi, ok, t0: int, t1: int) -> _Moments:
+        _accumulate_moments(zc, zi, ok, int(t0), int(t1), self.S, self.D)
+        return self
+
+    def noise(
+        self, dt_s: float, prior_pairs: float = 0.0, camera_white: bool = False
+    ) -> NoiseParameters:
+        """Noise parameters from the moments (:func:`estimate_noise`, Notes).
+
+        ``prior_pairs > 0`` adds that many pseudo-pairs per lag (and pseudo-triples) of the
+        conservative prior of :func:`_prior_variograms` to the data before the fit.
+        ``camera_white``: no camera-error state (σ_c² = 0); the camera's white level is the
+        white part of its variogram fit and the chain's variogram is the rest of the
+        difference variogram (Notes of :func:`kinefuse_fusion`, causal mode).
+        """
+        n = self.S[:, 0, 0]
+        K = n.size
+        n0 = float(prior_pairs)
+        dflt = NoiseParameters.default()
+        out = {k: getattr(dflt, k).copy() for k in NoiseParameters.__dataclass_fields__}
+        use = (n >= 8) | (n0 > 0)
+        if n0 <= 0 and (self.D[0, 0] < 8 or not np.any(use)):
+            return NoiseParameters(**out)
+        Vc0, Vi0, q0 = _prior_variograms(K, dt_s)
+        nn = np.maximum(n, 1.0)[:, None]
+        Scc, Sci, Sii = (self.S[:, i] / nn for i in (1, 2, 3))
+        w_d = (n / (n + n0))[:, None] if n0 > 0 else np.ones((K, 1))
+        Vc = w_d * (Scc - Sci) + (1 - w_d) * Vc0[:, None]  # pseudo-data blend, per lag
+        Vi = w_d * (Sii - Sci) + (1 - w_d) * Vi0[:, None]
+        Vt = np.where(n[:, None] >= 8, Scc + Sii, Vc0[:, None] + Vi0[:, None])
+        Vt = np.maximum(Vt, 1e-300)
+        m3 = self.D[0].copy()
+        for a in range(3):
+            if m3[a] >= 8:
+                cross, auto = self.D[1, a] / m3[a], self.D[2, a] / m3[a]
+                q_hat = 2.0 * max(cross, 0.1 * auto, 1e-12) / dt_s**2
+            else:
+                q_hat, m3[a] = q0, 0.0
+            out["q"][a] = (m3[a] * q_hat + n0 * q0) / (m3[a] + n0) if m3[a] + n0 > 0 else q0
+        w = ((n[use] + n0)[:, None] / Vt[use] ** 2).T  # (3, K')
+        if camera_white:
+            # the camera's white level from its variogram; all of the correlated difference
+            # between the sensors goes to the chain: V_I(k) = V_diff(k) − 2 r_V
+            r, _, _ = _gm_fit(Vc[use].T, w, tau_max=np.full(3, float(K)))
+            r_cam = np.maximum(r, _VAR_FLOOR_M2)
+            Vd = (Vc + Vi)[use].T - 2.0 * r_cam[:, None]
+            r, s2, phi = _gm_fit(Vd, w)
+            out["r_cam"], out["var_c"], out["phi_c"] = r_cam, np.zeros(3), np.zeros(3)
+            out["r_imu"], out["var_b"], out["phi_b"] = np.maximum(r, _VAR_FLOOR_M2), s2, phi
+            return NoiseParameters(**out)
+        # camera (rows 0-2, τ <= K) and chain (rows 3-5) fitted together
+        r, s2, phi = _gm_fit(
+            np.concatenate([Vc[use].T, Vi[use].T]),
+            np.concatenate([w, w]),
+            tau_max=np.array([float(K)] * 3 + [np.inf] * 3),
+        )
+        r = np.maximum(r, _VAR_FLOOR_M2)
+        out["r_cam"], out["var_c"], out["phi_c"] = r[:3], s2[:3], phi[:3]
+        out["r_imu"], out["var_b"], out["phi_b"] = r[3:], s2[3:], phi[3:]
+        return NoiseParameters(**out)
+
+
+def _prior_variograms(K: int, dt_s: float):
+    """Conservative prior of the causal noise fit: error variograms ``(K,)`` of camera and chain, q.
+
+    Camera: white, ``R_V = 1e-3 m²`` (SPEC §12.2). Chain (after the correction): white
+    ``(1 cm)²`` plus a random walk of diffusion ``1e-2 m²/s`` (SPEC's R_I per second): the
+    chain is trusted at high frequency only and the camera sets the low frequencies. q = 0.1
+    (SPEC §12.2).
+    """
+    k = np.arange(1, K + 1, dtype=float)
+    Vc0 = np.full(K, 2.0 * _PRIOR_R_CAM)
+    Vi0 = 2.0 * _PRIOR_R_IMU + 2.0 * _PRIOR_VAR_B * (1.0 - np.exp(-k * dt_s / _PRIOR_TAU_B_S))
+    return Vc0, Vi0, _PRIOR_Q
+
+
+def _ok_rows(z_cam, z_imu, available):
+    return (
+        np.asarray(available, dtype=bool)
+        & np.all(np.isfinite(z_cam), -1)
+        & np.all(np.isfinite(z_imu), -1)
+    )
 
 
 def estimate_noise(z_cam, z_imu, available, dt_s: float, *, max_lag: int = 60) -> NoiseParameters:
@@ -208,55 +407,23 @@ def estimate_noise(z_cam, z_imu, available, dt_s: float, *, max_lag: int = 60) -
     plus a first-order Gauss-Markov process, whose variogram is ``2 r + 2 σ² (1 − φ^k)``; it
     is fitted over k = 1..K by non-negative weighted least squares on a grid of correlation
     times, with weights ``n_k / (E[(Δ_k z_cam)²] + E[(Δ_k z_imu)²])²`` (number of pairs over
-    the approximate variance of the estimate, which grows with the motion at lag k). The motion model's q comes from second differences:
-    ``E[Δ² z_cam Δ² z_imu] = E[(Δ² p)²] = q dt² / 2`` for the constant-velocity model with
-    ``Q = q [[dt²/4, dt/2], [dt/2, 1]]``, floored at a tenth of the chain's own
-    ``E[(Δ² z_imu)²]`` (the cross moment can be near zero when the camera is noisy). White
-    variances are floored at (1 mm)².
+    the approximate variance of the estimate, which grows with the motion at lag k). The
+    camera's correlation time is at most K samples (a slower camera error and a chain error
+    would both be drifts, and p would not be observable at low frequency). The motion model's
+    q comes from second differences: ``E[Δ² z_cam Δ² z_imu] = E[(Δ² p)²] = q dt² / 2`` for
+    the constant-velocity model with ``Q = q [[dt²/4, dt/2], [dt/2, 1]]``, floored at a tenth
+    of the chain's own ``E[(Δ² z_imu)²]`` (the cross moment can be near zero when the camera
+    is noisy). White variances are floored at (1 mm)².
+
+    All statistics are sums of lag-k products, so they are accumulated as data arrive in the
+    causal mode (:class:`_Moments`) at O(K) per sample.
     """
-    zc = np.asarray(z_cam, dtype=float)
-    zi = np.asarray(z_imu, dtype=float)
-    ok = (
-        np.asarray(available, dtype=bool)
-        & np.all(np.isfinite(zc), -1)
-        & np.all(np.isfinite(zi), -1)
-    )
+    zc = np.ascontiguousarray(z_cam, dtype=float)
+    zi = np.ascontiguousarray(z_imu, dtype=float)
+    ok = _ok_rows(zc, zi, available)
     T = zc.shape[0]
-    out = {k: np.empty(3) for k in ("q", "r_cam", "r_imu", "var_b", "phi_b", "var_c", "phi_c")}
-    dflt = NoiseParameters.default()
     K = int(max(1, min(max_lag, T - 1)))
-    Vc = np.zeros((K, 3))
-    Vi = np.zeros((K, 3))
-    Vt = np.ones((K, 3))
-    n = np.zeros(K)
-    for k in range(1, K + 1):
-        m = ok[k:] & ok[:-k]
-        n[k - 1] = m.sum()
-        if n[k - 1] == 0:
-            continue
-        dc = zc[k:][m] - zc[:-k][m]
-        di = zi[k:][m] - zi[:-k][m]
-        Vc[k - 1] = np.mean(dc * (dc - di), axis=0)
-        Vi[k - 1] = np.mean(di * (di - dc), axis=0)
-        Vt[k - 1] = np.maximum(np.mean(dc * dc + di * di, axis=0), 1e-300)
-    m3 = ok[2:] & ok[1:-1] & ok[:-2] if T >= 3 else np.zeros(0, bool)
-    use = n >= 8
-    for a in range(3):
-        if m3.sum() < 8 or not np.any(use):
-            for key in out:
-                out[key][a] = getattr(dflt, key)[a]
-            continue
-        d2c = zc[2:, a][m3] - 2 * zc[1:-1, a][m3] + zc[:-2, a][m3]
-        d2i = zi[2:, a][m3] - 2 * zi[1:-1, a][m3] + zi[:-2, a][m3]
-        out["q"][a] = (
-            2.0 * max(float(np.mean(d2c * d2i)), 0.1 * float(np.mean(d2i * d2i)), 1e-12) / dt_s**2
-        )
-        w = n[use] / Vt[use, a] ** 2
-        r, s2, phi = _gm_fit(Vc[use, a], w, tau_max=float(K))
-        out["r_cam"][a], out["var_c"][a], out["phi_c"][a] = max(r, _VAR_FLOOR_M2), s2, phi
-        r, s2, phi = _gm_fit(Vi[use, a], w)
-        out["r_imu"][a], out["var_b"][a], out["phi_b"][a] = max(r, _VAR_FLOOR_M2), s2, phi
-    return NoiseParameters(**out)
+    return _Moments(K).add(zc, zi, ok, 0, T).noise(dt_s)
 
 
 # --------------------------------------------------------------------------- learned correction
@@ -269,11 +436,23 @@ class RidgeCorrection:
         Candidate ridge penalties on the standardised coefficients (dimensionless, per sample):
         ``β = (C + α I)⁻¹ c`` with C the feature correlation matrix and c the standardised
         feature-target covariances; ``inf`` = intercept only. The intercept is not penalised.
-        The penalty is chosen by blocked leave-one-block-out cross-validation.
+        The penalty is chosen by blocked cross-validation.
     block : int
         Block length of the cross-validation, samples (default 30 = 1 s at 30 Hz). Blocks are
         contiguous in time, so the serially correlated errors of a block do not leak into its
         own prediction (a plain GCV would pick a far too small penalty here).
+    n_folds : int, optional
+        Number of cross-validation folds; block ``i`` belongs to fold ``i mod n_folds``.
+        Default None: one fold per block (leave-one-block-out). A bounded number keeps the
+        cost of a re-solve independent of the history length (causal mode).
+    min_blocks : int
+        Blocks of data needed before anything but the intercept is fitted (default 2, the
+        fewest that can be cross-validated).
+    reselect_growth : float, optional
+        Streaming: re-run the cross-validation only once the number of rows has grown by this
+        factor since the last selection (e.g. 1.5: O(log n) selections); in between, the
+        coefficients are re-solved at the selected penalty. Default None: select at every
+        solve (``fit`` and ``partial_fit`` then agree exactly).
 
     Attributes
     ----------
@@ -282,26 +461,41 @@ class RidgeCorrection:
     coef_ : ndarray, shape (F, D)
     intercept_ : ndarray, shape (D,)
     cv_error_ : ndarray, shape (len(alphas),)
-        Mean squared CV prediction error per candidate, m².
+        Mean squared CV prediction error per candidate, m² (NaN when not validated).
+    n_samples_ : int
+        Rows accumulated so far.
 
     Notes
     -----
     ``partial_fit(X, Y, t)`` adds the moments ``n, Σx̃x̃ᵀ, Σx̃yᵀ, Σyᵀy`` (``x̃ = [x, 1]``) of
-    the rows to the block ``t // block`` of each row; ``fit`` = fresh moments + one
-    ``partial_fit``. Each solve uses only the stored moments: for a held-out block the
-    training moments are the totals minus the block's, and its squared error is
+    the rows to the fold of the block ``t // block`` of each row; ``fit`` = fresh moments +
+    one ``partial_fit``. Each solve uses only the stored moments: for a held-out fold the
+    training moments are the totals minus the fold's, and its squared error is
     ``Σyᵀy − 2 θᵀ Σx̃y + θᵀ Σx̃x̃ᵀ θ``. Features are standardised with the moments of all
-    blocks. With fewer than 2 blocks nothing can be validated and the largest penalty of the
+    folds. One eigendecomposition per fold gives the solutions for all penalties, so a
+    re-solve costs O(folds · F³) whatever the number of rows. With fewer than ``min_blocks``
+    blocks (or fewer than 2 folds) nothing can be validated and the largest penalty of the
     grid is used (by default ``inf``: intercept only).
     """
 
-    def __init__(self, alphas=_ALPHAS, block: int = 30):
+    def __init__(
+        self,
+        alphas=_ALPHAS,
+        block: int = 30,
+        n_folds: int | None = None,
+        min_blocks: int = 2,
+        reselect_growth: float | None = None,
+    ):
         self.alphas = tuple(float(a) for a in alphas)
         self.block = int(block)
+        self.n_folds = n_folds
+        self.min_blocks = int(min_blocks)
+        self.reselect_growth = reselect_growth
 
     def fit(self, X, Y, t=None) -> RidgeCorrection:
         """Fit on ``X (n, F)``, ``Y (n, D)`` at sample times ``t (n,)`` (default 0..n−1)."""
-        self.blocks_ = {}
+        for name in ("folds_", "blocks_seen_", "n_selected_"):
+            self.__dict__.pop(name, None)
         return self.partial_fit(X, Y, t)
 
     def partial_fit(self, X, Y, t=None) -> RidgeCorrection:
@@ -309,40 +503,59 @@ class RidgeCorrection:
         X = np.asarray(X, dtype=float)
         Y = np.asarray(Y, dtype=float)
         t = np.arange(X.shape[0]) if t is None else np.asarray(t)
-        if not hasattr(self, "blocks_"):
-            self.blocks_ = {}
+        if not hasattr(self, "folds_"):
+            self.folds_ = {}
+            self.blocks_seen_ = set()
         ok = np.all(np.isfinite(X), 1) & np.all(np.isfinite(Y), 1)
         X, Y, t = X[ok], Y[ok], t[ok]
         Xa = np.concatenate([X, np.ones((X.shape[0], 1))], axis=1)
         self.n_features_ = X.shape[1]
         self.n_outputs_ = Y.shape[1]
-        for b in np.unique(t // self.block):
-            m = t // self.block == b
-            new = np.array([Xa[m].T @ Xa[m], Xa[m].T @ Y[m], np.sum(Y[m] ** 2)], dtype=object)
-            self.blocks_[int(b)] = new if b not in self.blocks_ else self.blocks_[int(b)] + new
+        blk = t // self.block
+        fold = blk if self.n_folds is None else blk % int(self.n_folds)
+        self.blocks_seen_.update(int(b) for b in np.unique(blk))
+        for f in np.unique(fold):
+            m = fold == f
+            new = [Xa[m].T @ Xa[m], Xa[m].T @ Y[m], float(np.sum(Y[m] ** 2))]
+            old = self.folds_.get(int(f))
+            self.folds_[int(f)] = (
+                new if old is None else [a + b for a, b in zip(old, new, strict=True)]
+            )
         self._solve()
         return self
 
     @staticmethod
-    def _theta(Sxx, Sxy, scale, alpha):
-        """Ridge in standardised units from raw augmented moments; θ = [β; β0] raw units."""
+    def _thetas(Sxx, Sxy, scale, alphas):
+        """Ridge solutions for all penalties, raw units: θ = [β; β0], shape (A, F + 1, D)."""
         n = Sxx[-1, -1]
         F = Sxx.shape[0] - 1
+        A = len(alphas)
         if n < 1:
-            return np.zeros((F + 1, Sxy.shape[1]))
+            return np.zeros((A, F + 1, Sxy.shape[1]))
         mx = Sxx[:F, -1] / n
         my = Sxy[-1] / n
-        if not np.isfinite(alpha) or F == 0:
-            beta = np.zeros((F, Sxy.shape[1]))
-        else:
+        beta = np.zeros((A, F, Sxy.shape[1]))
+        fin = np.isfinite(alphas)
+        if F > 0 and np.any(fin):
             C = (Sxx[:F, :F] / n - np.outer(mx, mx)) / np.outer(scale, scale)
             c = (Sxy[:F] / n - np.outer(mx, my)) / scale[:, None]
-            beta = np.linalg.solve(C + alpha * np.eye(F), c) / scale[:, None]
-        return np.concatenate([beta, (my - mx @ beta)[None]], axis=0)
+            a = np.asarray(alphas, dtype=float)[fin]
+            if a.size == 1:  # β = (C + α I)⁻¹ c
+                beta[fin] = np.linalg.solve(C + a[0] * np.eye(F), c)[None]
+            else:  # β(α) = U (Λ + α I)⁻¹ Uᵀ c for all α from one eigendecomposition C = U Λ Uᵀ
+                lam, U = scipy.linalg.eigh(0.5 * (C + C.T), driver="evr", check_finite=False)
+                Uc = (U.T @ c)[None] / (np.clip(lam, 0.0, None)[None, :, None] + a[:, None, None])
+                beta[fin] = U @ Uc
+            beta[fin] /= scale[None, :, None]
+        icpt = my[None] - np.einsum("f,afd->ad", mx, beta)
+        return np.concatenate([beta, icpt[:, None]], axis=1)
 
     def _solve(self) -> None:
         F = self.n_features_
-        tot = sum(self.blocks_.values()) if self.blocks_ else None
+        tot = None
+        for v in self.folds_.values():
+            tot = list(v) if tot is None else [a + b for a, b in zip(tot, v, strict=True)]
+        self.n_samples_ = 0 if tot is None else int(round(tot[0][-1, -1]))
         if tot is None or tot[0][-1, -1] < 1:
             self.alpha_ = self.alphas[0]
             self.coef_ = np.zeros((F, self.n_outputs_))
@@ -354,20 +567,29 @@ class RidgeCorrection:
         var = np.diag(Sxx)[:F] / n - (Sxx[:F, -1] / n) ** 2
         sd = np.sqrt(np.clip(var, 0.0, None))
         self.scale_ = np.where(sd > 1e-12 * max(1.0, float(sd.max(initial=0.0))), sd, np.inf)
+        can = len(self.folds_) >= 2 and len(self.blocks_seen_) >= max(self.min_blocks, 2)
+        g = self.reselect_growth
+        n_sel = getattr(self, "n_selected_", 0)
+        if can and g is not None and n_sel > 0 and n < g * n_sel:
+            # keep the penalty chosen at n_sel rows; re-solve the coefficients only
+            th = self._thetas(Sxx, Sxy, self.scale_, [self.alpha_])[0]
+            self.coef_, self.intercept_ = th[:F], th[F]
+            return
         errs = np.full(len(self.alphas), np.nan)
-        if len(self.blocks_) >= 2:
-            for i, a in enumerate(self.alphas):
-                sse = 0.0
-                for blk in self.blocks_.values():
-                    th = self._theta(Sxx - blk[0], Sxy - blk[1], self.scale_, a)
-                    sse += blk[2] - 2.0 * np.sum(th * blk[1]) + np.sum(th * (blk[0] @ th))
-                errs[i] = sse / n
+        if can:
+            self.n_selected_ = n
+            sse = np.zeros(len(self.alphas))
+            for fx, fy, fyy in self.folds_.values():
+                th = self._thetas(Sxx - fx, Sxy - fy, self.scale_, self.alphas)
+                sse += fyy - 2.0 * np.sum(th * fy, axis=(1, 2))
+                sse += np.sum(th * (fx @ th), axis=(1, 2))
+            errs = sse / n
             best = int(np.nanargmin(errs))
         else:
             best = len(self.alphas) - 1  # cannot validate: the most regularised candidate
         self.cv_error_ = errs
         self.alpha_ = self.alphas[best]
-        th = self._theta(Sxx, Sxy, self.scale_, self.alpha_)
+        th = self._thetas(Sxx, Sxy, self.scale_, [self.alpha_])[0]
         self.coef_, self.intercept_ = th[:F], th[F]
 
     def predict(self, X) -> np.ndarray:
@@ -416,48 +638,44 @@ def _model_matrices(p: NoiseParameters, dt: float):
     F = np.zeros((3, _N_X, _N_X))
     Q = np.zeros((3, _N_X, _N_X))
     g = np.array([dt / 2.0, 1.0])
-    for a in range(3):
-        F[a] = np.array(
-            [
-                [1.0, dt, 0.0, 0.0],
-                [0.0, 1.0, 0.0, 0.0],
-                [0, 0, p.phi_b[a], 0],
-                [0, 0, 0, p.phi_c[a]],
-            ]
-        )
-        Q[a, :2, :2] = p.q[a] * np.outer(g, g)
-        Q[a, 2, 2] = p.var_b[a] * (1.0 - p.phi_b[a] ** 2)
-        Q[a, 3, 3] = p.var_c[a] * (1.0 - p.phi_c[a] ** 2)
+    F[:, 0, 0] = F[:, 1, 1] = 1.0
+    F[:, 0, 1] = dt  # p += dt v
+    F[:, 2, 2] = p.phi_b  # b ← φ_b b
+    F[:, 3, 3] = p.phi_c  # c ← φ_c c
+    Q[:, :2, :2] = p.q[:, None, None] * np.outer(g, g)  # q [[dt²/4, dt/2], [dt/2, 1]]
+    Q[:, 2, 2] = p.var_b * (1.0 - p.phi_b**2)  # σ_b² (1 − φ_b²)
+    Q[:, 3, 3] = p.var_c * (1.0 - p.phi_c**2)
     return F, Q
 
 
-def _run(zc, zi, p: NoiseParameters, dt: float, lag: int):
-    """Filter (+ smoother) one joint: ``zc, zi (T, 3)`` -> mean (3, T, 4), cov (3, T, 4, 4)."""
+def _prior(z0_cam, z0_imu, p: NoiseParameters):
+    """Prior ``x (3, 4)``, ``P (3, 4, 4)`` at the first sample: p from the given position."""
+    x = np.zeros((3, _N_X))
+    P = np.zeros((3, _N_X, _N_X))
+    for a in range(3):
+        x[a, 0] = next((float(z[a]) for z in (z0_cam, z0_imu) if np.isfinite(z[a])), 0.0)
+        P[a] = np.diag([1.0, 1.0, p.var_b[a], p.var_c[a]])
+    return x, P
+
+
+def _run(zc, zi, p: NoiseParameters, dt: float):
+    """Offline: filter + fixed-interval RTS of one joint, ``zc, zi (T, 3)`` -> (3, T, 4), (3, T, 4, 4)."""
     T = zc.shape[0]
     F, Q = _model_matrices(p, dt)
-    x0 = np.zeros((3, _N_X))
-    P0 = np.zeros((3, _N_X, _N_X))
-    for a in range(3):
-        first = np.concatenate(
-            [zc[:, a][np.isfinite(zc[:, a])], zi[:, a][np.isfinite(zi[:, a])], [0.0]]
-        )
-        x0[a, 0] = first[0]
-        P0[a] = np.diag([1.0, 1.0, p.var_b[a], p.var_c[a]])
-    zc_b = np.ascontiguousarray(zc.T)
-    zi_b = np.ascontiguousarray(zi.T)
+    first = lambda z: np.array([next(iter(z[np.isfinite(z[:, a]), a]), np.nan) for a in range(3)])  # noqa: E731
+    x, P = _prior(first(zc), first(zi), p)
     xf = np.empty((3, T, _N_X))
     Pf = np.empty((3, T, _N_X, _N_X))
-    _kf_two_sensors(zc_b, zi_b, F, Q, p.r_cam, p.r_imu, x0, P0, _H_CAM, _H_IMU, xf, Pf)
-    if lag == 0:
-        return xf, Pf
-    xs = np.empty_like(xf)
-    Ps = np.empty_like(Pf)
-    _smooth(xf, Pf, F, Q, int(lag), xs, Ps)
+    zc_b, zi_b = np.ascontiguousarray(zc.T), np.ascontiguousarray(zi.T)
+    _kf_segment(zc_b, zi_b, F, Q, p.r_cam, p.r_imu, x, P, False, _H_CAM, _H_IMU, xf, Pf)
+    xs, Ps = np.empty_like(xf), np.empty_like(Pf)
+    tile = lambda A: np.ascontiguousarray(np.broadcast_to(A[:, None], (3, T, _N_X, _N_X)))  # noqa: E731
+    _smooth(xf, Pf, tile(F), tile(Q), -1, xs, Ps)
     return xs, Ps
 
 
 def _fit_joint(zc, zi, phi, seen, dt, alpha, max_lag):
-    """Refit the correction and the noise parameters of one joint on the ``seen`` samples."""
+    """Offline: fit the correction and the noise parameters of one joint on the ``seen`` samples."""
     block = max(2, int(round(1.0 / dt)))
     t = np.flatnonzero(seen)
     reg = RidgeCorrection(block=block, **({} if alpha is None else {"alphas": alpha})).fit(
@@ -467,6 +685,106 @@ def _fit_joint(zc, zi, phi, seen, dt, alpha, max_lag):
     zic = zi + corr
     params = estimate_noise(np.where(seen[:, None], zc, np.nan), zic, seen, dt, max_lag=max_lag)
     return reg, corr, params
+
+
+def _refit_times(seen: np.ndarray, min_history: int, refit_every: int | None) -> list[int]:
+    """Causal refit times t (fit on samples < t): outage onsets and every ``refit_every`` samples.
+
+    Only once ``min_history`` camera samples precede t; each decision reads ``seen[: t + 1]``.
+    """
+    T = seen.size
+    n_seen = np.cumsum(seen)
+    times = set((np.flatnonzero(~seen[1:] & seen[:-1]) + 1).tolist())
+    first = np.flatnonzero(n_seen >= min_history)
+    if first.size:
+        times.add(int(first[0]) + 1)
+        if refit_every:
+            times.update(range(int(first[0]) + 1, T, int(refit_every)))
+    return sorted(t for t in times if 0 < t < T and n_seen[t - 1] >= min_history)
+
+
+@dataclass(frozen=True)
+class _CausalSettings:
+    """Settings of :func:`_causal_joint` (see :func:`kinefuse_fusion`)."""
+
+    alpha: Any
+    max_lag: int
+    min_history: int
+    refit_every: int | None
+    lag: int
+    n_folds: int
+    min_fit_s: float
+    prior_s: float
+
+
+def _causal_joint(zc, zi, phi, seen, dt, cfg: _CausalSettings):
+    """Causal fusion of one joint; returns mean (3, T, 4), cov (3, T, 4, 4), correction (T, 3),
+    the last (ridge, noise), the number of refits and the first refit time (T if none)."""
+    T = zc.shape[0]
+    block = max(2, int(round(1.0 / dt)))
+    kw = {} if cfg.alpha is None else {"alphas": cfg.alpha}
+    min_blocks = max(2, int(np.ceil(cfg.min_fit_s / (block * dt))))
+    reg = RidgeCorrection(
+        block=block, n_folds=cfg.n_folds, min_blocks=min_blocks, reselect_growth=1.5, **kw
+    )
+    mom = _Moments(cfg.max_lag)
+    ok = seen & np.all(np.isfinite(zi), -1)
+    corr = np.zeros((T, 3))  # the correction in use at t (prequential: fitted on samples < t)
+    zu = np.full((T, 3), np.nan)  # corrected chain as filtered: zi + corr
+    ze = np.full((T, 3), np.nan)  # the same minus the b shifts so far: continuous across refits
+    shift = np.zeros(3)
+    p = mom.noise(dt, cfg.prior_s / dt, camera_white=True)
+    x, P = _prior(zc[0], zi[0], p)
+    xf = np.empty((3, T, _N_X))
+    Pf = np.empty((3, T, _N_X, _N_X))
+    Fs = np.empty((3, T, _N_X, _N_X)) if cfg.lag else None
+    Qs = np.empty_like(Fs) if cfg.lag else None
+    times = _refit_times(seen, cfg.min_history, cfg.refit_every)
+    bounds = [0, *times, T]
+    done = 0  # samples [0, done) are in the ridge moments and the variograms
+    for k in range(len(bounds) - 1):
+        t0, t1 = bounds[k], bounds[k + 1]
+        if k > 0:  # refit on [0, t0); carry the filter state
+            rows = np.arange(done, t0)[ok[done:t0]]
+            if rows.size:
+                reg.partial_fit(phi[rows], zc[rows] - zi[rows], rows)
+            mom.add(zc, ze, ok, done, t0)
+            done = t0
+            p = mom.noise(dt, cfg.prior_s / dt, camera_white=True)
+            f = reg.predict(phi[t0 - 1 : t1])
+            # the state b is the chain error left after the correction: shift it by the change
+            # of the correction at the last sample, so that the corrected chain p + b is
+            # continuous across the refit
+            x[:, 2] += f[0] - corr[t0 - 1]
+            shift += f[0] - corr[t0 - 1]
+            corr[t0:t1] = f[1:]
+        zu[t0:t1] = zi[t0:t1] + corr[t0:t1]
+        ze[t0:t1] = zu[t0:t1] - shift
+        F, Q = _model_matrices(p, dt)
+        _kf_segment(
+            np.ascontiguousarray(zc[t0:t1].T),
+            np.ascontiguousarray(zu[t0:t1].T),
+            F,
+            Q,
+            p.r_cam,
+            p.r_imu,
+            x,
+            P,
+            t0 > 0,
+            _H_CAM,
+            _H_IMU,
+            xf[:, t0:t1],
+            Pf[:, t0:t1],
+        )
+        if cfg.lag:
+            Fs[:, t0:t1] = F[:, None]
+            Qs[:, t0:t1] = Q[:, None]
+    if cfg.lag:
+        xs, Ps = np.empty_like(xf), np.empty_like(Pf)
+        _smooth(xf, Pf, Fs, Qs, int(cfg.lag), xs, Ps)
+        xf, Pf = xs, Ps
+    last = {"noise": p, "correction": reg if times else None}
+    return xf, Pf, corr, last, len(times), (times[0] if times else T)
 
 
 def _check(z_imu, z_cam, available, dt_s, features):
@@ -563,7 +881,7 @@ def kinefuse_fusion(
         Largest lag of the noise variograms, samples (:func:`estimate_noise`); default 1 s.
     min_history : int
         Camera-seen samples needed before the first fit (causal mode); before it the
-        correction is zero and the noise parameters are SPEC §12.2 defaults.
+        correction is zero and the noise parameters are the conservative prior (Notes).
     refit_every : int or None
         Causal mode: also refit every this many samples (None: only at outage onsets).
 
@@ -595,12 +913,46 @@ def kinefuse_fusion(
 
     **Offline**: fit on all camera-seen samples, forward KF (sequential scalar updates, NaN =
     not measured), fixed-interval RTS (SPEC §9 equations). In an outage the smoother
-    interpolates b between its values before and after. **Causal**: at each refit time t_k
-    (outage onsets, every ``refit_every`` samples, once ``min_history`` camera samples exist)
-    the regression and the noise parameters are refitted on the camera-seen history before
-    t_k and the filter is re-run over the history with the new correction (the moments are
-    accumulated, so this is a streaming computation); outputs in ``[t_k, t_{k+1})`` come from
-    that run (fixed-lag smoothed with ``lag > 0``). In an outage b decays as ``φ_b^k``.
+    interpolates b between its values before and after.
+
+    **Causal** (streaming, O(T) in total): one forward filter runs over the whole series and
+    its state is carried across refits. At each refit time t_k (outage onsets and every
+    ``refit_every`` samples, once ``min_history`` camera samples exist) the ridge moments and
+    the noise statistics are updated with the samples of ``[t_{k−1}, t_k)`` only, the
+    correction and the noise parameters are re-solved, and the filter continues from its
+    current state with the new parameters; the state b is shifted by the change of the
+    correction at ``t_k − 1``, so that the corrected chain ``p + b`` is continuous (the past
+    is not re-filtered). With ``lag > 0`` a fixed-lag RTS runs over the last ``lag`` samples
+    with the (time-varying) model that was filtered. Cost per refit: O(refit_every · K) for
+    the statistics, O(folds · F³) for the cross-validated ridge (the penalty is re-selected
+    only when the history has grown by half since the last selection), O(1) for the noise fit.
+
+    The causal noise fit is conservative by construction (what failed before: on a short
+    history the fit said "chain error after the correction ≈ 0, camera error coloured", and
+    the filter followed the chain away from the camera while the camera saw the joint):
+
+    * the chain statistics are *prequential*: each sample's corrected chain is the one the
+      filter used, ``z_imu + f̂_k(φ)`` with ``f̂_k`` fitted before it, minus the b shifts made
+      so far (so it is continuous across refits and slow chain error absorbed piecewise by the
+      refits stays visible): the residual error of the correction is measured out of sample.
+      An in-sample residual after a regression on many features is far too small;
+    * the camera error is white (no state c in causal mode) and all correlated difference
+      between the sensors is attributed to the chain: ``V_I(k) = V_diff(k) − 2 R_V`` with
+      ``V_diff`` the variogram of ``z_cam − z_imu`` (robust) and R_V the white part of the
+      camera's cross-variogram. The split of the cross-variograms between the two sensors
+      (offline) fails when the chain error correlates with the motion (e.g. a correction
+      partly fitted to a drift): it moves chain error into a coloured camera error; and with
+      both b and c correlated, p is only weakly observable at low frequency;
+    * the variograms are blended with ``2 s`` of pseudo-data of a prior
+      (:func:`_prior_variograms`): camera white with R_V = 1e-3 m² (SPEC §12.2), chain error
+      a Gauss-Markov process of (5 cm)² and 1 s correlation time plus (1 cm)² white,
+      q = 0.1. The prior's b is stationary, so in an outage b decays to zero (the corrected
+      chain) instead of holding a noisy last offset; as history accumulates the data dominate;
+    * the correction is intercept-only until 3 s of camera history (3 cross-validation
+      blocks).
+
+    Before the first refit the prior parameters are used with no correction; outputs in
+    outages before any camera-seen history are the (smoothed) chain, ``SOURCE_IMU``.
 
     Deviations from the papers
     --------------------------
@@ -628,6 +980,17 @@ def kinefuse_fusion(
     bias = np.zeros((T, J, 3))
     source = np.where(av, SOURCE_FUSED, SOURCE_BRIDGED).astype(np.int8)
     params = []
+    n_refits = []
+    cfg = _CausalSettings(
+        alpha=alpha,
+        max_lag=int(max_lag),
+        min_history=int(min_history),
+        refit_every=refit_every,
+        lag=int(lag),
+        n_folds=_N_FOLDS_CAUSAL,
+        min_fit_s=_MIN_FIT_S,
+        prior_s=_PRIOR_S,
+    )
     for j in range(J):
         seen = av[:, j]
         if not causal:
@@ -636,48 +999,18 @@ def kinefuse_fusion(
             else:
                 reg, corr, pj = None, np.zeros((T, 3)), NoiseParameters.default()
                 source[~seen, j] = SOURCE_IMU
-            m, P = _run(zc[:, j], zi[:, j] + corr, pj, dt, -1)
-            pos[:, j] = m[..., 0].T
-            cov[:, j, range(3), range(3)] = P[..., 0, 0].T
-            bias[:, j] = m[..., 2].T
-            corr_all[:, j] = corr
-            params.append({"noise": pj, "correction": reg})
-            continue
-        # causal: epochs between refit times
-        n_seen = np.cumsum(seen)  # seen samples in [0, t]
-        onset = np.flatnonzero(~seen[1:] & seen[:-1]) + 1
-        times = set(int(t) for t in onset)
-        first = np.flatnonzero(n_seen >= min_history)
-        if first.size:
-            times.add(int(first[0]) + 1)
-            if refit_every:
-                times.update(range(int(first[0]) + 1, T, int(refit_every)))
-        times = sorted(t for t in times if 0 < t < T and n_seen[t - 1] >= min(min_history, 2))
-        bounds = [0, *times, T]
-        last = {"noise": NoiseParameters.default(), "correction": None}
-        for k in range(len(bounds) - 1):
-            t0, t1 = bounds[k], bounds[k + 1]
-            if t0 == t1:
-                continue
-            end = min(t1 + lag, T)
-            hist = seen[:t0].copy()
-            if k == 0 or hist.sum() < 2:
-                corr = np.zeros((end, 3))
-                pj = NoiseParameters.default()
-                reg = None
-                source[t0:t1, j][~seen[t0:t1]] = SOURCE_IMU
-            else:
-                reg, _, pj = _fit_joint(
-                    zc[:t0, j], zi[:t0, j], phi[:t0, j], hist, dt, alpha, max_lag
-                )
-                corr = reg.predict(phi[:end, j])
-            zc_e = zc[:end, j].copy()
-            m, P = _run(zc_e, zi[:end, j] + corr, pj, dt, lag)
-            pos[t0:t1, j] = m[:, t0:t1, 0].T
-            cov[t0:t1, j, range(3), range(3)] = P[:, t0:t1, 0, 0].T
-            bias[t0:t1, j] = m[:, t0:t1, 2].T
-            corr_all[t0:t1, j] = corr[t0:t1]
+            m, P = _run(zc[:, j], zi[:, j] + corr, pj, dt)
             last = {"noise": pj, "correction": reg}
+        else:
+            m, P, corr, last, n, t_first = _causal_joint(
+                zc[:, j], zi[:, j], phi[:, j], seen, dt, cfg
+            )
+            source[:t_first, j][~seen[:t_first]] = SOURCE_IMU
+            n_refits.append(n)
+        pos[:, j] = m[..., 0].T
+        cov[:, j, range(3), range(3)] = P[..., 0, 0].T
+        bias[:, j] = m[..., 2].T
+        corr_all[:, j] = corr
         params.append(last)
     return KinefuseResult(
         position=pos,
@@ -686,5 +1019,10 @@ def kinefuse_fusion(
         correction=corr_all,
         chain_error=bias,
         params=params,
-        info={"causal": bool(causal), "lag": int(lag), "n_features": int(phi.shape[-1])},
+        info={
+            "causal": bool(causal),
+            "lag": int(lag),
+            "n_features": int(phi.shape[-1]),
+            "n_refits": n_refits,
+        },
     )

@@ -499,6 +499,31 @@ def _elm_kf(ctx: _Context) -> FusionResult:
     return _elm_bridge(ctx, "kf")
 
 
+def _kinefuse(ctx: _Context) -> FusionResult:
+    """``"kinefuse"``: :func:`kinefuse.pipelines.kinefuse_fusion.kinefuse_fusion` (this package's
+    own method, not paper B's), offline or causal as ``ctx.causal``; ``ctx.features`` are its
+    IMU features φ (default: chain features). ``params.fixed_lag`` is its ``lag`` when causal."""
+    from kinefuse.pipelines.kinefuse_fusion import kinefuse_fusion  # lazy: avoids an import cycle
+
+    lag = int(ctx.params.fixed_lag) if ctx.causal else 0
+    res = kinefuse_fusion(
+        ctx.z_imu.transpose(1, 0, 2),
+        ctx.z_cam.transpose(1, 0, 2),
+        ctx.available.T,
+        ctx.dt_s,
+        causal=ctx.causal,
+        lag=lag,
+        features=None if ctx.features is None else ctx.features.transpose(1, 0, 2),
+    )
+    return _finish(
+        ctx,
+        res.position.transpose(1, 0, 2),
+        res.cov.transpose(1, 0, 2, 3),
+        res.source.T,
+        causal=ctx.causal,
+    )
+
+
 #: Registry of fusion methods: name -> function ``(ctx) -> FusionResult``. ``ctx`` carries the
 #: validated joint-major inputs ``z_imu, z_cam (J, T, 3)`` (z_cam NaN where unavailable),
 #: ``available (J, T)``, ``dt_s``, ``params``, ``causal``, ``joints``, ``method``, ``features``
@@ -508,6 +533,7 @@ METHODS: dict[str, Callable[[_Context], FusionResult]] = {
     "elm-kf": _elm_kf,
     "imu-only": _imu_only,
     "camera-only": _camera_only,
+    "kinefuse": _kinefuse,
 }
 
 
