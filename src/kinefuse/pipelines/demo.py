@@ -17,7 +17,6 @@ back-end of ``kinefuse demo``.
 from __future__ import annotations
 
 import contextlib
-import importlib
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -97,17 +96,9 @@ def progress(
 
 
 def paper_b_methods(include_kinefuse: bool = True) -> tuple[str, ...]:
-    """Paper B methods available in this installation, in table order.
-
-    ``"kinefuse"`` is included when a module registered it with
-    :func:`kinefuse.pipelines.register_method` (``kinefuse.pipelines.kinefuse_fusion`` is
-    imported first so that it can register itself).
-    """
+    """Paper B methods available in this installation, in table order (plus ``"kinefuse"``)."""
     from kinefuse.pipelines import METHODS
 
-    if include_kinefuse and "kinefuse" not in METHODS:
-        with contextlib.suppress(ImportError):
-            importlib.import_module("kinefuse.pipelines.kinefuse_fusion")
     names = ["elm-fir", "elm-kf", "imu-only", "camera-only"]
     if include_kinefuse and "kinefuse" in METHODS:
         names.append("kinefuse")

@@ -839,12 +839,6 @@ def _paper_a_filter(out: SessionOutput, chain, dt, flt: str, params: Mapping) ->
 def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, cal) -> None:
     from kinefuse.pipelines import METHODS, VisionParams, vision_assisted
 
-    if method == "kinefuse" and "kinefuse" not in METHODS:
-        import contextlib
-        import importlib
-
-        with contextlib.suppress(ImportError):
-            importlib.import_module("kinefuse.pipelines.kinefuse_fusion")
     if method not in METHODS:
         raise ConfigError(
             f"method {method!r} is not available in this installation (available: "
