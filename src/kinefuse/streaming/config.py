@@ -75,7 +75,7 @@ LOCAL_SETTINGS = {
 }
 
 #: Processor names accepted by :class:`StreamConfig` (see :mod:`kinefuse.streaming.engine`).
-PROCESSORS = ("kf-fusion", "paper-a")
+PROCESSORS = ("kf-fusion", "paper-a", "elm-fir", "elm-kf")
 
 _WE_SET_ENV = {"value": None}
 
@@ -463,18 +463,19 @@ def stream_config_from_session(session, **overrides) -> StreamConfig:
     """A :class:`StreamConfig` from an offline :class:`~kinefuse.session.SessionConfig`.
 
     Uses the session name as the stream prefix, its skeleton (height, lengths) and its method
-    (``paper-a`` / ``imu-only`` -> the paper-A processor, otherwise the KF fusion baseline;
-    ``elm-fir`` / ``elm-kf`` are refused until the online paper-B processor exists).
+    (``paper-a`` / ``imu-only`` -> the paper-A processor, ``elm-fir`` / ``elm-kf`` -> the online
+    paper-B processor, otherwise the KF fusion baseline).
     """
     method = session.method.name
-    if method in ("elm-fir", "elm-kf"):
-        raise ConfigError(
-            f"{session.path.name}: [method] name = {method!r}: the online paper-B processor is not "
-            "available yet; use 'paper-a' or 'kinefuse' (KF fusion) for streaming"
-        )
+    if method in ("paper-a", "imu-only"):
+        processor = "paper-a"
+    elif method in ("elm-fir", "elm-kf"):
+        processor = method
+    else:
+        processor = "kf-fusion"
     kw = {
         "name_prefix": re.sub(r"[^A-Za-z0-9_.\-]", "_", session.name) or "kinefuse",
-        "processor": "paper-a" if method in ("paper-a", "imu-only") else "kf-fusion",
+        "processor": processor,
         "lengths_m": dict(session.skeleton.lengths_m),
     }
     if session.skeleton.body_height_m is not None:

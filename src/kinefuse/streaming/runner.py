@@ -53,6 +53,17 @@ def build_engine(
     rate = camera_rate_hz if camera else cfg.output_rate_hz
     if cfg.processor == "paper-a":
         proc = IntegratedProcessor(1.0 / rate, q=cfg.q, r=cfg.r_imu, lag=cfg.lag)
+    elif cfg.processor in ("elm-fir", "elm-kf"):
+        from kinefuse.pipelines.vision_assisted import VisionParams
+        from kinefuse.streaming.paper_b import VisionAssistedProcessor
+
+        if cfg.lag:
+            raise ConfigError(
+                f"[stream] lag = {cfg.lag}: the paper-B processor runs without lag; set lag = 0"
+            )
+        proc = VisionAssistedProcessor(
+            cfg.processor, VisionParams(), dt_s=1.0 / rate, joints=cfg.joints
+        )
     else:
         proc = KalmanFusionProcessor(
             1.0 / rate, q=cfg.q, r_imu=cfg.r_imu, r_camera=cfg.r_camera, lag=cfg.lag
