@@ -7,6 +7,14 @@ directory; we make that explicit: unless ``NUMBA_CACHE_DIR`` is already set, it 
 ``$XDG_CACHE_HOME/kinefuse/numba`` (default ``~/.cache/kinefuse/numba``) when the package
 directory is read-only. Paying the compile cost once per machine is expected; later processes
 load the cached machine code.
+
+Interpreted kernels
+-------------------
+Compiling every kernel takes minutes on a small machine, which is far more than a small workload
+(the built-in demo: a few hundred samples per joint) needs. :func:`interpret_kernels`, called
+before the kernel modules are imported, makes :data:`njit` return the plain Python functions:
+identical results, no compile cost, slower per step. ``kinefuse demo`` uses it when
+:func:`kernels_cached` says this machine has not compiled the kernels yet.
 """
 
 from __future__ import annotations
@@ -34,6 +42,66 @@ _configure_cache_dir()
 
 import numba  # noqa: E402
 
-#: Decorator for every hot loop in kinefuse: compiled once per machine, cached on disk.
-#: Use as ``@njit``.
-njit = numba.njit(cache=True, nogil=True, error_model="numpy")
+_numba_njit = numba.njit(cache=True, nogil=True, error_model="numpy")
+_numba_njit_inline = numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+_interpret = False
+
+#: Modules holding compiled kernels (imported lazily by the filters and pipelines).
+KERNEL_MODULES = (
+    "kinefuse.filters._kernels",
+    "kinefuse.filters._kernels_axis",
+    "kinefuse.filters._kernels_em",
+    "kinefuse.filters._kernels_imm",
+    "kinefuse.filters._kernels_ufir",
+    "kinefuse.pipelines.kinefuse_fusion",
+)
+# A kernel of each heavy module: if their cache index files exist, the kernels were compiled.
+_SENTINELS = (
+    ("filters", "_kernels_em.integrated_run-*.nbi"),
+    ("filters", "_kernels_ufir.ufir_run-*.nbi"),
+    ("filters", "_kernels_imm.imm_run-*.nbi"),
+)
+
+
+def njit(func):
+    """Decorator for every hot loop in kinefuse: compiled once per machine, cached on disk.
+
+    Returns ``func`` itself (interpreted) after :func:`interpret_kernels`.
+    """
+    return func if _interpret else _numba_njit(func)
+
+
+def njit_inline(func):
+    """As :func:`njit`, with the callee inlined into its callers at numba IR level."""
+    return func if _interpret else _numba_njit_inline(func)
+
+
+def interpret_kernels() -> bool:
+    """Run the kernels as plain Python in this process (no compilation).
+
+    Must be called before any kernel module is imported; returns False (and changes nothing) if
+    one already is.
+    """
+    global _interpret
+    import sys
+
+    if any(m in sys.modules for m in KERNEL_MODULES):
+        return False
+    _interpret = True
+    return True
+
+
+def kernels_cached() -> bool:
+    """True when this machine's numba cache holds the compiled kernels (checked without importing)."""
+    import glob
+
+    pkg = Path(__file__).resolve().parent
+    user_dir = os.environ.get("NUMBA_CACHE_DIR")  # numba looks there first when it is set
+    for sub, pattern in _SENTINELS:
+        if user_dir:
+            found = glob.glob(str(Path(user_dir) / "**" / pattern), recursive=True)
+        else:
+            found = glob.glob(str(pkg / sub / "__pycache__" / pattern))
+        if not found:
+            return False
+    return True

@@ -402,6 +402,15 @@ def demo(
     """Run the demo on built-in data and write an HTML report (report.html) to DIR."""
     out_dir = _fresh_dir("kinefuse-demo") if out is None else out
     _check_report_free(out_dir, force)
+    from kinefuse import _compile
+
+    # A first run on this machine: interpreting the kernels on the demo's few hundred samples
+    # is much faster than compiling them (minutes on 2 cores). Results are identical.
+    if not _compile.kernels_cached() and _compile.interpret_kernels() and not quiet:
+        _stderr().print(
+            "[yellow]First run on this machine: filter kernels run interpreted (identical "
+            "results; `kinefuse run/experiment/bench` compile them once).[/yellow]"
+        )
     try:
         run = _backend("demo")
     except BackendUnavailable:

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kinefuse import _compile
 from kinefuse.conventions import MODE_NAMES, PAPER_B_JOINTS, SOURCE_NAMES
 from kinefuse.exceptions import InputError
 
@@ -482,6 +483,13 @@ def run_demo(out_dir, force: bool = False, quiet: bool = False) -> dict:
             f"occlusions and dropouts), seed {DEMO_SEED}.",
             *scenario.notes,
         ]
+        if _compile._interpret:
+            notes.append(
+                "The filter kernels ran interpreted: this machine has not compiled them yet, and "
+                "compiling would take far longer than this small demo. Results are identical; the "
+                "run times are those of interpreted kernels. Any `kinefuse run`, `experiment` or "
+                "`bench` compiles them once (cached for later runs)."
+            )
         report = write_report(
             out_dir,
             ev_all,
