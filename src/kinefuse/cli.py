@@ -25,7 +25,6 @@ clear "not available in this version" message (exit 1) instead of an ImportError
 command       back-end call
 ============  =========================================================================
 demo          ``kinefuse.pipelines.demo.run_demo(out_dir, force, quiet) -> summary``
-              (until it exists: a small built-in synthetic demo, see ``_builtin_demo``)
 run           ``kinefuse.pipelines.session.run_session(path, out_dir, force) -> summary``
 evaluate      ``kinefuse.pipelines.session.evaluate_recording(path, method) -> summary``
 experiment    ``kinefuse.pipelines.experiments.run_experiment(name, data_dir) -> summary``
@@ -46,7 +45,6 @@ import importlib
 import json
 import os
 import sys
-import time
 import traceback
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
@@ -411,11 +409,7 @@ def demo(
             "[yellow]First run on this machine: filter kernels run interpreted (identical "
             "results; `kinefuse run/experiment/bench` compile them once).[/yellow]"
         )
-    try:
-        run = _backend("demo")
-    except BackendUnavailable:
-        run = _builtin_demo
-    summary = run(out_dir, force, quiet)
+    summary = _backend("demo")(out_dir, force, quiet)
     _present(summary, quiet=quiet, json_file=json_file)
 
 
@@ -585,168 +579,3 @@ def replay(
 def main() -> None:
     """Console-script entry point (``kinefuse``)."""
     app(prog_name="kinefuse")
-
-
-# --------------------------------------------------------------------------------------------
-# interim built-in demo (replaced by kinefuse.pipelines.demo.run_demo once that exists)
-# --------------------------------------------------------------------------------------------
-
-_DEMO_JOINTS = ("shoulder_r", "elbow_r", "wrist_r")
-_DEMO_EDGES = (("shoulder_r", "elbow_r"), ("elbow_r", "wrist_r"))
-
-
-def _demo_motion(rate_hz: float = 30.0, duration_s: float = 40.0, seed: int = 7):
-    """A seeded synthetic right arm: shoulder sway, shoulder flexion/abduction, elbow flexion.
-
-    Returns ``t_s (T,)``, reference ``(T, 3, 3)`` (shoulder, elbow, wrist; ENU, m), the noisy
-    measurement with camera outages (NaN) ``(T, 3, 3)`` and the outage mask ``(T, 3)``.
-    """
-    rng = np.random.default_rng(seed)
-    t = np.arange(int(round(duration_s * rate_hz))) / rate_hz
-    T = t.size
-    shoulder = np.stack(
-        [
-            0.02 * np.sin(2 * np.pi * 0.11 * t),
-            0.015 * np.sin(2 * np.pi * 0.07 * t + 1.0),
-            1.40 + 0.01 * np.sin(2 * np.pi * 0.2 * t),
-        ],
-        axis=-1,
-    )
-    flex = 0.7 + 0.6 * np.sin(2 * np.pi * 0.21 * t)  # shoulder flexion, rad
-    abd = 0.35 + 0.25 * np.sin(2 * np.pi * 0.13 * t + 1.0)  # shoulder abduction, rad
-    elbow_flex = 1.0 + 0.7 * np.sin(2 * np.pi * 0.33 * t + 0.5)  # elbow flexion, rad
-
-    def direction(theta, phi):
-        d = np.stack(
-            [np.sin(theta) * np.cos(phi), np.sin(phi), -np.cos(theta) * np.cos(phi)], axis=-1
-        )
-        return d / np.linalg.norm(d, axis=-1, keepdims=True)
-
-    elbow = shoulder + 0.30 * direction(flex, abd)
-    wrist = elbow + 0.26 * direction(flex + elbow_flex, abd)
-    ref = np.stack([shoulder, elbow, wrist], axis=1)
-    noise = 0.02 * rng.standard_normal(ref.shape)
-    spikes = rng.random(ref.shape[:2]) < 0.01  # occasional tracker glitches
-    noise[spikes] += 0.15 * rng.standard_normal((int(spikes.sum()), 3))
-    meas = ref + noise
-    outage = np.zeros((T, 3), dtype=bool)
-    for j, starts in ((1, (8.0, 27.0)), (2, (14.0, 31.5))):
-        for s in starts:
-            outage[(t >= s) & (t < s + 1.5), j] = True
-    meas[outage] = np.nan
-    return t, ref, meas, outage
-
-
-def _cv_kalman(z: np.ndarray, dt: float, q: float, r: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per-axis constant-velocity KF on ``z (T, J, 3)`` (NaN = predict only); positions, modes."""
-    from kinefuse.conventions import MODE_KF, MODE_PREDICT
-
-    T = z.shape[0]
-    shape = z.shape[1:]
-    x = np.zeros((*shape, 2))
-    P = np.zeros((*shape, 2, 2))
-    init = np.zeros(shape, dtype=bool)
-    F = np.array([[1.0, dt], [0.0, 1.0]])
-    Q = q * np.array([[dt * dt / 4, dt / 2], [dt / 2, 1.0]])
-    out = np.full(z.shape, np.nan)
-    mode = np.full(z.shape[:2], MODE_PREDICT, dtype=np.int8)
-    for k in range(T):
-        x = x @ F.T
-        P = F @ P @ F.T + Q
-        zk = z[k]
-        obs = np.isfinite(zk)
-        new = obs & ~init
-        x[new] = np.stack([zk[new], np.zeros(int(new.sum()))], axis=-1)
-        P[new] = np.array([[r, 0.0], [0.0, 1.0]])
-        init |= new
-        upd = obs & ~new
-        S = P[..., 0, 0] + r
-        K = P[..., :, 0] / S[..., None]
-        nu = np.where(upd, np.nan_to_num(zk) - x[..., 0], 0.0)
-        x = x + np.where(upd[..., None], K * nu[..., None], 0.0)
-        IKH = np.eye(2) - K[..., :, None] * np.array([1.0, 0.0])
-        P_upd = IKH @ P @ np.swapaxes(IKH, -1, -2) + r * K[..., :, None] * K[..., None, :]
-        P = np.where(upd[..., None, None], P_upd, P)
-        out[k] = np.where(init, x[..., 0], np.nan)
-        mode[k] = np.where(np.all(obs, axis=-1), MODE_KF, MODE_PREDICT)
-    return out, mode
-
-
-def _library_filters(z: np.ndarray, dt: float, q: float, r: float, notes: list[str]):
-    """Run whichever filters of :mod:`kinefuse.filters` exist, each guarded."""
-    results, modes, times = {}, {}, {}
-    try:
-        from kinefuse import filters
-        from kinefuse.models import constant_velocity
-
-        model = constant_velocity(dt, q, r)
-    except Exception as exc:
-        notes.append(f"kinefuse.filters not usable yet: {type(exc).__name__}: {exc}")
-        return results, modes, times
-    labels = {"KalmanFilter": "KF", "UFIRFilter": "FIR", "IntegratedFilter": "EM-KF/FIR"}
-    zb = np.ascontiguousarray(np.moveaxis(z, 0, 1))  # (J, T, 3)
-    for cls_name, label in labels.items():
-        cls = getattr(filters, cls_name, None)
-        if cls is None:
-            notes.append(f"{cls_name}: not in kinefuse.filters yet")
-            continue
-        try:
-            t0 = time.perf_counter()
-            _, res = cls(model).filter(zb)
-            times[label] = time.perf_counter() - t0
-            results[label] = np.moveaxis(np.asarray(res.position, dtype=float), 0, 1)
-            if getattr(res, "mode", None) is not None:
-                modes[label] = np.moveaxis(np.asarray(res.mode), 0, 1).astype(np.int64)
-            elif getattr(res, "observed", None) is not None:
-                from kinefuse.conventions import MODE_KF, MODE_PREDICT
-
-                observed = np.moveaxis(np.asarray(res.observed, dtype=bool), 0, 1)
-                modes[label] = np.where(observed, MODE_KF, MODE_PREDICT).astype(np.int64)
-        except Exception as exc:  # a back-end under construction must not break the demo
-            notes.append(f"{cls_name} skipped: {type(exc).__name__}: {_one_line(str(exc))[:160]}")
-    return results, modes, times
-
-
-def _builtin_demo(out_dir: Path, force: bool, quiet: bool) -> dict:
-    """Interim demo: synthetic arm, noisy camera with outages, available filters, HTML report."""
-    from kinefuse.evaluation.metrics import evaluate
-    from kinefuse.evaluation.report import write_report
-
-    rate_hz, q, r = 30.0, 0.01, 0.02**2
-    dt = 1.0 / rate_hz
-    notes = [
-        "Interim built-in demo (the full IMU pipeline demo replaces it): a seeded synthetic right arm "
-        "(shoulder sway, shoulder flexion/abduction, elbow flexion) at 30 Hz for 40 s; the input is the "
-        "true joint positions plus 2 cm white noise, 1 % tracker glitches and 1.5 s camera outages at "
-        "the elbow and wrist (NaN).",
-        f"Filters: constant-velocity model, q = {q} (m/s)^2 per step, R = {r:g} m^2 * I.",
-    ]
-    with progress("Demo: filtering", total=3, quiet=quiet) as advance:
-        t, ref, meas, outage = _demo_motion(rate_hz)
-        advance()
-        estimates, modes, times = _library_filters(meas, dt, q, r, notes)
-        if "KF" not in estimates:  # kinefuse.filters.KalmanFilter not there yet
-            t0 = time.perf_counter()
-            kf, kf_mode = _cv_kalman(meas, dt, q, r)
-            times["KF"] = time.perf_counter() - t0
-            estimates["KF"] = kf
-            modes["KF"] = kf_mode.astype(np.int64)
-        estimates = {"camera input": meas, **estimates}
-        advance()
-        evaluation = evaluate(estimates, ref, outage, times, joints=_DEMO_JOINTS)
-        report = write_report(
-            out_dir,
-            evaluation,
-            estimates,
-            ref,
-            t,
-            outage,
-            modes=modes,
-            dotted=("camera input",),
-            skeleton_edges=_DEMO_EDGES,
-            title="kinefuse demo: synthetic right arm",
-            notes=notes,
-            force=force,
-        )
-        advance()
-    return {"evaluation": evaluation, "report": report, "notes": notes}
