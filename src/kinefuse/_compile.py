@@ -57,7 +57,7 @@ KERNEL_MODULES = (
 )
 # A kernel of each heavy module: if their cache index files exist, the kernels were compiled.
 _SENTINELS = (
-    ("filters", "_kernels_em.integrated_run-*.nbi"),
+    ("filters", "_kernels_em.integrated_run_cv-*.nbi"),
     ("filters", "_kernels_ufir.ufir_run-*.nbi"),
     ("filters", "_kernels_imm.imm_run-*.nbi"),
 )

@@ -8,6 +8,21 @@ entries (9 and 3 entries for the 3-D constant-velocity model); any dense matrix 
 
 Status bits returned by :func:`em_update`: 1 = R floor bound, 2 = P⁻ floor bound,
 4 = ``S`` had to be regularised (SPEC §13), 8 = ``S`` could not be factorised (update skipped).
+
+Two forms of each run loop:
+
+* :func:`em_kf_run`, :func:`integrated_run`: the general form for any ``F``, ``H`` (sparse
+  triplets), the reference.
+* :func:`em_kf_run_cv`, :func:`integrated_run_cv`: the same arithmetic, in the same order (bit
+  for bit the same results), specialised to the constant-velocity structure of SPEC §1
+  (:func:`cv_structure`): ``F`` block-diagonal with a 2×2 block per axis and ``H`` selecting the
+  position of each axis. Then ``x⁻ = F x`` and ``F P Fᵀ`` are per-axis 2×2 closed forms on the
+  dense ``P``, ``H P`` is rows ``0, 2, 4`` of ``P``, ``H P Hᵀ`` a sub-matrix, and ``I − K H``
+  only touches the position columns, so no product with ``F`` or ``H`` is formed. Every helper of
+  the time loop is inlined at the numba IR level (``inline="always"``): a call of a compiled
+  function with array arguments costs two atomic reference-count updates per array, which
+  dominated the general form. The positive-definiteness tests of the floors use an LDLᵀ
+  elimination (no square roots, off the critical path of the iteration).
 """
 
 from __future__ import annotations
@@ -15,7 +30,17 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit
-from kinefuse.filters._kernels_ufir import _chol, fir_estimate
+from kinefuse.filters._kernels_ufir import (
+    _chol,
+    fir_estimate,
+    njit_inline,
+    ufir_horizon_axes,
+    ufir_taps,
+)
+
+#: Internal status bit of :func:`em_update_cv`: the last Joseph update computed only the position
+#: block of ``P`` (complete it with :func:`joseph_cv` before using ``P``).
+P_DEFERRED = 16
 
 FLOOR_R, FLOOR_P, S_REGULARISED, S_FAILED = 1, 2, 4, 8
 
@@ -821,5 +846,620 @@ def integrated_run(
                 _put(o_mean, o_cov, b, t, xb, Pb)
             o_obs[b, t] = True
         _set(x, P, b, xb, Pb)
+        init[b] = initialized
+    return counts
+
+
+# ---------------------------------------------------------------------------------------------
+# Constant-velocity specialisation (same arithmetic as above, bit for bit; see module docs)
+# ---------------------------------------------------------------------------------------------
+
+
+def cv_structure(F, H):
+    """Per-axis blocks ``fb (n_a, 4) = [f00, f01, f10, f11]`` when the model has the CV structure.
+
+    The structure: ``n_x = 2 n_z``; ``F`` zero outside the per-axis 2×2 blocks; ``H[a, 2a] = 1``
+    and every other entry of ``H`` zero. Q and R may be dense. Returns None otherwise (the
+    general kernels are used).
+    """
+    F = np.asarray(F, dtype=np.float64)
+    H = np.asarray(H, dtype=np.float64)
+    n_z, n_x = H.shape
+    if n_x != 2 * n_z or F.shape != (n_x, n_x):
+        return None
+    mask = np.kron(np.eye(n_z), np.ones((2, 2))).astype(bool)
+    if np.any(F[~mask] != 0.0):
+        return None
+    Hsel = np.zeros((n_z, n_x))
+    Hsel[np.arange(n_z), 2 * np.arange(n_z)] = 1.0
+    if not np.array_equal(H, Hsel):
+        return None
+    return np.ascontiguousarray(
+        [F[2 * a : 2 * a + 2, 2 * a : 2 * a + 2].ravel() for a in range(n_z)]
+    )
+
+
+@njit_inline
+def _chol_t_i(A, L, tn):
+    """Inlined :func:`_chol_t` (same operations)."""
+    n = len(tn)
+    for j in range(n):
+        s = A[j, j]
+        for p in range(j):
+            s -= L[j, p] * L[j, p]
+        if not (s > 0.0):
+            return False
+        d = np.sqrt(s)
+        L[j, j] = d
+        inv = 1.0 / d
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for p in range(j):
+                s -= L[i, p] * L[j, p]
+            L[i, j] = s * inv
+    return True
+
+
+@njit_inline
+def _chol_solve_i(L, B, tn, tm):
+    """Inlined :func:`_chol_solve` (same operations)."""
+    n = len(tn)
+    m = len(tm)
+    for i in range(n):
+        d = 1.0 / L[i, i]
+        for c in range(m):
+            s = B[i, c]
+            for p in range(i):
+                s -= L[i, p] * B[p, c]
+            B[i, c] = s * d
+    for i in range(n - 1, -1, -1):
+        d = 1.0 / L[i, i]
+        for c in range(m):
+            s = B[i, c]
+            for p in range(i + 1, n):
+                s -= L[p, i] * B[p, c]
+            B[i, c] = s * d
+
+
+@njit_inline
+def _chol_reg_i(S, L, work, tn):
+    """:func:`_chol_reg` with the common (no regularisation) case inlined."""
+    if _chol_t_i(S, L, tn):
+        return 0
+    return _chol_reg(S, L, work, tn)
+
+
+@njit_inline
+def _quad_inv_i(L, v, tmp, tn):
+    """Inlined :func:`_quad_inv` (same operations)."""
+    n = len(tn)
+    acc = 0.0
+    for i in range(n):
+        s = v[i]
+        for p in range(i):
+            s -= L[i, p] * tmp[p]
+        tmp[i] = s / L[i, i]
+        acc += tmp[i] * tmp[i]
+    return acc
+
+
+@njit_inline
+def _not_pd_above(A, Nom, c, W, tn):
+    """True when ``A − c·Nom`` is not positive definite: LDLᵀ pivots, no square roots.
+
+    Same test as :func:`_floor_binds` (all pivots > 0) with a shorter dependency chain; the two
+    can only disagree for a matrix singular to rounding, where clipping changes nothing.
+    """
+    n = len(tn)
+    for i in range(n):
+        for j in range(i, n):
+            W[i, j] = A[i, j] - c * Nom[i, j]
+    for k in range(n):  # right-looking elimination on the upper triangle
+        d = W[k, k]
+        if not (d > 0.0):
+            return True
+        inv = 1.0 / d
+        for i in range(k + 1, n):
+            f = W[k, i] * inv
+            for j in range(i, n):
+                W[i, j] -= f * W[k, j]
+    return False
+
+
+@njit_inline
+def cv_predict(ta, tx, xb, Pb, fb, Q, xp, Pp, FP):
+    """:func:`kf_predict_sparse` for per-axis blocks ``fb[a] = [f00, f01, f10, f11]`` (same result).
+
+    ``x⁻ = F x`` (Eq. 5) and ``P⁻ = F P Fᵀ + Q`` (Eq. 6) on a dense ``P``, symmetrised.
+    """
+    n_a = len(ta)
+    n = len(tx)
+    for a in range(n_a):
+        i = 2 * a
+        f00 = fb[a, 0]
+        f01 = fb[a, 1]
+        f10 = fb[a, 2]
+        f11 = fb[a, 3]
+        x0 = xb[i]
+        x1 = xb[i + 1]
+        xp[i] = f00 * x0 + f01 * x1  # Eq. 5
+        xp[i + 1] = f10 * x0 + f11 * x1
+        for j in range(n):  # F P, rows 2a, 2a+1
+            p0 = Pb[i, j]
+            p1 = Pb[i + 1, j]
+            FP[i, j] = f00 * p0 + f01 * p1
+            FP[i + 1, j] = f10 * p0 + f11 * p1
+    for i in range(n):  # (F P) Fᵀ + Q, columns 2a, 2a+1 (Eq. 6)
+        for a in range(n_a):
+            j = 2 * a
+            g0 = FP[i, j]
+            g1 = FP[i, j + 1]
+            Pp[i, j] = Q[i, j] + fb[a, 0] * g0 + fb[a, 1] * g1
+            Pp[i, j + 1] = Q[i, j + 1] + fb[a, 2] * g0 + fb[a, 3] * g1
+    for i in range(n):
+        for j in range(i + 1, n):
+            s = 0.5 * (Pp[i, j] + Pp[j, i])
+            Pp[i, j] = s
+            Pp[j, i] = s
+
+
+@njit_inline
+def joseph_cv(ta, tx, Pm, Kt, Rj, AP, D, P, pos_only):
+    """Joseph update ``P = (I − K H) P̄⁻ (I − K H)ᵀ + K R Kᵀ`` for ``H`` selecting positions.
+
+    As in :func:`em_update`: ``AP = P̄⁻ − K (H P̄⁻)`` (``H P̄⁻`` = position rows of ``P̄⁻``),
+    ``D = K R − AP Hᵀ``, ``P = AP + D Kᵀ`` (upper triangle, mirrored). ``pos_only``: only the
+    position block ``P[2a, 2b]`` (all that ``Ω₁ = e eᵀ + H P Hᵀ`` needs); the same operations,
+    so a later full call gives the same values there.
+    """
+    n_a = len(ta)
+    n = len(tx)
+    if pos_only:
+        for a in range(n_a):
+            i = 2 * a
+            for b in range(n_a):
+                c = 2 * b
+                acc = Pm[i, c]
+                for r in range(n_a):
+                    acc -= Kt[r, i] * Pm[2 * r, c]
+                AP[i, c] = acc
+            for r2 in range(n_a):
+                acc = 0.0
+                for r1 in range(n_a):
+                    acc += Kt[r1, i] * Rj[r1, r2]
+                D[i, r2] = acc - AP[i, 2 * r2]
+        for a in range(n_a):
+            i = 2 * a
+            for b in range(a, n_a):
+                j = 2 * b
+                acc = AP[i, j]
+                for r in range(n_a):
+                    acc += D[i, r] * Kt[r, j]
+                P[i, j] = acc
+                P[j, i] = acc
+        return
+    for i in range(n):
+        for c in range(n):
+            acc = Pm[i, c]
+            for r in range(n_a):
+                acc -= Kt[r, i] * Pm[2 * r, c]
+            AP[i, c] = acc
+    for i in range(n):
+        for r2 in range(n_a):
+            acc = 0.0
+            for r1 in range(n_a):
+                acc += Kt[r1, i] * Rj[r1, r2]
+            D[i, r2] = acc - AP[i, 2 * r2]
+    for i in range(n):
+        for j in range(i, n):
+            acc = AP[i, j]
+            for r in range(n_a):
+                acc += D[i, r] * Kt[r, j]
+            P[i, j] = acc
+            P[j, i] = acc
+
+
+@njit_inline
+def em_update_cv(
+    ta, tx, xp, Pp, z, R0, Rnom, Uprior, u_prior, n_iter, regularized, tau, floor_c, want_R,
+    defer, x, P, Rj, Rl, Om1, Pm, S, LS, Kt, AP, D, W, nu, e, tmp,
+):  # fmt: skip
+    """:func:`em_update` for the CV structure (SPEC §5.3; paper A Algorithm 2 lines 5-17).
+
+    Same arguments and results as :func:`em_update`, with the scratch passed one by one. ``x``,
+    ``P`` may be the caller's state arrays (only ``xp``, ``Pp`` are read). ``defer`` (with
+    ``want_R``): the last iteration computes only the position block of ``P`` and keeps its R in
+    ``Rl``; the status then has :data:`P_DEFERRED` set and ``joseph_cv(..., Pm, Kt, Rl, ...)``
+    completes ``P`` when it is needed (the integrated filter skips it when the FIR wins).
+    """
+    n_a = len(ta)
+    n = len(tx)
+    status = 0
+    nis = np.nan
+    for r in range(n_a):
+        nu[r] = z[r] - xp[2 * r]  # ν = z − H x⁻ (fixed through the iterations)
+    for i in range(n):
+        x[i] = xp[i]
+        for j in range(n):
+            P[i, j] = Pp[i, j]
+            Pm[i, j] = Pp[i, j]  # P̄⁻^{(0)} = P⁻
+    for r1 in range(n_a):
+        for r2 in range(n_a):
+            Rj[r1, r2] = R0[r1, r2]  # R^{(0)}: nominal, reset every step
+    for jit in range(n_iter):
+        last = jit == n_iter - 1
+        for r1 in range(n_a):  # S = H P̄⁻ Hᵀ + R^{(j)}
+            for r2 in range(n_a):
+                S[r1, r2] = Rj[r1, r2] + Pm[2 * r1, 2 * r2]
+        for r1 in range(n_a):
+            for r2 in range(r1 + 1, n_a):
+                sym = 0.5 * (S[r1, r2] + S[r2, r1])
+                S[r1, r2] = sym
+                S[r2, r1] = sym
+        st = _chol_reg_i(S, LS, W, ta)
+        if st == 2:
+            status |= S_FAILED if jit == 0 else S_REGULARISED
+            break
+        if st == 1:
+            status |= S_REGULARISED
+        for r in range(n_a):  # Kᵀ = S⁻¹ H P̄⁻  (K^{(j+1)})
+            for c in range(n):
+                Kt[r, c] = Pm[2 * r, c]
+        _chol_solve_i(LS, Kt, ta, tx)
+        if jit == 0:
+            nis = _quad_inv_i(LS, nu, tmp, ta)
+        for i in range(n):  # x^{(j+1)} = x⁻ + K ν
+            acc = xp[i]
+            for r in range(n_a):
+                acc += Kt[r, i] * nu[r]
+            x[i] = acc
+        pos_only = last and want_R and defer
+        if pos_only:
+            status |= P_DEFERRED
+            for r1 in range(n_a):
+                for r2 in range(n_a):
+                    Rl[r1, r2] = Rj[r1, r2]
+        joseph_cv(ta, tx, Pm, Kt, Rj, AP, D, P, pos_only)  # P^{(j+1)} (Eq. 9)
+        if last and not want_R:
+            break
+        for r in range(n_a):  # e = z − H x^{(j+1)}
+            e[r] = z[r] - x[2 * r]
+        for r1 in range(n_a):  # Ω₁ = e eᵀ + H P Hᵀ → R^{(j+1)}
+            for r2 in range(n_a):
+                Om1[r1, r2] = e[r1] * e[r2] + P[2 * r1, 2 * r2]
+        for r1 in range(n_a):
+            for r2 in range(r1 + 1, n_a):
+                sym = 0.5 * (Om1[r1, r2] + Om1[r2, r1])
+                Om1[r1, r2] = sym
+                Om1[r2, r1] = sym
+        if regularized:
+            den = u_prior - n_a
+            for r1 in range(n_a):
+                for r2 in range(n_a):
+                    Rj[r1, r2] = (Uprior[r1, r2] + Om1[r1, r2]) / den
+        else:
+            for r1 in range(n_a):
+                for r2 in range(n_a):
+                    Rj[r1, r2] = Om1[r1, r2]
+        if _not_pd_above(Rj, Rnom, floor_c, W, ta):  # SPEC §5.4 floor
+            if floor_clip(Rj, Rnom, floor_c, n_a):
+                status |= FLOOR_R
+        if last:
+            break
+        for i in range(n):  # Ω₂ = P + (x − x⁻)(x − x⁻)ᵀ → P̄⁻^{(j+1)}
+            tmp[i] = x[i] - xp[i]
+        for i in range(n):
+            for j in range(n):
+                Pm[i, j] = P[i, j] + tmp[i] * tmp[j]
+        if regularized:
+            for i in range(n):
+                for j in range(n):
+                    Pm[i, j] = (tau * Pp[i, j] + Pm[i, j]) / (tau + 1.0)
+        if _not_pd_above(Pm, Pp, floor_c, W, tx):
+            if floor_clip(Pm, Pp, floor_c, n):
+                status |= FLOOR_P
+    return status, nis
+
+
+def cv_scratch(n_x, n_z):
+    """Scratch of :func:`em_update_cv`: ``Rj, Rl, Om1, Pm, S, LS, Kt, AP, D, W, nu, e, tmp``."""
+    return (
+        np.empty((n_z, n_z)),
+        np.empty((n_z, n_z)),
+        np.empty((n_z, n_z)),
+        np.empty((n_x, n_x)),
+        np.empty((n_z, n_z)),
+        np.empty((n_z, n_z)),
+        np.empty((n_z, n_x)),
+        np.empty((n_x, n_x)),
+        np.empty((n_x, n_z)),
+        np.empty((n_x, n_x)),
+        np.empty(n_z),
+        np.empty(n_z),
+        np.empty(n_x),
+    )
+
+
+cv_scratch_jit = njit_inline(cv_scratch)
+
+
+@njit_inline
+def _count(counts, status):
+    for bit in range(4):
+        if status & (1 << bit):
+            counts[bit] += 1
+
+
+@njit_inline
+def _load(x, P, b, xb, Pb, tx):
+    n = len(tx)
+    for i in range(n):
+        xb[i] = x[b, i]
+        for j in range(n):
+            Pb[i, j] = P[b, i, j]
+
+
+@njit_inline
+def _store(x, P, b, xb, Pb, tx):
+    n = len(tx)
+    for i in range(n):
+        x[b, i] = xb[i]
+        for j in range(n):
+            P[b, i, j] = Pb[i, j]
+
+
+@njit_inline
+def _init_from(zt, Hpinv, P0, xb, Pb, ta, tx):
+    """SPEC §4.2 initialisation: ``x = H⁺ z``, ``P = P₀``."""
+    n = len(tx)
+    n_a = len(ta)
+    for i in range(n):
+        acc = 0.0
+        for c in range(n_a):
+            acc += Hpinv[i, c] * zt[c]
+        xb[i] = acc
+        for j in range(n):
+            Pb[i, j] = P0[i, j]
+
+
+@njit
+def em_kf_run_cv(
+    ta, tx, z, x, P, init, u, U, fb, Q, Rnom, Hpinv, P0, n_iter, regularized, tau, rho, floor_c,
+    o_mean, o_cov, o_obs, o_nu, o_dist, o_Rem,
+):  # fmt: skip
+    """:func:`em_kf_run` for the CV structure; ``ta``, ``tx``: :func:`size_tuple` of ``n_z``,
+    ``n_x``; ``fb``: :func:`cv_structure`. Same contract and results."""
+    B, T = z.shape[0], z.shape[1]
+    n = len(tx)
+    n_a = len(ta)
+    Rj, Rl, Om1, Pm, S, LS, Kt, AP, D, W, nu, e, tmp = cv_scratch_jit(n, n_a)
+    xb = np.empty(n)
+    Pb = np.empty((n, n))
+    zt = np.empty(n_a)
+    xp = np.empty(n)
+    Pp = np.empty((n, n))
+    FP = np.empty((n, n))
+    R0 = np.empty((n_a, n_a))
+    Ub = np.empty((n_a, n_a))
+    counts = np.zeros(4, np.int64)
+    nz3 = n_a + 1.0
+    for b in range(B):
+        _load(x, P, b, xb, Pb, tx)
+        ub = u[b]
+        for r1 in range(n_a):
+            for r2 in range(n_a):
+                Ub[r1, r2] = U[b, r1, r2]
+        initialized = init[b]
+        for t in range(T):
+            valid = True
+            for c in range(n_a):
+                zt[c] = z[b, t, c]
+                if not np.isfinite(zt[c]):
+                    valid = False
+            ok = False
+            if not initialized:
+                if valid:  # SPEC §4.2 initialisation (no update)
+                    _init_from(zt, Hpinv, P0, xb, Pb, ta, tx)
+                    initialized = True
+                ok = valid
+                _fill(o_nu, o_dist, o_Rem, b, t)
+            else:
+                cv_predict(ta, tx, xb, Pb, fb, Q, xp, Pp, FP)  # Eqs. 5-6
+                u_pr = 0.0
+                if regularized:  # option B time update of (û, Û)
+                    u_pr = rho * (ub - nz3) + nz3
+                    for r1 in range(n_a):
+                        for r2 in range(n_a):
+                            Ub[r1, r2] *= rho
+                nis = np.nan
+                if valid:
+                    for r1 in range(n_a):
+                        for r2 in range(n_a):
+                            if regularized:  # R^{(0)} = IW prior mean
+                                R0[r1, r2] = Ub[r1, r2] / (u_pr - nz3)
+                            else:
+                                R0[r1, r2] = Rnom[r1, r2]
+                    status, nis = em_update_cv(
+                        ta, tx, xp, Pp, zt, R0, Rnom, Ub, u_pr, n_iter, regularized, tau, floor_c,
+                        True, False, xb, Pb, Rj, Rl, Om1, Pm, S, LS, Kt, AP, D, W, nu, e, tmp,
+                    )  # fmt: skip
+                    _count(counts, status)
+                    ok = not (status & S_FAILED)
+                if ok:  # (xb, Pb) hold the EM-KF posterior
+                    if regularized:  # û = û⁻ + 1, Û = Û⁻ + Ω₁
+                        ub = u_pr + 1.0
+                        for r1 in range(n_a):
+                            for r2 in range(n_a):
+                                Ub[r1, r2] += Om1[r1, r2]
+                    for r1 in range(n_a):
+                        o_nu[b, t, r1] = nu[r1]
+                        for r2 in range(n_a):
+                            o_Rem[b, t, r1, r2] = Rj[r1, r2]
+                    o_dist[b, t] = nis
+                else:  # predict only
+                    for i in range(n):
+                        xb[i] = xp[i]
+                        for j in range(n):
+                            Pb[i, j] = Pp[i, j]
+                    if regularized:
+                        ub = u_pr
+                    _fill(o_nu, o_dist, o_Rem, b, t)
+            for i in range(n):
+                o_mean[b, t, i] = xb[i]
+                for j in range(n):
+                    o_cov[b, t, i, j] = Pb[i, j]
+            o_obs[b, t] = ok
+        _store(x, P, b, xb, Pb, tx)
+        u[b] = ub
+        for r1 in range(n_a):
+            for r2 in range(n_a):
+                U[b, r1, r2] = Ub[r1, r2]
+        init[b] = initialized
+    return counts
+
+
+@njit
+def integrated_run_cv(
+    ta, tx, z, x, P, init, zring, k0, N, K, fb, Q, Rnom, LR, Hpinv, P0, n_em, th1, th2, gate_S,
+    feedback, floor_c, axis_blocks, W_taps, P_full, F, Finv, H, Fa, Finva, Ha, Qa, Ra,
+    o_mean, o_cov, o_obs, o_nu, o_d1, o_d2, o_mode,
+):  # fmt: skip
+    """:func:`integrated_run` for the CV structure (SPEC §7.3); same contract and results.
+
+    ``ta``, ``tx``: :func:`size_tuple` of ``n_z``, ``n_x``; ``fb``: :func:`cv_structure`;
+    ``W_taps``: the UFIR taps (``W`` of :func:`integrated_run`). A complete horizon is evaluated
+    by the inlined taps; the FIR call is made only for horizons with missing samples. When the
+    FIR wins and is fed back, the EM branch's final covariance is never used, so only its
+    position block (needed for ``R_em`` and D₂) is computed.
+    """
+    B, T = z.shape[0], z.shape[1]
+    n = len(tx)
+    n_a = len(ta)
+    Rj, Rl, Om1, Pm, S, LS, Kt, AP, D, W, nu, e, tmp = cv_scratch_jit(n, n_a)
+    xb = np.empty(n)
+    Pb = np.empty((n, n))
+    zt = np.empty(n_a)
+    xp = np.empty(n)
+    Pp = np.empty((n, n))
+    FP = np.empty((n, n))
+    xf = np.empty(n)
+    Pf = np.empty((n, n))
+    LRj = np.empty((n_a, n_a))
+    Sg = np.empty((n_a, n_a))
+    xs = np.empty((0, n))
+    Ps = np.empty((0, n, n))
+    idx = np.empty(K, np.int64)
+    xx = np.empty((2, Fa.shape[0]))
+    counts = np.zeros(4, np.int64)
+    for b in range(B):
+        _load(x, P, b, xb, Pb, tx)
+        initialized = init[b]
+        zr = zring[b]
+        for t in range(T):
+            k = k0 + t
+            sl = k % N
+            valid = True
+            for c in range(n_a):
+                zt[c] = z[b, t, c]
+                if not np.isfinite(zt[c]):
+                    valid = False
+            for c in range(n_a):
+                zr[sl, c] = zt[c] if valid else np.nan
+            o_d1[b, t] = np.nan
+            o_d2[b, t] = np.nan
+            for r in range(n_a):
+                o_nu[b, t, r] = np.nan
+            use_fir = False
+            if not initialized:
+                if valid:  # SPEC §4.2 initialisation
+                    _init_from(zt, Hpinv, P0, xb, Pb, ta, tx)
+                    initialized = True
+                o_obs[b, t] = valid
+                o_mode[b, t] = 0 if valid else 3
+            else:
+                cv_predict(ta, tx, xb, Pb, fb, Q, xp, Pp, FP)  # Eqs. 5-6, shared by all branches
+                status = S_FAILED
+                mode = 3
+                if valid:
+                    for r in range(n_a):
+                        nu[r] = zt[r] - xp[2 * r]
+                        o_nu[b, t, r] = nu[r]
+                    if gate_S:  # SPEC §7.2-2 option: νᵀ S⁻¹ ν with S = H P⁻ Hᵀ + R
+                        for r1 in range(n_a):
+                            for r2 in range(n_a):
+                                Sg[r1, r2] = Rnom[r1, r2] + Pp[2 * r1, 2 * r2]
+                        if _chol_t_i(Sg, LRj, ta):
+                            d1 = _quad_inv_i(LRj, nu, tmp, ta)
+                        else:
+                            d1 = np.inf
+                    else:  # Eq. 29: D₁ = νᵀ R⁻¹ ν
+                        d1 = _quad_inv_i(LR, nu, tmp, ta)
+                    o_d1[b, t] = d1
+                    mode = 0
+                    if d1 < th1:  # KF update, Eqs. 7-9
+                        status, _nis = em_update_cv(
+                            ta, tx, xp, Pp, zt, Rnom, Rnom, Rnom, 0.0, 1, False, 0.0, floor_c, False,
+                            False, xb, Pb, Rj, Rl, Om1, Pm, S, LS, Kt, AP, D, W, nu, e, tmp,
+                        )  # fmt: skip
+                    else:  # EM-KF from P̄⁻^{(0)} = P⁻
+                        mode = 1
+                        status, _nis = em_update_cv(
+                            ta, tx, xp, Pp, zt, Rnom, Rnom, Rnom, 0.0, n_em, False, 0.0, floor_c, True,
+                            feedback, xb, Pb, Rj, Rl, Om1, Pm, S, LS, Kt, AP, D, W, nu, e, tmp,
+                        )  # fmt: skip
+                    _count(counts, status)
+                if status & S_FAILED:  # missing z or S not factorisable: predict only
+                    for i in range(n):
+                        xb[i] = xp[i]
+                        for j in range(n):
+                            Pb[i, j] = Pp[i, j]
+                    o_obs[b, t] = False
+                    o_mode[b, t] = 3
+                else:
+                    if mode == 1:
+                        # D₂ = νᵀ R_em⁻¹ ν (Eq. 29 with the EM-updated R); ν is unchanged
+                        if _chol_t_i(Rj, LRj, ta):
+                            d2 = _quad_inv_i(LRj, nu, tmp, ta)
+                        else:
+                            d2 = np.inf
+                        o_d2[b, t] = d2
+                        if not (d2 < th2) and k >= N - 1:  # no FIR while k < N−1
+                            use_fir = ufir_taps(zr, k, N, W_taps, axis_blocks, xf)
+                            if use_fir:  # complete horizon
+                                for i in range(n):
+                                    for j in range(n):
+                                        Pf[i, j] = P_full[i, j]
+                            else:  # missing samples: shared per-axis gains if possible
+                                code = 0
+                                if axis_blocks:
+                                    code = ufir_horizon_axes(
+                                        zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, xf, Pf
+                                    )
+                                    use_fir = code == 1
+                                if code == 0:  # per-axis or dense form
+                                    use_fir = fir_estimate(
+                                        zr, k, N, K, True, axis_blocks, W_taps, P_full, F, Finv, H,
+                                        Q, Rnom, Fa, Finva, Ha, Qa, Ra, xs, Ps, False, xf, Pf,
+                                    )  # fmt: skip
+                    if (status & P_DEFERRED) and not (use_fir and feedback):
+                        joseph_cv(ta, tx, Pm, Kt, Rl, AP, D, Pb, False)  # complete the EM P
+                    o_obs[b, t] = True
+                    o_mode[b, t] = 2 if use_fir else mode
+            if use_fir:
+                for i in range(n):
+                    o_mean[b, t, i] = xf[i]
+                    for j in range(n):
+                        o_cov[b, t, i, j] = Pf[i, j]
+                if feedback:  # SPEC §7.2-4: the KF recursion continues from the FIR estimate
+                    for i in range(n):
+                        xb[i] = xf[i]
+                        for j in range(n):
+                            Pb[i, j] = Pf[i, j]
+            else:
+                for i in range(n):
+                    o_mean[b, t, i] = xb[i]
+                    for j in range(n):
+                        o_cov[b, t, i, j] = Pb[i, j]
+        _store(x, P, b, xb, Pb, tx)
         init[b] = initialized
     return counts

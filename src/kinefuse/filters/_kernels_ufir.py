@@ -22,7 +22,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinefuse._compile import njit
+# njit_inline: inlined at the numba IR level into its callers, so no per-call reference counting
+# of the array arguments (see :mod:`._kernels_em`)
+from kinefuse._compile import njit, njit_inline
 from kinefuse.filters._kernels import kf_predict, kf_update, symmetrize
 
 #: Relative pivot below which ``CᵀC`` is declared rank deficient (SPEC §6.3).
@@ -314,6 +316,160 @@ def ufir_horizon_axis(zr, a, k, N, K, Fa, Finva, Ha, Qa, Ra, xs, Ps, stored, idx
 
 
 @njit
+def _same_blocks(Fa, Finva, Ha, Qa, Ra):
+    """True when every axis has the same 2×2 model blocks as axis 0."""
+    for a in range(1, Fa.shape[0]):
+        for i in range(2):
+            if Ha[a, 0, i] != Ha[0, 0, i]:
+                return False
+            for j in range(2):
+                if Fa[a, i, j] != Fa[0, i, j] or Finva[a, i, j] != Finva[0, i, j]:
+                    return False
+                if Qa[a, i, j] != Qa[0, i, j]:
+                    return False
+        if Ra[a, 0, 0] != Ra[0, 0, 0]:
+            return False
+    return True
+
+
+@njit_inline
+def ufir_horizon_axes(zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, x_out, P_out):
+    """:func:`ufir_horizon_axis` for all axes at once when they share blocks and missing samples.
+
+    The covariance, ``G⁻¹`` and gain recursion depends only on the model blocks and on which
+    samples are missing, not on the data; the ring stores a missing row as a whole, so with
+    identical per-axis blocks (e.g. ``constant_velocity`` with ``R = r I``) every axis has the
+    same gains. They are computed once and applied to each axis's state with the operations of
+    :func:`ufir_horizon_axis` (same results, bit for bit). Batch init only. ``idx``: int64
+    scratch of length ≥ K; ``xx``: float scratch of shape ``(2, n_axes)``.
+
+    Returns 1 (estimate written to ``x_out``, ``P_out``), 2 (not ready: fewer than K valid
+    samples or rank deficient, as every axis would report) or 0 (not applicable: blocks or
+    missing patterns differ between axes; use the per-axis form).
+    """
+    n_ax = Fa.shape[0]
+    m = k - N + 1
+    if not _same_blocks(Fa, Finva, Ha, Qa, Ra):
+        return 0
+    for t in range(m, k + 1):
+        miss = np.isnan(zr[t % N, 0])
+        for a in range(1, n_ax):
+            if np.isnan(zr[t % N, a]) != miss:
+                return 0
+    f00, f01, f10, f11 = Fa[0, 0, 0], Fa[0, 0, 1], Fa[0, 1, 0], Fa[0, 1, 1]
+    i00, i01, i10, i11 = Finva[0, 0, 0], Finva[0, 0, 1], Finva[0, 1, 0], Finva[0, 1, 1]
+    h0, h1 = Ha[0, 0, 0], Ha[0, 0, 1]
+    q00, q01, q11 = Qa[0, 0, 0], Qa[0, 0, 1], Qa[0, 1, 1]
+    r = Ra[0, 0, 0]
+    nv = 0
+    for t in range(m, k + 1):
+        if not np.isnan(zr[t % N, 0]):
+            idx[nv] = t
+            nv += 1
+            if nv == K:
+                break
+    if nv < K:
+        return 2
+    s = idx[K - 1]
+    for a in range(n_ax):  # per-axis Cᵀ Z, then the state [position, velocity]
+        xx[0, a] = 0.0
+        xx[1, a] = 0.0
+    p00, p01, p10, p11 = 1.0, 0.0, 0.0, 1.0
+    tcur = s
+    o00 = 0.0
+    o01 = 0.0
+    o11 = 0.0
+    for q in range(K - 1, -1, -1):
+        t = idx[q]
+        while tcur > t:
+            n00 = p00 * i00 + p01 * i10
+            n01 = p00 * i01 + p01 * i11
+            n10 = p10 * i00 + p11 * i10
+            n11 = p10 * i01 + p11 * i11
+            p00, p01, p10, p11 = n00, n01, n10, n11
+            tcur -= 1
+        c0 = h0 * p00 + h1 * p10
+        c1 = h0 * p01 + h1 * p11
+        o00 += c0 * c0
+        o01 += c0 * c1
+        o11 += c1 * c1
+        for a in range(n_ax):
+            zv = zr[t % N, a]
+            xx[0, a] += c0 * zv
+            xx[1, a] += c1 * zv
+    det = o00 * o11 - o01 * o01
+    if not (o00 > 0.0) or not (det > RANK_TOL * o00 * o11):
+        return 2  # rank(C) < 2
+    g00 = o11 / det
+    g01 = -o01 / det
+    g11 = o00 / det
+    for a in range(n_ax):  # x̂_s = G_s Cᵀ Z
+        y0 = xx[0, a]
+        y1 = xx[1, a]
+        xx[0, a] = g00 * y0 + g01 * y1
+        xx[1, a] = g01 * y0 + g11 * y1
+    P00 = r * g00  # P_s = r G_s
+    P01 = r * g01
+    P11 = r * g11
+    for l in range(s + 1, k + 1):
+        for a in range(n_ax):  # Eq. 24: x⁻ = F x
+            x0 = xx[0, a]
+            x1 = xx[1, a]
+            xx[0, a] = f00 * x0 + f01 * x1
+            xx[1, a] = f10 * x0 + f11 * x1
+        a00 = f00 * P00 + f01 * P01  # Eq. 25: P⁻ = F P Fᵀ + Q
+        a01 = f00 * P01 + f01 * P11
+        a10 = f10 * P00 + f11 * P01
+        a11 = f10 * P01 + f11 * P11
+        P00 = a00 * f00 + a01 * f01 + q00
+        P01 = a00 * f10 + a01 * f11 + q01
+        P11 = a10 * f10 + a11 * f11 + q11
+        b00 = i00 * o00 + i10 * o01  # inv(F G Fᵀ) = F⁻ᵀ G⁻¹ F⁻¹
+        b01 = i00 * o01 + i10 * o11
+        b10 = i01 * o00 + i11 * o01
+        b11 = i01 * o01 + i11 * o11
+        o00 = b00 * i00 + b01 * i10
+        o01 = b00 * i01 + b01 * i11
+        o11 = b10 * i01 + b11 * i11
+        if np.isnan(zr[l % N, 0]):
+            continue
+        o00 += h0 * h0  # G⁻¹ = HᵀH + inv(F G Fᵀ)
+        o01 += h0 * h1
+        o11 += h1 * h1
+        det = o00 * o11 - o01 * o01
+        k0 = (o11 * h0 - o01 * h1) / det  # K = G Hᵀ (Eq. 26 corrected)
+        k1 = (o00 * h1 - o01 * h0) / det
+        for a in range(n_ax):  # Eq. 27
+            inn = zr[l % N, a] - (h0 * xx[0, a] + h1 * xx[1, a])
+            xx[0, a] += k0 * inn
+            xx[1, a] += k1 * inn
+        m00 = 1.0 - k0 * h0  # Eq. 28 Joseph: A P Aᵀ + K r Kᵀ, A = I − K h
+        m01 = -k0 * h1
+        m10 = -k1 * h0
+        m11 = 1.0 - k1 * h1
+        a00 = m00 * P00 + m01 * P01
+        a01 = m00 * P01 + m01 * P11
+        a10 = m10 * P00 + m11 * P01
+        a11 = m10 * P01 + m11 * P11
+        P00 = a00 * m00 + a01 * m01 + r * k0 * k0
+        P01 = a00 * m10 + a01 * m11 + r * k0 * k1
+        P11 = a10 * m10 + a11 * m11 + r * k1 * k1
+    n_x = x_out.shape[0]
+    for i in range(n_x):
+        for j in range(n_x):
+            P_out[i, j] = 0.0
+    for a in range(n_ax):
+        lo = 2 * a
+        x_out[lo] = xx[0, a]
+        x_out[lo + 1] = xx[1, a]
+        P_out[lo, lo] = P00
+        P_out[lo, lo + 1] = P01
+        P_out[lo + 1, lo] = P01
+        P_out[lo + 1, lo + 1] = P11
+    return 1
+
+
+@njit_inline
 def ufir_taps(zr, k, N, W, axis_blocks, x_out):
     """All-valid horizon fast path: ``x̂_k = Σ_i W_i z_{k-N+1+i}`` (SPEC §6.3 "Fast exact forms").
 
@@ -395,6 +551,13 @@ def fir_estimate(
     if fast and axis_blocks:
         n_ax = Fa.shape[0]
         idx = np.empty(K, np.int64)
+        if not stored:  # shared gains across axes when possible (same result, ~n_ax× cheaper)
+            xx = np.empty((2, n_ax))
+            code = ufir_horizon_axes(zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, x_out, P_out)
+            if code == 1:
+                return True
+            if code == 2:
+                return False
         for i in range(n_x):
             for j in range(n_x):
                 P_out[i, j] = 0.0
@@ -462,6 +625,8 @@ def ufir_run(
     Pb = np.empty((n_x, n_x))
     zt = np.empty(n_z)
     HF = H @ F
+    idx = np.empty(K, np.int64)
+    xx = np.empty((2, Fa.shape[0]))
     n_fail = 0
     for b in range(B):
         zr = zring[b]
@@ -489,11 +654,21 @@ def ufir_run(
                     acc -= HF[r, c] * xb[c]
                 o_nu[b, t, r] = acc if (valid and initialized) else np.nan
             ready = False
-            if k >= N - 1:
-                ready = fir_estimate(
-                    zr, k, N, K, fast, axis_blocks, W, P_full, F, Finv, H, Q, R, Fa, Finva, Ha, Qa, Ra, xs, Ps,
-                    stored, xf, Pf,
-                )  # fmt: skip
+            if k >= N - 1 and fast and not stored and ufir_taps(zr, k, N, W, axis_blocks, xf):
+                for i in range(n_x):  # complete horizon: taps inlined (as in fir_estimate)
+                    for j in range(n_x):
+                        Pf[i, j] = P_full[i, j]
+                ready = True
+            elif k >= N - 1:
+                code = 0
+                if fast and not stored and axis_blocks:  # missing samples: shared axis gains
+                    code = ufir_horizon_axes(zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, xf, Pf)
+                ready = code == 1
+                if code == 0:
+                    ready = fir_estimate(
+                        zr, k, N, K, fast, axis_blocks, W, P_full, F, Finv, H, Q, R, Fa, Finva, Ha, Qa, Ra, xs,
+                        Ps, stored, xf, Pf,
+                    )  # fmt: skip
             if ready:
                 for i in range(n_x):
                     xb[i] = xf[i]

@@ -19,7 +19,13 @@ from kinefuse.filters._base import (
     make_initial_state,
     positions,
 )
-from kinefuse.filters._kernels_em import em_kf_run, size_tuple, sparse_triplets
+from kinefuse.filters._kernels_em import (
+    cv_structure,
+    em_kf_run,
+    em_kf_run_cv,
+    size_tuple,
+    sparse_triplets,
+)
 from kinefuse.models import LinearGaussianModel
 
 __all__ = ["EMKalmanFilter", "EMKalmanResult", "EMKalmanState"]
@@ -139,6 +145,7 @@ def model_arrays(model: LinearGaussianModel) -> dict:
         "P0": np.ascontiguousarray(initial_covariance(model)),
         "tx": size_tuple(model.n_x),
         "tz": size_tuple(model.n_z),
+        "fb": cv_structure(F, H),  # per-axis F blocks, or None: general kernels
     }
 
 
@@ -366,11 +373,18 @@ class EMKalmanFilter:
         o_nu = np.empty((B, T, n_z))
         o_dist = np.empty((B, T))
         o_Rem = np.empty((B, T, n_z, n_z))
-        counts = em_kf_run(
-            a["tx"], a["tz"], zf, x, P, init, u, U, a["Fr"], a["Fc"], a["Fv"], a["Hr"], a["Hc"], a["Hv"], a["Q"], a["R"], a["Hpinv"],
-            a["P0"], self.n_iter, self.regularized, self.tau, self.rho, FLOOR_FRACTION,
-            o_mean, o_cov, o_obs, o_nu, o_dist, o_Rem,
-        )  # fmt: skip
+        if a["fb"] is not None:  # constant-velocity structure: specialised kernel, same results
+            counts = em_kf_run_cv(
+                a["tz"], a["tx"], zf, x, P, init, u, U, a["fb"], a["Q"], a["R"], a["Hpinv"], a["P0"],
+                self.n_iter, self.regularized, self.tau, self.rho, FLOOR_FRACTION,
+                o_mean, o_cov, o_obs, o_nu, o_dist, o_Rem,
+            )  # fmt: skip
+        else:
+            counts = em_kf_run(
+                a["tx"], a["tz"], zf, x, P, init, u, U, a["Fr"], a["Fc"], a["Fv"], a["Hr"], a["Hc"], a["Hv"], a["Q"], a["R"], a["Hpinv"],
+                a["P0"], self.n_iter, self.regularized, self.tau, self.rho, FLOOR_FRACTION,
+                o_mean, o_cov, o_obs, o_nu, o_dist, o_Rem,
+            )  # fmt: skip
         warn_counts(counts, "EMKalmanFilter")
         new_state = EMKalmanState(
             x.reshape(*bs, n_x),
