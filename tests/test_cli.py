@@ -453,3 +453,15 @@ def test_python_dash_m(tmp_path):
         [sys.executable, "-m", "kinefuse", "--version"], capture_output=True, text=True, timeout=120
     )
     assert r.returncode == 0 and r.stdout.startswith("kinefuse ")
+
+
+def test_bench_quick_runs_the_real_benchmark(tmp_path):
+    """`kinefuse bench --quick`: filterpy and kinefuse side by side, targets listed, JSON written."""
+    target = tmp_path / "bench.json"
+    res = runner.invoke(cli.app, ["bench", "--quick", "--json", str(target)])
+    assert res.exit_code in (0, 1), res.output  # 1 = a speed target missed on this machine
+    assert "Targets (single core)" in res.output and "filterpy" in res.output
+    data = json.loads(target.read_text())
+    rows = {(r["case"], r["joints"]) for r in data["results"]["kf_rts"]}
+    assert ("KF", 8) in rows and ("RTS", 8) in rows
+    assert (res.exit_code == 0) == data["passed"]
