@@ -308,3 +308,25 @@ def test_sigint_flushes_and_closes(lsl_env):
     )
     assert res["interrupted"] is True
     assert res["outputs"] == res["frames"] > 10  # the 3 frames held by the lag were flushed too
+
+
+def test_lost_and_timed_out_inlets_are_handled(lsl_env):
+    """pylsl's LostError / TimeoutError (in pylsl.util) end as a 'lost' input, not a crash."""
+    code = _code(
+        """
+        from kinefuse.streaming.lsl import Input
+        class Lost:
+            def pull_chunk(self, **kw):
+                raise pylsl.util.LostError("the stream has been lost.")
+            def time_correction(self, timeout):
+                raise pylsl.util.TimeoutError("timeout")
+        inp = Input.__new__(Input)
+        inp.__dict__.update(inlet=Lost(), lost=False, name="x", n_samples=0, offset_s=0.0,
+                            refresh_s=1.0, _next_refresh=0.0)
+        data, ts = inp.pull()
+        inp.clock = "manual"
+        inp.refresh_clock(first=True)  # a time_correction timeout keeps the old offset
+        print("RESULT:" + json.dumps({"lost": inp.lost, "n": len(ts)}))
+        """
+    )
+    assert _result(_child(code, lsl_env["env"])) == {"lost": True, "n": 0}

@@ -287,7 +287,7 @@ class Input:
         pylsl = import_pylsl()
         try:
             self.offset_s = float(self.inlet.time_correction(timeout=2.0 if first else 0.05))
-        except (pylsl.TimeoutError, TimeoutError):
+        except (pylsl.util.TimeoutError, TimeoutError):
             log.debug("time_correction of %s timed out; keeping %.6f s", self.name, self.offset_s)
         self._next_refresh = now + self.refresh_s
 
@@ -296,7 +296,7 @@ class Input:
         pylsl = import_pylsl()
         try:
             data, ts = self.inlet.pull_chunk(timeout=0.0, max_samples=max_samples)
-        except pylsl.LostError:
+        except pylsl.util.LostError:
             if not self.lost:
                 log.warning("LSL stream %s lost; trying to reattach", self.name)
             self.lost = True
