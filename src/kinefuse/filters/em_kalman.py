@@ -189,6 +189,26 @@ def take_step(result, nb: int):
     return type(result)(**kw)
 
 
+def run_filter(flt, z, state):
+    """``filter`` of the single-model filters: validate ``z`` and the state, then ``flt._run``."""
+    z = check_measurements(z, flt.model.n_z)
+    if state is None:
+        state = flt.init(z.shape[:-2])
+    else:
+        flt._check_state(state, z.shape[:-2])
+    check_not_all_missing(z, state)
+    return flt._run(z, state)
+
+
+def run_step(flt, state, z):
+    """``step`` of the single-model filters: one ``T = 1`` run of ``flt._run``, T axis dropped."""
+    flt._check_state(state, None)
+    bs = batch_shape_of(state)
+    z = check_step_measurement(z, flt.model.n_z, bs)
+    state, res = flt._run(z[..., None, :], state)
+    return state, take_step(res, len(bs))
+
+
 def warn_counts(counts, what: str, *, floor_fraction: float = FLOOR_FRACTION) -> None:
     """One :class:`NumericalWarning` per call summarising the kernel's trouble counters."""
     n_r, n_p, n_reg, n_fail = (int(c) for c in counts)
@@ -332,21 +352,11 @@ class EMKalmanFilter:
             ``observed (..., T)``, ``innovation (..., T, n_z)``, ``distance (..., T)`` (NIS),
             ``R_em (..., T, n_z, n_z)``.
         """
-        z = check_measurements(z, self.model.n_z)
-        if state is None:
-            state = self.init(z.shape[:-2])
-        else:
-            self._check_state(state, z.shape[:-2])
-        check_not_all_missing(z, state)
-        return self._run(z, state)
+        return run_filter(self, z, state)
 
     def step(self, state: EMKalmanState, z) -> tuple[EMKalmanState, EMKalmanResult]:
         """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis."""
-        self._check_state(state, None)
-        bs = batch_shape_of(state)
-        z = check_step_measurement(z, self.model.n_z, bs)
-        state, res = self._run(z[..., None, :], state)
-        return state, take_step(res, len(bs))
+        return run_step(self, state, z)
 
     def _check_state(self, state, bs):
         n_x, n_z = self.model.n_x, self.model.n_z

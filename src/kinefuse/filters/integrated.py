@@ -11,23 +11,20 @@ import numpy as np
 from kinefuse.exceptions import InputError
 from kinefuse.filters._base import (
     FilterResult,
-    check_measurements,
-    check_not_all_missing,
-    check_step_measurement,
     make_initial_state,
     positions,
 )
 from kinefuse.filters._kernels_em import integrated_run, integrated_run_cv
 from kinefuse.filters.em_kalman import (
     FLOOR_FRACTION,
-    batch_shape_of,
     check_bool,
     check_float,
     check_int,
     check_model,
     check_state,
     flat,
-    take_step,
+    run_filter,
+    run_step,
     warn_counts,
 )
 from kinefuse.filters.ufir import check_horizon, ufir_model_arrays
@@ -191,21 +188,11 @@ class IntegratedFilter:
             ``mean``, ``cov``, ``position``, ``observed``, ``innovation (..., T, n_z)``,
             ``distance`` (D₁), ``distance2`` (D₂), ``mode (..., T)`` int8.
         """
-        z = check_measurements(z, self.model.n_z)
-        if state is None:
-            state = self.init(z.shape[:-2])
-        else:
-            self._check_state(state, z.shape[:-2])
-        check_not_all_missing(z, state)
-        return self._run(z, state)
+        return run_filter(self, z, state)
 
     def step(self, state: IntegratedState, z) -> tuple[IntegratedState, IntegratedResult]:
         """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis."""
-        self._check_state(state, None)
-        bs = batch_shape_of(state)
-        z = check_step_measurement(z, self.model.n_z, bs)
-        state, res = self._run(z[..., None, :], state)
-        return state, take_step(res, len(bs))
+        return run_step(self, state, z)
 
     def _check_state(self, state, bs):
         n_x, n_z = self.model.n_x, self.model.n_z

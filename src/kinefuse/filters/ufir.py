@@ -10,21 +10,18 @@ import numpy as np
 from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.filters._base import (
     FilterResult,
-    check_measurements,
-    check_not_all_missing,
-    check_step_measurement,
     make_initial_state,
     positions,
 )
 from kinefuse.filters._kernels_ufir import ufir_gains, ufir_run
 from kinefuse.filters.em_kalman import (
-    batch_shape_of,
     check_int,
     check_model,
     check_state,
     flat,
     model_arrays,
-    take_step,
+    run_filter,
+    run_step,
 )
 from kinefuse.models import LinearGaussianModel
 
@@ -257,21 +254,11 @@ class UFIRFilter:
         result : UFIRResult
             ``mean``, ``cov``, ``position``, ``observed``, ``innovation``, ``fir_ready (..., T)``.
         """
-        z = check_measurements(z, self.model.n_z)
-        if state is None:
-            state = self.init(z.shape[:-2])
-        else:
-            self._check_state(state, z.shape[:-2])
-        check_not_all_missing(z, state)
-        return self._run(z, state)
+        return run_filter(self, z, state)
 
     def step(self, state: UFIRState, z) -> tuple[UFIRState, UFIRResult]:
         """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis."""
-        self._check_state(state, None)
-        bs = batch_shape_of(state)
-        z = check_step_measurement(z, self.model.n_z, bs)
-        state, res = self._run(z[..., None, :], state)
-        return state, take_step(res, len(bs))
+        return run_step(self, state, z)
 
     def _check_state(self, state, bs):
         n_x, n_z, N, ns = self.model.n_x, self.model.n_z, self.horizon, self._n_stored
