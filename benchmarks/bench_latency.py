@@ -9,15 +9,14 @@ Printed next to it: the engine's own per-frame cost without LSL, and a peer (fil
 ``predict``/``update`` per joint) per frame. All LSL traffic is machine-local
 (``ensure_local_lsl_config``). Target: p99 <= 1 ms.
 
-Processors: ``kf-fusion``, ``paper-a`` (:mod:`kinefuse.streaming.processors`) and ``paper-b``
-(:class:`kinefuse.streaming.paper_b.VisionAssistedProcessor`, ELM/FIR). ``paper-b`` is not a
-:class:`StreamConfig` choice yet, so for the loopback the engine the runner builds gets that
-processor here instead. For paper B the engine-only figures are also given separately for the
-frames with an outage onset (ELM training, once per episode and joint).
+Processors: ``kf-fusion``, ``paper-a`` (:mod:`kinefuse.streaming.processors`) and ``elm-fir``
+(paper B, :class:`kinefuse.streaming.paper_b.VisionAssistedProcessor`). For paper B the
+engine-only figures are also given separately for the frames with an outage onset (ELM
+training, once per episode and joint).
 
 Usage::
 
-    python benchmarks/bench_latency.py [--duration 60] [--processor kf-fusion|paper-a|paper-b]
+    python benchmarks/bench_latency.py [--duration 60] [--processor kf-fusion|paper-a|elm-fir]
         [--engine-only] [--cpu 1]
 """
 
@@ -34,23 +33,15 @@ import numpy as np
 
 from kinefuse.streaming.config import ensure_local_lsl_config
 
-PROCESSOR_CHOICES = ("kf-fusion", "paper-a", "paper-b")
+PROCESSOR_CHOICES = ("kf-fusion", "paper-a", "elm-fir")
 
 
 def make_engine(processor: str, **kw):
-    """The runner's engine for ``processor`` (``paper-b``: the runner's engine, processor swapped)."""
+    """The engine ``kinefuse stream`` builds for ``processor`` (:func:`build_engine`)."""
     from kinefuse.streaming.config import StreamConfig
     from kinefuse.streaming.runner import build_engine
 
-    if processor != "paper-b":
-        return build_engine(StreamConfig(processor=processor), **kw)
-    from kinefuse.streaming.engine import Engine
-    from kinefuse.streaming.paper_b import VisionAssistedProcessor
-
-    eng = build_engine(StreamConfig(), **kw)
-    rate = kw.get("camera_rate_hz", 30.0)
-    proc = VisionAssistedProcessor("elm-fir", dt_s=1.0 / rate, joints=eng.config.joints)
-    return Engine(eng.config, proc)
+    return build_engine(StreamConfig(processor=processor), **kw)
 
 
 def engine_only(rec, processor: str, n_frames: int = 600, loops: int = 1):
@@ -73,8 +64,9 @@ def engine_only(rec, processor: str, n_frames: int = 600, loops: int = 1):
     cj = eng.config.camera_joints
     idx = [v.joints.index(j) for j in cj]
     proc = eng.processor
-    if hasattr(proc, "warm_up"):
-        proc.warm_up()
+    from kinefuse.streaming.runner import warm_up
+
+    warm_up(eng)  # as run_stream does before its loop
     times, cpu, onset = [], [], []
     for t, kind, key, q in ev:
         if kind == 0:
@@ -168,21 +160,6 @@ def main() -> None:
 
     if args.engine_only:
         return
-    if args.processor == "paper-b":
-        from kinefuse.streaming import runner
-
-        build = runner.build_engine
-
-        def build_paper_b(cfg, **kw):
-            eng = build(cfg, **kw)
-            from kinefuse.streaming.engine import Engine
-            from kinefuse.streaming.paper_b import VisionAssistedProcessor
-
-            rate = kw["camera_rate_hz"] if kw.get("camera") else cfg.output_rate_hz
-            proc = VisionAssistedProcessor("elm-fir", dt_s=1.0 / rate, joints=eng.config.joints)
-            return Engine(eng.config, proc)
-
-        runner.build_engine = build_paper_b  # this process only
     prefix = f"kfbench{os.getpid()}"
     # the replay runs in its own process (own GIL), with the same machine-local LSL config
     code = (
@@ -196,8 +173,7 @@ def main() -> None:
         preexec_fn=lambda: os.sched_setaffinity(0, all_cpus),
     )
     try:
-        proc_name = "kf-fusion" if args.processor == "paper-b" else args.processor  # swapped above
-        cfg = StreamConfig(name_prefix=prefix, processor=proc_name, resolve_timeout_s=30)
+        cfg = StreamConfig(name_prefix=prefix, processor=args.processor, resolve_timeout_s=30)
         t0 = time.monotonic()
         summary = run_stream(cfg, duration_s=args.duration, status=False)
     finally:

@@ -1,10 +1,11 @@
 """LSL adapters, replay and the live runner.
 
 Network safety: every test that loads liblsl does so in a child process whose environment has
-``LSLAPICFG`` pointing at a machine-local configuration written by the fixture below *before*
-the child imports pylsl (liblsl reads its configuration once per process). The parent process
-never imports pylsl. Each test uses its own ``[lab] SessionID`` and stream names, so runs of
-other engineers on this machine cannot interfere. Every child has a hard timeout.
+``LSLAPICFG`` pointing at a machine-local configuration written by the ``lsl_env`` fixture
+(conftest.py) *before* the child imports pylsl (liblsl reads its configuration once per
+process). The parent process never imports pylsl. Each test uses its own ``[lab] SessionID``
+and stream names, so runs of other engineers on this machine cannot interfere. Every child has
+a hard timeout.
 """
 
 from __future__ import annotations
@@ -18,10 +19,10 @@ import subprocess
 import sys
 import textwrap
 import time
-import uuid
 
 import pytest
 
+from conftest import LSL_PRELUDE as _PRELUDE
 from kinefuse.streaming.config import (
     LOCAL_SETTINGS,
     LSL_CONFIG_ENV,
@@ -34,37 +35,11 @@ from kinefuse.streaming.config import (
 CHILD_TIMEOUT_S = 120
 
 
-@pytest.fixture
-def lsl_env(tmp_path):
-    """Environment for a child process: a fresh machine-local LSL config, set before pylsl loads."""
-    sid = f"kftest-{uuid.uuid4().hex[:10]}"
-    cfg = tmp_path / "lsl_api.cfg"
-    log = tmp_path / "liblsl.log"
-    cfg.write_text(local_lsl_config_text(sid, log_level=0, log_file=log), encoding="utf-8")
-    env = dict(os.environ, PYTHONUNBUFFERED="1", KINEFUSE_TEST_PREFIX=sid.replace("-", "_"))
-    env[LSL_CONFIG_ENV] = str(cfg)
-    return {"env": env, "cfg": cfg, "log": log, "prefix": sid.replace("-", "_")}
-
-
 def _child(code: str, env: dict, timeout: float = CHILD_TIMEOUT_S, wrapper=()):
     return subprocess.run(
         [*wrapper, sys.executable, "-c", code],
         env=env, capture_output=True, text=True, timeout=timeout,
     )  # fmt: skip
-
-
-_PRELUDE = """
-import json, os, sys
-from kinefuse.streaming.config import check_lsl_config, LslUnavailable, import_pylsl
-assert "pylsl" not in sys.modules
-info = check_lsl_config()
-assert info["local"], info["problems"]          # in effect before liblsl is loaded
-try:
-    pylsl = import_pylsl()
-    pylsl.library_version()
-except LslUnavailable as exc:
-    print("SKIP:" + str(exc)); sys.exit(0)
-"""
 
 
 def _code(body: str) -> str:
@@ -316,6 +291,8 @@ def test_lost_and_timed_out_inlets_are_handled(lsl_env):
         """
         from kinefuse.streaming.lsl import Input
         class Lost:
+            def samples_available(self):
+                return 0                  # a lost stream shows nothing: found by the periodic full pull
             def pull_chunk(self, **kw):
                 raise pylsl.util.LostError("the stream has been lost.")
             def time_correction(self, timeout):

@@ -310,44 +310,57 @@ def test_no_camera_outputs_on_grid(rec):
     assert_equal_offline(outs, off)
 
 
-def test_kf_fusion_matches_information_form(rng):
-    """Oracle: a textbook stacked-measurement KF (numpy) on one joint."""
+@pytest.mark.parametrize("path", ["compiled", "grouped"])
+def test_kf_fusion_matches_information_form(rng, path):
+    """Oracle: a textbook stacked-measurement KF (numpy) per joint; three joints whose sensor
+    cases differ within frames. Both code paths of the processor: the one-call compiled step
+    and the grouped per-case fallback."""
     from kinefuse.models import constant_velocity
 
     dt, q, ri, rc = 1 / 30, 0.05, 4e-4, 9e-4
-    T = 60
-    z_imu = np.cumsum(rng.normal(0, 0.01, (T, 1, 3)), axis=0)
-    z_cam = z_imu + rng.normal(0, 0.02, (T, 1, 3))
-    avail = rng.random((T, 1)) > 0.3
-    z_imu[10:14] = np.nan
-    pos, cov, src = KalmanFusionProcessor(dt, q, ri, rc).run(np.arange(T) * dt, z_imu, z_cam, avail)
+    T, J = 60, 3
+    z_imu = np.cumsum(rng.normal(0, 0.01, (T, J, 3)), axis=0)
+    z_cam = z_imu + rng.normal(0, 0.02, (T, J, 3))
+    avail = rng.random((T, J)) > 0.3
+    z_imu[10:14, 0] = np.nan
+    z_imu[20:30, 2] = np.nan
+    avail[25:28, 2] = False  # nothing at all: predict only
+    proc = KalmanFusionProcessor(dt, q, ri, rc)
+    if path == "grouped":
+        proc._fast = None
+    pos, cov, src = proc.run(np.arange(T) * dt, z_imu, z_cam, avail)
     m = constant_velocity(dt, q=q, r=1.0)
     F, Q, H = m.F, m.Q, m.H
-    x = None
-    for k in range(T):
-        rows, zs, rs = [], [], []
-        if np.all(np.isfinite(z_imu[k, 0])):
-            rows.append(H), zs.append(z_imu[k, 0]), rs.append(ri)
-        if avail[k, 0]:
-            rows.append(H), zs.append(z_cam[k, 0]), rs.append(rc)
-        if x is None:  # first measurement initialises (positions, zero velocity)
-            zc = (zs[0] / rs[0] + (zs[1] / rs[1] if len(zs) > 1 else 0)) / sum(1 / r for r in rs)
-            r_eq = 1 / sum(1 / r for r in rs)
-            x = H.T @ zc
-            P = H.T @ (r_eq * np.eye(3)) @ H + np.diag([0, 1, 0, 1, 0, 1.0])
-        else:
-            x, P = F @ x, F @ P @ F.T + Q
-            if rows:
-                Hs = np.vstack(rows)
-                Rs = np.diag(np.repeat(rs, 3))
-                S = Hs @ P @ Hs.T + Rs
-                K = P @ Hs.T @ np.linalg.inv(S)
-                x = x + K @ (np.concatenate(zs) - Hs @ x)
-                IKH = np.eye(6) - K @ Hs
-                P = IKH @ P @ IKH.T + K @ Rs @ K.T
-        np.testing.assert_allclose(pos[k, 0], H @ x, atol=1e-9)
-        np.testing.assert_allclose(cov[k, 0], H @ P @ H.T, atol=1e-9)
+    for j in range(J):
+        x = None
+        for k in range(T):
+            rows, zs, rs = [], [], []
+            if np.all(np.isfinite(z_imu[k, j])):
+                rows.append(H), zs.append(z_imu[k, j]), rs.append(ri)
+            if avail[k, j]:
+                rows.append(H), zs.append(z_cam[k, j]), rs.append(rc)
+            if x is None:  # first measurement initialises (positions, zero velocity)
+                zc = (zs[0] / rs[0] + (zs[1] / rs[1] if len(zs) > 1 else 0)) / sum(
+                    1 / r for r in rs
+                )
+                r_eq = 1 / sum(1 / r for r in rs)
+                x = H.T @ zc
+                P = H.T @ (r_eq * np.eye(3)) @ H + np.diag([0, 1, 0, 1, 0, 1.0])
+            else:
+                x, P = F @ x, F @ P @ F.T + Q
+                if rows:
+                    Hs = np.vstack(rows)
+                    Rs = np.diag(np.repeat(rs, 3))
+                    S = Hs @ P @ Hs.T + Rs
+                    K = P @ Hs.T @ np.linalg.inv(S)
+                    x = x + K @ (np.concatenate(zs) - Hs @ x)
+                    IKH = np.eye(6) - K @ Hs
+                    P = IKH @ P @ IKH.T + K @ Rs @ K.T
+            np.testing.assert_allclose(pos[k, j], H @ x, atol=1e-9)
+            np.testing.assert_allclose(cov[k, j], H @ P @ H.T, atol=1e-9)
     assert src[12, 0] in (SOURCE_CAMERA, SOURCE_PREDICT)
+    assert src[26, 2] == SOURCE_PREDICT and src[22, 2] == SOURCE_CAMERA
+    assert src[5, 1] in (SOURCE_FUSED, SOURCE_IMU)
 
 
 def test_run_loop_ctrl_c_flushes_and_closes(rec):

@@ -54,6 +54,7 @@ KERNEL_MODULES = (
     "kinefuse.filters._kernels_imm",
     "kinefuse.filters._kernels_ufir",
     "kinefuse.pipelines.kinefuse_fusion",
+    "kinefuse.streaming._kernels",
 )
 # A kernel of each heavy module: if their cache index files exist, the kernels were compiled.
 _SENTINELS = (

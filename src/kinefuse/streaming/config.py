@@ -285,6 +285,8 @@ def import_pylsl():
     LslUnavailable
         pylsl is not installed (``pip install kinefuse[lsl]``) or cannot load liblsl.
     """
+    if _PYLSL["module"] is not None:  # checked and loaded once: liblsl's configuration is fixed
+        return _PYLSL["module"]
     ensure_local_lsl_config()
     try:
         import pylsl
@@ -293,7 +295,11 @@ def import_pylsl():
             f"Lab Streaming Layer is not available: {exc} (install with `pip install "
             "kinefuse[lsl]`; pylsl's wheels ship liblsl)"
         ) from exc
+    _PYLSL["module"] = pylsl
     return pylsl
+
+
+_PYLSL: dict = {"module": None}
 
 
 # ------------------------------------------------------------------------------ stream sessions

@@ -279,34 +279,6 @@ class EngineOutput:
 
 
 # ------------------------------------------------------------------------------ small math
-def _slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
-    """Spherical linear interpolation of unit quaternions (wxyz), shortest path."""
-    d = float(q0 @ q1)
-    if d < 0.0:
-        q1, d = -q1, -d
-    if d > 0.9999995:
-        q = q0 + u * (q1 - q0)
-        return q / math.sqrt(float(q @ q))
-    theta = math.acos(min(d, 1.0))
-    s = math.sin(theta)
-    return (math.sin((1.0 - u) * theta) / s) * q0 + (math.sin(u * theta) / s) * q1
-
-
-def _quat_matrices(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices ``(S, 3, 3)`` of quaternions ``(S, 4)`` wxyz (normalised; NaN rows
-    give NaN matrices)."""
-    q = q / np.sqrt(np.sum(q * q, axis=1, keepdims=True))
-    w, x, y, z = q.T
-    return np.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        axis=1,
-    ).reshape(-1, 3, 3)  # fmt: skip
-
-
 class _Chain:
     """Precomputed forward kinematics of a skeleton for one frame at a time."""
 
@@ -336,17 +308,35 @@ class _Chain:
         for j, d in enumerate(self.out_deps):
             self.dep_mask[j, d] = True
         self.computable = np.array([j in deps for j in config.joints])
-        self.Rc = config.R_world_from_camera
+        # the chain as arrays for the compiled kernel: node 0 = root, then every joint placed
+        node = {sk.root: 0}
+        dst, src, segs, vecs = [], [], [], []
+        ops = [(sk.root, j, si, o) for j, si, o in self.offsets]
+        ops += [(prox, dist, si, vec) for prox, dist, si, vec in self.steps]
+        for a, b, si, v in ops:
+            node.setdefault(b, len(node))
+            dst.append(node[b])
+            src.append(node[a])
+            segs.append(si)
+            vecs.append(np.asarray(v, dtype=float))
+        self._dst = np.array(dst, np.int64)
+        self._src = np.array(src, np.int64)
+        self._seg = np.array(segs, np.int64)
+        self._vec = np.array(vecs, dtype=float).reshape(-1, 3)
+        self._out_node = np.array([node.get(j, -1) for j in config.joints], np.int64)
+        from kinefuse.streaming._kernels import chain_positions  # compiled: imported on use
 
-    def positions(self, R: list, root: np.ndarray) -> np.ndarray:
-        """Joint positions (J_out, 3) from per-segment matrices (NaN matrices for stale)."""
-        pos = {self.root: root}
-        for j, si, off in self.offsets:
-            pos[j] = root + R[si] @ off
-        for prox, dist, si, vec in self.steps:
-            pos[dist] = pos[prox] + R[si] @ vec
-        nan = np.full(3, np.nan)
-        return np.stack([pos.get(j, nan) for j in self.out_joints])
+        self._kernel = chain_positions
+        Rc = config.R_world_from_camera
+        self._use_cam = Rc is not None
+        self._Rc = np.eye(3) if Rc is None else np.ascontiguousarray(Rc, dtype=float)
+
+    def positions(self, Q: np.ndarray, U: np.ndarray, root: np.ndarray) -> np.ndarray:
+        """Joint positions (J_out, 3), m, from per-segment orientations ``slerp(Q[0], Q[1],
+        U)`` (``Q`` (2, S, 4) unit wxyz, ``U`` (S,); NaN rows for stale segments -> NaN for
+        the joints that depend on them)."""
+        return self._kernel(Q, U, self._Rc, self._use_cam, np.asarray(root, dtype=float),
+                               self._dst, self._src, self._seg, self._vec, self._out_node)  # fmt: skip
 
 
 class _SegmentBuffer:
@@ -364,19 +354,22 @@ class _SegmentBuffer:
         self.estimator = None
 
     def orientation_at(self, t: float, stale_after_s: float):
+        """``(q0, q1, u, status)``: the orientation at ``t`` is ``slerp(q0, q1, u)`` (q1 is
+        q0 and u = 0 when no interpolation is needed; q0 None when stale)."""
         ts = self.t
         i = bisect.bisect_right(ts, t)
         if i > 0 and ts[i - 1] == t:
-            return self.q[i - 1], IMU_FRESH
+            return self.q[i - 1], self.q[i - 1], 0.0, IMU_FRESH
         if 0 < i < len(ts):
             a, b = ts[i - 1], ts[i]
             if b - a <= self.gap_s + 1e-12:
-                return _slerp(self.q[i - 1], self.q[i], (t - a) / (b - a)), IMU_FRESH
+                return self.q[i - 1], self.q[i], (t - a) / (b - a), IMU_FRESH
         if i > 0 and t - ts[i - 1] <= stale_after_s:
-            return self.q[i - 1], IMU_HELD
+            return self.q[i - 1], self.q[i - 1], 0.0, IMU_HELD
         if i == 0 and ts and ts[0] - t <= self.gap_s:
-            return self.q[0], IMU_HELD  # stream starts just after t (clock offsets of inlets)
-        return None, IMU_STALE
+            q = self.q[0]  # stream starts just after t (clock offsets of inlets)
+            return q, q, 0.0, IMU_HELD
+        return None, None, 0.0, IMU_STALE
 
     def prune(self, t_done: float):
         """Drop samples no future frame (t > t_done) can need."""
@@ -422,8 +415,11 @@ class Engine:
                 raise InputError(
                     f"expected a Processor (step, flush, checkpoint, restore, lag_frames), got {type(processor).__name__} without .{attr}"
                 )
+        from kinefuse.streaming._kernels import joint_flags  # compiled: imported on first use
+
         self.config = config
         self.processor = processor
+        self._joint_flags = joint_flags
         self._chain = _Chain(config)
         self._seg = {
             s: _SegmentBuffer(s, config.imu_period_s(s), config.gap_factor * config.imu_period_s(s))
@@ -494,15 +490,22 @@ class Engine:
         t = float(t_s)
         if not math.isfinite(t):
             raise InputError(f"expected a finite timestamp, got {t_s!r}")
-        now_eff = self._now(now)
-        name = f"imu:{segment}"
-        i = bisect.bisect_left(buf.t, t)
-        if i < len(buf.t) and buf.t[i] == t:
-            self._event(
-                t, "duplicate", name, "same timestamp as a buffered sample: dropped", logging.DEBUG
-            )
-            return False
-        if t <= self.last_output_t:
+        name = "imu:" + segment
+        bt = buf.t
+        if bt and t > bt[-1]:
+            i = len(bt)  # in order (the usual case): newer than everything buffered
+        else:
+            i = bisect.bisect_left(bt, t)
+            if i < len(bt) and bt[i] == t:
+                self._event(
+                    t,
+                    "duplicate",
+                    name,
+                    "same timestamp as a buffered sample: dropped",
+                    logging.DEBUG,
+                )
+                return False
+        if self._last_frame_t is not None and t <= self._last_frame_t:
             self._event(
                 t,
                 "late",
@@ -534,10 +537,10 @@ class Engine:
             raise InputError(
                 f"push_imu({segment!r}): expected a unit quaternion wxyz (4,), got {q}"
             )
-        q = q / n
+        q /= n
         if t > buf.last_t:
             if buf.last_t > -math.inf and t - buf.last_t > buf.gap_s:
-                silent = now_eff - buf.last_t
+                silent = self._now(now) - buf.last_t
                 if buf.stale:
                     self._event(
                         t,
@@ -569,7 +572,8 @@ class Engine:
         buf.stale = False
         buf.n += 1
         self.counters["imu_samples"] += 1
-        self._data_now = max(self._data_now, t)
+        if t > self._data_now:
+            self._data_now = t
         if self._first_data_t is None:
             self._first_data_t = t
         if self.config.record:
@@ -744,10 +748,11 @@ class Engine:
             self.counters["forced_frames"] += 1
         # orientations
         S = len(self._seg_list)
-        Q = np.full((S, 4), np.nan)
+        Q = np.full((2, S, 4), np.nan)  # the two samples around t per segment ...
+        U = np.zeros(S)  # ... and the interpolation fraction (slerp in the kernel)
         status = np.empty(S, np.int8)
         for k, buf in enumerate(self._seg_list):
-            q, st = buf.orientation_at(t, cfg.stale_after_s)
+            q0, q1, u, st = buf.orientation_at(t, cfg.stale_after_s)
             status[k] = st
             if st == IMU_STALE:
                 if not buf.stale:
@@ -755,10 +760,9 @@ class Engine:
                     self._event(t, "stream_stale", f"imu:{buf.name}",
                                 f"no sample since {buf.last_t:.3f} s: joints predict-only")  # fmt: skip
             else:
-                Q[k] = q
-        R = _quat_matrices(Q)
-        if cfg.R_world_from_camera is not None:
-            R = np.einsum("ji,sjk->sik", cfg.R_world_from_camera, R)  # camera_from_sensor
+                Q[0, k] = q0
+                Q[1, k] = q1
+                U[k] = u
         self.counters["held"] += int(np.sum(status == IMU_HELD))
         self.counters["stale"] += int(np.sum(status == IMU_STALE))
         # camera
@@ -773,21 +777,12 @@ class Engine:
             z_cam[~avail] = np.nan
             if self._cam_root >= 0 and cam_avail[self._cam_root]:
                 self._root = cam_pos[self._cam_root].copy()
-        z_imu = self._chain.positions(R, self._root)
+        z_imu = self._chain.positions(Q, U, self._root)  # camera frame if R_world_from_camera
         # flags: worst status over each joint's segments (IMU_FRESH = 0 without any)
-        if S:
-            jstat = np.where(self._chain.dep_mask, status, IMU_FRESH).max(axis=1).astype(np.int8)
-        else:
-            jstat = np.full(J, IMU_FRESH, np.int8)
-        jstat[~self._chain.computable] = IMU_STALE
-        flags = np.zeros(J, np.uint8)
-        flags[jstat == IMU_HELD] |= FLAG_IMU_HELD
-        flags[jstat == IMU_STALE] |= FLAG_IMU_STALE
-        if cfg.camera:
-            flags[:] |= FLAG_CAMERA_MISSING if cam_pos is None else 0
-            flags[~avail] |= FLAG_NO_CAMERA_JOINT
-        if forced:
-            flags[:] |= FLAG_FORCED
+        jstat, flags = self._joint_flags(status, self._chain.dep_mask[:, :S], self._chain.computable,
+                                   avail, cfg.camera, cam_pos is None, forced, IMU_FRESH, IMU_HELD,
+                                   IMU_STALE, FLAG_IMU_HELD, FLAG_IMU_STALE, FLAG_CAMERA_MISSING,
+                                   FLAG_NO_CAMERA_JOINT, FLAG_FORCED)  # fmt: skip
         self._last_frame_t = t
         for buf in self._seg_list:
             buf.prune(t)

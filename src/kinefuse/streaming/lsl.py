@@ -182,6 +182,19 @@ def resolve_many(names, timeout_s: float = 5.0) -> dict:
             return found
 
 
+_EMPTY = (np.zeros((0, 0)), np.zeros(0))
+_EMPTY[0].flags.writeable = _EMPTY[1].flags.writeable = False
+#: ``as_numpy=True`` where pylsl has it (>= 1.18): one array instead of lists of floats
+_AS_NUMPY: dict = {}
+
+
+def _pull_options(pylsl) -> None:
+    import inspect
+
+    if "as_numpy" in inspect.signature(pylsl.StreamInlet.pull_chunk).parameters:
+        _AS_NUMPY["as_numpy"] = True
+
+
 @dataclass
 class Input:
     """One input stream: an inlet, its layout and its clock correction.
@@ -209,6 +222,7 @@ class Input:
     raw_idx: list | None = None
     offset_s: float = 0.0
     _next_refresh: float = 0.0
+    _next_probe: float = 0.0
     lost: bool = False
     n_samples: int = 0
     n_reattached: int = 0
@@ -234,6 +248,7 @@ class Input:
 
     def _attach(self, info, max_buflen_s=30):
         pylsl = import_pylsl()
+        _pull_options(pylsl)
         flags = 0
         if self.clock == "lsl":
             flags = pylsl.proc_clocksync | pylsl.proc_dejitter | pylsl.proc_monotonize
@@ -295,14 +310,28 @@ class Input:
         """Samples available now: ``(values (n, C) float64, timestamps (n,) corrected)``."""
         pylsl = import_pylsl()
         try:
-            data, ts = self.inlet.pull_chunk(timeout=0.0, max_samples=max_samples)
+            # a cheap query first (~1 us): most polls of a 100 Hz stream find nothing; a full
+            # pull (which is what reports a lost stream) at least every 50 ms
+            n = self.inlet.samples_available()
+            if not n:
+                now = time.monotonic()
+                if now < self._next_probe:
+                    return _EMPTY
+                self._next_probe = now + 0.05
+            elif n == 1:  # the live case: one sample per poll; pull_sample is the cheaper call
+                row, t = self.inlet.pull_sample(timeout=0.0)
+                if t is None:
+                    return _EMPTY
+                self.n_samples += 1
+                return np.array([row], dtype=float), np.array([t + self.offset_s])
+            data, ts = self.inlet.pull_chunk(timeout=0.0, max_samples=max_samples, **_AS_NUMPY)
         except pylsl.util.LostError:
             if not self.lost:
                 log.warning("LSL stream %s lost; trying to reattach", self.name)
             self.lost = True
-            return np.zeros((0, 0)), np.zeros(0)
-        if not ts:
-            return np.zeros((0, 0)), np.zeros(0)
+            return _EMPTY
+        if not len(ts):
+            return _EMPTY
         self.n_samples += len(ts)
         return np.asarray(data, dtype=float), np.asarray(ts, dtype=float) + self.offset_s
 
@@ -323,29 +352,37 @@ class Input:
         """Push pulled samples into ``engine``; returns how many were accepted."""
         n = 0
         if self.kind == "imu":
+            qi = self.q_idx
+            if qi and qi == list(range(qi[0], qi[0] + 4)):
+                qi = slice(qi[0], qi[0] + 4)  # a view, not a gather (push_imu copies it)
             for row, t in zip(data, ts, strict=True):
                 if self.q_idx:
-                    ok = engine.push_imu(self.key, t, row[self.q_idx], now=now)
+                    ok = engine.push_imu(self.key, t, row[qi], now=now)
                 else:
                     r = row[self.raw_idx]
                     ok = engine.push_imu(self.key, t, acc=r[:3], gyr=r[3:], now=now)
                 n += ok
         else:
-            cj = engine.config.camera_joints
-            pos = np.full((len(cj), 3), np.nan)
-            avail = np.zeros(len(cj), bool)
-            src = [self.joints.index(j) if j in self.joints else -1 for j in cj]
+            cols, av_cols, seen, always = self._camera_map(engine.config.camera_joints)
             for row, t in zip(data, ts, strict=True):
-                pos[:] = np.nan
-                avail[:] = False
-                for k, s in enumerate(src):
-                    if s < 0:
-                        continue
-                    pos[k] = row[self._cam_idx[s]]
-                    a = self._av_idx[s]
-                    avail[k] = bool(row[a] > 0.5) if a >= 0 else True
+                pos = np.where(seen[:, None], row[cols], np.nan)  # (Jc, 3); unseen joints NaN
+                avail = seen & (always | (row[av_cols] > 0.5))
                 n += engine.push_camera(t, pos, avail, now=now)
         return n
+
+    def _camera_map(self, camera_joints):
+        """Column indices of the engine's camera joints in this stream's samples (cached):
+        ``cols (Jc, 3)``, ``av_cols (Jc,)``, ``seen`` (the stream has the joint), ``always``
+        (no availability channel: available whenever present)."""
+        key = tuple(camera_joints)
+        if getattr(self, "_cam_map_key", None) != key:
+            src = np.array([self.joints.index(j) if j in self.joints else -1 for j in key], int)
+            seen = src >= 0
+            cols = np.where(seen[:, None], self._cam_idx[np.maximum(src, 0)], 0)
+            av = np.where(seen, self._av_idx[np.maximum(src, 0)], -1)
+            self._cam_map = (cols, np.maximum(av, 0), seen, av < 0)
+            self._cam_map_key = key
+        return self._cam_map
 
     def close(self) -> None:
         """Close the inlet."""
@@ -400,7 +437,9 @@ class FusedOutlet:
         b[:, 3:6] = out.std_m
         b[:, 6] = out.source
         b[:, 7] = out.flags
-        self.outlet.push_sample(self._buf, out.t_s)
+        # a one-sample chunk: pylsl hands the array's buffer to liblsl as is (push_sample
+        # converts value by value); the chunk's timestamp is its only sample's
+        self.outlet.push_chunk(self._buf.reshape(1, -1), out.t_s)
 
     def close(self) -> None:
         """Release the outlet."""

@@ -32,6 +32,7 @@ import numpy as np
 from kinefuse.conventions import SOURCE_CAMERA, SOURCE_FUSED, SOURCE_IMU
 from kinefuse.exceptions import InputError
 from kinefuse.filters._base import FilterResult, GaussianState
+from kinefuse.filters._kernels_axis import state_is_block_diagonal
 from kinefuse.filters.integrated import IntegratedFilter
 from kinefuse.filters.kalman import KalmanFilter
 from kinefuse.filters.smoothing import fixed_lag_smooth
@@ -383,20 +384,31 @@ class KalmanFusionProcessor(_LinearProcessor):
         self._kf_imu = KalmanFilter(constant_velocity(dt_s, q=q, r=self.r_imu))
         self._kf_cam = KalmanFilter(constant_velocity(dt_s, q=q, r=self.r_camera))
         self._kf_both = KalmanFilter(constant_velocity(dt_s, q=q, r=r_both))
+        # one compiled call per frame for all joints (cases 0 both, 1 camera, 2 IMU/predict)
+        # when the filters run their per-axis path; the three differ only in R (and P0)
+        kfs = (self._kf_both, self._kf_cam, self._kf_imu)
+        if all(kf._blocks is not None for kf in kfs):
+            Fb, Qb, Hb, _, _ = self._kf_imu._blocks
+            self._fast = (np.stack([kf._blocks[3] for kf in kfs]),
+                          np.stack([kf._blocks[4] for kf in kfs]), Fb, Qb, Hb)  # fmt: skip
+        else:
+            self._fast = None
         super().__init__(self._kf_imu.model, lag)
 
     def _init_state(self, n_joints):
         return self._kf_imu.init((n_joints,))
 
     def _filter_step(self, z_imu, z_cam, available):
+        st = self._state
+        wi, wc = 1.0 / self.r_imu, 1.0 / self.r_camera
+        if self._fast is not None and state_is_block_diagonal(st.P, st.initialized):
+            return self._fast_step(z_imu, z_cam, available, wi, wc)
         has_imu = np.all(np.isfinite(z_imu), axis=1)
         has_cam = available & np.all(np.isfinite(z_cam), axis=1)
         both = has_imu & has_cam
         cam_only = has_cam & ~has_imu
         rest = ~has_cam  # IMU only, or nothing (NaN rows -> predict)
-        st = self._state
         J = z_imu.shape[0]
-        wi, wc = 1.0 / self.r_imu, 1.0 / self.r_camera
         groups = []
         for kf, idx in ((self._kf_both, both), (self._kf_cam, cam_only), (self._kf_imu, rest)):
             n = int(np.count_nonzero(idx))
@@ -422,8 +434,29 @@ class KalmanFusionProcessor(_LinearProcessor):
                 x[idx], P[idx], init[idx] = sub.x, sub.P, sub.initialized
                 mean[idx], cov[idx] = res.mean[:, 0], res.cov[:, 0]
             self._state = GaussianState(x, P, init, st.k + 1)
-        source = np.full(J, SOURCE_PREDICT, np.int8)
+        return mean, cov, self._sources(has_imu, both, cam_only)
+
+    @staticmethod
+    def _sources(has_imu, both, cam_only):
+        source = np.full(has_imu.shape, SOURCE_PREDICT, np.int8)
         source[has_imu] = SOURCE_IMU
         source[cam_only] = SOURCE_CAMERA
         source[both] = SOURCE_FUSED
-        return mean, cov, source
+        return source
+
+    def _fast_step(self, z_imu, z_cam, available, wi, wc):
+        """:meth:`_filter_step` as one compiled call (the same per-axis filter kernel, the
+        same numbers: tested against the grouped form)."""
+        from kinefuse.streaming._kernels import fusion_step
+
+        r, P0b, Fb, Qb, Hb = self._fast
+        J, n_x = z_imu.shape[0], self.model.n_x
+        st = self._state
+        x, P, init = st.x.copy(), st.P.copy(), st.initialized.copy()
+        mean = np.empty((J, 1, n_x))
+        cov = np.zeros((J, 1, n_x, n_x))
+        source = np.empty(J, np.int8)
+        fusion_step(np.ascontiguousarray(z_imu), np.ascontiguousarray(z_cam), available, wi, wc,
+                    r, P0b, x, P, init, Fb, Qb, Hb, mean, cov, source)  # fmt: skip
+        self._state = GaussianState(x, P, init, st.k + 1)
+        return mean[:, 0], cov[:, 0], source
