@@ -29,8 +29,10 @@ run           ``kinefuse.pipelines.session.run_session(path, out_dir, force) -> 
 evaluate      ``kinefuse.pipelines.session.evaluate_recording(path, method) -> summary``
 experiment    ``kinefuse.pipelines.experiments.run_experiment(name, data_dir) -> summary``
 bench         ``kinefuse.evaluation.bench.run_bench(quick) -> summary``
-stream        ``kinefuse.streaming.run_stream(session: SessionConfig) -> summary``
-replay        ``kinefuse.streaming.replay_recording(path) -> summary``
+stream        ``kinefuse.streaming.run_stream(cfg: StreamConfig, duration_s, out, status,
+              *, idle_timeout_s, wait_for_reader_s, record_inputs) -> summary``
+replay        ``kinefuse.streaming.replay_recording(path | "demo", rate, prefix, loop,
+              duration_s, *, include_raw, wait_for_consumers_s, quiet) -> summary``
 ============  =========================================================================
 
 A *summary* may be ``None``, a :class:`~pathlib.Path` (e.g. the report), an
@@ -43,6 +45,8 @@ import contextlib
 import functools
 import importlib
 import json
+import logging
+import math
 import os
 import sys
 import traceback
@@ -549,31 +553,293 @@ def bench(
     _present(summary, quiet=quiet, json_file=json_file)
 
 
+_Seconds = float | None
+
+
+def _positive(value: float | None, option: str) -> None:
+    if value is not None and not (math.isfinite(value) and value > 0):
+        raise InputError(f"{option}: expected a number of seconds > 0, got {value:g}")
+
+
+def _stream_session(path: Path, resolve_timeout_s: float | None):
+    """The StreamConfig of SESSION.toml: a ``[stream]`` table -> streaming loader, else offline."""
+    import dataclasses
+
+    from kinefuse.exceptions import ConfigError
+    from kinefuse.session import load_session
+    from kinefuse.streaming.config import load_stream_config, stream_config_from_session
+
+    if sys.version_info >= (3, 11):
+        import tomllib
+    else:  # pragma: no cover - Python 3.10 only
+        import tomli as tomllib
+
+    p = path.expanduser()
+    _existing_file(p, "SESSION.toml")
+    try:
+        doc = tomllib.loads(p.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p.name}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{p.name}: not a UTF-8 text file") from None
+    overrides = {} if resolve_timeout_s is None else {"resolve_timeout_s": resolve_timeout_s}
+    if "stream" in doc:
+        return dataclasses.replace(load_stream_config(p), **overrides)
+    return stream_config_from_session(load_session(p), **overrides)
+
+
+def _out_files(out: Path, force: bool) -> None:
+    if not out.name or out.is_dir():
+        raise InputError(f"--out {out}: is a folder; give a file name such as {out / 'live'}")
+    for target in (out.with_suffix(".npz"), out.with_suffix(".json")):
+        if target.exists() and not force:
+            raise FileExistsError(
+                f"{target} already exists; pass --force to overwrite it, or choose another --out"
+            )
+
+
+def _kv_table(title: str, rows: list[tuple[str, str]], caption: str | None = None):
+    from rich import box
+    from rich.table import Table
+
+    t = Table(title=title, caption=caption, caption_justify="left", box=box.SIMPLE,
+              pad_edge=False, show_header=False)  # fmt: skip
+    t.add_column("item", no_wrap=True)
+    t.add_column("value", no_wrap=True)
+    for k, v in rows:
+        t.add_row(k, v)
+    return t
+
+
+def _ms(v) -> str:
+    return "–" if v is None else f"{v:.3f}"
+
+
+def _stream_table(summary: Mapping):
+    lat = summary.get("latency_ms") or {}
+    rows = [
+        ("output stream", str(summary.get("output_stream", "–"))),
+        ("outputs", str(summary.get("outputs", 0))),
+        ("frames", str(summary.get("frames", 0))),
+        ("latency p50 / p99 / max (ms)",
+         f"{_ms(lat.get('p50'))} / {_ms(lat.get('p99'))} / {_ms(lat.get('max'))}"),
+    ]  # fmt: skip
+    counters = summary.get("counters") or {}
+    rows += [
+        (name.replace("_", " "), str(n))
+        for name, n in counters.items()
+        if n and name not in ("outputs", "frames")
+    ]
+    missing = summary.get("missing") or []
+    rows.append(("missing streams", ", ".join(missing) if missing else "none"))
+    if summary.get("out"):
+        rows.append(("written", str(summary["out"])))
+    caption = "stopped by Ctrl-C (pending frames flushed)" if summary.get("interrupted") else None
+    return _kv_table("kinefuse stream", rows, caption)
+
+
+def _replay_table(summary: Mapping, rate: float):
+    from rich import box
+    from rich.table import Table
+
+    caption = (
+        f"{summary.get('recording_s', 0.0):.1f} s of recording published in "
+        f"{summary.get('duration_s', 0.0):.1f} s wall time (--rate {rate:g})"
+    )
+    if summary.get("interrupted"):
+        caption += "; stopped by Ctrl-C"
+    t = Table(title="kinefuse replay", caption=caption, caption_justify="left",
+              box=box.SIMPLE_HEAD, pad_edge=False)  # fmt: skip
+    t.add_column("stream", no_wrap=True)
+    t.add_column("samples pushed", justify="right", no_wrap=True)
+    for name, n in (summary.get("samples") or {}).items():
+        t.add_row(name, str(n))
+    return t
+
+
+def _finish(summary: Any, table_of: Callable, *, quiet: bool, json_file: Path | None) -> None:
+    """Write ``--json`` and print ``table_of(summary)`` (unless quiet or JSON goes to stdout)."""
+    _present(summary, quiet=True, json_file=json_file)
+    if not quiet and str(json_file) != "-" and isinstance(summary, Mapping):
+        _stdout().print(table_of(summary))
+
+
 @app.command(epilog=_EPILOG)
 @_guarded
 def stream(
     session: Annotated[
         Path,
-        typer.Argument(metavar="SESSION.toml", help="Session file describing the live sources."),
+        typer.Argument(
+            metavar="SESSION.toml",
+            help="Streaming session (with a stream table) or offline session "
+            "(`kinefuse init-session`).",
+        ),
     ],
+    duration: Annotated[
+        _Seconds,
+        typer.Option(
+            "--duration",
+            metavar="SECONDS",
+            help="Stop after this wall time (default: Ctrl-C or --idle-timeout).",
+        ),
+    ] = None,
+    idle_timeout: Annotated[
+        _Seconds,
+        typer.Option(
+            "--idle-timeout",
+            metavar="SECONDS",
+            help="Stop once no input sample arrived for this long.",
+        ),
+    ] = None,
+    resolve_timeout: Annotated[
+        _Seconds,
+        typer.Option(
+            "--resolve-timeout",
+            metavar="SECONDS",
+            help="How long to look for the input streams (default: the session's "
+            "resolve_timeout_s, 5 s).",
+        ),
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            "-o",
+            metavar="FILE",
+            help="Write the outputs to FILE.npz and the summary to FILE.json.",
+        ),
+    ] = None,
+    force: Annotated[
+        bool, typer.Option("--force", "-f", help="Overwrite existing --out files.")
+    ] = False,
+    record_inputs: Annotated[
+        bool,
+        typer.Option(
+            "--record-inputs",
+            help="Also store the accepted input samples in FILE.npz (re-run the session "
+            "offline with kinefuse.streaming.offline_causal); needs --out.",
+        ),
+    ] = False,
+    wait_for_reader: Annotated[
+        _Seconds,
+        typer.Option(
+            "--wait-for-reader",
+            metavar="SECONDS",
+            help="Wait up to this long for a reader of the output stream before "
+            "starting (inputs are buffered meanwhile).",
+        ),
+    ] = None,
+    no_status: Annotated[
+        bool, typer.Option("--no-status", help="No live status table on stderr.")
+    ] = False,
+    quiet: _Quiet = False,
+    json_file: _Json = None,
 ) -> None:
-    """Run a session online on live data (e.g. LSL streams); Ctrl-C stops."""
-    from kinefuse.session import load_session
+    """Fuse live LSL streams online and publish the joints; Ctrl-C stops (frames are flushed).
 
-    cfg = load_session(session)
-    _present(_backend("stream")(cfg), quiet=False, json_file=None)
+    Inputs: PREFIX_imu_SEGMENT (type IMU) per segment and PREFIX_camera (type MoCap), see replay.
+
+    Output: PREFIX_fused (type MoCap), one sample per camera frame: x, y, z, std (m) per joint.
+
+    PREFIX: name_prefix of a streaming session (stream table), or an offline session's name.
+    """
+    for value, option in ((duration, "--duration"), (idle_timeout, "--idle-timeout"),
+                          (resolve_timeout, "--resolve-timeout"),
+                          (wait_for_reader, "--wait-for-reader")):  # fmt: skip
+        _positive(value, option)
+    if record_inputs and out is None:
+        raise InputError("--record-inputs needs --out FILE (the inputs are stored in FILE.npz)")
+    cfg = _stream_session(session, resolve_timeout)
+    if out is not None:
+        _out_files(out, force)
+    if json_file is not None and str(json_file) != "-" and not json_file.parent.is_dir():
+        raise InputError(f"--json {json_file}: folder {json_file.parent} does not exist")
+    if quiet:
+        logging.getLogger("kinefuse.streaming").setLevel(logging.ERROR)
+    summary = _backend("stream")(
+        cfg, duration, out, not (no_status or quiet), idle_timeout_s=idle_timeout,
+        wait_for_reader_s=wait_for_reader, record_inputs=record_inputs,
+    )  # fmt: skip
+    _finish(summary, _stream_table, quiet=quiet, json_file=json_file)
 
 
 @app.command(epilog=_EPILOG)
 @_guarded
 def replay(
     recording: Annotated[
-        Path, typer.Argument(metavar="RECORDING", help="Recording to play back as if live.")
+        str,
+        typer.Argument(
+            metavar="RECORDING",
+            help="A file or folder `kinefuse.io.load` reads, or `demo` (built-in: 9 virtual IMUs "
+            "at 100 Hz and a virtual camera at 30 Hz with outages, 12.5 s).",
+        ),
     ],
+    rate: Annotated[
+        float,
+        typer.Option("--rate", metavar="FACTOR", help="Speed-up factor (2 = twice real time)."),
+    ] = 1.0,
+    prefix: Annotated[
+        str, typer.Option("--prefix", metavar="TEXT", help="Stream name prefix.")
+    ] = "kinefuse",
+    loop: Annotated[
+        bool,
+        typer.Option("--loop", help="Start again at the end (timestamps keep increasing)."),
+    ] = False,
+    duration: Annotated[
+        _Seconds,
+        typer.Option(
+            "--duration",
+            metavar="SECONDS",
+            help="Publish this much recording time (default: the recording once, or "
+            "until Ctrl-C with --loop).",
+        ),
+    ] = None,
+    no_raw: Annotated[
+        bool,
+        typer.Option("--no-raw", help="Publish the orientation channels only (no acc_*, gyr_*)."),
+    ] = False,
+    wait_for_consumers: Annotated[
+        _Seconds,
+        typer.Option(
+            "--wait-for-consumers",
+            metavar="SECONDS",
+            help="Before publishing, wait up to this long until every stream has a reader.",
+        ),
+    ] = None,
+    quiet: _Quiet = False,
+    json_file: _Json = None,
 ) -> None:
-    """Play a recording back through the online (streaming) path."""
-    _existing_file(recording, "RECORDING")
-    _present(_backend("replay")(recording), quiet=False, json_file=None)
+    """Publish a recording as live LSL streams, at its real rate or --rate times faster.
+
+    PREFIX_imu_SEGMENT, one per IMU (type IMU): qw qx qy qz, acc_x/y/z m/s^2, gyr_x/y/z rad/s.
+
+    PREFIX_camera (type MoCap): per joint JOINT_x/_y/_z in m (NaN if unseen), JOINT_available.
+
+    Timestamps: the recording's, moved to the LSL clock and divided by --rate. Ctrl-C stops.
+    """
+    if not (math.isfinite(rate) and rate > 0):
+        raise InputError(f"--rate: expected a speed-up factor > 0, got {rate:g}")
+    _positive(duration, "--duration")
+    _positive(wait_for_consumers, "--wait-for-consumers")
+    if not prefix.strip():
+        raise InputError("--prefix: expected a non-empty stream name prefix")
+    if recording != "demo" and not Path(recording).exists():
+        raise InputError(
+            f"RECORDING {recording}: file not found (give a file or folder kinefuse.io.load "
+            "reads, or `demo`)"
+        )
+    if json_file is not None and str(json_file) != "-" and not json_file.parent.is_dir():
+        raise InputError(f"--json {json_file}: folder {json_file.parent} does not exist")
+    source = recording if recording == "demo" else Path(recording)
+    if not quiet:
+        _stderr().print(
+            f"Publishing {recording} as {prefix}_* LSL streams at {rate:g}x (Ctrl-C stops)..."
+        )
+    summary = _backend("replay")(
+        source, rate, prefix, loop, duration, include_raw=not no_raw,
+        wait_for_consumers_s=wait_for_consumers, quiet=quiet,
+    )  # fmt: skip
+    _finish(summary, lambda s: _replay_table(s, rate), quiet=quiet, json_file=json_file)
 
 
 def main() -> None:

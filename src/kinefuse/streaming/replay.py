@@ -120,7 +120,8 @@ def run_replay(
     -------
     dict
         ``streams`` (names), ``samples`` (pushed per stream), ``duration_s`` (wall),
-        ``recording_s`` (published recording time), ``interrupted`` (Ctrl-C).
+        ``recording_s`` (published recording time, s; up to the last sample pushed when
+        stopped early), ``interrupted`` (Ctrl-C).
 
     Notes
     -----
@@ -161,7 +162,8 @@ def run_replay(
     span = float(t_all[-1] - t0) + float(np.median(np.diff(streams[0][3])))
     limit = math.inf if duration_s is None else float(duration_s)
     pushed = [0] * len(streams)
-    interrupted = False
+    interrupted = stopped = False
+    last_rt = 0.0  # recording time of the last sample pushed, s
     start_wall = time.monotonic()
     try:
         if wait_for_consumers_s:
@@ -189,20 +191,21 @@ def run_replay(
                 s = which[k]
                 outlets[s].push_sample(streams[s][4][row[k]], due)
                 pushed[s] += 1
+                last_rt = rt
             rep += 1
             if not loop:
                 done = True
             elif not quiet:
                 log.info("replay: loop %d done", rep)
     except _Stop:
-        pass
+        stopped = True
     except KeyboardInterrupt:
         interrupted = True
     finally:
         if not interrupted:
             time.sleep(linger_s)  # let the last samples reach the inlets before closing
         del outlets[:]
-    published = min(limit, rep * span if loop else span)
+    published = last_rt if interrupted or stopped else min(limit, rep * span if loop else span)
     return {
         "streams": [s[0] for s in streams],
         "samples": dict(zip([s[0] for s in streams], pushed, strict=True)),

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import gc
 import json
 import logging
 import math
 import time
 from collections import deque
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +27,7 @@ from kinefuse.streaming.config import (
 from kinefuse.streaming.engine import Engine, EngineConfig
 from kinefuse.streaming.processors import SOURCE_PREDICT, IntegratedProcessor, KalmanFusionProcessor
 
-__all__ = ["build_engine", "run_loop", "run_stream", "stream_config"]
+__all__ = ["build_engine", "run_loop", "run_stream", "stream_config", "warm_up"]
 
 log = logging.getLogger("kinefuse.streaming")
 
@@ -76,6 +80,49 @@ def build_engine(
     return Engine(ecfg, proc)
 
 
+def warm_up(engine, seconds: float = 2.0) -> None:
+    """Run a throwaway copy of ``engine`` on synthetic input (``engine`` itself is untouched).
+
+    The first call of each compiled kernel in a process loads (or compiles) its machine code
+    and the first pass through NumPy and the processor allocates: tens to hundreds of
+    milliseconds that would otherwise land on the first live frames. The synthetic input is
+    ``seconds`` of identity orientations at every segment's rate and, with a camera, frames
+    in which the first camera joint is hidden for the second half (an outage onset, so that a
+    bridging processor trains once).
+    """
+    cfg = dataclasses.replace(engine.config, record=False)
+    proc = copy.deepcopy(engine.processor)
+    if hasattr(proc, "warm_up"):
+        proc.warm_up()
+    scratch = Engine(cfg, proc)
+    events = []
+    for seg in cfg.segments:
+        dt = cfg.imu_period_s(seg)
+        events += [(k * dt, 0, seg) for k in range(int(seconds / dt) + 1)]
+    if cfg.camera:
+        dt = cfg.frame_period_s
+        events += [(k * dt, 1, None) for k in range(int(seconds / dt) + 1)]
+    events.sort(key=lambda e: (e[0], e[1]))
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    Jc = len(cfg.camera_joints) if cfg.camera else 0
+    pos = np.zeros((Jc, 3))
+    avail = np.ones(Jc, bool)
+    level = log.level
+    log.setLevel(logging.ERROR)  # a throwaway run: no events in the user's log
+    try:
+        for t, kind, seg in events:
+            if kind == 0:
+                scratch.push_imu(seg, t, q, now=t)
+            else:
+                if Jc and t >= seconds / 2:
+                    avail[0] = False
+                scratch.push_camera(t, pos + 0.01 * t, avail, now=t)
+            scratch.poll(t)
+        scratch.flush(seconds + 1.0)
+    finally:
+        log.setLevel(level)
+
+
 def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=None, stop_event=None,
              on_output=None, status=None, reattach=None) -> dict:  # fmt: skip
     """Pull every input, feed the engine, push its outputs, until a stop condition.
@@ -103,8 +150,9 @@ def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=N
     Returns
     -------
     dict
-        ``interrupted`` (Ctrl-C), ``latency_s`` (array: first pull of an iteration -> output
-        pushed, per output), ``outputs`` (count).
+        ``interrupted`` (Ctrl-C), ``latency_s`` (array, per output: start of the first pull
+        that returned samples in the loop pass that completed its frame -> output pushed;
+        outputs released by a timeout are not timed), ``outputs`` (count).
 
     Notes
     -----
@@ -130,20 +178,24 @@ def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=N
             if on_output is not None:
                 on_output(o)
 
+    gc.collect()
+    gc.freeze()  # set-up objects out of the collector's way: short collections in the loop
     try:
         while True:
             t_first = None
-            got = False
             for inp in inputs:
                 if inp.lost:
                     continue
+                t_pull = time.perf_counter()
                 data, ts = inp.pull()
                 if len(ts):
                     if t_first is None:
-                        t_first = time.perf_counter()
-                    got = True
+                        t_first = t_pull
                     inp.feed(engine, data, ts, clock())
+            # every input is read before frames are processed: a frame never goes out without
+            # IMU samples that had already arrived (e.g. the backlog at start-up)
             push(engine.poll(clock()), t_first)
+            got = t_first is not None
             mono = time.monotonic()
             if got:
                 last_data = mono
@@ -174,6 +226,7 @@ def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=N
         interrupted = True
         log.warning("interrupted (Ctrl-C): flushing pending frames and closing streams")
     finally:
+        gc.unfreeze()
         try:
             push(engine.flush(clock()), None)
         finally:
@@ -188,7 +241,9 @@ def _status_printer(console, cfg):
     from rich.live import Live
     from rich.table import Table
 
-    live = Live(console=console, refresh_per_second=4, transient=False)
+    # rendered by the loop itself (4 Hz, right after a push), not by rich's refresh thread:
+    # a thread would compete with the loop for the GIL at random moments
+    live = Live(console=console, auto_refresh=False, transient=False)
     live.start()
     last = {"t": time.monotonic(), "n": {}}
 
@@ -220,7 +275,7 @@ def _status_printer(console, cfg):
         tab.caption = (f"outputs {c['outputs']}  latency {lat_txt}\n{joints}\n"
                        f"late {c['late']} dup {c['duplicate']} reordered {c['reordered']} jumps {c['time_jump']} "
                        f"stale {c['stream_stale']} forced {c['forced_frames']} synthesized {c['synthesized_frames']}")  # fmt: skip
-        live.update(tab)
+        live.update(tab, refresh=True)
 
     return live, show
 
@@ -235,6 +290,7 @@ def run_stream(
     wait_for_reader_s: float | None = None,
     stop_event=None,
     record: bool = False,
+    record_inputs: bool = False,
     return_engine: bool = False,
 ) -> dict:
     """Run the online engine on LSL inputs and publish the fused joints.
@@ -250,19 +306,35 @@ def run_stream(
         Stop after this wall time, s (default: until Ctrl-C, ``idle_timeout_s`` or
         ``stop_event``).
     out : path, optional
-        Write the outputs (``t_s``, ``position_m``, ``std_m``, ``source``, ``flags``) to this
-        ``.npz`` file and the summary next to it (``.json``).
+        Write the outputs to ``out`` with suffix ``.npz`` (arrays below) and the summary next
+        to it with suffix ``.json``. Existing files are overwritten. Outputs, for T outputs and
+        the J ``joints``: ``t_s`` (T,) frame time on the LSL clock, s; ``position_m`` (T, J, 3),
+        m; ``std_m`` (T, J, 3), m; ``source`` (T, J) int8 code; ``flags`` (T, J) uint8 bit
+        mask; ``joints`` (J,) str.
     status : bool
         Live terminal status (rich): streams, rates, per-joint source, latency.
     idle_timeout_s : float, optional
         Stop once no input sample arrived for this long.
     wait_for_reader_s : float, optional
-        Wait up to this long for a consumer of the output stream before pulling inputs (inputs
-        are buffered meanwhile).
+        Wait up to this long for a consumer of the output stream before the inputs are
+        opened.
     stop_event : threading.Event, optional
         Stop when set (tests, embedding).
     record : bool
         Keep the accepted samples in ``engine.accepted`` (tests).
+    record_inputs : bool
+        Also write the accepted input samples into the ``.npz`` of ``out`` (required), so the
+        session can be re-run offline with :func:`~kinefuse.streaming.offline_causal`
+        (implies ``record``; memory grows with the session). For each of the S engine
+        segments ``imu_<segment>_t`` (N,), s, and ``imu_<segment>_q`` (N, 4),
+        ``q_world_from_sensor`` wxyz, in arrival order; ``camera_t`` (F,), s,
+        ``camera_position_m`` (F, Jc, 3), m (camera frame, NaN = not seen) and
+        ``camera_available`` (F, Jc) bool for the accepted camera frames, with
+        ``camera_joints`` (Jc,) str (F = Jc = 0 without a camera); ``frame_t`` (K,), s, and
+        ``frame_synthesized`` (K,) bool (no camera frame at that time) for every processed
+        frame; ``segments`` (S,) str, ``imu_rate_hz`` (S,) and ``camera_rate_hz`` (scalar),
+        Hz: the nominal rates the engine was built with (:func:`build_engine`). All times are
+        on the local LSL clock after clock correction, as the engine saw them.
     return_engine : bool
         Put the :class:`Engine` in the summary (key ``"engine"``).
 
@@ -278,68 +350,75 @@ def run_stream(
     Inputs are resolved by name (timeout ``resolve_timeout_s``); a missing IMU stream leaves
     its joints predict-only and is looked for again in the loop; a camera stream is required
     unless the configuration has ``camera_stream = ""``. The camera's nominal rate sets the
-    output rate (one output per camera frame). Each inlet is opened with ``recover=True``, so a
+    output rate (one output per camera frame). The engine is built and warmed up and the
+    output stream created before the inlets subscribe, right before the loop, so that the loop
+    starts without a backlog of samples. Each inlet is opened with ``recover=True``, so a
     stream re-created with the same source id is reattached by liblsl; a lost stream without
     source id is resolved again by name. Timestamps: see :mod:`kinefuse.streaming.lsl`.
     """
+    if record_inputs and out is None:
+        raise InputError("record_inputs needs out: the accepted inputs are written to its .npz")
     cfg = stream_config(session)
     pylsl = import_pylsl()
     from kinefuse.streaming.lsl import IMU_TYPE, FusedOutlet, Input, resolve_many
 
-    inputs, missing = [], []
     segments = EngineConfig(
         full_body(height_m=cfg.body_height_m, lengths=cfg.lengths_m or None), joints=cfg.joints
     ).segments
     cam_name = cfg.camera_stream_name
-    cam = None
     wanted = {cfg.imu_stream_name(seg): seg for seg in segments}
     found = resolve_many(([cam_name] if cam_name else []) + list(wanted), cfg.resolve_timeout_s)
-    try:
-        if cam_name:
-            if cam_name not in found:
-                raise InputError(f"camera stream {cam_name!r} not found within {cfg.resolve_timeout_s:g} s "
-                                 "(set [stream] camera_stream = \"\" to run without a camera)")  # fmt: skip
-            cam = Input.open("camera", "camera", cam_name, info=found[cam_name], clock=cfg.clock)
-            inputs.append(cam)
-        for name, seg in wanted.items():
-            if name in found:
-                inputs.append(Input.open("imu", seg, name, info=found[name], clock=cfg.clock))
-            else:
-                log.warning(
-                    "LSL stream %s not found: its joints stay predict-only until it appears", name
-                )
-                missing.append(name)
-    except Exception:
-        for inp in inputs:
-            inp.close()
-        raise
-    # first clock-offset estimates in parallel (each takes a few probe round trips)
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=max(1, len(inputs))) as pool:
-        list(pool.map(lambda i: i.refresh_clock(first=True), inputs))
-    if not any(i.kind == "imu" for i in inputs):
-        for inp in inputs:
-            inp.close()
-        raise InputError(
-            f"no IMU stream found (looked for {[cfg.imu_stream_name(s) for s in segments]})"
-        )
+    if cam_name and cam_name not in found:
+        raise InputError(f"camera stream {cam_name!r} not found within {cfg.resolve_timeout_s:g} s "
+                         "(set [stream] camera_stream = \"\" to run without a camera)")  # fmt: skip
+    if not any(name in found for name in wanted):
+        raise InputError(_no_imu(cfg, segments))
+    missing = [name for name in wanted if name not in found]
+    for name in missing:
+        log.warning("LSL stream %s not found: its joints stay predict-only until it appears", name)
     imu_rates = {s: 100.0 for s in segments}
-    for inp in inputs:
-        if inp.kind == "imu" and inp.info.nominal_srate() > 0:
-            imu_rates[inp.key] = inp.info.nominal_srate()
+    for name, seg in wanted.items():
+        if name in found and found[name].nominal_srate() > 0:
+            imu_rates[seg] = found[name].nominal_srate()
     cam_rate = (
-        cam.info.nominal_srate()
-        if cam is not None and cam.info.nominal_srate() > 0
+        found[cam_name].nominal_srate()
+        if cam_name and found[cam_name].nominal_srate() > 0
         else cfg.output_rate_hz
     )
     engine = build_engine(
-        cfg, camera=cam is not None, camera_rate_hz=cam_rate, imu_rate_hz=imu_rates, record=record
+        cfg,
+        camera=cam_name is not None,
+        camera_rate_hz=cam_rate,
+        imu_rate_hz=imu_rates,
+        record=record or record_inputs,
     )
+    warm_up(engine)
     outlet = FusedOutlet(cfg.output_stream_name, cfg.joints, cam_rate, processor=cfg.processor,
                          lag_frames=cfg.lag)  # fmt: skip
-    if wait_for_reader_s:
-        outlet.outlet.wait_for_consumers(wait_for_reader_s)
+    inputs = []
+    try:
+        if wait_for_reader_s:
+            outlet.outlet.wait_for_consumers(wait_for_reader_s)
+        # the inlets subscribe only now, right before the loop: data buffered during warm-up
+        # would arrive as a backlog older than stale_after_s, and every IMU stream would look
+        # stale while the frames of that backlog are processed
+        if cam_name:
+            inputs.append(
+                Input.open("camera", "camera", cam_name, info=found[cam_name], clock=cfg.clock)
+            )
+        for name, seg in wanted.items():
+            if name in found:
+                inputs.append(Input.open("imu", seg, name, info=found[name], clock=cfg.clock))
+        # first clock-offset estimates in parallel (each takes a few probe round trips)
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=len(inputs)) as pool:
+            list(pool.map(lambda i: i.refresh_clock(first=True), inputs))
+    except BaseException:
+        for inp in inputs:
+            inp.close()
+        outlet.close()
+        raise
 
     pending_missing = {seg: cfg.imu_stream_name(seg) for seg in segments
                        if cfg.imu_stream_name(seg) in missing}  # fmt: skip
@@ -406,9 +485,41 @@ def run_stream(
             source=np.array([o.source for o in collected], np.int8).reshape(-1, len(cfg.joints)),
             flags=np.array([o.flags for o in collected], np.uint8).reshape(-1, len(cfg.joints)),
             joints=np.array(cfg.joints),
+            **(_recorded_inputs(engine) if record_inputs else {}),
         )
         p.with_suffix(".json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
         summary["out"] = str(p.with_suffix(".npz"))
     if return_engine:
         summary["engine"] = engine
     return summary
+
+
+def _no_imu(cfg: StreamConfig, segments) -> str:
+    names = [cfg.imu_stream_name(s) for s in segments]
+    return f"no IMU stream found within {cfg.resolve_timeout_s:g} s (looked for {names})"
+
+
+def _recorded_inputs(engine) -> dict:
+    """The ``record_inputs`` arrays of :func:`run_stream` from ``engine.accepted``."""
+    ecfg = engine.config
+    acc = engine.accepted
+    arrays = {}
+    for seg in ecfg.segments:
+        samples = acc["imu"][seg]
+        arrays[f"imu_{seg}_t"] = np.array([t for t, _ in samples], float)
+        arrays[f"imu_{seg}_q"] = np.array([q for _, q in samples], float).reshape(-1, 4)
+    cj = tuple(ecfg.camera_joints or ())
+    cam = acc["camera"]
+    arrays["camera_t"] = np.array([c[0] for c in cam], float)
+    arrays["camera_position_m"] = np.array([c[1] for c in cam], float).reshape(-1, len(cj), 3)
+    arrays["camera_available"] = np.array([c[2] for c in cam], bool).reshape(-1, len(cj))
+    arrays["camera_joints"] = np.array(cj, dtype=str)
+    arrays["frame_t"] = np.array([f[0] for f in acc["frames"]], float)
+    arrays["frame_synthesized"] = np.array([f[1] for f in acc["frames"]], bool)
+    arrays["segments"] = np.array(ecfg.segments, dtype=str)
+    rates = ecfg.imu_rate_hz
+    arrays["imu_rate_hz"] = np.array(
+        [float(rates[s] if isinstance(rates, Mapping) else rates) for s in ecfg.segments]
+    )
+    arrays["camera_rate_hz"] = np.array(float(ecfg.camera_rate_hz))
+    return arrays

@@ -1,0 +1,286 @@
+"""`kinefuse replay` and `kinefuse stream` end to end, at the command line.
+
+Network safety (as in test_lsl.py): every process that loads pylsl is a child started with the
+``lsl_env`` environment (conftest.py), whose ``LSLAPICFG`` points at a fresh machine-local
+configuration before liblsl loads; the pytest process never imports pylsl (bad input is
+rejected before LSL is touched, checked below). Every child has a hard timeout and is killed in
+``finally``.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from conftest import LSL_PRELUDE
+from kinefuse import cli
+
+CHILD_TIMEOUT_S = 150
+KINEFUSE = [sys.executable, "-m", "kinefuse"]  # src/kinefuse/__main__.py
+
+runner = CliRunner()
+
+
+def _err(result) -> str:
+    try:
+        return result.stderr
+    except ValueError:  # older click: stderr mixed into output
+        return result.output
+
+
+def _one_line_error(stderr: str, *needles: str) -> str:
+    # liblsl's own "Logging to <file>" notice (the test configuration logs to a file) aside
+    lines = [ln for ln in stderr.splitlines() if ln.strip() and "loguru.cpp" not in ln]
+    assert len(lines) == 1, stderr
+    assert lines[0].startswith("kinefuse: error: ") and "Traceback" not in stderr, stderr
+    for n in needles:
+        assert n in lines[0], (n, lines[0])
+    return lines[0]
+
+
+def _start(args, env, log_dir, name, **kw):
+    out = open(log_dir / f"{name}.out", "w", encoding="utf-8")  # closed by _stop
+    err = open(log_dir / f"{name}.err", "w", encoding="utf-8")
+    proc = subprocess.Popen(args, env=env, stdout=out, stderr=err, text=True, **kw)
+    proc.files = (out, err)
+    return proc
+
+
+def _stop(proc) -> None:
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait(10)
+    for f in proc.files:
+        f.close()
+
+
+def _text(log_dir, name) -> str:
+    return "".join(
+        f"--- {name}.{ext}\n" + (log_dir / f"{name}.{ext}").read_text(encoding="utf-8")[-3000:]
+        for ext in ("out", "err")
+    )
+
+
+def _skip_if_no_lsl(log_dir) -> None:
+    out = (log_dir / "reader.out").read_text(encoding="utf-8")
+    if "SKIP:" in out:
+        pytest.skip("pylsl cannot load liblsl: " + out.split("SKIP:", 1)[1].strip())
+
+
+# A reader of PREFIX_fused: pulls until the test writes a line to its stdin (the stream process
+# has ended), then drains what is still in flight, and saves the rows and timestamps.
+_READER = LSL_PRELUDE + textwrap.dedent("""
+    import select, time
+    import numpy as np
+    name, target = sys.argv[1] + "_fused", sys.argv[2]
+    found = pylsl.resolve_byprop("name", name, 1, 120)
+    assert found, f"{name} not found"
+    inlet = pylsl.StreamInlet(found[0])
+    inlet.open_stream(30)
+    rows, stamps = [], []
+    done_at, last_data = None, time.monotonic()
+    deadline = time.monotonic() + 140
+    while time.monotonic() < deadline:
+        d, t = inlet.pull_chunk(timeout=0.2)
+        if t:
+            rows += d
+            stamps += t
+            last_data = time.monotonic()
+        if done_at is None and select.select([sys.stdin], [], [], 0)[0]:
+            sys.stdin.readline()
+            done_at = time.monotonic()
+        if done_at is not None and not t and time.monotonic() - max(done_at, last_data) > 1.5:
+            break
+    inlet.close_stream()
+    np.savez(target, rows=np.array(rows, float).reshape(len(rows), -1), stamps=np.array(stamps))
+    print("RESULT:" + json.dumps({"received": len(rows), "drained": done_at is not None}))
+""")
+
+
+def test_cli_replay_stream_loopback_60s(lsl_env, tmp_path):
+    """`kinefuse replay demo` (60 s, 5x) -> `kinefuse stream` -> a reader: nothing lost, and the
+    live outputs equal the causal batch computation on the recorded inputs."""
+    from kinefuse.streaming import offline_causal
+    from kinefuse.streaming.runner import build_engine, stream_config
+
+    env, prefix = lsl_env["env"], lsl_env["prefix"]
+    session = tmp_path / "live.toml"
+    session.write_text(
+        textwrap.dedent(f"""
+        [stream]
+        name_prefix = "{prefix}"
+        max_latency_s = 1.0       # 5x replay on a loaded 2-core machine: nothing is forced
+        stale_after_s = 1.0
+        resolve_timeout_s = 30
+        """),
+        encoding="utf-8",
+    )
+    out, summary_json, replay_json = tmp_path / "live", tmp_path / "s.json", tmp_path / "r.json"
+    replay_args = [
+        *KINEFUSE,
+        "replay",
+        "demo",
+        "--loop",
+        "--duration",
+        "60",
+        "--rate",
+        "5",
+        "--prefix",
+        prefix,
+        "--wait-for-consumers",
+        "60",
+        "--json",
+        str(replay_json),
+    ]
+    stream_args = [*KINEFUSE, "stream", str(session), "--idle-timeout", "2", "--out", str(out),
+                   "--record-inputs", "--no-status", "--wait-for-reader", "30",
+                   "--json", str(summary_json)]  # fmt: skip
+    reader_args = [sys.executable, "-c", _READER, prefix, str(tmp_path / "reader.npz")]
+    procs = {}
+    try:
+        procs["replay"] = _start(replay_args, env, tmp_path, "replay")
+        procs["stream"] = _start(stream_args, env, tmp_path, "stream")
+        procs["reader"] = _start(reader_args, env, tmp_path, "reader", stdin=subprocess.PIPE)
+        t_end = time.monotonic() + CHILD_TIMEOUT_S
+        for name in ("stream", "replay"):
+            try:
+                procs[name].wait(max(1.0, t_end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                _skip_if_no_lsl(tmp_path)
+                pytest.fail(f"{name} did not finish:\n" + _text(tmp_path, name))
+        reader = procs["reader"]
+        if reader.poll() is None:
+            reader.stdin.write("done\n")
+            reader.stdin.flush()
+        reader.wait(max(1.0, t_end - time.monotonic()))
+    finally:
+        for p in procs.values():
+            _stop(p)
+    _skip_if_no_lsl(tmp_path)
+    for name, p in procs.items():
+        assert p.returncode == 0, f"{name} exited {p.returncode}:\n" + _text(tmp_path, name)
+    assert "kinefuse stream" in (tmp_path / "stream.out").read_text(encoding="utf-8")  # table
+    assert "samples pushed" in (tmp_path / "replay.out").read_text(encoding="utf-8")
+
+    rep = json.loads(replay_json.read_text(encoding="utf-8"))
+    res = json.loads(summary_json.read_text(encoding="utf-8"))
+    got = np.load(tmp_path / "reader.npz")
+    rec = np.load(out.with_suffix(".npz"))
+    assert (
+        json.loads(out.with_suffix(".json").read_text(encoding="utf-8"))["outputs"]
+        == res["outputs"]
+    )
+    assert rep["recording_s"] == pytest.approx(60.0) and not rep["interrupted"]
+    assert res["missing"] == [] and not res["interrupted"]
+
+    # every output reached the reader once, in order, stamped with its frame time
+    frame_t, stamps = rec["frame_t"], got["stamps"]
+    assert res["outputs"] == res["frames"] == len(frame_t) == len(stamps) > 1500
+    assert np.all(np.diff(stamps) > 0)
+    assert np.array_equal(stamps, frame_t) and np.array_equal(rec["t_s"], frame_t)
+
+    # nothing lost on the way in: every pushed sample was accepted
+    segments = [str(s) for s in rec["segments"]]
+    for seg in segments:
+        assert len(rec[f"imu_{seg}_t"]) == rep["samples"][f"{prefix}_imu_{seg}"], seg
+    assert len(rec["camera_t"]) == rep["samples"][f"{prefix}_camera"]
+    assert set(rep["samples"]) == {f"{prefix}_imu_{s}" for s in segments} | {f"{prefix}_camera"}
+    c = res["counters"]
+    assert c["late"] == c["duplicate"] == c["forced_frames"] == 0, c
+
+    # the live outputs equal the causal batch computation on the recorded inputs
+    cam_rate, imu_rates = (
+        float(rec["camera_rate_hz"]),
+        dict(zip(segments, rec["imu_rate_hz"], strict=True)),
+    )
+    assert cam_rate == pytest.approx(30 * 5) and all(
+        r == pytest.approx(100 * 5) for r in imu_rates.values()
+    )
+    engine = build_engine(stream_config(session), camera=True, camera_rate_hz=cam_rate,
+                          imu_rate_hz=imu_rates)  # fmt: skip
+    cfg = engine.config
+    assert tuple(rec["camera_joints"]) == cfg.camera_joints and tuple(rec["joints"]) == cfg.joints
+    imu = {s: (rec[f"imu_{s}_t"], rec[f"imu_{s}_q"]) for s in segments}
+    camera = (rec["camera_t"], rec["camera_position_m"], rec["camera_available"])
+    off = offline_causal(cfg, engine.processor, imu, camera, frame_times=frame_t)
+    assert np.array_equal(off["synthesized"], rec["frame_synthesized"])
+    rows = got["rows"].reshape(len(stamps), len(cfg.joints), 8)
+    std = np.sqrt(np.diagonal(off["cov_m2"], axis1=-2, axis2=-1))
+    for live, batch in ((rows[..., :3], off["position_m"]), (rows[..., 3:6], std)):
+        assert np.array_equal(np.isnan(live), np.isnan(batch))
+        assert np.nanmax(np.abs(live - batch)) <= 1e-9
+    assert np.array_equal(rows[..., 6].astype(int), off["source"])
+    assert np.array_equal(rec["position_m"], rows[..., :3], equal_nan=True)  # the --out file
+    assert len(np.unique(off["source"])) > 1  # camera outages: more than one source was used
+    assert "pylsl" not in sys.modules
+
+
+def test_cli_stream_accepts_offline_session(lsl_env, tmp_path):
+    """An offline session from `kinefuse init-session` is accepted; with no streams around it
+    ends with exit 2 and one line: the IMU streams were not found within the timeout."""
+    session = tmp_path / "trial.toml"
+    assert runner.invoke(cli.app, ["init-session", str(session)]).exit_code == 0
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "imu.csv").write_text("t\n", encoding="utf-8")
+    proc = subprocess.run(
+        [*KINEFUSE, "stream", str(session), "--duration", "1", "--resolve-timeout", "1",
+         "--no-status"],
+        env=lsl_env["env"], capture_output=True, text=True, timeout=CHILD_TIMEOUT_S,
+    )  # fmt: skip
+    if proc.returncode == 1 and "Lab Streaming Layer is not available" in proc.stderr:
+        pytest.skip("pylsl cannot load liblsl: " + proc.stderr.strip())
+    assert proc.returncode == 2, (proc.stdout, proc.stderr)
+    # the session's name is the prefix; it has no [camera], so only IMU streams are looked for
+    _one_line_error(proc.stderr, "no IMU stream found within 1 s", "'trial_imu_")
+
+
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (["replay", "missing.csv"], ["RECORDING missing.csv: file not found"]),
+        (["replay", "demo", "--rate", "0"], ["--rate", "> 0"]),
+        (["replay", "demo", "--duration", "-1"], ["--duration", "> 0"]),
+        (["stream", "bad.toml"], ["bad.toml", "unknown key(s) ['bogus']"]),
+        (["stream", "broken.toml"], ["broken.toml: not valid TOML"]),
+        (["stream", "missing.toml"], ["missing.toml: file not found"]),
+        (["stream", "s.toml", "--out", "existing"], ["existing.npz already exists", "--force"]),
+        (["stream", "s.toml", "--record-inputs"], ["--record-inputs needs --out"]),
+        (["stream", "s.toml", "--idle-timeout", "0"], ["--idle-timeout", "> 0"]),
+    ],
+)
+def test_cli_stream_replay_bad_input_exits_2_before_lsl(args, needles, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "s.toml").write_text('[stream]\nname_prefix = "kftest_unused"\n')
+    (tmp_path / "bad.toml").write_text('[stream]\nname_prefix = "x"\nbogus = 1\n')
+    (tmp_path / "broken.toml").write_text("[stream\n")
+    (tmp_path / "existing.npz").write_bytes(b"keep me")
+    result = runner.invoke(cli.app, args)
+    assert result.exit_code == 2, (result.output, _err(result))
+    _one_line_error(_err(result), *needles)
+    assert (tmp_path / "existing.npz").read_bytes() == b"keep me"
+    assert not (tmp_path / "existing.json").exists()
+    assert "pylsl" not in sys.modules  # rejected before LSL was touched
+
+
+@pytest.mark.parametrize(
+    ("command", "options"),
+    [
+        ("replay", ["--rate", "--prefix", "--loop", "--duration", "--no-raw",
+                    "--wait-for-consumers", "--quiet", "--json", "_imu_", "_camera", "MoCap"]),
+        ("stream", ["--duration", "--idle-timeout", "--resolve-timeout", "--out", "--force",
+                    "--record-inputs", "--wait-for-reader", "--no-status", "--quiet", "--json",
+                    "_fused"]),
+    ],
+)  # fmt: skip
+def test_cli_stream_replay_help(command, options):
+    result = runner.invoke(cli.app, [command, "--help"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    for option in options:
+        assert option in result.output, option
