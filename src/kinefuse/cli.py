@@ -623,6 +623,8 @@ def _stream_table(summary: Mapping):
         ("frames", str(summary.get("frames", 0))),
         ("latency p50 / p99 / max (ms)",
          f"{_ms(lat.get('p50'))} / {_ms(lat.get('p99'))} / {_ms(lat.get('max'))}"),
+        ("timed outputs (start-up backlog not timed)",
+         f"{lat.get('n', 0)} ({lat.get('catch_up_outputs', 0)})"),
     ]  # fmt: skip
     counters = summary.get("counters") or {}
     rows += [

@@ -150,12 +150,19 @@ def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=N
     Returns
     -------
     dict
-        ``interrupted`` (Ctrl-C), ``latency_s`` (array, per output: start of the first pull
-        that returned samples in the loop pass that completed its frame -> output pushed;
-        outputs released by a timeout are not timed), ``outputs`` (count).
+        ``interrupted`` (Ctrl-C), ``latency_s`` (array, per output: start of the pull that
+        returned the sample completing its frame -> output pushed), ``outputs`` (count),
+        ``catch_up_outputs`` (outputs of the start-up backlog, not timed).
 
     Notes
     -----
+    Live, every input is polled in turn and the engine right after each input that returned
+    samples, so a frame goes out as soon as its last sample is in. At start-up the samples
+    buffered while the streams were being connected are first read from every input before
+    any frame is processed (until a loop pass finds nothing new); those outputs are counted
+    as ``catch_up_outputs`` and not timed (they measure the connection time, not the
+    processing). Outputs released by ``max_latency_s`` / staleness are not timed either.
+
     Ctrl-C (KeyboardInterrupt, i.e. SIGINT in the main thread) ends the loop; pending frames
     are then processed (:meth:`Engine.flush`) and pushed, and inputs and outlet are closed.
     """
@@ -180,22 +187,31 @@ def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=N
 
     gc.collect()
     gc.freeze()  # set-up objects out of the collector's way: short collections in the loop
+    caught_up = False
+    n_catch_up = 0
     try:
         while True:
-            t_first = None
+            got = False
             for inp in inputs:
                 if inp.lost:
                     continue
                 t_pull = time.perf_counter()
                 data, ts = inp.pull()
                 if len(ts):
-                    if t_first is None:
-                        t_first = t_pull
+                    got = True
                     inp.feed(engine, data, ts, clock())
-            # every input is read before frames are processed: a frame never goes out without
-            # IMU samples that had already arrived (e.g. the backlog at start-up)
-            push(engine.poll(clock()), t_first)
-            got = t_first is not None
+                    if caught_up:  # live: the frame these samples complete goes out now
+                        push(engine.poll(clock()), t_pull)
+            if not caught_up:
+                # start-up: the samples buffered while the streams were connected are all
+                # read before any frame is processed (a frame never goes out without IMU
+                # samples that had already arrived); these outputs are not timed
+                outs = engine.poll(clock())
+                n_catch_up += len(outs)
+                push(outs, None)
+                caught_up = not got
+            else:
+                push(engine.poll(clock()), None)  # frames released by max latency / staleness
             mono = time.monotonic()
             if got:
                 last_data = mono
@@ -234,7 +250,8 @@ def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=N
                 inp.close()
             if outlet is not None:
                 outlet.close()
-    return {"interrupted": interrupted, "latency_s": np.asarray(latencies), "outputs": n_out}
+    return {"interrupted": interrupted, "latency_s": np.asarray(latencies), "outputs": n_out,
+            "catch_up_outputs": n_catch_up}  # fmt: skip
 
 
 def _status_printer(console, cfg):
@@ -342,8 +359,10 @@ def run_stream(
     -------
     dict
         ``outputs``, ``frames``, ``counters``, ``events`` (last 50, as text), ``latency_ms``
-        (``p50``, ``p99``, ``max`` over outputs: first input pull of the loop iteration ->
-        output pushed), ``streams``, ``missing`` (streams not found), ``interrupted``.
+        (``p50``, ``p99``, ``max`` and ``n`` over the live outputs: pull of the sample that
+        completed the frame -> output pushed; ``catch_up_outputs``: outputs of the start-up
+        backlog, not timed; see :func:`run_loop`), ``streams``, ``missing`` (streams not
+        found), ``interrupted``.
 
     Notes
     -----
@@ -468,6 +487,7 @@ def run_stream(
             "p99": float(1e3 * np.percentile(lat, 99)) if lat.size else None,
             "max": float(1e3 * lat.max()) if lat.size else None,
             "n": int(lat.size),
+            "catch_up_outputs": res["catch_up_outputs"],
         },
         "streams": [i.name for i in inputs],
         "missing": sorted(pending_missing.values()),
