@@ -195,6 +195,30 @@ def test_noise_estimation_recovers_white_noise_levels():
     np.testing.assert_allclose(np.sqrt(vi), 0.005, rtol=0.6)
 
 
+def test_noise_estimation_separates_a_chain_error_that_follows_the_motion():
+    # the chain under-reports the motion by 10 % (an error the cross-variogram split would
+    # otherwise move into the camera's variogram, as a large coloured camera error)
+    rng = np.random.default_rng(3)
+    T = 3000
+    t = np.arange(T) * DT
+    p = np.stack([0.3 * np.sin(2 * np.pi * f * t) for f in (0.3, 0.5, 0.7)], -1)
+    zc = p + rng.normal(0, 0.01, p.shape)
+    zi = 0.9 * p + rng.normal(0, 0.002, p.shape)
+    prm = estimate_noise(zc, zi, np.ones(T, bool), DT, max_lag=30)
+    # γ = γ_I − γ_V = 0.1 relative to the motion M; the fit scales the cross-variogram
+    # X = 0.9 M, so γ X = 0.1 M needs γ = 0.1 / 0.9
+    np.testing.assert_allclose(prm.motion_gain, 0.1 / 0.9, atol=0.01)
+    # half the camera's model variogram: its white level at lag 1, and no longer the motion
+    # term at lag 30 (the plain split, γ = 0, gives 0.04-0.06 m here and a perfect chain)
+    vc = lambda k: np.sqrt(prm.r_cam + prm.var_c * (1 - prm.phi_c**k))  # noqa: E731
+    np.testing.assert_allclose(vc(1), 0.01, rtol=0.1)
+    assert np.all(vc(30) < 0.025)
+    assert np.all(np.sqrt(prm.r_imu + prm.var_b * (1 - prm.phi_b**30)) > 0.005)
+    # no motion-following error: γ stays 0 (up to the grid step)
+    same = estimate_noise(zc, p + rng.normal(0, 0.002, p.shape), np.ones(T, bool), DT, max_lag=30)
+    np.testing.assert_allclose(same.motion_gain, 0.0, atol=0.01)
+
+
 def test_ridge_partial_fit_equals_fit():
     rng = np.random.default_rng(2)
     X = rng.normal(size=(200, 4))

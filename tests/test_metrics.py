@@ -205,6 +205,40 @@ def test_evaluate_tables_match_functions():
     assert set(row) == {"east", "north", "up", "mean", "rmse_3d", "error_at_p", "n_samples"}
 
 
+def test_evaluate_in_view_is_the_complement_of_outage():
+    est, ref, outage = _two_methods()
+    res = evaluate(est, ref, outage, joints=("elbow", "wrist"))
+    # in view at the elbow: samples 0, 1 -> errors (1, 0, 0) and (0, 2, 0)
+    np.testing.assert_allclose(res.rmse_in_view[0, 0], [math.sqrt(0.5), math.sqrt(2), 0.0])
+    assert res.mean_rmse_in_view[0, 0] == pytest.approx((math.sqrt(0.5) + math.sqrt(2)) / 3)
+    assert res.rmse_3d_in_view[0, 0] == pytest.approx(math.sqrt(2.5))
+    assert res.error_at_p_in_view[0, 0] == pytest.approx(2.0)
+    # the wrist is always in view: the in-view figures are the overall ones
+    np.testing.assert_allclose(res.rmse_in_view[:, 1], res.rmse[:, 1])
+    assert res.n_samples_in_view.tolist() == [[2, 4], [2, 4]]
+    # in view and outage partition the samples: the mean squared errors add up
+    n, n_o, n_v = res.n_samples, res.n_samples_outage, res.n_samples_in_view
+    ms_o = np.nan_to_num(res.rmse_outage**2) * n_o[..., None]
+    np.testing.assert_allclose(
+        ms_o + res.rmse_in_view**2 * n_v[..., None], res.rmse**2 * n[..., None]
+    )
+    row = res.row("B", "elbow", in_view=True)
+    assert row["mean"] == pytest.approx(2 * res.mean_rmse_in_view[0, 0]) and row["n_samples"] == 2
+    x, _ = res.cdf("A", "elbow", in_view=True)
+    np.testing.assert_allclose(x, [1.0, 2.0])
+    assert res.improvement("A", "B", "elbow", in_view=True) == pytest.approx(0.5)
+    with pytest.raises(InputError, match="at most one of outage=True and in_view=True"):
+        res.row("A", "elbow", outage=True, in_view=True)
+    d = res.to_dict()["results"]["A"]
+    assert d["elbow"]["in_view"]["error_at_p"] == pytest.approx(2.0)
+    assert d["wrist"]["in_view"]["n_samples"] == 4
+    no_mask = evaluate(est, ref, joints=("elbow", "wrist"))
+    assert (
+        np.isnan(no_mask.mean_rmse_in_view).all()
+        and no_mask.to_dict()["results"]["A"]["elbow"]["in_view"] is None
+    )
+
+
 def test_evaluate_to_dict_is_strict_json():
     est, ref, outage = _two_methods()
     d = evaluate(est, ref, outage, joints=("elbow", "wrist")).to_dict()
@@ -287,12 +321,26 @@ def test_joint_method_table_paper_b_layout():
     paper = {"wrist_r": tables.PAPER_B_RMSE_M["wrist_r"]}
     t = tables.joint_method_table(_result(), paper=paper)
     assert t.label_headers == ("Joint", "Method")
-    assert t.value_headers == ("X", "Y", "Z", "Mean", "@CDF 0.9", "Mean out", "@CDF 0.9 out")
+    assert t.value_headers == (
+        "X",
+        "Y",
+        "Z",
+        "Mean",
+        "@CDF 0.9",
+        "Mean in view",
+        "Mean out",
+        "@CDF 0.9 out",
+    )
     labels = [r.labels for r in t.rows]
     assert labels[:2] == [("elbow", "KF"), ("elbow", "FIR")]
     assert ("wrist_r", "ELM/KF (paper)") in labels and ("wrist_r", "ELM/FIR (paper)") in labels
     paper_row = next(r for r in t.rows if r.labels == ("wrist_r", "ELM/FIR (paper)"))
-    assert paper_row.values == (0.0903, 0.0739, 0.0282, 0.0641, None, None, None)
+    assert paper_row.values == (0.0903, 0.0739, 0.0282, 0.0641, None, None, None, None)
+    kf_elbow = next(r for r in t.rows if r.labels == ("elbow", "KF"))
+    assert kf_elbow.values[5] == pytest.approx(_result().mean_rmse_in_view[0, 0])
+    assert any("in view = only samples outside camera outages" in n for n in t.notes)
+    t2 = tables.joint_method_table(_result(), notes=("reference: the camera in view",))
+    assert t2.notes[-1] == "reference: the camera in view"
     text = tables.to_text(t)
     assert "0.0641" in text and "–" in text  # wrist has no outage samples
     html = tables.to_html(t)

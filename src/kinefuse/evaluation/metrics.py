@@ -319,10 +319,12 @@ def _json_number(x) -> float | None:
 
 @dataclass(frozen=True, eq=False)
 class EvaluationResult:
-    """Per-method, per-joint accuracy tables, overall and inside camera outages.
+    """Per-method, per-joint accuracy tables: overall, inside and outside camera outages.
 
     Arrays are indexed ``[method, joint(, axis)]`` in the order of ``methods`` and ``joints``.
-    ``*_outage`` arrays are NaN when no outage mask was given or a joint has no outage sample.
+    ``*_outage`` arrays are NaN when no outage mask was given or a joint has no outage sample;
+    ``*_in_view`` arrays (the complement: samples outside outages, the camera sees the joint)
+    are NaN when no outage mask was given or a joint has no sample in view.
 
     Attributes
     ----------
@@ -342,6 +344,8 @@ class EvaluationResult:
         Samples excluded because the estimate or the reference was NaN.
     rmse_outage, mean_rmse_outage, rmse_3d_outage, error_at_p_outage, n_samples_outage
         The same restricted to outage samples.
+    rmse_in_view, mean_rmse_in_view, rmse_3d_in_view, error_at_p_in_view, n_samples_in_view
+        The same restricted to samples outside outages (``~outage_mask``).
     errors : ndarray, shape (M, J, T)
         Euclidean error per sample, m (NaN where excluded); used for CDFs.
     outage_mask : ndarray of bool, shape (T, J) or None
@@ -368,6 +372,11 @@ class EvaluationResult:
     rmse_3d_outage: np.ndarray
     error_at_p_outage: np.ndarray
     n_samples_outage: np.ndarray
+    rmse_in_view: np.ndarray
+    mean_rmse_in_view: np.ndarray
+    rmse_3d_in_view: np.ndarray
+    error_at_p_in_view: np.ndarray
+    n_samples_in_view: np.ndarray
     errors: np.ndarray
     outage_mask: np.ndarray | None
     p: float = 0.9
@@ -393,31 +402,39 @@ class EvaluationResult:
         """True when an outage mask with at least one outage sample was given."""
         return self.outage_mask is not None and bool(np.any(self.outage_mask))
 
-    def row(self, method: str, joint: str, *, outage: bool = False) -> dict:
+    @staticmethod
+    def _subset(outage: bool, in_view: bool) -> str:
+        if outage and in_view:
+            raise InputError("expected at most one of outage=True and in_view=True, got both")
+        return "_outage" if outage else "_in_view" if in_view else ""
+
+    def row(self, method: str, joint: str, *, outage: bool = False, in_view: bool = False) -> dict:
         """Metrics of one method at one joint as a flat dict (m; NaN where undefined).
 
         Keys: one per axis name, ``mean``, ``rmse_3d``, ``error_at_p``, ``n_samples``.
+        ``outage``: only samples inside camera outages; ``in_view``: only samples outside them.
         """
         m, j = self._idx(method, joint)
-        rmse = self.rmse_outage if outage else self.rmse
+        sfx = self._subset(outage, in_view)
+        rmse = getattr(self, "rmse" + sfx)
         out = {ax: float(rmse[m, j, a]) for a, ax in enumerate(self.axes)}
-        out["mean"] = float((self.mean_rmse_outage if outage else self.mean_rmse)[m, j])
-        out["rmse_3d"] = float((self.rmse_3d_outage if outage else self.rmse_3d)[m, j])
-        out["error_at_p"] = float((self.error_at_p_outage if outage else self.error_at_p)[m, j])
-        out["n_samples"] = int((self.n_samples_outage if outage else self.n_samples)[m, j])
+        out["mean"] = float(getattr(self, "mean_rmse" + sfx)[m, j])
+        out["rmse_3d"] = float(getattr(self, "rmse_3d" + sfx)[m, j])
+        out["error_at_p"] = float(getattr(self, "error_at_p" + sfx)[m, j])
+        out["n_samples"] = int(getattr(self, "n_samples" + sfx)[m, j])
         return out
 
     def cdf(
-        self, method: str, joint: str, *, outage: bool = False
+        self, method: str, joint: str, *, outage: bool = False, in_view: bool = False
     ) -> tuple[np.ndarray, np.ndarray]:
         """Empirical error CDF ``(sorted_errors, probabilities)`` of one method at one joint."""
         m, j = self._idx(method, joint)
         err = self.errors[m, j]
-        if outage:
+        if self._subset(outage, in_view):
             if self.outage_mask is None:
                 err = err[:0]
             else:
-                err = err[self.outage_mask[:, j]]
+                err = err[self.outage_mask[:, j] == bool(outage)]
         x = np.sort(err[np.isfinite(err)])
         return x, np.arange(1, x.size + 1, dtype=float) / max(x.size, 1)
 
@@ -429,13 +446,14 @@ class EvaluationResult:
         *,
         metric: str = "error_at_p",
         outage: bool = False,
+        in_view: bool = False,
     ) -> float:
         """Relative reduction of ``metric`` of ``method`` vs ``baseline`` (see :func:`relative_improvement`).
 
         ``metric`` is a key of :meth:`row` (``"error_at_p"``, ``"mean"``, ``"rmse_3d"``, an axis).
         """
-        a = self.row(method, joint, outage=outage)
-        b = self.row(baseline, joint, outage=outage)
+        a = self.row(method, joint, outage=outage, in_view=in_view)
+        b = self.row(baseline, joint, outage=outage, in_view=in_view)
         if metric not in a:
             raise InputError(f"unknown metric {metric!r}; expected one of {list(a)}")
         return float(relative_improvement(a[metric], b[metric]))
@@ -459,12 +477,13 @@ class EvaluationResult:
                 }
                 m, j = self._idx(method, joint)
                 overall["n_excluded"] = int(self.n_excluded[m, j])
-                entry = {"overall": overall, "outage": None}
+                entry = {"overall": overall, "outage": None, "in_view": None}
                 if self.outage_mask is not None:
-                    entry["outage"] = {
-                        k: (_json_number(v) if k != "n_samples" else v)
-                        for k, v in self.row(method, joint, outage=True).items()
-                    }
+                    for key, kw in (("outage", {"outage": True}), ("in_view", {"in_view": True})):
+                        entry[key] = {
+                            k: (_json_number(v) if k != "n_samples" else v)
+                            for k, v in self.row(method, joint, **kw).items()
+                        }
                 per_joint[joint] = entry
             results[method] = per_joint
         return {
@@ -585,19 +604,30 @@ def evaluate(
         r3 = rmse_3d(E, R)
         e_at = error_at(E, R, p=p)
         errors = position_error(E, R)
-        if om is not None:
-            out_m = np.moveaxis(om, 0, 1)[None]  # (1, J, T)
-            rmse_o = rmse_per_axis(E, R, out_m)
-            mean_o = rmse_o.mean(-1)
-            r3_o = rmse_3d(E, R, out_m)
-            e_at_o = error_at(E, R, p=p, mask=out_m)
-            n_o = (both & out_m).sum(-1)
-        else:
-            rmse_o = np.full_like(rmse, np.nan)
-            mean_o = np.full_like(mean, np.nan)
-            r3_o = np.full_like(r3, np.nan)
-            e_at_o = np.full_like(e_at, np.nan)
-            n_o = np.zeros(mean.shape, dtype=np.int64)
+        subsets = {}  # "_outage" (inside camera outages), "_in_view" (outside them)
+        for sfx, inside in (("_outage", True), ("_in_view", False)):
+            if om is not None:
+                sel = np.moveaxis(om == inside, 0, 1)[None]  # (1, J, T)
+                r_s = rmse_per_axis(E, R, sel)
+                subsets[sfx] = (
+                    r_s,
+                    r_s.mean(-1),
+                    rmse_3d(E, R, sel),
+                    error_at(E, R, p=p, mask=sel),
+                    (both & sel).sum(-1),
+                )
+            else:
+                subsets[sfx] = (
+                    np.full_like(rmse, np.nan),
+                    np.full_like(mean, np.nan),
+                    np.full_like(r3, np.nan),
+                    np.full_like(e_at, np.nan),
+                    np.zeros(mean.shape, dtype=np.int64),
+                )
+    names_s = ("rmse", "mean_rmse", "rmse_3d", "error_at_p", "n_samples")
+    per_subset = {
+        n + sfx: v for sfx, vals in subsets.items() for n, v in zip(names_s, vals, strict=True)
+    }
     return EvaluationResult(
         methods=tuple(estimates),
         joints=names,
@@ -608,11 +638,7 @@ def evaluate(
         error_at_p=e_at,
         n_samples=both.sum(-1),
         n_excluded=(~both).sum(-1),
-        rmse_outage=rmse_o,
-        mean_rmse_outage=mean_o,
-        rmse_3d_outage=r3_o,
-        error_at_p_outage=e_at_o,
-        n_samples_outage=n_o,
+        **per_subset,
         errors=errors,
         outage_mask=om,
         p=float(p),

@@ -4,7 +4,8 @@ Two layouts:
 
 * :func:`method_table` - paper A Tables 4-5: one joint, method rows x ``East | North | Up | Mean``.
 * :func:`joint_method_table` - paper B Tables 3-5 (all joints in one table): ``joint x method``
-  rows x ``X | Y | Z | Mean``, plus the error at CDF 0.9 and the same inside camera outages.
+  rows x ``X | Y | Z | Mean``, plus the error at CDF 0.9, the mean outside camera outages
+  ("in view") and the mean and error at CDF 0.9 inside them.
 
 Both accept the papers' own numbers (``paper=``), shown either as extra rows marked "(paper)"
 or as a column next to ours. The numbers the papers report are provided as constants
@@ -228,6 +229,7 @@ def joint_method_table(
     include_outage: bool | None = None,
     digits: int = 4,
     title: str | None = None,
+    notes: Sequence[str] = (),
 ) -> ResultTable:
     """Paper B layout (Tables 3-5 in one): joint x method rows, per-axis RMSE, mean, CDF 0.9.
 
@@ -245,10 +247,13 @@ def joint_method_table(
     include_cdf : bool
         Add the error at CDF ``p`` column.
     include_outage : bool, optional
-        Add mean RMSE and error at ``p`` inside camera outages (default: when outages exist).
+        Add the mean RMSE outside camera outages ("Mean in view"), and the mean RMSE and the
+        error at ``p`` inside them (default: when outages exist).
     digits : int
         Decimals (paper B prints 4).
     title : str, optional
+    notes : sequence of str
+        Extra footnotes, after the column definitions (e.g. what the reference is).
 
     Returns
     -------
@@ -263,7 +268,7 @@ def joint_method_table(
     if include_cdf:
         headers.append(f"@CDF {pct}")
     if include_outage:
-        headers += ["Mean out"] + ([f"@CDF {pct} out"] if include_cdf else [])
+        headers += ["Mean in view", "Mean out"] + ([f"@CDF {pct} out"] if include_cdf else [])
     if paper is not None and paper_mode == "column":
         headers.append("Mean paper")
     n_extra = len(headers) - 4
@@ -276,6 +281,7 @@ def joint_method_table(
             if include_cdf:
                 vals.append(r["error_at_p"])
             if include_outage:
+                vals.append(result.row(method, joint, in_view=True)["mean"])
                 ro = result.row(method, joint, outage=True)
                 vals.append(ro["mean"])
                 if include_cdf:
@@ -299,22 +305,25 @@ def joint_method_table(
                             (joint, f"{method} (paper)"), tuple(pv) + (None,) * n_extra, paper=True
                         )
                     )
-    notes = [
+    foot = [
         "All values in m. Mean = arithmetic mean of the three per-axis RMSEs (as in the papers)."
     ]
     if include_cdf:
-        notes.append(
+        foot.append(
             f"@CDF {pct} = Euclidean position error not exceeded by {result.p:.0%} of the samples."
         )
     if include_outage:
-        notes.append("out = only samples inside camera outages.")
+        foot.append(
+            "in view = only samples outside camera outages (the camera sees the joint); "
+            "out = only samples inside camera outages."
+        )
     return ResultTable(
         title=title or "RMSE per joint and method (m)",
         label_headers=("Joint", "Method"),
         value_headers=tuple(headers),
         rows=tuple(rows),
         digits=digits,
-        notes=tuple(notes),
+        notes=(*foot, *notes),
     )
 
 

@@ -45,6 +45,10 @@ _PRIOR_TAU_B_S = 1.0  # prior correlation time of b, s (b decays in an outage)
 _PRIOR_Q = 0.1  # prior q (SPEC §12.2)
 _MIN_FIT_S = 3.0  # camera-seen history before the correction uses more than an intercept, s
 _TAU_GRID = np.exp(np.linspace(np.log(1.0), np.log(3.0e4), 48))  # GM correlation times, samples
+#: Candidate relative motion gains γ of the offline noise fit (estimate_noise, Notes): a sensor
+#: error proportional to the motion, up to ±50 % of it, in steps of 1 %.
+_GAIN_GRID = np.linspace(-0.5, 0.5, 101)
+_GAIN_STEP = float(_GAIN_GRID[1] - _GAIN_GRID[0])  # refined around the best point in 1/20 steps
 
 
 # --------------------------------------------------------------------------- kernels (numba)
@@ -201,6 +205,10 @@ class NoiseParameters:
         (first-order Gauss-Markov; ``phi_b → 1`` is a random walk).
     var_c, phi_c : ndarray
         The same for the camera-error state c.
+    motion_gain : ndarray
+        Diagnostic, not a model parameter: the relative motion gain γ between the sensors'
+        errors found by the offline fit (:func:`estimate_noise`, Notes), dimensionless;
+        0 where not estimated.
     """
 
     q: np.ndarray
@@ -210,6 +218,7 @@ class NoiseParameters:
     phi_b: np.ndarray
     var_c: np.ndarray
     phi_c: np.ndarray
+    motion_gain: np.ndarray
 
     @classmethod
     def default(cls, shape=(3,)) -> NoiseParameters:
@@ -219,7 +228,7 @@ class NoiseParameters:
         only sensor and should be followed, not smoothed with a 10 cm noise model.
         """
         f = lambda v: np.full(shape, float(v))  # noqa: E731
-        return cls(f(0.1), f(1e-3), f(1e-4), f(0.0), f(0.0), f(0.0), f(0.0))
+        return cls(f(0.1), f(1e-3), f(1e-4), f(0.0), f(0.0), f(0.0), f(0.0), f(0.0))
 
 
 def _gm_fit(V, w, tau_max=np.inf):
@@ -274,6 +283,13 @@ def _gm_fit(V, w, tau_max=np.inf):
     if single:
         return float(r[0]), float(s2[0]), float(ph[0])
     return r, s2, ph
+
+
+def _gm_sse(V, w, r, s2, phi):
+    """Weighted squared residual of the fit of :func:`_gm_fit`; ``V, w (m, K)`` -> ``(m,)``."""
+    k = np.arange(1, V.shape[1] + 1, dtype=float)
+    fit = 2.0 * r[:, None] + 2.0 * s2[:, None] * (1.0 - phi[:, None] ** k)
+    return np.sum(w * (V - fit) ** 2, axis=1)
 
 
 class _Moments:
@@ -337,16 +353,48 @@ class _Moments:
             out["r_cam"], out["var_c"], out["phi_c"] = r_cam, np.zeros(3), np.zeros(3)
             out["r_imu"], out["var_b"], out["phi_b"] = np.maximum(r, _VAR_FLOOR_M2), s2, phi
             return NoiseParameters(**out)
-        # camera (rows 0-2, τ <= K) and chain (rows 3-5) fitted together
-        r, s2, phi = _gm_fit(
-            np.concatenate([Vc[use].T, Vi[use].T]),
-            np.concatenate([w, w]),
-            tau_max=np.array([float(K)] * 3 + [np.inf] * 3),
-        )
-        r = np.maximum(r, _VAR_FLOOR_M2)
-        out["r_cam"], out["var_c"], out["phi_c"] = r[:3], s2[:3], phi[:3]
-        out["r_imu"], out["var_b"], out["phi_b"] = r[3:], s2[3:], phi[3:]
+        # camera (τ <= K) and chain fitted together for candidate relative motion gains γ
+        # (estimate_noise, Notes): V_V = V_V,est − γ X, V_I = V_I,est + γ X, X the
+        # cross-variogram (≈ the motion's); per axis, the γ of the best total fit, from a coarse
+        # grid refined around its best point
+        X = (w_d * Sci)[use].T  # (3, K'): the data part of the blend only
+        Vc, Vi = Vc[use].T, Vi[use].T
+        coarse = np.tile(_GAIN_GRID[:, None], (1, 3))
+        best = _GAIN_GRID[np.argmin(_gain_fit(Vc, Vi, X, w, K, coarse)[0], axis=0)]
+        gam = best[None] + _GAIN_STEP * np.linspace(-1.0, 1.0, 41)[:, None]  # (41, 3)
+        sse, cam, chn, (r, s2, phi) = _gain_fit(Vc, Vi, X, w, K, gam)
+        sse0, cam0, chn0, (r0, s20, phi0) = _gain_fit(Vc, Vi, X, w, K, np.zeros((1, 3)))
+        g = np.argmin(sse, axis=0)
+        # γ = 0 (the plain split) unless another γ fits better beyond rounding (e.g. no
+        # motion: ties)
+        use_g = sse[g, range(3)] < (1.0 - 1e-9) * sse0[0]
+        cam, chn = cam[g, range(3)], chn[g, range(3)]
+        sel = lambda a, a0, rows, rows0: np.where(use_g, a[rows], a0[rows0[0]])  # noqa: E731
+        out["r_cam"] = np.maximum(sel(r, r0, cam, cam0), _VAR_FLOOR_M2)
+        out["var_c"], out["phi_c"] = sel(s2, s20, cam, cam0), sel(phi, phi0, cam, cam0)
+        out["r_imu"] = np.maximum(sel(r, r0, chn, chn0), _VAR_FLOOR_M2)
+        out["var_b"], out["phi_b"] = sel(s2, s20, chn, chn0), sel(phi, phi0, chn, chn0)
+        out["motion_gain"] = np.where(use_g, gam[g, range(3)], 0.0)
         return NoiseParameters(**out)
+
+
+def _gain_fit(Vc, Vi, X, w, K: int, gam):
+    """Fits of :meth:`_Moments.noise` for candidate motion gains ``gam (G, 3)`` (per axis).
+
+    ``Vc, Vi, X, w (3, K')``: the two sensors' error variograms, the cross-variogram and the
+    weights. Returns ``(sse (G, 3), cam (G, 3), chn (G, 3), (r, s2, φ))``: the total
+    weighted residual per candidate and axis, and the row indices of the camera's and the
+    chain's fit in the flat arrays ``r, s2, φ`` of :func:`_gm_fit`.
+    """
+    G = gam.shape[0]
+    g = gam[:, :, None]
+    V = np.concatenate([Vc[None] - g * X[None], Vi[None] + g * X[None]], axis=1)  # (G, 6, K')
+    V = V.reshape(G * 6, -1)  # rows: γ-major, then camera axes 0-2, chain axes 0-2
+    W = np.tile(np.concatenate([w, w]), (G, 1))
+    r, s2, phi = _gm_fit(V, W, tau_max=np.tile([float(K)] * 3 + [np.inf] * 3, G))
+    sse = _gm_sse(V, W, r, s2, phi).reshape(G, 2, 3).sum(axis=1)
+    rows = np.arange(G)[:, None] * 6 + np.arange(3)[None]
+    return sse, rows, rows + 3, (r, s2, phi)
 
 
 def _prior_variograms(K: int, dt_s: float):
@@ -409,7 +457,25 @@ def estimate_noise(z_cam, z_imu, available, dt_s: float, *, max_lag: int = 60) -
     times, with weights ``n_k / (E[(Δ_k z_cam)²] + E[(Δ_k z_imu)²])²`` (number of pairs over
     the approximate variance of the estimate, which grows with the motion at lag k). The
     camera's correlation time is at most K samples (a slower camera error and a chain error
-    would both be drifts, and p would not be observable at low frequency). The motion model's
+    would both be drifts, and p would not be observable at low frequency).
+
+    *Errors that follow the motion.* The split above assumes both errors independent of p. An
+    error of the chain that the correction cannot express (e.g. a slowly varying heading or
+    gain error: the chain under- or over-reports the limb's excursion) correlates with the
+    motion, ``E[Δ_k p Δ_k e_I] = −γ_I M(k)`` with ``M(k) = E[(Δ_k p)²]``, and likewise
+    ``γ_V`` for the camera. Then ``V_V,est(k) = V_V(k) + γ M(k)`` and
+    ``V_I,est(k) = V_I(k) − γ M(k)`` with ``γ = γ_I − γ_V``: the motion, which dwarfs the
+    errors, moves chain error into the camera's variogram (or back), and the filter then
+    follows a poor chain where the camera sees the joint. Only the split is biased: the sum
+    ``V_V + V_I`` (the variogram of ``z_cam − z_imu``, in which p cancels) is not. So both
+    error models are fitted to ``V_V,est − γ X`` and ``V_I,est + γ X``, ``X(k) = E[Δ_k z_cam
+    Δ_k z_imu] ≈ M(k)``, for each γ of a grid over ±0.5 (steps 0.01, refined to 0.0005 around the best) and the γ of the smallest
+    total weighted residual is kept, per axis (:attr:`NoiseParameters.motion_gain`). A motion
+    term is identified by its shape: M(k) keeps growing or oscillates with the movement, while
+    each error model's variogram is monotone and saturating (the camera's within K samples).
+    γ = 0 is the plain split, kept on ties (e.g. without motion).
+
+    The motion model's
     q comes from second differences: ``E[Δ² z_cam Δ² z_imu] = E[(Δ² p)²] = q dt² / 2`` for
     the constant-velocity model with ``Q = q [[dt²/4, dt/2], [dt/2, 1]]``, floored at a tenth
     of the chain's own ``E[(Δ² z_imu)²]`` (the cross moment can be near zero when the camera
