@@ -275,7 +275,7 @@ class EngineOutput:
     @property
     def std_m(self) -> np.ndarray:
         """Per-axis standard deviation, m, shape (J, 3)."""
-        return np.sqrt(np.clip(np.diagonal(self.cov_m2, axis1=-2, axis2=-1), 0.0, None))
+        return np.sqrt(np.maximum(np.diagonal(self.cov_m2, axis1=-2, axis2=-1), 0.0))
 
 
 # ------------------------------------------------------------------------------ small math
