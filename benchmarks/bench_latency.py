@@ -31,85 +31,11 @@ import time
 
 import numpy as np
 
+from kinefuse.evaluation.bench import engine_frame_times as engine_only
+from kinefuse.evaluation.bench import filterpy_frame_times as peer_filterpy
 from kinefuse.streaming.config import ensure_local_lsl_config
 
 PROCESSOR_CHOICES = ("kf-fusion", "paper-a", "elm-fir")
-
-
-def make_engine(processor: str, **kw):
-    """The engine ``kinefuse stream`` builds for ``processor`` (:func:`build_engine`)."""
-    from kinefuse.streaming.config import StreamConfig
-    from kinefuse.streaming.runner import build_engine
-
-    return build_engine(StreamConfig(processor=processor), **kw)
-
-
-def engine_only(rec, processor: str, n_frames: int = 600, loops: int = 1):
-    """Per-frame processing time of Engine.poll (no LSL), s: wall clock and this thread's CPU
-    time (on a loaded machine the wall-clock tail is other processes' time slices; the CPU
-    time is what the frame costs on an idle core); and which frames had an outage onset.
-
-    The recording is replayed ``loops`` times back to back (timestamps shifted).
-    """
-    eng = make_engine(processor, camera=True, camera_rate_hz=30.0, imu_rate_hz=100.0)
-    v = rec.vision
-    span = float(v.t_s[-1] - v.t_s[0]) + 1.0 / 30.0
-    ev = []
-    for r in range(loops):
-        off = r * span
-        for seg, st in rec.imu.items():
-            ev += [(float(t) + off, 0, seg, q) for t, q in zip(st.t_s, st.q_world_from_sensor, strict=True)]  # fmt: skip
-        ev += [(float(t) + off, 1, k, None) for k, t in enumerate(v.t_s)]
-    ev.sort(key=lambda e: (e[0], e[1]))
-    cj = eng.config.camera_joints
-    idx = [v.joints.index(j) for j in cj]
-    proc = eng.processor
-    from kinefuse.streaming.runner import warm_up
-
-    warm_up(eng)  # as run_stream does before its loop
-    times, cpu, onset = [], [], []
-    for t, kind, key, q in ev:
-        if kind == 0:
-            eng.push_imu(key, t, q)
-        else:
-            eng.push_camera(t, v.position_m[key][idx], v.available[key][idx])
-        n_ep = sum(len(e) for e in getattr(proc, "_episodes", None) or ())
-        a, c = time.perf_counter(), time.thread_time()
-        outs = eng.poll()
-        if outs:
-            times.append(time.perf_counter() - a)
-            cpu.append(time.thread_time() - c)
-            onset.append(sum(len(e) for e in getattr(proc, "_episodes", None) or ()) > n_ep)
-        if len(times) >= n_frames:
-            break
-    # skip warm-up
-    return np.asarray(times[30:]), np.asarray(cpu[30:]), np.asarray(onset[30:], bool)
-
-
-def peer_filterpy(n_frames: int = 600):
-    """filterpy KalmanFilter, 8 joints x (predict + update) per frame, s: (wall, CPU)."""
-    try:
-        from filterpy.kalman import KalmanFilter as FKF
-    except ImportError:
-        return None
-    from kinefuse.models import constant_velocity
-
-    m = constant_velocity(1 / 30, q=0.05, r=4e-4)
-    kfs = []
-    for _ in range(8):
-        f = FKF(dim_x=6, dim_z=3)
-        f.F, f.Q, f.H, f.R = np.array(m.F), np.array(m.Q), np.array(m.H), np.array(m.R)
-        kfs.append(f)
-    z = np.random.default_rng(0).normal(0, 0.01, (n_frames, 8, 3))
-    out, cpu = [], []
-    for k in range(n_frames):
-        a, c = time.perf_counter(), time.thread_time()
-        for j, f in enumerate(kfs):
-            f.predict()
-            f.update(z[k, j])
-        out.append(time.perf_counter() - a)
-        cpu.append(time.thread_time() - c)
-    return np.asarray(out[30:]), np.asarray(cpu[30:])
 
 
 def fmt(x: np.ndarray) -> str:

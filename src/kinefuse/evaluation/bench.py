@@ -18,6 +18,8 @@ Measures microseconds per joint-step (median of repeats) of
 * UFIR (horizons 10/20/40), EM-KF (1/3/10 iterations) and the integrated EM-KF/FIR filter with
   paper A's settings, if those classes exist in :mod:`kinefuse.filters` (rows are skipped
   otherwise);
+* the online engine of ``kinefuse stream`` per camera frame (8 joints; KF fusion, paper A,
+  paper B) on the packaged demo recording, next to filterpy's KF predict/update for 8 joints;
 * a second process: ``import kinefuse.filters`` + first filter/smoother call, with a warm
   numba cache.
 
@@ -309,6 +311,110 @@ print(json.dumps({"import_s": t1 - t0, "first_call_s": t2 - t1}))
 """
 
 
+# ------------------------------------------------------------------ online engine per frame
+#: Processors of the online engine timed per camera frame (``kinefuse stream`` choices).
+ENGINE_PROCESSORS = ("kf-fusion", "paper-a", "elm-fir")
+
+
+def engine_frame_times(rec, processor: str, n_frames: int = 600, loops: int = 1):
+    """Per-frame cost of :meth:`Engine.poll <kinefuse.streaming.Engine.poll>` (no LSL).
+
+    The engine ``kinefuse stream`` builds for ``processor`` (warmed up as it does) is fed the
+    samples of ``rec`` (replayed ``loops`` times back to back, timestamps shifted) in time
+    order; every poll that emits a frame is timed.
+
+    Returns
+    -------
+    wall_s, cpu_s : ndarray, shape (n,)
+        Wall-clock and this thread's CPU time per frame, s (the first 30 frames skipped).
+    onset : ndarray of bool, shape (n,)
+        Frames in which a bridging processor trained at an outage onset.
+    """
+    from kinefuse.streaming.config import StreamConfig
+    from kinefuse.streaming.runner import build_engine, warm_up
+
+    eng = build_engine(StreamConfig(processor=processor), camera=True, camera_rate_hz=30.0,
+                       imu_rate_hz=100.0)  # fmt: skip
+    v = rec.vision
+    span = float(v.t_s[-1] - v.t_s[0]) + 1.0 / 30.0
+    ev = []
+    for r in range(loops):
+        off = r * span
+        for seg, st in rec.imu.items():
+            ev += [(float(t) + off, 0, seg, q) for t, q in zip(st.t_s, st.q_world_from_sensor, strict=True)]  # fmt: skip
+        ev += [(float(t) + off, 1, k, None) for k, t in enumerate(v.t_s)]
+    ev.sort(key=lambda e: (e[0], e[1]))
+    idx = [v.joints.index(j) for j in eng.config.camera_joints]
+    proc = eng.processor
+    warm_up(eng)
+
+    def episodes():
+        return sum(len(e) for e in getattr(proc, "_episodes", None) or ())
+
+    times, cpu, onset = [], [], []
+    for t, kind, key, q in ev:
+        if kind == 0:
+            eng.push_imu(key, t, q)
+        else:
+            eng.push_camera(t, v.position_m[key][idx], v.available[key][idx])
+        n_ep = episodes()
+        a, c = time.perf_counter(), time.thread_time()
+        outs = eng.poll()
+        if outs:
+            times.append(time.perf_counter() - a)
+            cpu.append(time.thread_time() - c)
+            onset.append(episodes() > n_ep)
+        if len(times) >= n_frames:
+            break
+    return np.asarray(times[30:]), np.asarray(cpu[30:]), np.asarray(onset[30:], bool)
+
+
+def filterpy_frame_times(n_frames: int = 600, n_joints: int = 8):
+    """filterpy's KalmanFilter, ``n_joints`` x (predict + update) per frame: ``(wall_s, cpu_s)``
+    per frame (first 30 skipped), or None without filterpy."""
+    try:
+        from filterpy.kalman import KalmanFilter as FKF
+    except ImportError:
+        return None
+    from kinefuse.models import constant_velocity
+
+    m = constant_velocity(1 / 30, q=0.05, r=4e-4)
+    kfs = []
+    for _ in range(n_joints):
+        f = FKF(dim_x=6, dim_z=3)
+        f.F, f.Q, f.H, f.R = np.array(m.F), np.array(m.Q), np.array(m.H), np.array(m.R)
+        kfs.append(f)
+    z = np.random.default_rng(0).normal(0, 0.01, (n_frames, n_joints, 3))
+    out, cpu = [], []
+    for k in range(n_frames):
+        a, c = time.perf_counter(), time.thread_time()
+        for j, f in enumerate(kfs):
+            f.predict()
+            f.update(z[k, j])
+        out.append(time.perf_counter() - a)
+        cpu.append(time.thread_time() - c)
+    return np.asarray(out[30:]), np.asarray(cpu[30:])
+
+
+def _engine_rows(quick: bool) -> list[dict]:
+    from kinefuse.streaming.replay import demo_recording
+
+    rec = demo_recording()
+    n = 300 if quick else 3_000
+    rows = []
+    for name in ENGINE_PROCESSORS:
+        _, cpu, onset = engine_frame_times(rec, name, n_frames=n, loops=1 if quick else 8)
+        rows.append({"processor": name, "frames": int(cpu.size), "onset_frames": int(onset.sum()),
+                     "p50_ms": float(1e3 * np.median(cpu)), "p99_ms": float(1e3 * np.percentile(cpu, 99)),
+                     "max_ms": float(1e3 * cpu.max())})  # fmt: skip
+    peer = filterpy_frame_times(300 if quick else 600)
+    if peer is not None:
+        rows.append({"processor": "filterpy KF (peer)", "frames": int(peer[1].size),
+                     "onset_frames": 0, "p50_ms": float(1e3 * np.median(peer[1])),
+                     "p99_ms": float(1e3 * np.percentile(peer[1], 99)), "max_ms": float(1e3 * peer[1].max())})  # fmt: skip
+    return rows
+
+
 def second_process_time() -> dict:
     """Import + first KF/step/RTS call in a fresh interpreter (numba cache warm after run 1)."""
     out = {}
@@ -341,6 +447,7 @@ def run_benchmarks(quick: bool = False) -> dict:
         "kf_rts": _kf_rts_rows(quick),
         "online": _online_rows(quick),
         "other_filters": _other_filter_rows(quick),
+        "engine": _engine_rows(quick),
     }
     results["second_process"] = second_process_time()
     targets = []
@@ -409,6 +516,17 @@ def format_report(results: dict) -> str:
             lines.append(
                 f"{r['case']:<18} {r['kinefuse_us']:>9.4f} (wall {r['kinefuse_wall_us']:.4f}) at 8 x {r['steps']}"
             )
+    lines.append("")
+    lines.append(
+        "Online engine (kinefuse stream), 8 joints of paper B, per camera frame: ms of thread CPU "
+        "time (packaged demo: 9 IMUs at 100 Hz, camera at 30 Hz with outages)"
+    )
+    for r in results.get("engine", []):
+        extra = f"  ({r['onset_frames']} outage-onset frames)" if r["onset_frames"] else ""
+        lines.append(
+            f"{r['processor']:<20} p50 {r['p50_ms']:.3f}  p99 {r['p99_ms']:.3f}  max {r['max_ms']:.3f}"
+            f"  ({r['frames']} frames){extra}"
+        )
     sp = results["second_process"]
     lines.append("")
     if "error" in sp:

@@ -1,0 +1,42 @@
+"""The benchmark's online-engine timing helpers (`kinefuse bench`, benchmarks/bench_latency.py).
+
+No timing assertions (STYLE.md): only that every frame is timed, the numbers are sane and the
+outage-onset frames of the paper-B processor are found.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kinefuse.evaluation.bench import ENGINE_PROCESSORS, engine_frame_times, filterpy_frame_times
+from kinefuse.streaming.replay import demo_recording
+
+
+@pytest.fixture(scope="module")
+def rec():
+    return demo_recording(stop_s=4.0, seed=2)
+
+
+@pytest.mark.parametrize("processor", ENGINE_PROCESSORS)
+def test_engine_frame_times(rec, processor):
+    wall, cpu, onset = engine_frame_times(rec, processor, n_frames=10_000)
+    n_frames = len(rec.vision)  # one output per camera frame, the first 30 not timed
+    assert wall.shape == cpu.shape == onset.shape == (n_frames - 30,)
+    assert np.all(np.isfinite(wall)) and np.all(wall > 0) and np.all(cpu >= 0)
+    if processor != "elm-fir":
+        assert not onset.any()  # only a bridging processor trains at outage onsets
+
+
+def test_engine_frame_times_finds_outage_onsets(rec):
+    av = rec.vision.available
+    onsets = int(np.sum(av[:-1] & ~av[1:]))  # visible -> hidden, per joint
+    assert onsets > 0, "the demo recording has camera outages"
+    _, _, onset = engine_frame_times(rec, "elm-fir", n_frames=10_000, loops=2)
+    assert onset.any()
+
+
+def test_filterpy_peer_times():
+    pytest.importorskip("filterpy")
+    wall, cpu = filterpy_frame_times(n_frames=40, n_joints=2)
+    assert wall.shape == cpu.shape == (10,) and np.all(wall > 0)
