@@ -72,7 +72,7 @@ class FilterResult:
 
 def positions(mean: np.ndarray, H: np.ndarray) -> np.ndarray:
     """``H @ mean`` over leading axes: ``(..., n_x) -> (..., n_z)``."""
-    return np.einsum("ij,...j->...i", H, mean)
+    return mean @ H.T  # (an einsum costs ~10 us more per call: this runs on every online step)
 
 
 def initial_covariance(model, sigma_v0: float = SIGMA_V0_M_S) -> np.ndarray:

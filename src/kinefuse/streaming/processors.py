@@ -125,6 +125,12 @@ class _LinearProcessor:
         H = self._H
         rows = np.argmax(H != 0, axis=1)
         self._sel = rows if np.array_equal(H, np.eye(H.shape[1])[rows]) else None
+        # evenly spaced rows (constant-velocity: 0, 2, 4): a slice, i.e. a view, not a gather
+        self._sel_slice = None
+        if self._sel is not None and len(rows) > 1:
+            step = int(rows[1] - rows[0])
+            if step > 0 and np.array_equal(rows, rows[0] + step * np.arange(len(rows))):
+                self._sel_slice = slice(int(rows[0]), int(rows[-1]) + 1, step)
         self.reset()
 
     # -- to implement: filtered step and batch -> (mean (J,n), cov (J,n,n), source (J,))
@@ -141,6 +147,9 @@ class _LinearProcessor:
         self._n_steps = 0
 
     def _output(self, mean, cov):
+        sl = self._sel_slice
+        if sl is not None:
+            return mean[..., sl], cov[..., sl, sl]
         sel = self._sel
         if sel is not None:
             return mean[..., sel], cov[..., sel[:, None], sel]
@@ -329,7 +338,7 @@ class IntegratedProcessor(_LinearProcessor):
         # unchecked: the frame was validated by step and the state is the filter's own
         self._state, res = self.filter._run(z_imu[:, None, :], self._state)
         self.last_mode = res.mode[:, 0]
-        source = np.where(res.observed[:, 0], SOURCE_IMU, SOURCE_PREDICT).astype(np.int8)
+        source = np.where(res.observed[:, 0], np.int8(SOURCE_IMU), np.int8(SOURCE_PREDICT))
         return res.mean[:, 0], res.cov[:, 0], source
 
     def _filter_batch(self, t, z_imu, z_cam, available):
