@@ -61,3 +61,11 @@ def lsl_env(tmp_path):
     env.pop("KINEFUSE_DEBUG", None)
     env[LSL_CONFIG_ENV] = str(cfg)
     return {"env": env, "cfg": cfg, "log": log, "prefix": sid.replace("-", "_")}
+
+
+def cli_stderr(result) -> str:
+    """stderr of a typer/click ``CliRunner`` result (older click: mixed into the output)."""
+    try:
+        return result.stderr
+    except ValueError:
+        return result.output

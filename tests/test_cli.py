@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from conftest import cli_stderr
 from kinefuse import cli
 from kinefuse.exceptions import ConfigError
 from kinefuse.session import METHODS, load_session, session_template
@@ -22,15 +23,8 @@ COMMANDS = ("demo", "run", "init-session", "evaluate", "experiment", "bench", "s
 runner = CliRunner()
 
 
-def _err(result) -> str:
-    try:
-        return result.stderr
-    except ValueError:  # older click: stderr mixed into output
-        return result.output
-
-
 def _assert_one_line_error(result, code: int, *needles: str) -> str:
-    err = _err(result)
+    err = cli_stderr(result)
     assert result.exit_code == code, (result.exit_code, result.output, err)
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1, err
@@ -51,7 +45,7 @@ def test_help_everywhere(args):
 
 def test_no_arguments_shows_help():
     result = runner.invoke(cli.app, [])
-    assert "demo" in result.output + _err(result)
+    assert "demo" in result.output + cli_stderr(result)
 
 
 def test_version():
@@ -163,7 +157,7 @@ def test_backend_input_error_exit_2_and_debug_traceback(fake_backend):
     )
     result = runner.invoke(cli.app, ["--debug", "bench"])
     assert result.exit_code == 2
-    assert "Traceback" in _err(result) and "FormatError" in _err(result)
+    assert "Traceback" in cli_stderr(result) and "FormatError" in cli_stderr(result)
 
 
 def test_backend_crash_exit_1_without_traceback(fake_backend):
@@ -385,7 +379,7 @@ def test_demo_writes_report_and_protects_it(tmp_path):
     out = tmp_path / "demo"
     summary = tmp_path / "summary.json"
     result = runner.invoke(cli.app, ["demo", "--out", str(out), "--quiet", "--json", str(summary)])
-    assert result.exit_code == 0, (result.output, _err(result))
+    assert result.exit_code == 0, (result.output, cli_stderr(result))
     report = out / "report.html"
     assert report.is_file() and report.stat().st_size > 10_000
     data = json.loads(summary.read_text())

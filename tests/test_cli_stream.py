@@ -20,20 +20,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from conftest import LSL_PRELUDE
+from conftest import LSL_PRELUDE, cli_stderr
 from kinefuse import cli
 
 CHILD_TIMEOUT_S = 150
 KINEFUSE = [sys.executable, "-m", "kinefuse"]  # src/kinefuse/__main__.py
 
 runner = CliRunner()
-
-
-def _err(result) -> str:
-    try:
-        return result.stderr
-    except ValueError:  # older click: stderr mixed into output
-        return result.output
 
 
 def _one_line_error(stderr: str, *needles: str) -> str:
@@ -268,8 +261,8 @@ def test_cli_stream_replay_bad_input_exits_2_before_lsl(args, needles, tmp_path,
     (tmp_path / "broken.toml").write_text("[stream\n")
     (tmp_path / "existing.npz").write_bytes(b"keep me")
     result = runner.invoke(cli.app, args)
-    assert result.exit_code == 2, (result.output, _err(result))
-    _one_line_error(_err(result), *needles)
+    assert result.exit_code == 2, (result.output, cli_stderr(result))
+    _one_line_error(cli_stderr(result), *needles)
     assert (tmp_path / "existing.npz").read_bytes() == b"keep me"
     assert not (tmp_path / "existing.json").exists()
     assert "pylsl" not in sys.modules  # rejected before LSL was touched

@@ -565,23 +565,12 @@ def _stream_session(path: Path, resolve_timeout_s: float | None):
     """The StreamConfig of SESSION.toml: a ``[stream]`` table -> streaming loader, else offline."""
     import dataclasses
 
-    from kinefuse.exceptions import ConfigError
-    from kinefuse.session import load_session
+    from kinefuse.session import load_session, read_toml
     from kinefuse.streaming.config import load_stream_config, stream_config_from_session
-
-    if sys.version_info >= (3, 11):
-        import tomllib
-    else:  # pragma: no cover - Python 3.10 only
-        import tomli as tomllib
 
     p = path.expanduser()
     _existing_file(p, "SESSION.toml")
-    try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p.name}: not valid TOML: {exc}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{p.name}: not a UTF-8 text file") from None
+    doc = read_toml(p)
     overrides = {} if resolve_timeout_s is None else {"resolve_timeout_s": resolve_timeout_s}
     if "stream" in doc:
         return dataclasses.replace(load_stream_config(p), **overrides)

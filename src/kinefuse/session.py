@@ -270,6 +270,26 @@ class _Ctx:
 # --------------------------------------------------------------------------------------------
 
 
+def read_toml(path: str | Path, *, missing: str = "file not found") -> dict:
+    """Parse a TOML file (session files of ``kinefuse run`` and ``kinefuse stream``).
+
+    Raises
+    ------
+    ConfigError
+        ``"{path}: {missing}"`` when there is no such file; ``"{name}: not valid TOML: …"``
+        or ``"{name}: not a UTF-8 text file"`` when it cannot be read.
+    """
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise ConfigError(f"{p}: {missing}")
+    try:
+        return tomllib.loads(p.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p.name}: not valid TOML: {exc}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{p.name}: not a UTF-8 text file") from None
+
+
 def load_session(path: str | Path) -> SessionConfig:
     """Read and validate a session TOML file.
 
@@ -291,16 +311,9 @@ def load_session(path: str | Path) -> SessionConfig:
         and key, and says how to fix it.
     """
     p = Path(path).expanduser()
-    if not p.is_file():
-        raise ConfigError(
-            f"{p}: session file not found (create one with `kinefuse init-session {p}`)"
-        )
-    try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p.name}: not valid TOML: {exc}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{p.name}: not a UTF-8 text file") from None
+    doc = read_toml(
+        p, missing=f"session file not found (create one with `kinefuse init-session {p}`)"
+    )
     p = p.resolve()
     c = _Ctx(p)
     c.check_keys(doc, "top level", ("session", "imu", "skeleton", "camera", "reference", "method"))

@@ -42,11 +42,6 @@ from string import Template
 from kinefuse.conventions import PAPER_B_JOINTS
 from kinefuse.exceptions import ConfigError, InputError
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - Python 3.10 only
-    import tomli as tomllib
-
 __all__ = [
     "LSL_CONFIG_ENV",
     "LOCAL_SETTINGS",
@@ -434,12 +429,9 @@ def load_stream_config(path: str | Path) -> StreamConfig:
         Missing file, invalid TOML, unknown key or invalid value (names the key).
     """
     p = Path(path).expanduser()
-    if not p.is_file():
-        raise ConfigError(f"{p}: stream session file not found")
-    try:
-        doc = tomllib.loads(p.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p.name}: not valid TOML: {exc}") from None
+    from kinefuse.session import read_toml
+
+    doc = read_toml(p, missing="stream session file not found")
     st = dict(doc.get("stream") or {})
     unknown = sorted(set(st) - set(_STREAM_KEYS))
     if unknown:
