@@ -476,6 +476,14 @@ PLUG_IN_GAIT_JOINTS = {
 }
 
 
+#: Shoulders to feet, left then right, in the order Kinect v1 and v2 both list them (their
+#: skeleton tables differ only in the spine/head joints around this run).
+KINECT_LIMB_JOINTS = (
+    "shoulder_l", "elbow_l", "wrist_l", "hand_l", "shoulder_r", "elbow_r", "wrist_r", "hand_r",
+    "hip_l", "knee_l", "ankle_l", "foot_l", "hip_r", "knee_r", "ankle_r", "foot_r",
+)  # fmt: skip
+
+
 def canonical_joint(label: str) -> str | None:
     """Canonical joint name for a label (``ShoulderLeft``, ``left_wrist``, ``RFEO``...) or None."""
     if label in JOINTS:

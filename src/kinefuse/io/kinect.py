@@ -13,6 +13,7 @@ import numpy as np
 
 from kinefuse.exceptions import FormatError, InputError
 from kinefuse.io._common import (
+    KINECT_LIMB_JOINTS,
     TIME_COLUMNS,
     Table,
     check_time,
@@ -62,32 +63,9 @@ KINECT_V2_JOINTS = (
 )
 #: Canonical names of :data:`KINECT_V2_JOINTS` (hand tips and thumbs are not canonical joints).
 KINECT_V2_TO_CANONICAL = (
-    "spine_base",
-    "spine_mid",
-    "neck",
-    "head",
-    "shoulder_l",
-    "elbow_l",
-    "wrist_l",
-    "hand_l",
-    "shoulder_r",
-    "elbow_r",
-    "wrist_r",
-    "hand_r",
-    "hip_l",
-    "knee_l",
-    "ankle_l",
-    "foot_l",
-    "hip_r",
-    "knee_r",
-    "ankle_r",
-    "foot_r",
-    "spine_shoulder",
-    "hand_tip_l",
-    "thumb_l",
-    "hand_tip_r",
-    "thumb_r",
-)
+    "spine_base", "spine_mid", "neck", "head", *KINECT_LIMB_JOINTS,
+    "spine_shoulder", "hand_tip_l", "thumb_l", "hand_tip_r", "thumb_r",
+)  # fmt: skip
 #: Azure Kinect ``k4abt_joint_id_t`` names in index order 0..31.
 AZURE_JOINTS = (
     "PELVIS",

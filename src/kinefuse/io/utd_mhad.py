@@ -15,7 +15,7 @@ import numpy as np
 import scipy.io
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import DEG2RAD, G, check_units, make_metadata
+from kinefuse.io._common import DEG2RAD, KINECT_LIMB_JOINTS, G, check_units, make_metadata
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["KINECT_V1_JOINTS", "KINECT_V1_TO_CANONICAL", "read_utd_mhad", "utd_mhad_partner"]
@@ -45,28 +45,7 @@ KINECT_V1_JOINTS = (
 )
 #: The same joints under kinefuse's canonical names (ShoulderCenter -> spine_shoulder, Spine ->
 #: spine_mid, HipCenter -> spine_base, as Kinect v2 renamed them).
-KINECT_V1_TO_CANONICAL = (
-    "head",
-    "spine_shoulder",
-    "spine_mid",
-    "spine_base",
-    "shoulder_l",
-    "elbow_l",
-    "wrist_l",
-    "hand_l",
-    "shoulder_r",
-    "elbow_r",
-    "wrist_r",
-    "hand_r",
-    "hip_l",
-    "knee_l",
-    "ankle_l",
-    "foot_l",
-    "hip_r",
-    "knee_r",
-    "ankle_r",
-    "foot_r",
-)
+KINECT_V1_TO_CANONICAL = ("head", "spine_shoulder", "spine_mid", "spine_base", *KINECT_LIMB_JOINTS)
 
 _NAME = re.compile(r"^a(\d+)_s(\d+)_t(\d+)_(inertial|skeleton)\.mat$", re.IGNORECASE)
 _KIND_DIR = {"inertial": "Inertial", "skeleton": "Skeleton"}
