@@ -28,6 +28,7 @@ from kinefuse.filters.ufir import UFIRFilter
 from kinefuse.learning import ELMRegressor
 from kinefuse.pipelines._outages import SOURCE_NONE
 from kinefuse.pipelines.vision_assisted import VisionParams, vision_assisted
+from kinefuse.streaming.processors import _check_series
 
 __all__ = ["VisionAssistedProcessor"]
 
@@ -657,19 +658,7 @@ class VisionAssistedProcessor:
         is run through :meth:`step` on a fresh copy of the processor instead. The online state
         is not touched.
         """
-        t = np.asarray(t_s, dtype=float)
-        zi = np.asarray(z_imu, dtype=float)
-        zc = np.asarray(z_cam, dtype=float)
-        av = np.asarray(available, dtype=bool)
-        if zi.ndim != 3 or zi.shape[2] != 3 or zc.shape != zi.shape:
-            raise InputError(
-                f"expected z_imu and z_cam with the same shape (T, J, 3), got {zi.shape} and {zc.shape}"
-            )
-        if t.shape != zi.shape[:1] or av.shape != zi.shape[:2]:
-            raise InputError(
-                f"expected t_s (T,) and available (T, J) for z (T, J, 3) = {zi.shape}, got "
-                f"{t.shape} and {av.shape}"
-            )
+        t, zi, zc, av = _check_series(t_s, z_imu, z_cam, available)
         if self.n_joints is not None and zi.shape[1] != self.n_joints:
             raise InputError(f"expected {self.n_joints} joints, got {zi.shape[1]}")
         if np.all(np.any(np.all(np.isfinite(zi), axis=-1), axis=0)):
