@@ -307,3 +307,39 @@ def test_lost_and_timed_out_inlets_are_handled(lsl_env):
         """
     )
     assert _result(_child(code, lsl_env["env"])) == {"lost": True, "n": 0}
+
+
+def test_stream_that_goes_away_before_it_is_opened(lsl_env):
+    """A stream resolved but gone when the inlets subscribe: an IMU stream -> reported missing
+    (its joints predict-only), the run goes on; the camera -> a clear InputError."""
+    code = _code("""
+    import threading
+    import kinefuse.streaming.lsl as L
+    from kinefuse.exceptions import InputError
+    from kinefuse.streaming import run_replay, run_stream, StreamConfig
+    from kinefuse.streaming.replay import demo_recording
+    prefix = os.environ["KINEFUSE_TEST_PREFIX"]
+    stop = threading.Event()
+    threading.Thread(target=run_replay, args=(demo_recording(stop_s=3.0),), daemon=True,
+                     kwargs=dict(name_prefix=prefix, loop=True, stop_event=stop)).start()
+    orig = L.Input.open.__func__
+    gone = {"key": "shank_r"}
+    def open_(cls, kind, key, name, **kw):
+        if key == gone["key"]:
+            raise pylsl.util.TimeoutError("the operation failed due to a timeout.")
+        return orig(cls, kind, key, name, **kw)
+    L.Input.open = classmethod(open_)
+    cfg = StreamConfig(name_prefix=prefix, resolve_timeout_s=20)
+    s = run_stream(cfg, status=False, duration_s=2.0)
+    gone["key"] = "camera"
+    try:
+        run_stream(cfg, status=False, duration_s=2.0)
+        err = None
+    except InputError as exc:
+        err = str(exc)
+    stop.set()
+    print("RESULT:" + json.dumps({"missing": s["missing"], "outputs": s["outputs"], "err": err}))
+    """)
+    r = _result(_child(code, lsl_env["env"]))
+    assert r["missing"] == [f"{lsl_env['prefix']}_imu_shank_r"] and r["outputs"] > 10
+    assert r["err"] is not None and "went away before it could be opened" in r["err"]

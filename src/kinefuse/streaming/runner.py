@@ -414,23 +414,42 @@ def run_stream(
     warm_up(engine)
     outlet = FusedOutlet(cfg.output_stream_name, cfg.joints, cam_rate, processor=cfg.processor,
                          lag_frames=cfg.lag)  # fmt: skip
+    lost_errors = (TimeoutError, pylsl.util.TimeoutError, pylsl.util.LostError)
     inputs = []
     try:
         if wait_for_reader_s:
             outlet.outlet.wait_for_consumers(wait_for_reader_s)
         # the inlets subscribe only now, right before the loop: data buffered during warm-up
         # would arrive as a backlog older than stale_after_s, and every IMU stream would look
-        # stale while the frames of that backlog are processed
-        if cam_name:
-            inputs.append(
-                Input.open("camera", "camera", cam_name, info=found[cam_name], clock=cfg.clock)
-            )
-        for name, seg in wanted.items():
-            if name in found:
-                inputs.append(Input.open("imu", seg, name, info=found[name], clock=cfg.clock))
-        # first clock-offset estimates in parallel (each takes a few probe round trips)
+        # stale while the frames of that backlog are processed. All are opened at once (not
+        # one after the other: the first would buffer data the last has not seen yet), the
+        # camera listed last so that each loop pass reads the IMUs before the frame they
+        # complete.
         from concurrent.futures import ThreadPoolExecutor
 
+        def open_input(spec):
+            kind, key, name = spec
+            try:
+                return Input.open(kind, key, name, info=found[name], clock=cfg.clock)
+            except lost_errors as exc:  # the stream went away since it was resolved
+                return exc
+
+        specs = [("imu", seg, name) for name, seg in wanted.items() if name in found]
+        specs += [("camera", "camera", cam_name)] if cam_name else []
+        with ThreadPoolExecutor(max_workers=len(specs)) as pool:
+            opened = list(pool.map(open_input, specs))
+        inputs += [r for r in opened if not isinstance(r, Exception)]
+        for (kind, _, name), r in zip(specs, opened, strict=True):
+            if not isinstance(r, Exception):
+                continue
+            if kind == "camera":
+                raise InputError(f"camera stream {name!r} went away before it could be opened")
+            log.warning("LSL stream %s went away before it could be opened: its joints stay "
+                        "predict-only until it appears", name)  # fmt: skip
+            missing.append(name)
+        if not any(i.kind == "imu" for i in inputs):
+            raise InputError("every IMU stream went away before it could be opened")
+        # first clock-offset estimates in parallel (each takes a few probe round trips)
         with ThreadPoolExecutor(max_workers=len(inputs)) as pool:
             list(pool.map(lambda i: i.refresh_clock(first=True), inputs))
     except BaseException:
@@ -461,7 +480,7 @@ def run_stream(
                     )
                     del pending_missing[seg]
                     log.warning("LSL stream %s appeared: attached", name)
-                except TimeoutError:
+                except lost_errors:
                     pass
 
     live = show = None
