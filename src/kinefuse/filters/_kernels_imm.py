@@ -3,38 +3,214 @@
 Paper B (Xu 2023) Eqs. 24-48 as corrected by SPEC §8.2-§8.3. Textbook symbols, no validation.
 Shapes: ``M`` models, ``n_x`` states, ``n_z`` measurement components; ``mu (M,)``,
 ``xs (M, n_x)``, ``Ps (M, n_x, n_x)``, ``Gamma (M, M)`` with ``Gamma[i, m] = P(m at t | i at t-1)``.
-The per-model KF predict/update are the dense reference kernels of :mod:`._kernels`.
+
+The per-model KF predict/update are the dense reference kernels of :mod:`._kernels`
+(``kf_predict``, ``kf_update`` with the Joseph form, ``chol_lower`` with the SPEC §13 ladder).
+:func:`imm_run` uses allocation-free ``_*_into`` transcriptions of them and of the IMM steps:
+every scratch array is allocated once per call and written in place, and every sum is
+accumulated in the same order as the allocating kernel, so the results are bitwise identical
+to composing the allocating kernels (checked against a NumPy transcription in
+``tests/test_imm.py``). Sizes are passed explicitly so that :func:`imm_run` can hand the
+compiler constant sizes for the IMM of paper B (see there).
+
+No per-axis form: even when every model is block-diagonal per axis, the spread-of-means terms
+of the mixing (Eq. 28) and of the combination (Eq. 48), ``(x_i − x̄)(x_i − x̄)ᵀ``, couple the
+axes, so the IMM does not decouple per axis. The dense form is exact for all models.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from kinefuse._compile import njit
-from kinefuse.filters._kernels import (
-    add_outer,
-    chol_lower,
-    kf_predict,
-    kf_update,
-    matvec,
-    symmetrize,
-)
+from kinefuse._compile import njit, njit_inline
+from kinefuse.filters._kernels import chol_lower
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
 
-@njit
-def gauss_loglik(nu, S):
-    """Gaussian log-likelihood of an innovation, SPEC §8.3 (paper B Eqs. 39-40 in log form).
+# --------------------------------------------------------------------------------------------
+# Allocation-free single-element kernels (outputs and scratch passed in, written in place).
+# Each one reproduces the operation order of its allocating reference in :mod:`._kernels`.
+# --------------------------------------------------------------------------------------------
 
-    ``log Λ = −½ (νᵀS⁻¹ν + log det S + n_z log 2π)``. Returns ``(log Λ, νᵀS⁻¹ν, ok)``; an
-    overflowing ``νᵀS⁻¹ν`` gives ``log Λ = −inf`` (never NaN).
+
+@njit_inline
+def _symmetrize_into(P, n):
+    """``P ← (P + Pᵀ)/2`` in place for ``P (n, n)`` (as :func:`._kernels.symmetrize`)."""
+    for i in range(n):
+        for j in range(i, n):
+            v = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = v
+            P[j, i] = v
+
+
+@njit
+def _finite1(a, n):
+    for i in range(n):
+        if not np.isfinite(a[i]):
+            return False
+    return True
+
+
+@njit
+def _finite2(a, n):
+    for i in range(n):
+        for j in range(n):
+            if not np.isfinite(a[i, j]):
+                return False
+    return True
+
+
+@njit
+def _chol_lower_into(S, L, n):
+    """:func:`._kernels.chol_lower` (SPEC §13 ladder) writing the factor into ``L``; returns ok."""
+    tr = 0.0
+    for i in range(n):
+        tr += S[i, i]
+    scale = max(tr / n, 1e-300)
+    eps = 0.0
+    for _attempt in range(8):
+        for i in range(n):
+            for j in range(n):
+                L[i, j] = 0.0
+        good = True
+        for i in range(n):
+            for j in range(i + 1):
+                s = S[i, j]
+                if i == j:
+                    s += eps * scale  # SPEC §13: S + ε·tr(S)/n·I
+                for k in range(j):
+                    s -= L[i, k] * L[j, k]
+                if i == j:
+                    if s <= 0.0 or not np.isfinite(s):
+                        good = False
+                        break
+                    L[i, i] = np.sqrt(s)
+                else:
+                    L[i, j] = s / L[j, j]
+            if not good:
+                break
+        if good:
+            return True
+        eps = 1e-12 if eps == 0.0 else eps * 10.0
+        if eps > 1e-6 * 1.0000001:
+            break
+    return False
+
+
+@njit_inline
+def _kf_predict_into(x, P, F, Q, x_pred, P_pred, FP, n):
+    """KF prediction, SPEC §4.2 (as :func:`._kernels.kf_predict`); ``FP (n, n)`` scratch."""
+    for i in range(n):
+        s = 0.0
+        for p in range(n):
+            s += F[i, p] * x[p]
+        x_pred[i] = s  # SPEC §4.2: x⁻ = F x
+    for i in range(n):
+        for j in range(n):
+            FP[i, j] = 0.0
+        for p in range(n):
+            a = F[i, p]
+            if a != 0.0:
+                for j in range(n):
+                    FP[i, j] += a * P[p, j]
+    for i in range(n):
+        for j in range(n):
+            s = 0.0
+            for p in range(n):
+                s += FP[i, p] * F[j, p]
+            P_pred[i, j] = s + Q[i, j]  # SPEC §4.2: P⁻ = F P Fᵀ + Q
+    _symmetrize_into(P_pred, n)
+
+
+@njit_inline
+def _kf_update_into(x_pred, P_pred, z, H, R, x, P, nu, S, L, HP, Kt, A, AP, KR, y, n_x, n_z):
+    """KF update with the Joseph form, SPEC §4.2 (as :func:`._kernels.kf_update`).
+
+    Writes ``x, P`` (only when ok), ``nu, S`` and the Cholesky factor ``L`` of ``S``; returns
+    ok (False: ``S`` could not be factorised, ``x, P`` untouched). Scratch: ``HP (n_z, n_x)``,
+    ``Kt (n_z, n_x)`` (= Kᵀ), ``A, AP (n_x, n_x)``, ``KR (n_x, n_z)``, ``y (n_z,)``.
     """
-    L, ok = chol_lower(S)
-    n = nu.shape[0]
-    if not ok:
-        return np.nan, np.nan, False
-    y = np.empty(n)
+    for i in range(n_z):
+        s = 0.0
+        for p in range(n_x):
+            s += H[i, p] * x_pred[p]
+        nu[i] = z[i] - s  # SPEC §4.2: ν = z − H x⁻
+    for i in range(n_z):
+        for j in range(n_x):
+            HP[i, j] = 0.0
+        for p in range(n_x):
+            a = H[i, p]
+            if a != 0.0:
+                for j in range(n_x):
+                    HP[i, j] += a * P_pred[p, j]  # H P⁻ = (P⁻ Hᵀ)ᵀ
+    for i in range(n_z):
+        for j in range(n_z):
+            s = 0.0
+            for p in range(n_x):
+                s += HP[i, p] * H[j, p]
+            S[i, j] = s + R[i, j]  # SPEC §4.2: S = H P⁻ Hᵀ + R
+    if not _chol_lower_into(S, L, n_z):
+        return False
+    for c in range(n_x):  # SPEC §4.2: Kᵀ = solve(S, H P⁻), column by column
+        for i in range(n_z):
+            s = HP[i, c]
+            for k in range(i):
+                s -= L[i, k] * y[k]
+            y[i] = s / L[i, i]
+        for i in range(n_z - 1, -1, -1):
+            s = y[i]
+            for k in range(i + 1, n_z):
+                s -= L[k, i] * Kt[k, c]
+            Kt[i, c] = s / L[i, i]
+    for i in range(n_x):
+        s = 0.0
+        for p in range(n_z):
+            s += Kt[p, i] * nu[p]
+        x[i] = x_pred[i] + s  # SPEC §4.2: x = x⁻ + K ν
+    for i in range(n_x):  # A = I − K H
+        for j in range(n_x):
+            A[i, j] = 0.0
+        for p in range(n_z):
+            a = Kt[p, i]
+            if a != 0.0:
+                for j in range(n_x):
+                    A[i, j] += a * H[p, j]
+        for j in range(n_x):
+            A[i, j] = -A[i, j]
+        A[i, i] += 1.0
+    for i in range(n_x):
+        for j in range(n_x):
+            AP[i, j] = 0.0
+        for p in range(n_x):
+            a = A[i, p]
+            if a != 0.0:
+                for j in range(n_x):
+                    AP[i, j] += a * P_pred[p, j]
+    for i in range(n_x):
+        for j in range(n_z):
+            KR[i, j] = 0.0
+        for p in range(n_z):
+            a = Kt[p, i]
+            if a != 0.0:
+                for j in range(n_z):
+                    KR[i, j] += a * R[p, j]
+    for i in range(n_x):
+        for j in range(n_x):
+            s = 0.0
+            for p in range(n_x):
+                s += AP[i, p] * A[j, p]
+            s2 = 0.0
+            for p in range(n_z):
+                s2 += KR[i, p] * Kt[p, j]
+            P[i, j] = s + s2  # SPEC §4.2 Joseph form: P = A P⁻ Aᵀ + K R Kᵀ
+    _symmetrize_into(P, n_x)
+    return True
+
+
+@njit
+def _loglik_chol(nu, L, y, n):
+    """``(log Λ, νᵀS⁻¹ν)`` from the Cholesky factor ``L`` of ``S`` (see :func:`gauss_loglik`)."""
     quad = 0.0
     logdet = 0.0
     for i in range(n):
@@ -45,35 +221,17 @@ def gauss_loglik(nu, S):
         quad += y[i] * y[i]  # νᵀ S⁻¹ ν = ‖L⁻¹ ν‖²
         logdet += 2.0 * np.log(L[i, i])  # log det S = 2 Σ log L_ii
     if not np.isfinite(quad):
-        return -np.inf, np.inf, True
-    return -0.5 * (quad + logdet + n * LOG_2PI), quad, True  # SPEC §8.3 logΛ
+        return -np.inf, np.inf
+    return -0.5 * (quad + logdet + n * LOG_2PI), quad  # SPEC §8.3 logΛ
 
 
 @njit
-def logsumexp(a):
-    """``log Σ exp(a)``; ``−inf`` when every entry is ``−inf``."""
-    mx = -np.inf
-    for v in a:
-        if v > mx:
-            mx = v
-    if mx == -np.inf:
-        return -np.inf
-    s = 0.0
-    for v in a:
-        s += np.exp(v - mx)
-    return mx + np.log(s)
-
-
-@njit
-def apply_floor(mu, floor):
-    """Raise entries below ``floor`` to exactly ``floor`` and rescale the rest to sum to 1.
-
-    SPEC §8.3 "μ floor" (avoid lock-in). Requires ``floor < 1/M``. In place.
-    """
-    M = mu.shape[0]
+def _apply_floor_into(mu, floor, fixed, M):
+    """:func:`apply_floor` with a boolean scratch ``fixed (M,)``."""
     if floor <= 0.0:
         return
-    fixed = np.zeros(M, dtype=np.bool_)
+    for m in range(M):
+        fixed[m] = False
     for _it in range(M + 1):
         n_fixed = 0
         free_sum = 0.0
@@ -100,32 +258,175 @@ def apply_floor(mu, floor):
 
 
 @njit
-def imm_mix(mu, Gamma, xs, Ps):
-    """IMM interaction (mixing) step, paper B Eqs. 25-28 as corrected in SPEC §8.2.
+def _imm_mix_into(mu, Gamma, xs, Ps, cbar, x0, P0, w, d, M, n_x):
+    """:func:`imm_mix` writing ``cbar (M,)``, ``x0 (M, n_x)``, ``P0 (M, n_x, n_x)``.
 
-    Returns ``(cbar (M,), x0 (M, n_x), P0 (M, n_x, n_x))``.
+    Scratch ``w (M,)``, ``d (n_x,)``.
     """
-    M, n_x = xs.shape
-    cbar = np.zeros(M)
     for m in range(M):
+        c = 0.0
         for i in range(M):
-            cbar[m] += Gamma[i, m] * mu[i]  # Eq. 25 (corrected): c̄_m = Σ_i Γ_im μ_i
-    x0 = np.zeros((M, n_x))
-    P0 = np.zeros((M, n_x, n_x))
-    w = np.empty(M)
+            c += Gamma[i, m] * mu[i]  # Eq. 25 (corrected): c̄_m = Σ_i Γ_im μ_i
+        cbar[m] = c
     for m in range(M):
         for i in range(M):
             if cbar[m] > 0.0:
                 w[i] = Gamma[i, m] * mu[i] / cbar[m]  # Eq. 26 (corrected): μ_{i|m} = Γ_im μ_i / c̄_m
             else:
                 w[i] = mu[i]  # unreachable model (c̄_m = 0): no interaction
+        for k in range(n_x):
+            x0[m, k] = 0.0
         for i in range(M):
-            x0[m] += w[i] * xs[i]  # Eq. 27: x0_m = Σ_i μ_{i|m} x_i
+            wi = w[i]
+            for k in range(n_x):
+                x0[m, k] += wi * xs[i, k]  # Eq. 27: x0_m = Σ_i μ_{i|m} x_i
+        for j in range(n_x):
+            for k in range(n_x):
+                P0[m, j, k] = 0.0
         for i in range(M):
-            d = xs[i] - x0[m]
-            P0[m] += w[i] * Ps[i]  # Eq. 28: P0_m = Σ_i μ_{i|m}(P_i + d dᵀ)
-            add_outer(P0[m], w[i], d)
-        P0[m] = symmetrize(P0[m])
+            wi = w[i]
+            for k in range(n_x):
+                d[k] = xs[i, k] - x0[m, k]
+            for j in range(n_x):
+                wd = wi * d[j]
+                for k in range(n_x):
+                    P0[m, j, k] += wi * Ps[i, j, k]  # Eq. 28: P0_m = Σ_i μ_{i|m}(P_i + d dᵀ)
+                    P0[m, j, k] += wd * d[k]
+        _symmetrize_into(P0[m], n_x)
+
+
+@njit
+def _imm_probabilities_into(loglik, updated, cbar, mu_floor, mu, ll, lw, fixed, M):
+    """:func:`imm_probabilities` writing ``mu (M,)``; scratch ``ll, lw (M,)``, ``fixed (M,)``."""
+    n_upd = 0
+    for m in range(M):
+        if updated[m]:
+            n_upd += 1
+    fill = 0.0
+    if n_upd > 0:  # log-mean-exp of the updated models' log-likelihoods
+        mx = -np.inf
+        for m in range(M):
+            if updated[m] and loglik[m] > mx:
+                mx = loglik[m]
+        if mx == -np.inf:
+            fill = -np.inf
+        else:
+            s = 0.0
+            for m in range(M):
+                if updated[m]:
+                    s += np.exp(loglik[m] - mx)
+            fill = mx + np.log(s) - np.log(n_upd)
+    if n_upd == 0 or fill == -np.inf:
+        for m in range(M):
+            ll[m] = 0.0
+    else:
+        ref = -np.inf
+        for m in range(M):
+            ll[m] = loglik[m] if updated[m] else fill
+            if ll[m] > ref:
+                ref = ll[m]
+        for m in range(M):
+            ll[m] -= ref  # shift so that max log Λ = 0 before adding log c̄ (no absorption)
+    for m in range(M):
+        lw[m] = ll[m] + np.log(cbar[m]) if cbar[m] > 0.0 else -np.inf  # log(Λ_m c̄_m)
+    mx = -np.inf  # Eq. 45: log c = log Σ_m Λ_m c̄_m
+    for m in range(M):
+        if lw[m] > mx:
+            mx = lw[m]
+    if mx == -np.inf:
+        lc = -np.inf
+    else:
+        s = 0.0
+        for m in range(M):
+            s += np.exp(lw[m] - mx)
+        lc = mx + np.log(s)
+    total = 0.0
+    for m in range(M):
+        mu[m] = np.exp(lw[m] - lc)  # Eq. 46 (corrected): μ_m = Λ_m c̄_m / c
+        total += mu[m]
+    for m in range(M):
+        mu[m] /= total  # exact normalisation against rounding
+    _apply_floor_into(mu, mu_floor, fixed, M)
+
+
+@njit
+def _imm_combine_into(mu, xs, Ps, x, P, d, M, n_x):
+    """:func:`imm_combine` writing ``x (n_x,)``, ``P (n_x, n_x)``; scratch ``d (n_x,)``."""
+    for k in range(n_x):
+        x[k] = 0.0
+    for m in range(M):
+        for k in range(n_x):
+            x[k] += mu[m] * xs[m, k]  # Eq. 47
+    for j in range(n_x):
+        for k in range(n_x):
+            P[j, k] = 0.0
+    for m in range(M):
+        wm = mu[m]
+        for k in range(n_x):
+            d[k] = xs[m, k] - x[k]
+        for j in range(n_x):
+            wd = wm * d[j]
+            for k in range(n_x):
+                P[j, k] += wm * Ps[m, j, k]  # Eq. 48
+                P[j, k] += wd * d[k]
+    _symmetrize_into(P, n_x)
+
+
+# --------------------------------------------------------------------------------------------
+# Allocating single-step kernels (reference and test entry points).
+# --------------------------------------------------------------------------------------------
+
+
+@njit
+def gauss_loglik(nu, S):
+    """Gaussian log-likelihood of an innovation, SPEC §8.3 (paper B Eqs. 39-40 in log form).
+
+    ``log Λ = −½ (νᵀS⁻¹ν + log det S + n_z log 2π)``. Returns ``(log Λ, νᵀS⁻¹ν, ok)``; an
+    overflowing ``νᵀS⁻¹ν`` gives ``log Λ = −inf`` (never NaN).
+    """
+    L, ok = chol_lower(S)
+    if not ok:
+        return np.nan, np.nan, False
+    ll, quad = _loglik_chol(nu, L, np.empty(nu.shape[0]), nu.shape[0])
+    return ll, quad, True
+
+
+@njit
+def logsumexp(a):
+    """``log Σ exp(a)``; ``−inf`` when every entry is ``−inf``."""
+    mx = -np.inf
+    for v in a:
+        if v > mx:
+            mx = v
+    if mx == -np.inf:
+        return -np.inf
+    s = 0.0
+    for v in a:
+        s += np.exp(v - mx)
+    return mx + np.log(s)
+
+
+@njit
+def apply_floor(mu, floor):
+    """Raise entries below ``floor`` to exactly ``floor`` and rescale the rest to sum to 1.
+
+    SPEC §8.3 "μ floor" (avoid lock-in). Requires ``floor < 1/M``. In place.
+    """
+    M = mu.shape[0]
+    _apply_floor_into(mu, floor, np.zeros(M, dtype=np.bool_), M)
+
+
+@njit
+def imm_mix(mu, Gamma, xs, Ps):
+    """IMM interaction (mixing) step, paper B Eqs. 25-28 as corrected in SPEC §8.2.
+
+    Returns ``(cbar (M,), x0 (M, n_x), P0 (M, n_x, n_x))``.
+    """
+    M, n_x = xs.shape
+    cbar = np.empty(M)
+    x0 = np.empty((M, n_x))
+    P0 = np.empty((M, n_x, n_x))
+    _imm_mix_into(mu, Gamma, xs, Ps, cbar, x0, P0, np.empty(M), np.empty(n_x), M, n_x)
     return cbar, x0, P0
 
 
@@ -139,43 +440,18 @@ def imm_probabilities(loglik, updated, cbar, mu_floor):
     ``−inf``: no evidence, ``μ = c̄``. Then the floor is applied. Returns ``mu (M,)``.
     """
     M = cbar.shape[0]
-    ll = np.zeros(M)
-    n_upd = 0
-    for m in range(M):
-        if updated[m]:
-            n_upd += 1
-    fill = 0.0
-    if n_upd > 0:
-        obs = np.empty(n_upd)
-        j = 0
-        for m in range(M):
-            if updated[m]:
-                obs[j] = loglik[m]
-                j += 1
-        fill = logsumexp(obs) - np.log(n_upd)
-    if n_upd == 0 or fill == -np.inf:
-        for m in range(M):
-            ll[m] = 0.0
-    else:
-        ref = -np.inf
-        for m in range(M):
-            ll[m] = loglik[m] if updated[m] else fill
-            if ll[m] > ref:
-                ref = ll[m]
-        for m in range(M):
-            ll[m] -= ref  # shift so that max log Λ = 0 before adding log c̄ (no absorption)
-    lw = np.empty(M)
-    for m in range(M):
-        lw[m] = ll[m] + np.log(cbar[m]) if cbar[m] > 0.0 else -np.inf  # log(Λ_m c̄_m)
-    lc = logsumexp(lw)  # Eq. 45: log c = log Σ_m Λ_m c̄_m
     mu = np.empty(M)
-    total = 0.0
-    for m in range(M):
-        mu[m] = np.exp(lw[m] - lc)  # Eq. 46 (corrected): μ_m = Λ_m c̄_m / c
-        total += mu[m]
-    for m in range(M):
-        mu[m] /= total  # exact normalisation against rounding
-    apply_floor(mu, mu_floor)
+    _imm_probabilities_into(
+        loglik,
+        updated,
+        cbar,
+        mu_floor,
+        mu,
+        np.empty(M),
+        np.empty(M),
+        np.zeros(M, dtype=np.bool_),
+        M,
+    )
     return mu
 
 
@@ -183,23 +459,143 @@ def imm_probabilities(loglik, updated, cbar, mu_floor):
 def imm_combine(mu, xs, Ps):
     """Combined estimate, paper B Eqs. 47-48: ``x = Σ μ_m x_m``, ``P = Σ μ_m (P_m + d dᵀ)``."""
     M, n_x = xs.shape
-    x = np.zeros(n_x)
-    for m in range(M):
-        x += mu[m] * xs[m]  # Eq. 47
-    P = np.zeros((n_x, n_x))
-    for m in range(M):
-        d = xs[m] - x
-        P += mu[m] * Ps[m]  # Eq. 48
-        add_outer(P, mu[m], d)
-    return x, symmetrize(P)
+    x = np.empty(n_x)
+    P = np.empty((n_x, n_x))
+    _imm_combine_into(mu, xs, Ps, x, P, np.empty(n_x), M, n_x)
+    return x, P
 
 
-@njit
-def _row_finite(a):
-    for v in a.ravel():
-        if not np.isfinite(v):
-            return False
-    return True
+# --------------------------------------------------------------------------------------------
+# Batched time loop
+# --------------------------------------------------------------------------------------------
+
+
+@njit_inline
+def _imm_loop(
+    z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
+    out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis, M, n_x, n_z
+):  # fmt: skip
+    """Body of :func:`imm_run` for ``M`` models, ``n_x`` states, ``n_z`` measurements."""
+    B, T = z.shape[0], z.shape[1]
+    valid = np.zeros(M, dtype=np.bool_)
+    updated = np.zeros(M, dtype=np.bool_)
+    loglik = np.zeros(M)
+    xin = np.empty((M, n_x))
+    Pin = np.empty((M, n_x, n_x))
+    xm = np.empty((M, n_x))
+    Pm = np.empty((M, n_x, n_x))
+    # scratch of the mixing, KF and probability kernels
+    cbar = np.empty(M)
+    x0 = np.empty((M, n_x))
+    P0 = np.empty((M, n_x, n_x))
+    w = np.empty(M)
+    d = np.empty(n_x)
+    x_pred = np.empty(n_x)
+    P_pred = np.empty((n_x, n_x))
+    FP = np.empty((n_x, n_x))
+    nu = np.empty(n_z)
+    S = np.empty((n_z, n_z))
+    L = np.empty((n_z, n_z))
+    HP = np.empty((n_z, n_x))
+    Kt = np.empty((n_z, n_x))
+    A = np.empty((n_x, n_x))
+    AP = np.empty((n_x, n_x))
+    KR = np.empty((n_x, n_z))
+    y = np.empty(n_z)
+    mu_new = np.empty(M)
+    ll_s = np.empty(M)
+    lw = np.empty(M)
+    fixed = np.zeros(M, dtype=np.bool_)
+    for b in range(B):
+        for t in range(T):
+            n_valid = 0
+            for m in range(M):
+                valid[m] = _finite1(z[b, t, m], n_z)
+                if valid[m]:
+                    n_valid += 1
+                updated[m] = False
+                loglik[m] = np.nan
+                out_ll[b, t, m] = np.nan
+                out_nis[b, t, m] = np.nan
+                out_mobs[b, t, m] = False
+                for k in range(n_z):
+                    out_nu[b, t, m, k] = np.nan
+            # model-conditioned inputs at t−1: external (R2) where given, else own posteriors
+            ready = True
+            for i in range(M):
+                use_prev = False
+                if has_prev:
+                    use_prev = _finite1(prev_x[b, t, i], n_x) and _finite2(prev_P[b, t, i], n_x)
+                if use_prev:
+                    xin[i] = prev_x[b, t, i]
+                    Pin[i] = prev_P[b, t, i]
+                elif init[b]:
+                    xin[i] = xs[b, i]
+                    Pin[i] = Ps[b, i]
+                else:
+                    ready = False
+            if not ready:
+                if n_valid == 0:  # nothing to start from: outputs stay NaN
+                    out_x[b, t] = np.nan
+                    out_P[b, t] = np.nan
+                    out_xm[b, t] = np.nan
+                    out_Pm[b, t] = np.nan
+                    out_mu[b, t] = mu[b]
+                    out_obs[b, t] = False
+                    continue
+                src0 = 0
+                for m in range(M - 1, -1, -1):
+                    if valid[m]:
+                        src0 = m
+                for m in range(M):  # initialise at the measurement, zero unmeasured states
+                    src = m if valid[m] else src0
+                    for i in range(n_x):
+                        s = 0.0
+                        for p in range(n_z):
+                            s += Hpinv[src, i, p] * z[b, t, src, p]
+                        xs[b, m, i] = s
+                    Ps[b, m] = P_init[src]
+                    out_mobs[b, t, m] = valid[m]
+                init[b] = True
+                _imm_combine_into(mu[b], xs[b], Ps[b], out_x[b, t], out_P[b, t], d, M, n_x)
+                out_xm[b, t] = xs[b]
+                out_Pm[b, t] = Ps[b]
+                out_mu[b, t] = mu[b]
+                out_obs[b, t] = True
+                continue
+            _imm_mix_into(mu[b], Gamma, xin, Pin, cbar, x0, P0, w, d, M, n_x)  # Eqs. 25-28
+            for m in range(M):
+                _kf_predict_into(x0[m], P0[m], F[m], Q[m], x_pred, P_pred, FP, n_x)  # Eqs. 29-32
+                xm[m] = x_pred
+                Pm[m] = P_pred
+                if valid[m]:
+                    ok = _kf_update_into(
+                        x_pred, P_pred, z[b, t, m], H[m], R[m], xm[m], Pm[m], nu, S, L, HP, Kt,
+                        A, AP, KR, y, n_x, n_z,
+                    )  # Eqs. 33-38  # fmt: skip
+                    if ok:
+                        ll, nis = _loglik_chol(nu, L, y, n_z)  # Eqs. 39-44 (log form)
+                        out_nu[b, t, m] = nu
+                        out_nis[b, t, m] = nis
+                        out_mobs[b, t, m] = True
+                        updated[m] = True
+                        loglik[m] = ll
+                        out_ll[b, t, m] = ll
+            _imm_probabilities_into(
+                loglik, updated, cbar, mu_floor, mu_new, ll_s, lw, fixed, M
+            )  # Eqs. 45-46
+            _imm_combine_into(mu_new, xm, Pm, out_x[b, t], out_P[b, t], d, M, n_x)  # Eqs. 47-48
+            mu[b] = mu_new
+            xs[b] = xm
+            Ps[b] = Pm
+            out_xm[b, t] = xm
+            out_Pm[b, t] = Pm
+            out_mu[b, t] = mu_new
+            any_obs = False
+            for m in range(M):
+                if out_mobs[b, t, m]:
+                    any_obs = True
+            out_obs[b, t] = n_valid > 0 and any_obs
 
 
 @njit
@@ -238,96 +634,24 @@ def imm_run(
     ``has_prev``): externally supplied posteriors at t−1 used for mixing at step t (reading R2);
     a non-finite entry for model i means "use the IMM's own posterior of model i".
     Outputs are written into the ``out_*`` arrays (leading axes ``(B, T)``).
+
+    Every temporary is allocated once per call (no allocation inside the loops); the arithmetic
+    is that of :func:`imm_mix`, :func:`._kernels.kf_predict`, :func:`._kernels.kf_update`,
+    :func:`gauss_loglik`, :func:`imm_probabilities` and :func:`imm_combine`. The loop is compiled
+    twice from one source: for two 3-D constant-velocity models (``M, n_x, n_z = 2, 6, 3``, the
+    IMM of paper B) with the sizes as compile-time constants, so the compiler unrolls the small
+    matrix loops of the KF predict/update (inlined), and for any other sizes. Both give the same
+    numbers.
     """
-    B, T, M, n_z = z.shape
+    M, n_z = z.shape[2], z.shape[3]
     n_x = F.shape[1]
-    valid = np.zeros(M, dtype=np.bool_)
-    updated = np.zeros(M, dtype=np.bool_)
-    loglik = np.zeros(M)
-    xin = np.empty((M, n_x))
-    Pin = np.empty((M, n_x, n_x))
-    xm = np.empty((M, n_x))
-    Pm = np.empty((M, n_x, n_x))
-    for b in range(B):
-        for t in range(T):
-            n_valid = 0
-            for m in range(M):
-                valid[m] = _row_finite(z[b, t, m])
-                if valid[m]:
-                    n_valid += 1
-                updated[m] = False
-                loglik[m] = np.nan
-            out_ll[b, t, :] = np.nan
-            out_nu[b, t, :, :] = np.nan
-            out_nis[b, t, :] = np.nan
-            out_mobs[b, t, :] = False
-            # model-conditioned inputs at t−1: external (R2) where given, else own posteriors
-            ready = True
-            for i in range(M):
-                use_prev = False
-                if has_prev:
-                    use_prev = _row_finite(prev_x[b, t, i]) and _row_finite(prev_P[b, t, i])
-                if use_prev:
-                    xin[i] = prev_x[b, t, i]
-                    Pin[i] = prev_P[b, t, i]
-                elif init[b]:
-                    xin[i] = xs[b, i]
-                    Pin[i] = Ps[b, i]
-                else:
-                    ready = False
-            if not ready:
-                if n_valid == 0:  # nothing to start from: outputs stay NaN
-                    out_x[b, t] = np.nan
-                    out_P[b, t] = np.nan
-                    out_xm[b, t] = np.nan
-                    out_Pm[b, t] = np.nan
-                    out_mu[b, t] = mu[b]
-                    out_obs[b, t] = False
-                    continue
-                src0 = 0
-                for m in range(M - 1, -1, -1):
-                    if valid[m]:
-                        src0 = m
-                for m in range(M):  # initialise at the measurement, zero unmeasured states
-                    src = m if valid[m] else src0
-                    xs[b, m] = matvec(Hpinv[src], z[b, t, src])
-                    Ps[b, m] = P_init[src]
-                    out_mobs[b, t, m] = valid[m]
-                init[b] = True
-                x, P = imm_combine(mu[b], xs[b], Ps[b])
-                out_x[b, t] = x
-                out_P[b, t] = P
-                out_xm[b, t] = xs[b]
-                out_Pm[b, t] = Ps[b]
-                out_mu[b, t] = mu[b]
-                out_obs[b, t] = True
-                continue
-            cbar, x0, P0 = imm_mix(mu[b], Gamma, xin, Pin)  # Eqs. 25-28
-            for m in range(M):
-                xp, Pp = kf_predict(x0[m], P0[m], F[m], Q[m])  # Eqs. 29-32
-                xm[m] = xp
-                Pm[m] = Pp
-                if valid[m]:
-                    x_u, P_u, nu, S, ok = kf_update(xp, Pp, z[b, t, m], H[m], R[m])  # Eqs. 33-38
-                    if ok:
-                        ll, nis, ok2 = gauss_loglik(nu, S)  # Eqs. 39-44 (log form)
-                        xm[m] = x_u
-                        Pm[m] = P_u
-                        out_nu[b, t, m] = nu
-                        out_nis[b, t, m] = nis
-                        out_mobs[b, t, m] = True
-                        if ok2:
-                            updated[m] = True
-                            loglik[m] = ll
-                            out_ll[b, t, m] = ll
-            mu_new = imm_probabilities(loglik, updated, cbar, mu_floor)  # Eqs. 45-46
-            x, P = imm_combine(mu_new, xm, Pm)  # Eqs. 47-48
-            mu[b] = mu_new
-            xs[b] = xm
-            Ps[b] = Pm
-            out_x[b, t] = x
-            out_P[b, t] = P
-            out_xm[b, t] = xm
-            out_Pm[b, t] = Pm
-            out_mu[b, t] = mu_new
-            out_obs[b, t] = n_valid > 0 and out_mobs[b, t].any()
+    if M == 2 and n_x == 6 and n_z == 3:
+        _imm_loop(
+            z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
+            out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis, 2, 6, 3
+        )  # fmt: skip
+    else:
+        _imm_loop(
+            z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
+            out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis, M, n_x, n_z
+        )  # fmt: skip
