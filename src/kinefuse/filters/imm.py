@@ -328,7 +328,7 @@ class IMM:
         mu_arr = self.mu0 if mu is None else as_float_array(mu, "mu", last_dim=M)
         _check_mu(mu_arr, M, "mu")
         try:
-            mu_b = np.array(np.broadcast_to(mu_arr, (*batch_shape, M)))
+            mu_b = np.array(np.broadcast_to(mu_arr, (*batch_shape, M)), order="C")
         except ValueError:
             raise InputError(
                 f"expected mu broadcastable to {(*batch_shape, M)}, got {mu_arr.shape}"
@@ -341,7 +341,7 @@ class IMM:
             return IMMState(x, P, mu_b, np.zeros(batch_shape, dtype=bool), 0)
         m = as_float_array(mean, "mean", last_dim=n_x)
         try:
-            x = np.array(np.broadcast_to(m, (*batch_shape, M, n_x)))
+            x = np.array(np.broadcast_to(m, (*batch_shape, M, n_x)), order="C")
         except ValueError:
             raise InputError(
                 f"expected mean broadcastable to {(*batch_shape, M, n_x)}, got {m.shape}"
@@ -350,7 +350,7 @@ class IMM:
             raise InputError("expected a finite initial mean")
         c = self._P_init if cov is None else as_float_array(cov, "cov")
         try:
-            P = np.array(np.broadcast_to(c, (*batch_shape, M, n_x, n_x)))
+            P = np.array(np.broadcast_to(c, (*batch_shape, M, n_x, n_x)), order="C")
         except ValueError:
             raise InputError(
                 f"expected cov broadcastable to {(*batch_shape, M, n_x, n_x)}, got {c.shape}"
@@ -485,10 +485,12 @@ class IMM:
             px = np.ascontiguousarray(prev[0].reshape(B, T, M, n_x))
             pP = np.ascontiguousarray(prev[1].reshape(B, T, M, n_x, n_x))
         models = self.models
-        xs = np.array(state.x, dtype=float).reshape(B, M, n_x)
-        Ps = np.array(state.P, dtype=float).reshape(B, M, n_x, n_x)
-        mu = np.array(state.mu, dtype=float).reshape(B, M)
-        init = np.array(state.initialized, dtype=bool).reshape(B)
+        # C order throughout: one compiled specialisation of the kernel (an F-ordered mu, e.g.
+        # from a transposed state, would compile the whole loop a second time)
+        xs = np.array(state.x, dtype=float, order="C").reshape(B, M, n_x)
+        Ps = np.array(state.P, dtype=float, order="C").reshape(B, M, n_x, n_x)
+        mu = np.array(state.mu, dtype=float, order="C").reshape(B, M)
+        init = np.array(state.initialized, dtype=bool, order="C").reshape(B)
         out_x = np.empty((B, T, n_x))
         out_P = np.empty((B, T, n_x, n_x))
         out_mu = np.empty((B, T, M))

@@ -827,6 +827,10 @@ def _causal_joint(zc, zi, phi, seen, dt, cfg: _CausalSettings):
         zu[t0:t1] = zi[t0:t1] + corr[t0:t1]
         ze[t0:t1] = zu[t0:t1] - shift
         F, Q = _model_matrices(p, dt)
+        # contiguous outputs, copied in: the kernel's one (C-contiguous) specialisation, the
+        # one the offline path uses (a strided slice would compile the loop a second time)
+        x_seg = np.empty((3, t1 - t0, _N_X))
+        P_seg = np.empty((3, t1 - t0, _N_X, _N_X))
         _kf_segment(
             np.ascontiguousarray(zc[t0:t1].T),
             np.ascontiguousarray(zu[t0:t1].T),
@@ -839,9 +843,11 @@ def _causal_joint(zc, zi, phi, seen, dt, cfg: _CausalSettings):
             t0 > 0,
             _H_CAM,
             _H_IMU,
-            xf[:, t0:t1],
-            Pf[:, t0:t1],
+            x_seg,
+            P_seg,
         )
+        xf[:, t0:t1] = x_seg
+        Pf[:, t0:t1] = P_seg
         if cfg.lag:
             Fs[:, t0:t1] = F[:, None]
             Qs[:, t0:t1] = Q[:, None]

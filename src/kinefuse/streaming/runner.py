@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import gc
 import json
@@ -91,7 +90,11 @@ def warm_up(engine, seconds: float = 2.0) -> None:
     bridging processor trains once).
     """
     cfg = dataclasses.replace(engine.config, record=False)
-    proc = copy.deepcopy(engine.processor)
+    # the engine's own processor, returned to its state afterwards: a deep copy would hold
+    # writable copies of the processor's read-only arrays, which numba compiles as another
+    # specialisation (the copy would compile code the real processor never runs)
+    proc = engine.processor
+    saved = proc.checkpoint()
     if hasattr(proc, "warm_up"):
         proc.warm_up()
     scratch = Engine(cfg, proc)
@@ -121,6 +124,7 @@ def warm_up(engine, seconds: float = 2.0) -> None:
         scratch.flush(seconds + 1.0)
     finally:
         log.setLevel(level)
+        proc.restore(saved)
 
 
 def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=None, stop_event=None,
