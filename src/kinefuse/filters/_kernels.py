@@ -84,25 +84,28 @@ def kf_predict(x, P, F, Q):
 
 
 @njit
-def chol_lower(S):
-    """Lower Cholesky factor of SPD ``S`` with the SPEC §13 regularisation ladder.
+def chol_lower_into(S, L, n):
+    """Lower Cholesky factor of SPD ``S[:n, :n]`` into ``L[:n, :n]`` (no allocation); returns ok.
 
     SPEC §13: on failure add ``ε·tr(S)/n·I`` with ε = 1e-12, ×10 up to 1e-6. Every kernel that
-    factorises an innovation covariance uses this ladder, so gains and likelihoods agree.
-    Returns ``(L, ok)``.
+    factorises an innovation covariance uses this ladder (through this function or
+    :func:`chol_lower`), so gains and likelihoods agree.
     """
-    n = S.shape[0]
-    scale = max(np.trace(S) / n, 1e-300)
+    tr = 0.0
+    for i in range(n):
+        tr += S[i, i]
+    scale = max(tr / n, 1e-300)
     eps = 0.0
-    L = np.zeros_like(S)
     for _attempt in range(8):
-        L[:, :] = 0.0
+        for i in range(n):
+            for j in range(n):
+                L[i, j] = 0.0
         good = True
         for i in range(n):
             for j in range(i + 1):
                 s = S[i, j]
                 if i == j:
-                    s += eps * scale
+                    s += eps * scale  # SPEC §13: S + ε·tr(S)/n·I
                 for k in range(j):
                     s -= L[i, k] * L[j, k]
                 if i == j:
@@ -115,11 +118,21 @@ def chol_lower(S):
             if not good:
                 break
         if good:
-            return L, True
+            return True
         eps = 1e-12 if eps == 0.0 else eps * 10.0
         if eps > 1e-6 * 1.0000001:
             break
-    return L, False
+    return False
+
+
+@njit
+def chol_lower(S):
+    """Lower Cholesky factor of SPD ``S`` with the SPEC §13 regularisation ladder
+    (:func:`chol_lower_into`). Returns ``(L, ok)``."""
+    n = S.shape[0]
+    L = np.zeros_like(S)
+    ok = chol_lower_into(S, L, n)
+    return L, ok
 
 
 @njit

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit, njit_inline
-from kinefuse.filters._kernels import chol_lower
+from kinefuse.filters._kernels import chol_lower, chol_lower_into
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -59,43 +59,6 @@ def _finite2(a, n):
             if not np.isfinite(a[i, j]):
                 return False
     return True
-
-
-@njit
-def _chol_lower_into(S, L, n):
-    """:func:`._kernels.chol_lower` (SPEC §13 ladder) writing the factor into ``L``; returns ok."""
-    tr = 0.0
-    for i in range(n):
-        tr += S[i, i]
-    scale = max(tr / n, 1e-300)
-    eps = 0.0
-    for _attempt in range(8):
-        for i in range(n):
-            for j in range(n):
-                L[i, j] = 0.0
-        good = True
-        for i in range(n):
-            for j in range(i + 1):
-                s = S[i, j]
-                if i == j:
-                    s += eps * scale  # SPEC §13: S + ε·tr(S)/n·I
-                for k in range(j):
-                    s -= L[i, k] * L[j, k]
-                if i == j:
-                    if s <= 0.0 or not np.isfinite(s):
-                        good = False
-                        break
-                    L[i, i] = np.sqrt(s)
-                else:
-                    L[i, j] = s / L[j, j]
-            if not good:
-                break
-        if good:
-            return True
-        eps = 1e-12 if eps == 0.0 else eps * 10.0
-        if eps > 1e-6 * 1.0000001:
-            break
-    return False
 
 
 @njit_inline
@@ -150,7 +113,7 @@ def _kf_update_into(x_pred, P_pred, z, H, R, x, P, nu, S, L, HP, Kt, A, AP, KR, 
             for p in range(n_x):
                 s += HP[i, p] * H[j, p]
             S[i, j] = s + R[i, j]  # SPEC §4.2: S = H P⁻ Hᵀ + R
-    if not _chol_lower_into(S, L, n_z):
+    if not chol_lower_into(S, L, n_z):
         return False
     for c in range(n_x):  # SPEC §4.2: Kᵀ = solve(S, H P⁻), column by column
         for i in range(n_z):
