@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinefuse._compile import njit
+from kinefuse._compile import njit, njit_inline
 
 
 @njit
@@ -146,8 +146,15 @@ def chol_solve_spd(S, B):
         return np.full_like(B, np.nan), False
     n = S.shape[0]
     X = np.empty_like(B)
-    y = np.empty(n)
-    for c in range(B.shape[1]):
+    chol_solve_into(L, B, X, np.empty(n), n, B.shape[1])
+    return X, True
+
+
+@njit_inline
+def chol_solve_into(L, B, X, y, n, m):
+    """``X[:n, :m]`` solving ``L Lᵀ X = B[:n, :m]`` for the lower factor ``L`` (forward, then
+    back substitution, column by column); ``y (n,)`` scratch. No allocation."""
+    for c in range(m):
         for i in range(n):
             s = B[i, c]
             for k in range(i):
@@ -158,7 +165,6 @@ def chol_solve_spd(S, B):
             for k in range(i + 1, n):
                 s -= L[k, i] * X[k, c]
             X[i, c] = s / L[i, i]
-    return X, True
 
 
 @njit

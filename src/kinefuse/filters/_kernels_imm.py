@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit, njit_inline
-from kinefuse.filters._kernels import chol_lower, chol_lower_into
+from kinefuse.filters._kernels import chol_lower, chol_lower_into, chol_solve_into
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -115,17 +115,7 @@ def _kf_update_into(x_pred, P_pred, z, H, R, x, P, nu, S, L, HP, Kt, A, AP, KR, 
             S[i, j] = s + R[i, j]  # SPEC §4.2: S = H P⁻ Hᵀ + R
     if not chol_lower_into(S, L, n_z):
         return False
-    for c in range(n_x):  # SPEC §4.2: Kᵀ = solve(S, H P⁻), column by column
-        for i in range(n_z):
-            s = HP[i, c]
-            for k in range(i):
-                s -= L[i, k] * y[k]
-            y[i] = s / L[i, i]
-        for i in range(n_z - 1, -1, -1):
-            s = y[i]
-            for k in range(i + 1, n_z):
-                s -= L[k, i] * Kt[k, c]
-            Kt[i, c] = s / L[i, i]
+    chol_solve_into(L, HP, Kt, y, n_z, n_x)  # SPEC §4.2: Kᵀ = solve(S, H P⁻), column by column
     for i in range(n_x):
         s = 0.0
         for p in range(n_z):
