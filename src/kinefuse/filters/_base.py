@@ -59,15 +59,83 @@ class FilterResult:
         paper A's D₁ ``νᵀR⁻¹ν`` for the integrated filter); NaN where not observed.
     mode : ndarray of int8, shape (..., T) or None
         Active branch per sample (see :data:`kinefuse.conventions.MODE_NAMES`).
+    cov_blocks : ndarray, shape (..., T, n_a, 3) or None
+        Compact covariance of an axis-blocked model (:class:`~kinefuse.filters.KalmanFilter`,
+        :func:`~kinefuse.filters.rts_smooth`): for axis ``a``, ``[p00, p01, p11]`` of the 2x2
+        covariance of state components ``(2a, 2a+1)`` (position, velocity); every other entry
+        of the full covariance is zero. When all axes share one model block the array is a
+        read-only broadcast view of a single stored block. ``cov`` is then computed from it on
+        first access (:func:`expand_cov_blocks`) and cached; the position variances are
+        ``cov_blocks[..., 0]`` without expanding.
+
+    Any field may be None when the caller asked a filter not to compute it (``outputs=``).
     """
 
-    mean: np.ndarray
-    cov: np.ndarray
-    position: np.ndarray
-    observed: np.ndarray
+    mean: np.ndarray | None
+    cov: np.ndarray | None
+    position: np.ndarray | None
+    observed: np.ndarray | None
     innovation: np.ndarray | None = None
     distance: np.ndarray | None = None
     mode: np.ndarray | None = None
+    cov_blocks: np.ndarray | None = None
+
+
+def _get_cov(self):
+    cov = self.__dict__.get("_cov")
+    if cov is None and self.__dict__.get("cov_blocks") is not None:
+        cov = expand_cov_blocks(self.cov_blocks)
+        self.__dict__["_cov"] = cov
+    return cov
+
+
+def _set_cov(self, value):  # dataclass __init__ assigns through this (frozen: only there)
+    self.__dict__["_cov"] = value
+
+
+# ``cov`` as a property: stored when given, else expanded lazily from ``cov_blocks``.
+FilterResult.cov = property(_get_cov, _set_cov, doc="Full covariances, shape (..., T, n_x, n_x).")
+
+#: Output names the filters accept in ``outputs=`` (the fields of :class:`FilterResult`).
+OUTPUT_NAMES = ("mean", "cov", "position", "observed", "innovation", "distance")
+
+
+def check_outputs(outputs) -> frozenset:
+    """Validate ``outputs=`` (None = all) and return the set of wanted output names."""
+    if outputs is None:
+        return frozenset(OUTPUT_NAMES)
+    if isinstance(outputs, str):
+        outputs = (outputs,)
+    try:
+        wanted = frozenset(outputs)
+    except TypeError:
+        raise InputError(
+            f"expected outputs as a tuple of names from {OUTPUT_NAMES}, got {outputs!r}"
+        ) from None
+    bad = sorted(str(w) for w in wanted - frozenset(OUTPUT_NAMES))
+    if bad:
+        raise InputError(f"expected outputs from {OUTPUT_NAMES}, got unknown {bad}")
+    return wanted
+
+
+def expand_cov_blocks(cov_blocks: np.ndarray) -> np.ndarray:
+    """Full covariances ``(..., n_x, n_x)`` (``n_x = 2 n_a``) from the per-axis block layout
+    ``(..., n_a, 3)`` of :attr:`FilterResult.cov_blocks`; entries outside the blocks are 0
+    (NaN where a block is NaN: an element without a state yet)."""
+    cb = np.asarray(cov_blocks)
+    n_a = cb.shape[-2]
+    n_x = 2 * n_a
+    full = np.zeros((*cb.shape[:-2], n_x, n_x))
+    for a in range(n_a):
+        i = 2 * a
+        full[..., i, i] = cb[..., a, 0]
+        full[..., i, i + 1] = cb[..., a, 1]
+        full[..., i + 1, i] = cb[..., a, 1]
+        full[..., i + 1, i + 1] = cb[..., a, 2]
+    unknown = np.isnan(cb).any(axis=(-2, -1))
+    if unknown.any():
+        full[unknown] = np.nan
+    return full
 
 
 def positions(mean: np.ndarray, H: np.ndarray) -> np.ndarray:
@@ -85,14 +153,17 @@ def initial_covariance(model, sigma_v0: float = SIGMA_V0_M_S) -> np.ndarray:
     return P0
 
 
-def check_measurements(z, n_z: int) -> np.ndarray:
-    """Validate a measurement series ``(..., T, n_z)``; return float64, C-contiguous."""
+def check_measurements(z, n_z: int, check_inf: bool = True) -> np.ndarray:
+    """Validate a measurement series ``(..., T, n_z)``; return float64, C-contiguous.
+
+    ``check_inf=False`` leaves the ±inf check to a kernel that reads ``z`` anyway.
+    """
     arr = as_float_array(z, "z")
     if arr.ndim < 2 or arr.shape[-1] != n_z:
         raise InputError(f"expected z with shape (..., T, {n_z}), got {arr.shape}")
     if arr.shape[-2] == 0:
         raise InputError(f"expected z with at least one time step, got shape {arr.shape}")
-    if np.any(np.isinf(arr)):
+    if check_inf and np.any(np.isinf(arr)):
         raise InputError("expected z finite or NaN (missing), got ±inf")
     return arr
 

@@ -26,6 +26,8 @@ from kinefuse.filters._kernels import chol_solve_spd, kf_predict, kf_update, mah
 
 __all__ = [
     "axis_block_params",
+    "pack_axis_params",
+    "state_blocks_shared",
     "state_is_block_diagonal",
     "kf_filter_axis",
     "kf_filter_dense",
@@ -55,6 +57,43 @@ def axis_block_params(F, Q, H, R, P0):
         Hb[a] = H[a, s]
         r[a] = R[a, a]
     return Fb, Qb, Hb, r, P0b
+
+
+def pack_axis_params(F, Q, H, R, P0):
+    """Per-axis model blocks packed for :mod:`._kernels_blocks`.
+
+    Returns ``par (n_a, 10)`` = ``[f00, f01, f10, f11, q00, q01, q11, h0, h1, r]``,
+    ``p0 (n_a, 3)`` = ``[p00, p01, p11]`` and ``shared``: True when all axes have the same
+    ``par`` and ``p0`` rows (their covariances then coincide; one block is stored).
+    """
+    Fb, Qb, Hb, r, P0b = axis_block_params(F, Q, H, R, P0)
+    n_a = Fb.shape[0]
+    par = np.empty((n_a, 10))
+    par[:, 0:4] = Fb.reshape(n_a, 4)
+    par[:, 4] = Qb[:, 0, 0]
+    par[:, 5] = 0.5 * (Qb[:, 0, 1] + Qb[:, 1, 0])
+    par[:, 6] = Qb[:, 1, 1]
+    par[:, 7:9] = Hb
+    par[:, 9] = r
+    p0 = np.stack([P0b[:, 0, 0], 0.5 * (P0b[:, 0, 1] + P0b[:, 1, 0]), P0b[:, 1, 1]], axis=1)
+    shared = bool(np.all(par == par[0]) and np.all(p0 == p0[0]))
+    return par, np.ascontiguousarray(p0), shared
+
+
+def state_blocks_shared(P: np.ndarray, init: np.ndarray) -> bool:
+    """True when every initialised ``P (B, n_x, n_x)`` has the same 2x2 block on every axis
+    (as read by the block kernel: ``[p00, (p01 + p10)/2, p11]``)."""
+    Pi = P[init]
+    if Pi.shape[0] == 0:
+        return True
+    p00 = Pi[:, 0::2, 0::2].diagonal(axis1=1, axis2=2)
+    p11 = Pi[:, 1::2, 1::2].diagonal(axis1=1, axis2=2)
+    p01 = 0.5 * (
+        Pi[:, 0::2, 1::2].diagonal(axis1=1, axis2=2) + Pi[:, 1::2, 0::2].diagonal(axis1=1, axis2=2)
+    )
+    return bool(
+        np.all(p00 == p00[:, :1]) and np.all(p01 == p01[:, :1]) and np.all(p11 == p11[:, :1])
+    )
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,7 +1,8 @@
 """Linear Kalman filter (paper A: Sun 2024, Eqs. 5-9 and Algorithm 1; SPEC §4).
 
 Layer 2 of the three-layer filter API (see STYLE.md): a frozen configuration object with
-``init`` / ``step`` / ``filter``. The compiled loops live in :mod:`._kernels_axis`.
+``init`` / ``step`` / ``filter``. The compiled loops live in :mod:`._kernels_blocks` (per-axis
+blocks, the fast form) and :mod:`._kernels_axis` (the dense reference).
 """
 
 from __future__ import annotations
@@ -16,22 +17,31 @@ from kinefuse.filters._base import (
     GaussianState,
     check_measurements,
     check_not_all_missing,
+    check_outputs,
     check_state_batch,
     check_step_measurement,
     initial_covariance,
     make_initial_state,
 )
 from kinefuse.filters._kernels_axis import (
-    axis_block_params,
-    kf_filter_axis,
     kf_filter_dense,
+    pack_axis_params,
+    state_blocks_shared,
     state_is_block_diagonal,
 )
+from kinefuse.filters._kernels_blocks import kf_filter_blocks
 from kinefuse.models import LinearGaussianModel
 
 __all__ = ["KalmanFilter", "check_gaussian_state"]
 
 _METHODS = ("auto", "axis", "dense")
+
+# Zero-length stand-ins for outputs a caller does not want (same dtypes/ranks: one compiled
+# specialisation of the kernel serves every choice of outputs).
+_NONE2 = np.empty((0, 0))
+_NONE3 = np.empty((0, 0, 0))
+_NONE4 = np.empty((0, 0, 0, 0))
+_NONE_BOOL = np.empty((0, 0), dtype=bool)
 
 
 def check_gaussian_state(state, n_x: int) -> GaussianState:
@@ -163,9 +173,7 @@ class KalmanFilter:
         object.__setattr__(self, "_P0", P0)
         object.__setattr__(self, "_Hpinv", np.ascontiguousarray(np.linalg.pinv(m.H)))
         if m.axis_blocks and self.method != "dense":
-            blocks = tuple(
-                np.ascontiguousarray(b) for b in axis_block_params(m.F, m.Q, m.H, m.R, P0)
-            )
+            blocks = pack_axis_params(m.F, m.Q, m.H, m.R, P0)
         else:
             blocks = None
         object.__setattr__(self, "_blocks", blocks)
@@ -222,17 +230,21 @@ class KalmanFilter:
         st = check_gaussian_state(state, self.n_x)
         zs = check_step_measurement(z, self.n_z, st.initialized.shape)
         new_state, res = self._run(zs[..., None, :], st)
+        blocks = res.cov_blocks
         out = FilterResult(
             mean=res.mean[..., 0, :],
-            cov=res.cov[..., 0, :, :],
+            cov=None if blocks is not None else res.cov[..., 0, :, :],
             position=res.position[..., 0, :],
             observed=res.observed[..., 0],
             innovation=res.innovation[..., 0, :],
             distance=res.distance[..., 0],
+            cov_blocks=None if blocks is None else blocks[..., 0, :, :],
         )
         return new_state, out
 
-    def filter(self, z, state: GaussianState | None = None) -> tuple[GaussianState, FilterResult]:
+    def filter(
+        self, z, state: GaussianState | None = None, outputs=None
+    ) -> tuple[GaussianState, FilterResult]:
         """Filter whole series (batch use); equals repeated :meth:`step`.
 
         Parameters
@@ -243,6 +255,10 @@ class KalmanFilter:
             State to continue from (batch shape ``z.shape[:-2]``), e.g. the state returned by
             a previous call (split-and-resume). Without it, :meth:`init` with that batch shape;
             then every element needs at least one valid row.
+        outputs : tuple of str, optional
+            The result fields to compute, from ``("mean", "cov", "position", "observed",
+            "innovation", "distance")``; the others are None and never written (memory
+            traffic is most of a KF's cost). Default: all.
 
         Returns
         -------
@@ -251,6 +267,8 @@ class KalmanFilter:
         result : FilterResult
             ``mean (..., T, n_x)``, ``cov (..., T, n_x, n_x)``, ``position (..., T, n_z)``,
             ``observed (..., T)``, ``innovation (..., T, n_z)``, ``distance (..., T)`` (NIS).
+            On the per-axis path the covariance is stored as ``cov_blocks (..., T, n_a, 3)``
+            (see :class:`~kinefuse.filters.FilterResult`) and ``cov`` expands it on access.
 
         Raises
         ------
@@ -258,13 +276,14 @@ class KalmanFilter:
             Wrong shape/dtype, ±inf, a batch-shape mismatch with ``state``, or (without
             ``state``) an element whose series is all NaN.
         """
-        zz = check_measurements(z, self.n_z)
+        wanted = check_outputs(outputs)
+        zz = check_measurements(z, self.n_z, check_inf=False)  # ±inf: found by the kernel
         if state is None:
             st = self.init(zz.shape[:-2])
         else:
             st = check_gaussian_state(state, self.n_x)
             check_state_batch(st, zz)
-        new_state, result = self._run(zz, st)
+        new_state, result = self._run(zz, st, wanted)
         if state is None and not np.all(new_state.initialized):
             check_not_all_missing(zz, None)  # raises, naming the first all-NaN element
         return new_state, result
@@ -282,7 +301,9 @@ class KalmanFilter:
             )
         return ok
 
-    def _run(self, z: np.ndarray, st: GaussianState) -> tuple[GaussianState, FilterResult]:
+    def _run(
+        self, z: np.ndarray, st: GaussianState, wanted: frozenset | None = None
+    ) -> tuple[GaussianState, FilterResult]:
         """Run the compiled loop on validated ``z (..., T, n_z)`` from validated ``st``."""
         m = self.model
         n_x, n_z = m.n_x, m.n_z
@@ -293,45 +314,58 @@ class KalmanFilter:
         x = np.array(st.x, dtype=np.float64, order="C").reshape(B, n_x)
         P = np.array(st.P, dtype=np.float64, order="C").reshape(B, n_x, n_x)
         init = np.array(st.initialized, dtype=bool).reshape(B)
+        w = check_outputs(None) if wanted is None else wanted
         use_axis = self._use_axis(P, init)
-        mean = np.empty((B, T, n_x))
-        pos = np.empty((B, T, n_z))
-        obs = np.empty((B, T), dtype=bool)
-        nu = np.empty((B, T, n_z))
-        dist = np.empty((B, T))
+        mean = np.empty((B, T, n_x)) if "mean" in w else _NONE3
+        pos = np.empty((B, T, n_z)) if "position" in w else _NONE3
+        obs = np.empty((B, T), dtype=bool) if "observed" in w else _NONE_BOOL
+        nu = np.empty((B, T, n_z)) if "innovation" in w else _NONE3
+        dist = np.empty((B, T)) if "distance" in w else _NONE2
+        cov = cov_blocks = None
         if use_axis:
-            cov = np.zeros((B, T, n_x, n_x))
-            Fb, Qb, Hb, r, P0b = self._blocks
-            kf_filter_axis(z3, x, P, init, Fb, Qb, Hb, r, P0b, mean, cov, pos, obs, nu, dist)
+            par, p0, shared = self._blocks
+            if shared and not state_blocks_shared(P, init):
+                shared = False
+            n_a = par.shape[0]
+            p0c = p0[:1] if shared else p0
+            covb = np.empty((B, T, p0c.shape[0], 3)) if "cov" in w else _NONE4
+            if kf_filter_blocks(z3, x, P, init, par, p0c, mean, covb, pos, obs, nu, dist):
+                raise InputError("expected z finite or NaN (missing), got ±inf")
+            if "cov" in w:
+                covb = covb.reshape(*batch, T, p0c.shape[0], 3)
+                if shared:
+                    covb = np.broadcast_to(covb, (*batch, T, n_a, 3))
+                cov_blocks = covb
         else:
-            cov = np.empty((B, T, n_x, n_x))
+            if np.isinf(z3).any():
+                raise InputError("expected z finite or NaN (missing), got ±inf")
+            mean_d = mean if "mean" in w else np.empty((B, T, n_x))
+            pos_d = pos if "position" in w else np.empty((B, T, n_z))
+            obs_d = obs if "observed" in w else np.empty((B, T), dtype=bool)
+            nu_d = nu if "innovation" in w else np.empty((B, T, n_z))
+            dist_d = dist if "distance" in w else np.empty((B, T))
+            cov_d = np.empty((B, T, n_x, n_x))
             kf_filter_dense(
-                z3,
-                x,
-                P,
-                init,
-                m.F,
-                m.Q,
-                m.H,
-                m.R,
-                self._P0,
-                self._Hpinv,
-                mean,
-                cov,
-                pos,
-                obs,
-                nu,
-                dist,
-            )
+                z3, x, P, init, m.F, m.Q, m.H, m.R, self._P0, self._Hpinv,
+                mean_d, cov_d, pos_d, obs_d, nu_d, dist_d,
+            )  # fmt: skip
+            mean, pos, obs, nu, dist = mean_d, pos_d, obs_d, nu_d, dist_d
+            if "cov" in w:
+                cov = cov_d.reshape(*batch, T, n_x, n_x)
         new_state = GaussianState(
             x.reshape(*batch, n_x), P.reshape(*batch, n_x, n_x), init.reshape(batch), st.k + T
         )
+
+        def shaped(name, arr, tail):
+            return arr.reshape(*batch, T, *tail) if name in w else None
+
         result = FilterResult(
-            mean=mean.reshape(*batch, T, n_x),
-            cov=cov.reshape(*batch, T, n_x, n_x),
-            position=pos.reshape(*batch, T, n_z),
-            observed=obs.reshape(*batch, T),
-            innovation=nu.reshape(*batch, T, n_z),
-            distance=dist.reshape(*batch, T),
+            mean=shaped("mean", mean, (n_x,)),
+            cov=cov,
+            position=shaped("position", pos, (n_z,)),
+            observed=shaped("observed", obs, ()),
+            innovation=shaped("innovation", nu, (n_z,)),
+            distance=shaped("distance", dist, ()),
+            cov_blocks=cov_blocks,
         )
         return new_state, result

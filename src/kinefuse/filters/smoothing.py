@@ -15,8 +15,9 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse.exceptions import InputError
-from kinefuse.filters._base import FilterResult
-from kinefuse.filters._kernels_axis import axis_block_params, rts_axis, rts_dense
+from kinefuse.filters._base import FilterResult, initial_covariance
+from kinefuse.filters._kernels_axis import axis_block_params, pack_axis_params, rts_axis, rts_dense
+from kinefuse.filters._kernels_blocks import rts_blocks
 from kinefuse.models import LinearGaussianModel
 
 __all__ = ["fixed_lag_smooth", "rts_smooth", "rts_smooth_segments"]
@@ -49,18 +50,81 @@ def _check_inputs(model, result, mask):
         raise InputError(
             f"expected result.observed with shape {mean.shape[:-1]}, got {observed.shape}"
         )
+    return mean, cov, _check_mask(mask, mean.shape[:-1])
+
+
+def _check_mask(mask, lead):
     if mask is None:
-        m = np.ones(mean.shape[:-1], dtype=bool)
-    else:
-        m = np.asarray(mask)
-        if m.dtype != bool:
-            raise InputError(f"expected mask as a bool array, got dtype {m.dtype}")
-        if m.shape != mean.shape[:-1]:
-            raise InputError(f"expected mask with shape {mean.shape[:-1]} (..., T), got {m.shape}")
-    return mean, cov, m
+        return np.ones(lead, dtype=bool)
+    m = np.asarray(mask)
+    if m.dtype != bool:
+        raise InputError(f"expected mask as a bool array, got dtype {m.dtype}")
+    if m.shape != lead:
+        raise InputError(f"expected mask with shape {lead} (..., T), got {m.shape}")
+    return m
+
+
+def _block_inputs(model, result):
+    """``(mean, cov_blocks (..., T, n_c, 3), par)`` when ``result`` carries the per-axis block
+    layout of an axis-blocked model (n_c = 1 when the blocks are one shared block), else None."""
+    cb = getattr(result, "cov_blocks", None)
+    if cb is None or not model.axis_blocks or getattr(result, "observed", None) is None:
+        return None
+    mean = np.asarray(result.mean)
+    cb = np.asarray(cb)
+    n_a = model.n_x // 2
+    if mean.ndim < 2 or mean.shape[-1] != model.n_x or cb.shape != (*mean.shape[:-1], n_a, 3):
+        return None
+    if not (mean.dtype == np.float64 and cb.dtype == np.float64):
+        return None
+    par, _p0, shared = pack_axis_params(
+        model.F, model.Q, model.H, model.R, initial_covariance(model)
+    )
+    if shared and n_a > 1 and cb.strides[-2] == 0:
+        cb = cb[..., :1, :]  # one block stored for every axis
+    return mean, cb, par
+
+
+def _smooth_blocks(model, result, mask, inputs, wanted_pos=True) -> FilterResult:
+    mean, cb, par = inputs
+    n_x = model.n_x
+    lead = mean.shape[:-1]
+    T = lead[-1]
+    n_c = cb.shape[-2]
+    mean3 = np.ascontiguousarray(mean).reshape(-1, T, n_x)
+    cb4 = np.ascontiguousarray(cb).reshape(-1, T, n_c, 3)
+    m2 = np.ascontiguousarray(mask).reshape(-1, T)
+    B = mean3.shape[0]
+    sm_mean = np.empty((B, T, n_x))
+    sm_cb = np.empty((B, T, n_c, 3))
+    sm_pos = np.empty((B, T, model.n_z))
+    rts_blocks(mean3, cb4, m2, par, sm_mean, sm_cb, sm_pos)
+    sm_cb = sm_cb.reshape(*lead, n_c, 3)
+    if n_c == 1 and n_x // 2 > 1:
+        sm_cb = np.broadcast_to(sm_cb, (*lead, n_x // 2, 3))
+    return FilterResult(
+        mean=sm_mean.reshape(*lead, n_x),
+        cov=None,
+        position=sm_pos.reshape(*lead, model.n_z),
+        observed=np.array(result.observed, dtype=bool),
+        innovation=None,
+        distance=None,
+        mode=None if getattr(result, "mode", None) is None else np.array(result.mode),
+        cov_blocks=sm_cb,
+    )
 
 
 def _smooth(model, result, mask, lag: int) -> FilterResult:
+    if lag < 0 and isinstance(model, LinearGaussianModel):
+        inputs = _block_inputs(model, result)
+        if inputs is not None:
+            lead = inputs[0].shape[:-1]
+            m = _check_mask(mask, lead)
+            if np.asarray(result.observed).shape != lead:
+                raise InputError(
+                    f"expected result.observed with shape {lead}, got {np.shape(result.observed)}"
+                )
+            return _smooth_blocks(model, result, m, inputs)
     mean, cov, m = _check_inputs(model, result, mask)
     n_x = model.n_x
     lead = mean.shape[:-1]

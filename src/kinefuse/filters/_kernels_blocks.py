@@ -1,0 +1,402 @@
+"""Compiled Kalman filter and RTS smoother on per-axis covariance blocks (numba).
+
+The fast form behind :class:`~kinefuse.filters.KalmanFilter` and
+:func:`~kinefuse.filters.rts_smooth` for axis-blocked models (SPEC §1 decoupling): the
+``n_x``-state problem splits into ``n_a`` independent 2-state problems with a scalar
+measurement, and only what the model has is stored.
+
+Covariance layout ("blocks")
+----------------------------
+``covb (B, T, n_c, 3)`` holds, for each axis block ``c``, ``[p00, p01, p11]`` of the symmetric
+2x2 covariance of that axis' ``(position, velocity)`` pair (state components ``2c, 2c+1``).
+``n_c = n_a`` in general; ``n_c = 1`` when every axis has the same model block and the same
+initial covariance ("shared"): the per-axis recursions are then the same arithmetic on the same
+numbers, so one block is computed and stored for all axes (bit-identical to computing each).
+:func:`kinefuse.filters._base.expand_cov_blocks` expands the layout to ``(..., n_x, n_x)``.
+
+Model parameters are packed per axis into ``par (n_a, 10)`` = ``[f00, f01, f10, f11, q00, q01,
+q11, h0, h1, r]`` and ``p0 (n_a, 3)`` (the initial covariance block). An output array with a
+zero-length first axis is not wanted and not written (``outputs=`` of the filter objects).
+
+Loop order: joints in chunks of :data:`CHUNK`, time, joints within the chunk. Interleaving a few
+independent joints per time step hides the latency of each joint's serial recursion while the
+writes stay a few sequential streams (a vectorisation across the batch axis by the CPU's
+out-of-order engine; the output layout ``(B, T, ...)`` rules out SIMD lanes over joints).
+
+The per-axis arithmetic is line for line that of :func:`._kernels_axis.kf_filter_axis` (which
+keeps the full-matrix layout and is the reference the tests compare against, together with the
+dense :func:`._kernels_axis.kf_filter_dense` and filterpy).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from kinefuse._compile import njit, njit_inline
+
+__all__ = ["CHUNK", "kf_filter_blocks", "rts_blocks"]
+
+#: Joints interleaved per time step.
+CHUNK = 8
+
+
+@njit_inline
+def _cov_step(p00, p01, p11, valid, cv, f00, f01, f10, f11, q00, q01, q11, h0, h1, ra):
+    """Covariance block of one KF step: predict, then (if ``valid``) the Joseph update.
+
+    Returns ``(p00, p01, p11, k0, k1, 1/S, updated)``. ``cv``: the model block is the constant
+    velocity one (``F = [[1, f01], [0, 1]]``, ``H = [1, 0]``); the general formulas are then
+    evaluated with the exact zero and unit terms dropped (``x·1 = x``, ``x + 0·y = x`` for the
+    finite values here): the same rounding, about half the arithmetic.
+    """
+    if cv:
+        fp00 = p00 + f01 * p01  # M = F P
+        fp01 = p01 + f01 * p11
+        pp00 = fp00 + fp01 * f01 + q00  # paper A Eq. 6 with P_{k-1}: P⁻ = F P Fᵀ + Q
+        pp01 = fp01 + q01
+        pp11 = p11 + q11
+    else:
+        fp00 = f00 * p00 + f01 * p01
+        fp01 = f00 * p01 + f01 * p11
+        fp10 = f10 * p00 + f11 * p01
+        fp11 = f10 * p01 + f11 * p11
+        pp00 = fp00 * f00 + fp01 * f01 + q00
+        pp01 = fp00 * f10 + fp01 * f11 + q01
+        pp11 = fp10 * f10 + fp11 * f11 + q11
+    if not valid:
+        return pp00, pp01, pp11, 0.0, 0.0, 0.0, False
+    if cv:
+        S = pp00 + ra  # Eq. 7: S = H P⁻ Hᵀ + R (scalar)
+        if not (S > 0.0 and np.isfinite(S)):
+            return pp00, pp01, pp11, 0.0, 0.0, 0.0, False  # SPEC §13: predict only
+        iS = 1.0 / S
+        k0 = pp00 * iS  # Eq. 7: K = P⁻ Hᵀ S⁻¹
+        k1 = pp01 * iS
+        a00 = 1.0 - k0  # A = I − K H = [[a00, 0], [−k1, 1]]
+        ap00 = a00 * pp00
+        ap01 = a00 * pp01
+        ap10 = -k1 * pp00 + pp01
+        ap11 = -k1 * pp01 + pp11
+        # Eq. 9 (Joseph): P = A P⁻ Aᵀ + K R Kᵀ
+        n00 = ap00 * a00 + ra * k0 * k0
+        n01 = ap00 * -k1 + ap01 + ra * k0 * k1
+        n11 = ap10 * -k1 + ap11 + ra * k1 * k1
+        return n00, n01, n11, k0, k1, iS, True
+    ph0 = pp00 * h0 + pp01 * h1  # P⁻ Hᵀ
+    ph1 = pp01 * h0 + pp11 * h1
+    S = h0 * ph0 + h1 * ph1 + ra  # Eq. 7: S = H P⁻ Hᵀ + R (scalar)
+    if not (S > 0.0 and np.isfinite(S)):
+        return pp00, pp01, pp11, 0.0, 0.0, 0.0, False  # SPEC §13: predict only
+    iS = 1.0 / S  # scalar S: its inverse is exact, no solve needed
+    k0 = ph0 * iS  # Eq. 7: K = P⁻ Hᵀ S⁻¹
+    k1 = ph1 * iS
+    a00 = 1.0 - k0 * h0  # A = I − K H
+    a01 = -k0 * h1
+    a10 = -k1 * h0
+    a11 = 1.0 - k1 * h1
+    ap00 = a00 * pp00 + a01 * pp01
+    ap01 = a00 * pp01 + a01 * pp11
+    ap10 = a10 * pp00 + a11 * pp01
+    ap11 = a10 * pp01 + a11 * pp11
+    # Eq. 9 (Joseph): P = A P⁻ Aᵀ + K R Kᵀ
+    n00 = ap00 * a00 + ap01 * a01 + ra * k0 * k0
+    n01 = ap00 * a10 + ap01 * a11 + ra * k0 * k1
+    n11 = ap10 * a10 + ap11 * a11 + ra * k1 * k1
+    return n00, n01, n11, k0, k1, iS, True
+
+
+@njit
+def kf_filter_blocks(z, x, P, init, par, p0, mean, covb, pos, obs, nu, dist):
+    """Per-axis KF over ``z (B, T, n_z)``; ``x (B, n_x)``, ``P (B, n_x, n_x)``, ``init (B,)``
+    updated in place (full-matrix state; only the axis blocks of ``P`` are read).
+
+    ``par (n_a, 10)``, ``p0 (n_c, 3)``: ``n_c = 1`` runs one covariance recursion for all axes
+    (shared: the caller checked that the model rows and the state blocks coincide), else one
+    per axis. Outputs (any may have a zero-length first axis = not wanted): ``mean (B, T, n_x)``,
+    ``covb (B, T, n_c, 3)`` (module layout), ``pos (B, T, n_z)``, ``obs (B, T)``,
+    ``nu (B, T, n_z)``, ``dist (B, T)``.
+
+    Returns 0, or 1 if ``z`` holds ±inf (outputs and state are then incomplete).
+    """
+    n_a = par.shape[0]
+    n_c = p0.shape[0]
+    x_in = x.copy()
+    P_in = P.copy()
+    init_in = init.copy()
+    for c in range(n_c):
+        a0, a1 = (0, n_a) if n_c == 1 else (c, c + 1)
+        err = _kf_pass(
+            z, x_in, P_in, init_in, x, P, init, a0, a1, c,
+            par[c, 0], par[c, 1], par[c, 2], par[c, 3], par[c, 4], par[c, 5], par[c, 6],
+            par[c, 7], par[c, 8], par[c, 9], p0[c, 0], p0[c, 1], p0[c, 2],
+            mean, covb, pos, obs, nu, dist,
+        )  # fmt: skip
+        if err:
+            return err
+    return 0
+
+
+@njit
+def _kf_pass(
+    z, x_in, P_in, init_in, x, P, init, a0, a1, c,
+    f00, f01, f10, f11, q00, q01, q11, h0, h1, ra, p000, p001, p011,
+    mean, covb, pos, obs, nu, dist,
+):  # fmt: skip
+    """Axes ``a0..a1-1`` of :func:`kf_filter_blocks`, sharing one covariance (block ``c``).
+
+    The model block is passed as scalars (kept in registers: loads from arrays could alias the
+    output stores). The first pass (``c == 0``) writes the per-row outputs ``obs`` and
+    ``dist``, later passes combine theirs (``and``, ``+``).
+    """
+    B, T, n_z = z.shape
+    first = c == 0
+    w_mean = mean.shape[0] > 0
+    w_cov = covb.shape[0] > 0
+    w_pos = pos.shape[0] > 0
+    w_obs = obs.shape[0] > 0
+    w_nu = nu.shape[0] > 0
+    w_dist = dist.shape[0] > 0
+    hh = h0 * h0 + h1 * h1
+    cv = f00 == 1.0 and f10 == 0.0 and f11 == 1.0 and h0 == 1.0 and h1 == 0.0
+    xs = np.empty((CHUNK, a1 - a0, 2))  # per-axis state [position, velocity]
+    Ps = np.empty((CHUNK, 3))  # the shared covariance block [p00, p01, p11]
+    ini = np.empty(CHUNK, dtype=np.bool_)
+    for c0 in range(0, B, CHUNK):
+        c1 = min(B, c0 + CHUNK)
+        for b in range(c0, c1):
+            j = b - c0
+            ini[j] = init_in[b]
+            for a in range(a0, a1):
+                xs[j, a - a0, 0] = x_in[b, 2 * a]
+                xs[j, a - a0, 1] = x_in[b, 2 * a + 1]
+            i = 2 * a0
+            Ps[j, 0] = P_in[b, i, i]
+            Ps[j, 1] = 0.5 * (P_in[b, i, i + 1] + P_in[b, i + 1, i])
+            Ps[j, 2] = P_in[b, i + 1, i + 1]
+        for t in range(T):
+            for b in range(c0, c1):
+                j = b - c0
+                valid = True
+                for a in range(n_z):
+                    v = z[b, t, a]
+                    if np.isnan(v):
+                        valid = False
+                    elif np.isinf(v):
+                        return 1
+                if not ini[j]:
+                    if not valid:  # no state yet: NaN outputs
+                        if w_mean:
+                            for a in range(a0, a1):
+                                mean[b, t, 2 * a] = np.nan
+                                mean[b, t, 2 * a + 1] = np.nan
+                        if w_cov:
+                            covb[b, t, c, :] = np.nan
+                        if w_pos:
+                            pos[b, t, a0:a1] = np.nan
+                        if w_obs and first:
+                            obs[b, t] = False
+                        if w_nu:
+                            nu[b, t, a0:a1] = np.nan
+                        if w_dist and first:
+                            dist[b, t] = np.nan
+                        continue
+                    # SPEC §4.2 initialisation [J]: x₀ = H⁺ z (positions = z, velocities = 0), P₀
+                    for a in range(a0, a1):
+                        xs[j, a - a0, 0] = h0 * z[b, t, a] / hh
+                        xs[j, a - a0, 1] = h1 * z[b, t, a] / hh
+                        if w_nu:
+                            nu[b, t, a] = np.nan
+                    p00 = p000
+                    p01 = p001
+                    p11 = p011
+                    ini[j] = True
+                    if w_obs and first:
+                        obs[b, t] = True
+                    if w_dist and first:
+                        dist[b, t] = np.nan
+                else:
+                    p00, p01, p11, k0, k1, iS, updated = _cov_step(
+                        Ps[j, 0], Ps[j, 1], Ps[j, 2], valid, cv,
+                        f00, f01, f10, f11, q00, q01, q11, h0, h1, ra,
+                    )  # fmt: skip
+                    d = 0.0
+                    for a in range(a0, a1):
+                        x0 = xs[j, a - a0, 0]
+                        x1 = xs[j, a - a0, 1]
+                        # SPEC §4.2 kf_predict / paper A Eq. 5 (no noise term): x⁻ = F x
+                        xp0 = f00 * x0 + f01 * x1
+                        xp1 = f10 * x0 + f11 * x1
+                        if updated:
+                            v = z[b, t, a] - (h0 * xp0 + h1 * xp1)  # ν = z − H x⁻
+                            xp0 += k0 * v  # Eq. 8: x = x⁻ + K ν
+                            xp1 += k1 * v
+                            d += v * v * iS  # NIS νᵀS⁻¹ν, S diagonal across axes
+                        else:
+                            v = np.nan
+                        xs[j, a - a0, 0] = xp0
+                        xs[j, a - a0, 1] = xp1
+                        if w_nu:
+                            nu[b, t, a] = v
+                    if w_obs:
+                        obs[b, t] = updated if first else (obs[b, t] and updated)
+                    if w_dist:
+                        dd = d if updated else np.nan
+                        dist[b, t] = dd if first else dist[b, t] + dd
+                Ps[j, 0] = p00
+                Ps[j, 1] = p01
+                Ps[j, 2] = p11
+                if w_mean:
+                    for a in range(a0, a1):
+                        mean[b, t, 2 * a] = xs[j, a - a0, 0]
+                        mean[b, t, 2 * a + 1] = xs[j, a - a0, 1]
+                if w_cov:
+                    covb[b, t, c, 0] = p00
+                    covb[b, t, c, 1] = p01
+                    covb[b, t, c, 2] = p11
+                if w_pos:
+                    for a in range(a0, a1):
+                        pos[b, t, a] = h0 * xs[j, a - a0, 0] + h1 * xs[j, a - a0, 1]
+        for b in range(c0, c1):
+            j = b - c0
+            init[b] = ini[j]
+            if ini[j]:
+                if first:
+                    P[b, :, :] = 0.0
+                for a in range(a0, a1):
+                    i = 2 * a
+                    x[b, i] = xs[j, a - a0, 0]
+                    x[b, i + 1] = xs[j, a - a0, 1]
+                    P[b, i, i] = Ps[j, 0]
+                    P[b, i, i + 1] = Ps[j, 1]
+                    P[b, i + 1, i] = Ps[j, 1]
+                    P[b, i + 1, i + 1] = Ps[j, 2]
+    return 0
+
+
+@njit
+def rts_blocks(mean, covb, mask, par, sm_mean, sm_covb, sm_pos):
+    """Fixed-interval per-axis RTS (SPEC §9) on the block layout, each run smoothed on its own.
+
+    ``mean (B, T, n_x)``, ``covb (B, T, n_c, 3)`` filtered; ``mask (B, T)``: smoothing runs
+    over each maximal run of samples where the mask is True and the filtered mean is finite;
+    other samples are copied. Outputs ``sm_mean``, ``sm_covb`` (same shapes) and ``sm_pos
+    (B, T, n_a)`` (``H x̃``; zero-length first axis = not wanted). A step whose ``P⁻`` is not
+    positive definite restarts the pass from the filtered estimate at that sample (as
+    :func:`._kernels_axis.rts_axis`, whose arithmetic this is).
+    """
+    B, T, n_x = mean.shape
+    n_a = par.shape[0]
+    n_c = covb.shape[2]
+    w_pos = sm_pos.shape[0] > 0
+    sx = np.empty((n_a, 2))
+    sP = np.empty((n_c, 3))
+    C = np.empty((n_c, 5))  # per block [c00, c01, c10, c11, ok] of this step
+    cv = np.empty(n_a, dtype=np.bool_)  # constant-velocity block (see _cov_step)
+    for a in range(n_a):
+        cv[a] = par[a, 0] == 1.0 and par[a, 2] == 0.0 and par[a, 3] == 1.0
+    for b in range(B):
+        nxt_ok = False  # is t + 1 in the same run as t (and usable)?
+        for t in range(T - 1, -1, -1):
+            usable = mask[b, t] and np.isfinite(mean[b, t, 0])
+            if not usable:
+                for i in range(n_x):
+                    sm_mean[b, t, i] = mean[b, t, i]
+                for c in range(n_c):
+                    for k in range(3):
+                        sm_covb[b, t, c, k] = covb[b, t, c, k]
+                nxt_ok = False
+            elif not nxt_ok:  # x̃_end = x̂_end, P̃_end = P̂_end
+                for a in range(n_a):
+                    sx[a, 0] = mean[b, t, 2 * a]
+                    sx[a, 1] = mean[b, t, 2 * a + 1]
+                for c in range(n_c):
+                    for k in range(3):
+                        sP[c, k] = covb[b, t, c, k]
+                nxt_ok = True
+            else:
+                for c in range(n_c):
+                    f00 = par[c, 0]
+                    f01 = par[c, 1]
+                    f10 = par[c, 2]
+                    f11 = par[c, 3]
+                    p00 = covb[b, t, c, 0]
+                    p01 = covb[b, t, c, 1]
+                    p11 = covb[b, t, c, 2]
+                    # SPEC §9: P⁻_{t+1} = F P̂_t Fᵀ + Q (the filter's own prediction, recomputed),
+                    # M = F P̂_t; constant-velocity blocks with the exact 0/1 terms dropped
+                    if cv[c]:
+                        fp00 = p00 + f01 * p01
+                        fp01 = p01 + f01 * p11
+                        fp10 = p01
+                        fp11 = p11
+                        pp00 = fp00 + fp01 * f01 + par[c, 4]
+                        pp01 = fp01 + par[c, 5]
+                        pp11 = p11 + par[c, 6]
+                    else:
+                        fp00 = f00 * p00 + f01 * p01
+                        fp01 = f00 * p01 + f01 * p11
+                        fp10 = f10 * p00 + f11 * p01
+                        fp11 = f10 * p01 + f11 * p11
+                        pp00 = fp00 * f00 + fp01 * f01 + par[c, 4]
+                        pp01 = fp00 * f10 + fp01 * f11 + par[c, 5]
+                        pp11 = fp10 * f10 + fp11 * f11 + par[c, 6]
+                    # C_t = P̂_t Fᵀ (P⁻)⁻¹: solve Cᵀ = (P⁻)⁻¹ M by LDLᵀ of P⁻ (no sqrt)
+                    l10 = pp01 / pp00
+                    d1 = pp11 - l10 * pp01
+                    if not (pp00 > 0.0 and d1 > 0.0):
+                        C[c, 4] = 0.0  # P⁻ not PD: restart from the filtered estimate at t
+                        sP[c, 0] = p00
+                        sP[c, 1] = p01
+                        sP[c, 2] = p11
+                        continue
+                    id0 = 1.0 / pp00
+                    id1 = 1.0 / d1
+                    c01 = (fp10 - l10 * fp00) * id1
+                    c00 = fp00 * id0 - l10 * c01
+                    c11 = (fp11 - l10 * fp01) * id1
+                    c10 = fp01 * id0 - l10 * c11
+                    C[c, 0] = c00
+                    C[c, 1] = c01
+                    C[c, 2] = c10
+                    C[c, 3] = c11
+                    C[c, 4] = 1.0
+                    # P̃_t = P̂_t + C (P̃_{t+1} − P⁻_{t+1}) Cᵀ
+                    d00 = sP[c, 0] - pp00
+                    d01 = sP[c, 1] - pp01
+                    d11 = sP[c, 2] - pp11
+                    cd00 = c00 * d00 + c01 * d01
+                    cd01 = c00 * d01 + c01 * d11
+                    cd10 = c10 * d00 + c11 * d01
+                    cd11 = c10 * d01 + c11 * d11
+                    sP[c, 0] = p00 + cd00 * c00 + cd01 * c01
+                    sP[c, 1] = p01 + cd00 * c10 + cd01 * c11
+                    sP[c, 2] = p11 + cd10 * c10 + cd11 * c11
+                for a in range(n_a):
+                    c = 0 if n_c == 1 else a
+                    m0 = mean[b, t, 2 * a]
+                    m1 = mean[b, t, 2 * a + 1]
+                    if C[c, 4] == 0.0:
+                        sx[a, 0] = m0
+                        sx[a, 1] = m1
+                        continue
+                    # x̃_t = x̂_t + C (x̃_{t+1} − F x̂_t)
+                    if cv[a]:
+                        e0 = sx[a, 0] - (m0 + par[a, 1] * m1)
+                        e1 = sx[a, 1] - m1
+                    else:
+                        e0 = sx[a, 0] - (par[a, 0] * m0 + par[a, 1] * m1)
+                        e1 = sx[a, 1] - (par[a, 2] * m0 + par[a, 3] * m1)
+                    sx[a, 0] = m0 + C[c, 0] * e0 + C[c, 1] * e1
+                    sx[a, 1] = m1 + C[c, 2] * e0 + C[c, 3] * e1
+            if usable:
+                for a in range(n_a):
+                    sm_mean[b, t, 2 * a] = sx[a, 0]
+                    sm_mean[b, t, 2 * a + 1] = sx[a, 1]
+                for c in range(n_c):
+                    for k in range(3):
+                        sm_covb[b, t, c, k] = sP[c, k]
+            if w_pos:
+                for a in range(n_a):
+                    sm_pos[b, t, a] = (
+                        par[a, 7] * sm_mean[b, t, 2 * a] + par[a, 8] * sm_mean[b, t, 2 * a + 1]
+                    )
