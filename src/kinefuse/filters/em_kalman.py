@@ -189,15 +189,16 @@ def take_step(result, nb: int):
     return type(result)(**kw)
 
 
-def run_filter(flt, z, state):
-    """``filter`` of the single-model filters: validate ``z`` and the state, then ``flt._run``."""
+def run_filter(flt, z, state, **kwargs):
+    """``filter`` of the single-model filters: validate ``z`` and the state, then ``flt._run``
+    (``kwargs`` passed on)."""
     z = check_measurements(z, flt.model.n_z)
     if state is None:
         state = flt.init(z.shape[:-2])
     else:
         flt._check_state(state, z.shape[:-2])
     check_not_all_missing(z, state)
-    return flt._run(z, state)
+    return flt._run(z, state, **kwargs)
 
 
 def run_step(flt, state, z):

@@ -10,10 +10,12 @@ import numpy as np
 from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.filters._base import (
     FilterResult,
+    check_outputs,
     make_initial_state,
     positions,
 )
-from kinefuse.filters._kernels_ufir import ufir_gains, ufir_run
+from kinefuse.filters._kernels_axis import pack_axis_params, state_blocks_shared
+from kinefuse.filters._kernels_ufir import ufir_gains, ufir_run, ufir_run_cv
 from kinefuse.filters.em_kalman import (
     check_int,
     check_model,
@@ -98,6 +100,18 @@ def ufir_model_arrays(model: LinearGaussianModel, horizon: int) -> dict:
         a["Ha"] = np.ascontiguousarray([a["H"][i : i + 1, s] for i, s in enumerate(blk)])
         a["Qa"] = np.ascontiguousarray([a["Q"][s, s] for s in blk])
         a["Ra"] = np.ascontiguousarray([a["R"][i : i + 1, i : i + 1] for i in range(n_ax)])
+        par, p0, shared = pack_axis_params(F, a["Q"], a["H"], a["R"], a["P0"])
+        f = par[0]
+        cv = shared and f[0] == 1.0 and f[2] == 0.0 and f[3] == 1.0 and f[7] == 1.0 and f[8] == 0.0
+        if cv:
+            Pf = a["P_full"]
+            a["cv"] = {
+                "dt": float(f[1]),
+                "q": (float(f[4]), float(f[5]), float(f[6])),
+                "r": float(f[9]),
+                "p0": np.ascontiguousarray(p0[0]),
+                "pfull": np.array([Pf[0, 0], 0.5 * (Pf[0, 1] + Pf[1, 0]), Pf[1, 1]]),
+            }
     else:
         a["Fa"] = np.zeros((0, 2, 2))
         a["Finva"] = np.zeros((0, 2, 2))
@@ -238,7 +252,9 @@ class UFIRFilter:
             np.full((*bs, ns, n_x, n_x), np.nan),
         )
 
-    def filter(self, z, state: UFIRState | None = None) -> tuple[UFIRState, UFIRResult]:
+    def filter(
+        self, z, state: UFIRState | None = None, outputs=None
+    ) -> tuple[UFIRState, UFIRResult]:
         """Filter a series.
 
         Parameters
@@ -247,6 +263,11 @@ class UFIRFilter:
             Position measurements, m; NaN rows are missing.
         state : UFIRState, optional
             State to resume from (default: fresh state for ``z.shape[:-2]``).
+        outputs : tuple of str, optional
+            Fields to compute (see :meth:`KalmanFilter.filter
+            <kinefuse.filters.KalmanFilter.filter>`); default all. Leaving out ``"cov"`` makes
+            the constant-velocity fast path O(1) per step also on horizons with missing
+            samples (their covariance is the O(N) part).
 
         Returns
         -------
@@ -254,7 +275,7 @@ class UFIRFilter:
         result : UFIRResult
             ``mean``, ``cov``, ``position``, ``observed``, ``innovation``, ``fir_ready (..., T)``.
         """
-        return run_filter(self, z, state)
+        return run_filter(self, z, state, outputs=check_outputs(outputs))
 
     def step(self, state: UFIRState, z) -> tuple[UFIRState, UFIRResult]:
         """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis."""
@@ -275,8 +296,12 @@ class UFIRFilter:
             },
         )
 
-    def _run(self, z: np.ndarray, state: UFIRState, fast: bool = True):
+    def _run(self, z: np.ndarray, state: UFIRState, fast: bool = True, outputs=None):
         a = self._arrays
+        if fast and "cv" in a and self.init_mode == "batch":
+            P = np.asarray(state.P).reshape(-1, self.model.n_x, self.model.n_x)
+            if state_blocks_shared(P, np.asarray(state.initialized).reshape(-1)):
+                return self._run_cv(z, state, outputs)
         bs = z.shape[:-2]
         nb = len(bs)
         T, n_z = z.shape[-2:]
@@ -324,6 +349,65 @@ class UFIRFilter:
             position=positions(mean, self.model.H),
             observed=o_obs.reshape(*bs, T),
             innovation=o_nu.reshape(*bs, T, n_z),
+            fir_ready=o_ready.reshape(*bs, T),
+        )
+        return new_state, res
+
+    def _run_cv(self, z: np.ndarray, state: UFIRState, outputs):
+        """The O(1)-per-step constant-velocity route (:func:`._kernels_ufir.ufir_run_cv`)."""
+        a = self._arrays
+        cv = a["cv"]
+        w = check_outputs(None) if outputs is None else outputs
+        bs = z.shape[:-2]
+        nb = len(bs)
+        T, n_z = z.shape[-2:]
+        n_x, N = self.model.n_x, self.horizon
+        zf = np.ascontiguousarray(z.reshape(-1, T, n_z))
+        B = zf.shape[0]
+        x = flat(state.x, nb)
+        P = flat(state.P, nb)
+        init = flat(state.initialized, nb, bool)
+        zring = flat(state.z_buf, nb)
+        o_mean = np.empty((B, T, n_x))
+        o_covb = np.empty((B, T, 1, 3)) if "cov" in w else np.empty((0, 0, 0, 0))
+        o_obs = np.empty((B, T), bool)
+        o_nu = np.empty((B, T, n_z))
+        o_ready = np.empty((B, T), bool)
+        q00, q01, q11 = cv["q"]
+        n_fail = ufir_run_cv(
+            zf, x, P, init, zring, int(state.k), N, a["K"], cv["dt"], q00, q01, q11, cv["r"],
+            cv["p0"], cv["pfull"], a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"],
+            o_mean, o_covb, o_obs, o_nu, o_ready,
+        )  # fmt: skip
+        if n_fail:
+            import warnings
+
+            warnings.warn(
+                f"UFIRFilter: KF update skipped on {n_fail} step(s): S could not be factorised (SPEC §13)",
+                NumericalWarning,
+                stacklevel=3,
+            )
+        ns = self._n_stored
+        new_state = UFIRState(
+            x.reshape(*bs, n_x),
+            P.reshape(*bs, n_x, n_x),
+            init.reshape(bs),
+            int(state.k) + T,
+            zring.reshape(*bs, N, n_z),
+            np.asarray(state.x_buf).reshape(*bs, ns, n_x),
+            np.asarray(state.P_buf).reshape(*bs, ns, n_x, n_x),
+        )
+        mean = o_mean.reshape(*bs, T, n_x)
+        cov_blocks = None
+        if "cov" in w:
+            cov_blocks = np.broadcast_to(o_covb.reshape(*bs, T, 1, 3), (*bs, T, n_z, 3))
+        res = UFIRResult(
+            mean=mean if "mean" in w else None,
+            cov=None,
+            position=np.ascontiguousarray(mean[..., 0::2]) if "position" in w else None,
+            observed=o_obs.reshape(*bs, T) if "observed" in w else None,
+            innovation=o_nu.reshape(*bs, T, n_z) if "innovation" in w else None,
+            cov_blocks=cov_blocks,
             fir_ready=o_ready.reshape(*bs, T),
         )
         return new_state, res
