@@ -93,6 +93,23 @@ def _set_cov(self, value):  # dataclass __init__ assigns through this (frozen: o
     self.__dict__["_cov"] = value
 
 
+def _fast(cls, mean, position, observed, innovation, distance, cov_blocks):
+    """Internal constructor of the online hot path (the dataclass ``__init__`` costs ~1 µs)."""
+    r = object.__new__(cls)
+    d = r.__dict__
+    d["mean"] = mean
+    d["_cov"] = None
+    d["position"] = position
+    d["observed"] = observed
+    d["innovation"] = innovation
+    d["distance"] = distance
+    d["mode"] = None
+    d["cov_blocks"] = cov_blocks
+    return r
+
+
+FilterResult.fast = classmethod(_fast)
+
 # ``cov`` as a property: stored when given, else expanded lazily from ``cov_blocks``.
 FilterResult.cov = property(_get_cov, _set_cov, doc="Full covariances, shape (..., T, n_x, n_x).")
 

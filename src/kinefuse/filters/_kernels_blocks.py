@@ -400,3 +400,53 @@ def rts_blocks(mean, covb, mask, par, sm_mean, sm_covb, sm_pos):
                     sm_pos[b, t, a] = (
                         par[a, 7] * sm_mean[b, t, 2 * a] + par[a, 8] * sm_mean[b, t, 2 * a + 1]
                     )
+
+
+@njit
+def kf_step_blocks(
+    z, x, P, init, par, p0, shared, x_new, P_new, init_new, mean, covb, pos, obs, nu, dist
+):  # fmt: skip
+    """One time slice of :func:`kf_filter_blocks`: ``z (B, n_z)``, outputs without the T axis
+    (``covb (B, n_a, 3)``); the state ``x, P, init`` is copied into ``x_new, P_new, init_new``
+    and advanced there (the input state is not modified). One compiled call per online step.
+
+    ``shared``: the model rows coincide; if the state blocks do too, one covariance recursion
+    serves all axes (the same arithmetic as per axis, bit for bit) and is copied to each axis.
+    """
+    B, n_z = z.shape
+    n_x = x.shape[1]
+    n_a = par.shape[0]
+    x_new[:, :] = x
+    P_new[:, :, :] = P
+    init_new[:] = init
+    if shared:
+        for b in range(B):
+            if init[b]:
+                for a in range(1, n_a):
+                    i = 2 * a
+                    if (P[b, i, i] != P[b, 0, 0] or P[b, i + 1, i + 1] != P[b, 1, 1]
+                            or P[b, i, i + 1] + P[b, i + 1, i] != P[b, 0, 1] + P[b, 1, 0]):  # fmt: skip
+                        shared = False
+    z3 = z.reshape(B, 1, n_z)
+    mean3 = mean.reshape(B, 1, n_x)
+    pos3 = pos.reshape(B, 1, n_z)
+    obs2 = obs.reshape(B, 1)
+    nu3 = nu.reshape(B, 1, n_z)
+    dist2 = dist.reshape(B, 1)
+    if not shared:
+        return kf_filter_blocks(
+            z3, x_new, P_new, init_new, par, p0, mean3, covb.reshape(B, 1, n_a, 3), pos3, obs2,
+            nu3, dist2,
+        )  # fmt: skip
+    cb = np.empty((B, 1, 1, 3))
+    err = _kf_pass(
+        z3, x, P, init, x_new, P_new, init_new, 0, n_a, 0,
+        par[0, 0], par[0, 1], par[0, 2], par[0, 3], par[0, 4], par[0, 5], par[0, 6],
+        par[0, 7], par[0, 8], par[0, 9], p0[0, 0], p0[0, 1], p0[0, 2],
+        mean3, cb, pos3, obs2, nu3, dist2,
+    )  # fmt: skip
+    for b in range(B):
+        for a in range(n_a):
+            for k in range(3):
+                covb[b, a, k] = cb[b, 0, 0, k]
+    return err

@@ -29,10 +29,19 @@ from kinefuse.filters._kernels_axis import (
     state_blocks_shared,
     state_is_block_diagonal,
 )
-from kinefuse.filters._kernels_blocks import kf_filter_blocks
+from kinefuse.filters._kernels_blocks import kf_filter_blocks, kf_step_blocks
 from kinefuse.models import LinearGaussianModel
 
 __all__ = ["KalmanFilter", "check_gaussian_state"]
+
+
+class _AxisState(GaussianState):
+    """A :class:`GaussianState` produced by the per-axis kernels of this module: finite,
+    block-diagonal per axis, float64, C-contiguous. ``step`` trusts it without re-validating
+    (the online hot path); any other state is validated first."""
+
+    __slots__ = ()
+
 
 _METHODS = ("auto", "axis", "dense")
 
@@ -227,6 +236,10 @@ class KalmanFilter:
             ``cov (..., n_x, n_x)``, ``position (..., n_z)``, ``observed (...)``,
             ``innovation (..., n_z)``, ``distance (...)``.
         """
+        if type(state) is _AxisState and self._blocks is not None:
+            fast = self._step_axis(state, z)
+            if fast is not None:
+                return fast
         st = check_gaussian_state(state, self.n_x)
         zs = check_step_measurement(z, self.n_z, st.initialized.shape)
         new_state, res = self._run(zs[..., None, :], st)
@@ -241,6 +254,58 @@ class KalmanFilter:
             cov_blocks=None if blocks is None else blocks[..., 0, :, :],
         )
         return new_state, out
+
+    def _step_axis(self, state, z):
+        """``step`` on a trusted per-axis state: one compiled call, no re-validation of the
+        state; ``z`` is checked by type/shape attributes (anything unusual takes the validated
+        path: returns None) and for ±inf by the kernel."""
+        x = state.x
+        if not (
+            type(z) is np.ndarray
+            and z.dtype == np.float64
+            and z.shape[:-1] == x.shape[:-1]
+            and z.shape[-1] == self.model.n_z
+            and z.flags.c_contiguous
+        ):
+            return None
+        par, p0, shared = self._blocks
+        P = state.P
+        init = state.initialized
+        n_x, n_z = x.shape[-1], z.shape[-1]
+        if x.ndim == 2:
+            bshape = x.shape[:1]
+            z2, x2, P2, i1 = z, x, P, init
+        else:
+            bshape = x.shape[:-1]
+            z2 = z.reshape(-1, n_z)
+            x2, P2, i1 = x.reshape(-1, n_x), P.reshape(-1, n_x, n_x), init.reshape(-1)
+        B = z2.shape[0]
+        n_a = par.shape[0]
+        x_new = np.empty((B, n_x))
+        P_new = np.empty((B, n_x, n_x))
+        init_new = np.empty(B, dtype=bool)
+        mean = np.empty((B, n_x))
+        covb = np.empty((B, n_a, 3))
+        pos = np.empty((B, n_z))
+        obs = np.empty(B, dtype=bool)
+        nu = np.empty((B, n_z))
+        dist = np.empty(B)
+        if kf_step_blocks(
+            z2, x2, P2, i1, par, p0, shared, x_new, P_new, init_new, mean, covb, pos, obs, nu, dist
+        ):
+            raise InputError("expected z finite or NaN (missing), got ±inf")  # fmt: skip
+        if x.ndim != 2:
+            x_new, P_new, init_new = (
+                x_new.reshape(*bshape, n_x), P_new.reshape(*bshape, n_x, n_x), init_new.reshape(bshape)
+            )  # fmt: skip
+            mean, covb, pos = (
+                mean.reshape(*bshape, n_x),
+                covb.reshape(*bshape, n_a, 3),
+                pos.reshape(*bshape, n_z),
+            )
+            obs, nu, dist = obs.reshape(bshape), nu.reshape(*bshape, n_z), dist.reshape(bshape)
+        out = FilterResult.fast(mean, pos, obs, nu, dist, covb)
+        return _AxisState(x_new, P_new, init_new, state.k + 1), out
 
     def filter(
         self, z, state: GaussianState | None = None, outputs=None
@@ -352,7 +417,8 @@ class KalmanFilter:
             mean, pos, obs, nu, dist = mean_d, pos_d, obs_d, nu_d, dist_d
             if "cov" in w:
                 cov = cov_d.reshape(*batch, T, n_x, n_x)
-        new_state = GaussianState(
+        state_cls = _AxisState if use_axis else GaussianState
+        new_state = state_cls(
             x.reshape(*batch, n_x), P.reshape(*batch, n_x, n_x), init.reshape(batch), st.k + T
         )
 
