@@ -1,0 +1,155 @@
+"""Fast kernels against their references: KF/RTS on covariance blocks, O(1) UFIR, floor clip.
+
+The references are the dense kernels (``method="dense"``), the iterative UFIR (``fast=False``),
+filterpy's ``rts_smoother`` and LAPACK's ``eigh`` (``floor_clip_lapack``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kinefuse.exceptions import InputError
+from kinefuse.filters import KalmanFilter, UFIRFilter, rts_smooth
+from kinefuse.filters._base import expand_cov_blocks
+from kinefuse.filters._kernels_em import floor_clip, floor_clip_lapack
+from kinefuse.models import constant_velocity
+from test_kalman import random_cv, simulate, with_gaps
+
+ALL = ("mean", "cov", "position", "observed", "innovation", "distance")
+
+
+def _data(seed, model, B=4, T=160):
+    rng = np.random.default_rng(seed)
+    _, z = simulate(model, rng, T, batch=(B,))
+    return with_gaps(rng, z)
+
+
+@pytest.mark.parametrize("isotropic", [True, False])
+def test_kf_blocks_equal_dense_reference(isotropic):
+    rng = np.random.default_rng(1)
+    model = (
+        constant_velocity(1 / 30, q=0.7, r=0.004) if isotropic else random_cv(rng)
+    )  # shared block / one block per axis
+    z = _data(2, model)
+    _, fast = KalmanFilter(model).filter(z)
+    _, ref = KalmanFilter(model, method="dense").filter(z)
+    assert fast.cov_blocks is not None and ref.cov_blocks is None
+    assert (fast.cov_blocks.strides[-2] == 0) == isotropic  # one stored block when shared
+    for name in ALL:
+        np.testing.assert_allclose(
+            getattr(fast, name), getattr(ref, name), rtol=1e-12, atol=1e-12, err_msg=name
+        )
+
+
+def test_kf_outputs_subset_and_blocks_layout():
+    model = constant_velocity(1 / 30, q=0.7, r=0.004)
+    z = _data(3, model)
+    kf = KalmanFilter(model)
+    s_all, r_all = kf.filter(z)
+    s_sub, r_sub = kf.filter(z, outputs=("position", "cov"))
+    assert r_sub.mean is None and r_sub.innovation is None and r_sub.observed is None
+    np.testing.assert_array_equal(r_sub.position, r_all.position)
+    np.testing.assert_array_equal(r_sub.cov_blocks, r_all.cov_blocks)
+    np.testing.assert_array_equal(s_sub.P, s_all.P)
+    cb = r_all.cov_blocks
+    full = r_all.cov
+    assert full.shape == (*z.shape[:-1], 6, 6)
+    np.testing.assert_array_equal(full[..., 2, 3], cb[..., 1, 1])  # documented layout
+    np.testing.assert_array_equal(expand_cov_blocks(cb), full)
+    with pytest.raises(InputError, match="outputs"):
+        kf.filter(z, outputs=("speed",))
+
+
+def test_kf_step_fast_path_equals_filter_and_split():
+    model = random_cv(np.random.default_rng(4))
+    z = _data(5, model, B=8, T=60)
+    kf = KalmanFilter(model)
+    s_all, r_all = kf.filter(z)
+    st = kf.init((8,))
+    means, covs, dists = [], [], []
+    for t in range(z.shape[1]):
+        st, out = kf.step(st, np.ascontiguousarray(z[:, t]))
+        means.append(out.mean)
+        covs.append(out.cov)
+        dists.append(out.distance)
+    np.testing.assert_array_equal(np.stack(means, 1), r_all.mean)
+    np.testing.assert_array_equal(np.stack(covs, 1), r_all.cov)
+    np.testing.assert_array_equal(np.stack(dists, 1), r_all.distance)
+    np.testing.assert_array_equal(st.P, s_all.P)
+    s1, r1 = kf.filter(z[:, :25])
+    s2, r2 = kf.filter(z[:, 25:], state=s1)
+    np.testing.assert_array_equal(np.concatenate([r1.mean, r2.mean], 1), r_all.mean)
+    np.testing.assert_array_equal(s2.x, s_all.x)
+    bad = np.ascontiguousarray(z[:, 0])
+    bad[0, 0] = np.inf
+    with pytest.raises(InputError, match="inf"):
+        kf.step(st, bad)
+    with pytest.raises(InputError, match="inf"):
+        kf.filter(np.where(np.isnan(z), np.inf, z))
+
+
+@pytest.mark.parametrize("isotropic", [True, False])
+def test_rts_blocks_equal_filterpy_and_dense(isotropic):
+    from filterpy.kalman import rts_smoother
+
+    rng = np.random.default_rng(6)
+    model = constant_velocity(1 / 30, q=0.7, r=0.004) if isotropic else random_cv(rng)
+    z = _data(7, model, B=2, T=120)
+    z[:, 0] = np.where(np.isnan(z[:, 0]), 0.0, z[:, 0])  # initialised from sample 0
+    _, res = KalmanFilter(model).filter(z)
+    sm = rts_smooth(model, res)
+    assert sm.cov_blocks is not None
+    # dense path: the same filtered result with full covariances only
+    dense_in = type(res)(mean=res.mean, cov=res.cov, position=res.position, observed=res.observed)
+    sm_dense = rts_smooth(model, dense_in)
+    np.testing.assert_allclose(sm.mean, sm_dense.mean, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(sm.cov, sm_dense.cov, rtol=1e-11, atol=1e-15)
+    np.testing.assert_allclose(sm.position, sm_dense.position, rtol=1e-12, atol=1e-13)
+    for b in range(z.shape[0]):
+        n = z.shape[1]
+        xs, Ps, _, _ = rts_smoother(res.mean[b], res.cov[b], [model.F] * n, [model.Q] * n)
+        np.testing.assert_allclose(sm.mean[b], xs, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(sm.cov[b], Ps, rtol=1e-8, atol=1e-12)
+
+
+@pytest.mark.parametrize("N", [10, 40])
+def test_ufir_constant_velocity_o1_equals_iterative(N):
+    model = constant_velocity(1 / 30, q=0.7, r=0.004)
+    z = _data(8 + N, model, B=3, T=4 * N + 30)
+    z[1, N + 5 : 2 * N + 2] = np.nan  # outage longer than N - K: KF fallback inside the series
+    f = UFIRFilter(model, horizon=N)
+    assert "cv" in f._arrays
+    state, fast = f.filter(z)
+    s_ref, ref = f._run(z, f.init(z.shape[:1]), fast=False)  # dense iterative reference
+    np.testing.assert_array_equal(fast.fir_ready, ref.fir_ready)
+    np.testing.assert_allclose(fast.mean, ref.mean, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(fast.cov, ref.cov, rtol=1e-9, atol=1e-14)
+    np.testing.assert_allclose(state.P, s_ref.P, rtol=1e-9, atol=1e-14)
+    # no covariance wanted: same estimates and state, bit for bit
+    s_nc, r_nc = f.filter(z, outputs=("mean",))
+    assert r_nc.cov_blocks is None and r_nc.position is None
+    np.testing.assert_array_equal(r_nc.mean, fast.mean)
+    np.testing.assert_array_equal(s_nc.P, state.P)
+    # split anywhere (mid block of N samples) == one run, bit for bit
+    cut = N + N // 2 + 1
+    s1, r1 = f.filter(z[:, :cut])
+    s2, r2 = f.filter(z[:, cut:], state=s1)
+    np.testing.assert_array_equal(np.concatenate([r1.mean, r2.mean], 1), fast.mean)
+    np.testing.assert_array_equal(s2.x, state.x)
+
+
+def test_floor_clip_equals_lapack_reference():
+    rng = np.random.default_rng(9)
+    for n in (3, 6):
+        for k in range(200):
+            X = rng.normal(size=(n, n))
+            nom = X @ X.T + 0.1 * np.eye(n)
+            Y = rng.normal(size=(n, n))
+            if k % 3 == 0:  # near the floor and nearly isotropic (close eigenvalues)
+                A = nom * rng.uniform(1e-4, 2e-3) + 10 ** rng.uniform(-12, -3) * (Y @ Y.T)
+            else:
+                A = Y @ Y.T * rng.uniform(1e-6, 1)
+            a1, a2 = A.copy(), A.copy()
+            assert floor_clip(a1, nom, 1e-3, n) and floor_clip_lapack(a2, nom, 1e-3, n)
+            np.testing.assert_allclose(a1, a2, rtol=0, atol=1e-10 * np.abs(a2).max())
