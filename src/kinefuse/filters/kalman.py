@@ -24,6 +24,7 @@ from kinefuse.filters._base import (
     make_initial_state,
 )
 from kinefuse.filters._kernels_axis import (
+    axis_block_params,
     kf_filter_dense,
     pack_axis_params,
     state_blocks_shared,
@@ -163,6 +164,7 @@ class KalmanFilter:
     _P0: np.ndarray = field(init=False, repr=False, compare=False)
     _Hpinv: np.ndarray = field(init=False, repr=False, compare=False)
     _blocks: tuple | None = field(init=False, repr=False, compare=False)
+    _packed: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         if not isinstance(self.model, LinearGaussianModel):
@@ -182,7 +184,11 @@ class KalmanFilter:
         object.__setattr__(self, "_P0", P0)
         object.__setattr__(self, "_Hpinv", np.ascontiguousarray(np.linalg.pinv(m.H)))
         if m.axis_blocks and self.method != "dense":
-            blocks = pack_axis_params(m.F, m.Q, m.H, m.R, P0)
+            # the 2x2 blocks (read by the streaming kernels) and their packed form (this module)
+            blocks = tuple(
+                np.ascontiguousarray(b) for b in axis_block_params(m.F, m.Q, m.H, m.R, P0)
+            )
+            object.__setattr__(self, "_packed", pack_axis_params(m.F, m.Q, m.H, m.R, P0))
         else:
             blocks = None
         object.__setattr__(self, "_blocks", blocks)
@@ -268,7 +274,7 @@ class KalmanFilter:
             and z.flags.c_contiguous
         ):
             return None
-        par, p0, shared = self._blocks
+        par, p0, shared = self._packed
         P = state.P
         init = state.initialized
         n_x, n_z = x.shape[-1], z.shape[-1]
@@ -388,7 +394,7 @@ class KalmanFilter:
         dist = np.empty((B, T)) if "distance" in w else _NONE2
         cov = cov_blocks = None
         if use_axis:
-            par, p0, shared = self._blocks
+            par, p0, shared = self._packed
             if shared and not state_blocks_shared(P, init):
                 shared = False
             n_a = par.shape[0]

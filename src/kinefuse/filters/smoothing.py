@@ -86,6 +86,7 @@ def _block_inputs(model, result):
 
 
 def _smooth_blocks(model, result, mask, inputs, wanted_pos=True) -> FilterResult:
+    """Fixed-interval RTS on the block layout (:func:`._kernels_blocks.rts_blocks`)."""
     mean, cb, par = inputs
     n_x = model.n_x
     lead = mean.shape[:-1]
@@ -97,7 +98,7 @@ def _smooth_blocks(model, result, mask, inputs, wanted_pos=True) -> FilterResult
     B = mean3.shape[0]
     sm_mean = np.empty((B, T, n_x))
     sm_cb = np.empty((B, T, n_c, 3))
-    sm_pos = np.empty((B, T, model.n_z))
+    sm_pos = np.empty((B, T, model.n_z)) if wanted_pos else np.empty((0, 0, 0))
     rts_blocks(mean3, cb4, m2, par, sm_mean, sm_cb, sm_pos)
     sm_cb = sm_cb.reshape(*lead, n_c, 3)
     if n_c == 1 and n_x // 2 > 1:
@@ -105,7 +106,7 @@ def _smooth_blocks(model, result, mask, inputs, wanted_pos=True) -> FilterResult
     return FilterResult(
         mean=sm_mean.reshape(*lead, n_x),
         cov=None,
-        position=sm_pos.reshape(*lead, model.n_z),
+        position=sm_pos.reshape(*lead, model.n_z) if wanted_pos else None,
         observed=np.array(result.observed, dtype=bool),
         innovation=None,
         distance=None,
@@ -114,7 +115,7 @@ def _smooth_blocks(model, result, mask, inputs, wanted_pos=True) -> FilterResult
     )
 
 
-def _smooth(model, result, mask, lag: int) -> FilterResult:
+def _smooth(model, result, mask, lag: int, position: bool = True) -> FilterResult:
     if lag < 0 and isinstance(model, LinearGaussianModel):
         inputs = _block_inputs(model, result)
         if inputs is not None:
@@ -124,7 +125,7 @@ def _smooth(model, result, mask, lag: int) -> FilterResult:
                 raise InputError(
                     f"expected result.observed with shape {lead}, got {np.shape(result.observed)}"
                 )
-            return _smooth_blocks(model, result, m, inputs)
+            return _smooth_blocks(model, result, m, inputs, position)
     mean, cov, m = _check_inputs(model, result, mask)
     n_x = model.n_x
     lead = mean.shape[:-1]
@@ -156,7 +157,9 @@ def _smooth(model, result, mask, lag: int) -> FilterResult:
     )
 
 
-def rts_smooth(model: LinearGaussianModel, result: FilterResult, mask=None) -> FilterResult:
+def rts_smooth(
+    model: LinearGaussianModel, result: FilterResult, mask=None, position: bool = True
+) -> FilterResult:
     """Offline fixed-interval Rauch-Tung-Striebel smoother (SPEC §9; paper B §3.1).
 
     Parameters
@@ -171,6 +174,9 @@ def rts_smooth(model: LinearGaussianModel, result: FilterResult, mask=None) -> F
         Smooth independently within each maximal run of True (a fixed interval per run;
         smoothing never crosses a False sample); samples where False are returned as
         filtered. Default: the whole series is one interval.
+    position : bool, default True
+        Compute ``position = H mean``; False leaves it None (not written: the block form's
+        outputs are then only the smoothed mean and covariance blocks).
 
     Returns
     -------
@@ -199,7 +205,7 @@ def rts_smooth(model: LinearGaussianModel, result: FilterResult, mask=None) -> F
     fixes the standard RTS (as in filterpy's ``rts_smoother``), fixed-interval per available
     segment.
     """
-    return _smooth(model, result, mask, -1)
+    return _smooth(model, result, mask, -1, bool(position))
 
 
 def rts_smooth_segments(
