@@ -553,6 +553,16 @@ def bench(
     _present(summary, quiet=quiet, json_file=json_file)
 
 
+@app.command("warm-up", epilog=_EPILOG)
+@_guarded
+def warm_up(quiet: _Quiet = False) -> None:
+    """Compile the numba kernels once (minutes on a small machine), with progress; later runs load them."""
+    from kinefuse.filters.warm_up import warm_up as _warm_up
+
+    console = _stdout()
+    _warm_up(report=None if quiet else (lambda line: console.print(line)))
+
+
 _Seconds = float | None
 
 
