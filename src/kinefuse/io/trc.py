@@ -186,6 +186,7 @@ def write_trc(
     decimals: int | None = None,
     force: bool = False,
     masked: bool = True,
+    note: str | None = None,
 ) -> Path:
     """Write a joint stream as a TRC file.
 
@@ -203,6 +204,9 @@ def write_trc(
         Replace an existing file.
     masked : bool
         Write unavailable samples as empty fields (TRC's missing-marker convention).
+    note : str, optional
+        Free text appended to the first line after the file name (e.g. the root and frame of
+        the positions); readers, OpenSim's included, ignore it. No tabs or newlines.
 
     Returns
     -------
@@ -229,8 +233,10 @@ def write_trc(
     if masked:
         p = np.where(stream.available[..., None], p, np.nan)
     rate = float(1.0 / np.median(np.diff(stream.t_s))) if T > 1 else 0.0
+    if note is not None and ("\t" in note or "\n" in note):
+        raise InputError(f"TRC note must be one line without tabs, got {note!r}")
     out = [
-        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}" + (f"\t{note}" if note else ""),
         "\t".join(
             (
                 "DataRate",

@@ -6,6 +6,7 @@ from kinefuse.kinematics.calibration import (
     chain_positions,
     heading_rotation,
     kabsch_rotation,
+    segment_orientations,
 )
 from kinefuse.kinematics.forward import as_rotation_matrices, euler_to_matrix, forward_kinematics
 from kinefuse.kinematics.skeleton import (
@@ -15,23 +16,32 @@ from kinefuse.kinematics.skeleton import (
     full_body,
     lengths_from_joints,
     lower_body,
+    segment_lengths,
     upper_limb,
 )
+from kinefuse.kinematics.still import StillWindow, find_still_window
+from kinefuse.kinematics.angles import JOINT_ANGLE_COMPONENTS, joint_angles
 
 __all__ = [
     "ANTHROPOMETRIC_RATIOS",
     "AXES",
     "Calibration",
+    "JOINT_ANGLE_COMPONENTS",
     "Skeleton",
+    "StillWindow",
     "as_rotation_matrices",
     "calibrate",
     "chain_positions",
     "euler_to_matrix",
+    "find_still_window",
     "forward_kinematics",
     "full_body",
     "heading_rotation",
+    "joint_angles",
     "kabsch_rotation",
     "lengths_from_joints",
     "lower_body",
+    "segment_lengths",
+    "segment_orientations",
     "upper_limb",
 ]
