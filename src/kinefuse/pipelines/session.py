@@ -1385,19 +1385,42 @@ def _write_angles(out: SessionOutput, targets: Mapping[str, Path], cfg, force: b
     return [csv, mot]
 
 
-def evaluate_recording(path, method: str, parameters: Mapping | None = None):
+def evaluate_recording(
+    path,
+    method: str,
+    parameters: Mapping | None = None,
+    *,
+    format: str | None = None,
+    calibration: str | None = None,
+    root: str | None = None,
+    align: str | None = None,
+    body_height_m: float | None = None,
+):
     """Back-end of ``kinefuse evaluate``: one method on a recording with a reference.
 
     Parameters
     ----------
     path : str or Path
-        Any recording :func:`kinefuse.io.load` reads (format detected), with a reference (or
-        a camera, which then serves as the reference, as in paper A).
+        Anything :func:`kinefuse.io.load` reads (a file or a dataset folder), with a reference
+        (or a camera, which then serves as the reference, as in paper A).
     method : str
         A :data:`kinefuse.session.METHODS` name.
     parameters : mapping, optional
-        As ``[method.parameters]``; defaults: every IMU on a limb segment, lengths measured
-        from the reference, calibration against the reference (or camera).
+        As ``[method.parameters]``; ``calibration``, ``root`` and ``align`` below override it.
+    format : str, optional
+        A :data:`kinefuse.io.FORMATS` key (default: detected).
+    calibration : str, optional
+        ``"static"`` (default: a still pose in the IMU data), ``"functional"``, ``"vision"``
+        or ``"reference"`` (then axes *and* segment lengths come from the reference, and every
+        table says "[calibrated on reference, lengths from reference]").
+    root : str, optional
+        Where the chain starts (default ``"reference"``: the root joints, e.g. the hips, are
+        taken as measured by the reference, as paper A measures the shoulder; this is said in
+        the notes, not a calibration).
+    align : {"none", "rigid"}, optional
+        ``"rigid"``: Kabsch-align the estimates to the reference before scoring (labelled).
+    body_height_m : float, optional
+        Body height for anthropometric segment lengths (Winter 2009).
 
     Returns
     -------
@@ -1407,13 +1430,24 @@ def evaluate_recording(path, method: str, parameters: Mapping | None = None):
     Raises
     ------
     InputError
-        Unreadable file, no reference, no limb IMU.
+        Unreadable file, no reference, no limb IMU, a method that needs a camera without one,
+        no still window for static calibration.
     """
     from dataclasses import replace
 
-    from kinefuse.io import load
+    from kinefuse.exceptions import FormatError
+    from kinefuse.io import FORMATS, load
 
-    rec = load(path)
+    if format is not None and format not in FORMATS:
+        raise InputError(
+            f"--format: unknown format {format!r}; expected one of {', '.join(sorted(FORMATS))}"
+        )
+    try:
+        rec = load(path, format=format)
+    except FileNotFoundError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    except FormatError:
+        raise
     imu = {k: v for k, v in rec.imu.items() if k in SEGMENTS}
     if not imu:
         raise InputError(f"{path}: no IMU on a canonical segment (found {sorted(rec.imu)})")
@@ -1423,18 +1457,29 @@ def evaluate_recording(path, method: str, parameters: Mapping | None = None):
             raise InputError(f"{path}: the recording has no reference to evaluate against")
         if method in _CAMERA_METHODS:
             raise InputError(
-                f"{path}: no reference besides the camera, so camera method {method!r} cannot "
-                "be evaluated; try 'imu-only' or 'paper-a'"
+                f"{path}: method {method!r} needs a camera, and this recording's only joint "
+                "stream is used as the reference; try 'imu-only' or 'paper-a'"
             )
         rec = replace(rec, reference=rec.vision)
     rec = replace(rec, imu=imu)
     if method not in _CAMERA_METHODS:
-        params.setdefault("root", "reference")
-        params.setdefault("calibration", "reference")
-        if rec.vision is not None and method not in _CAMERA_METHODS:
+        if rec.vision is not None:
             rec = replace(rec, vision=None)
+        params["root"] = root or params.get("root", "reference")
+    elif root is not None:
+        params["root"] = root
+    if calibration is not None:
+        params["calibration"] = calibration
+    params.setdefault("calibration", "vision" if rec.vision is not None else "static")
+    if params["calibration"] == "reference":
+        params.setdefault("measured_lengths", True)
+    if align is not None:
+        params["align_to_reference"] = align
     try:
-        out = process_recording(rec, method, params)
+        out = process_recording(rec, method, params, body_height_m=body_height_m)
     except ConfigError as exc:
         raise InputError(f"{path}: {exc}") from None
-    return out.evaluation()
+    ev = out.evaluation()
+    if ev is None:
+        raise InputError(f"{path}: nothing to score: {out.notes[-1]}")
+    return ev
