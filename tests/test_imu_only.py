@@ -4,12 +4,12 @@ and `kinefuse run` / `evaluate` / `init-session` on real IMU-only recordings (x-
 from __future__ import annotations
 
 import textwrap
-import tomllib
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
+import tomllib
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
@@ -231,7 +231,9 @@ def test_write_mot_layout(tmp_path):
 # ------------------------------------------------------------------ sessions on real data
 def test_ximu3_lower_body_imu_only_session(shared_data, tmp_path):
     out = tmp_path / "x3"
-    res = runner.invoke(cli.app, ["run", str(SESSIONS / "ximu3_lower_body.toml"), "--out", str(out)])
+    res = runner.invoke(
+        cli.app, ["run", str(SESSIONS / "ximu3_lower_body.toml"), "--out", str(out)]
+    )
     assert res.exit_code == 0, (res.output, _err(res))
     stem = "ximu3-lower-body"
     for f in ("_joints.csv", "_joints.trc", "_angles.csv", "_angles.mot"):
@@ -247,7 +249,7 @@ def test_ximu3_lower_body_imu_only_session(shared_data, tmp_path):
     # both thighs (and shanks) the same length, from body height
     st = rec.vision
     hip_w = ANTHROPOMETRIC_RATIOS["hip_width"] * 1.75
-    for side, sign in (("l", -1), ("r", 1)):
+    for side in "lr":
         knee, ankle = st.position(f"knee_{side}"), st.position(f"ankle_{side}")
         shank = np.linalg.norm(ankle - knee, axis=1)
         np.testing.assert_allclose(shank[np.isfinite(shank)], 0.246 * 1.75, atol=1e-5)
@@ -394,3 +396,14 @@ def test_evaluate_takes_folders_and_format(shared_data):
         ["evaluate", str(shared_data / "xio_imu_mocap_lower_body"), "--method", "imu-only"],
     )
     assert res.exit_code == 2 and "no reference" in _err(res), _err(res)
+
+
+def test_calibration_docs_example_runs(shared_data, monkeypatch, capsys):
+    root = Path(__file__).parent.parent
+    text = (root / "docs" / "calibration.md").read_text(encoding="utf-8")
+    code = text.split("```python\n", 1)[1].split("```", 1)[0]
+    monkeypatch.chdir(root)
+    exec(compile(code, "docs/calibration.md", "exec"), {})
+    out = capsys.readouterr().out
+    assert "mean angular rate" in out and "knee_l" in out
+    assert "tests/data/sessions/ximu3_lower_body.toml" in text  # the CLI example is tested above

@@ -538,9 +538,7 @@ def load_session(path: str | Path) -> SessionConfig:
                     "e.g. root_position_m = [0.0, 0.0, 1.4]",
                 )
             if any(abs(x) > 100 for x in v):
-                raise c.error(
-                    "skeleton", "root_position_m", f"{v} is not a position in metres"
-                )
+                raise c.error("skeleton", "root_position_m", f"{v} is not a position in metres")
         root_pos = (
             {j: tuple(map(float, v)) for j, v in root_pos.items()}
             if isinstance(root_pos, dict)
@@ -548,7 +546,9 @@ def load_session(path: str | Path) -> SessionConfig:
         )
     axes = k.get("axes", {})
     if not isinstance(axes, dict):
-        raise c.error("skeleton.axes", None, "expected a table segment = axis", 'e.g. thigh_l = "+e1"')
+        raise c.error(
+            "skeleton.axes", None, "expected a table segment = axis", 'e.g. thigh_l = "+e1"'
+        )
     for seg_name, a in axes.items():
         if seg_name not in SEGMENTS:
             raise c.error("skeleton.axes", repr(seg_name), "unknown segment")
@@ -557,7 +557,9 @@ def load_session(path: str | Path) -> SessionConfig:
         )
         if not ok:
             raise c.error(
-                "skeleton.axes", seg_name, f"expected an axis name or [x, y, z], got {a!r}",
+                "skeleton.axes",
+                seg_name,
+                f"expected an axis name or [x, y, z], got {a!r}",
                 'e.g. "+e1", "-e2"',
             )
     skeleton = SkeletonConfig(

@@ -1,5 +1,6 @@
 """Skeleton (parent-index tree), forward kinematics and sensor-to-segment calibration (SPEC §2)."""
 
+from kinefuse.kinematics.angles import JOINT_ANGLE_COMPONENTS, joint_angles
 from kinefuse.kinematics.calibration import (
     Calibration,
     calibrate,
@@ -20,7 +21,6 @@ from kinefuse.kinematics.skeleton import (
     upper_limb,
 )
 from kinefuse.kinematics.still import StillWindow, find_still_window
-from kinefuse.kinematics.angles import JOINT_ANGLE_COMPONENTS, joint_angles
 
 __all__ = [
     "ANTHROPOMETRIC_RATIOS",

@@ -170,7 +170,7 @@ def find_still_window(
     acc = np.full((len(streams), starts.size), np.nan)
     signals = set()
     names = list(streams)
-    for i, (name, st) in enumerate(streams.items()):
+    for i, st in enumerate(streams.values()):
         w, sig = _rate(st)
         signals.add(sig)
         rate[i] = _window_stats(st.t_s, w, starts, win)

@@ -647,8 +647,11 @@ def _plan(recording, method: str, params: Mapping, segs: Sequence[str]) -> dict:
     if calib == "reference" and not has_ref:
         raise ConfigError("calibration 'reference' needs a [reference] section")
     legs = any(s.startswith(("thigh_", "shank_", "foot_")) for s in segs)
-    starts = {SEGMENT_JOINTS[s][0] for s in segs if SEGMENT_JOINTS[s][0] not in {
-        SEGMENT_JOINTS[x][1] for x in segs}}
+    starts = {
+        SEGMENT_JOINTS[s][0]
+        for s in segs
+        if SEGMENT_JOINTS[s][0] not in {SEGMENT_JOINTS[x][1] for x in segs}
+    }
     hips = sorted(j for j in starts if j.startswith("hip_"))
     if "root" in params:
         root = "vision" if params["root"] == "camera" else params["root"]
@@ -909,13 +912,20 @@ def process_recording(
             else:
                 notes.append(
                     "heading: orientations kept as estimated (shared, magnetometer-referenced "
-                    "north)" if not six_d else "heading: not aligned (heading = 'none')"
+                    "north)"
+                    if not six_d
+                    else "heading: not aligned (heading = 'none')"
                 )
                 provenance["heading"] = "none"
     else:
         notes.append("calibration: none; the segment axes are the configured sensor axes")
     derived = {}
-    if use_stream_lengths and cal is not None and cal.lengths_m and calib in ("vision", "reference"):
+    if (
+        use_stream_lengths
+        and cal is not None
+        and cal.lengths_m
+        and calib in ("vision", "reference")
+    ):
         src = "camera" if calib == "vision" else "REFERENCE"
         derived = {s: (v, f"{src} (calibration window)") for s, v in cal.lengths_m.items()}
     functional = dict(cal.lengths_m) if cal is not None and calib == "functional" else {}
@@ -969,7 +979,9 @@ def process_recording(
             if plan["hips"]:
                 root_pos = _hip_roots(recording, cal, t, origin, body_height_m, notes)
                 root_pos.update({j: origin for j in roots if j not in root_pos})
-                root_desc = f"pelvis (mid-hip) at {list(map(float, rp))} m, hips from the pelvis IMU"
+                root_desc = (
+                    f"pelvis (mid-hip) at {list(map(float, rp))} m, hips from the pelvis IMU"
+                )
             else:
                 root_pos = {j: origin for j in roots}
                 root_desc = f"fixed {', '.join(roots)} at {list(map(float, rp))} m"
@@ -978,7 +990,11 @@ def process_recording(
             frame += f" (heading of the {cal_segs[0]} sensor)"
         zero = not isinstance(rp, Mapping) and not np.any(np.asarray(rp, dtype=float))
         if zero:
-            frame += ", relative to the pelvis (mid-hip)" if plan["hips"] else f", relative to {roots[0]}"
+            frame += (
+                ", relative to the pelvis (mid-hip)"
+                if plan["hips"]
+                else f", relative to {roots[0]}"
+            )
     provenance["root_position"] = root_desc
     source = "vision" if root_kind == "vision" else "reference"
     chain_st = chain_positions(recording, sk, cal, root=root_pos, source=source, t_s=t)
@@ -1367,7 +1383,9 @@ def _write_angles(out: SessionOutput, targets: Mapping[str, Path], cfg, force: b
         "t_s," + ",".join(cols),
     ]
     rows = [
-        ",".join([repr(float(t))] + [f"{v[i]:.4f}" if np.isfinite(v[i]) else "" for v in cols.values()])
+        ",".join(
+            [repr(float(t))] + [f"{v[i]:.4f}" if np.isfinite(v[i]) else "" for v in cols.values()]
+        )
         for i, t in enumerate(out.t_s)
     ]
     csv = write_text_safely(targets["angles_csv"], "\n".join(head + rows) + "\n", force=force)
