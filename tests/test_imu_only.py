@@ -263,6 +263,7 @@ def test_ximu3_lower_body_imu_only_session(shared_data, tmp_path):
         assert flex.max() > 60.0  # the recording bends the knees
     mot = (out / f"{stem}_angles.mot").read_text().splitlines()
     assert "inDegrees=yes" in mot and mot[mot.index("endheader") + 1].startswith("time\tknee_l_")
+    assert any(ln.startswith("root=pelvis") for ln in mot[: mot.index("endheader")])
 
 
 def test_qmt_right_arm_paper_a_setting(shared_data, tmp_path):
@@ -407,3 +408,55 @@ def test_calibration_docs_example_runs(shared_data, monkeypatch, capsys):
     out = capsys.readouterr().out
     assert "mean angular rate" in out and "knee_l" in out
     assert "tests/data/sessions/ximu3_lower_body.toml" in text  # the CLI example is tested above
+
+
+class _WorkStarted(Exception):
+    pass
+
+
+@pytest.mark.parametrize("inputs", ["imu", "imu+camera", "imu+reference", "imu+camera+reference"])
+@pytest.mark.parametrize(
+    "method", ["paper-a", "imu-only", "elm-fir", "elm-kf", "camera-only", "kinefuse"]
+)
+def test_every_method_and_input_runs_or_is_refused_before_work(
+    tmp_path, monkeypatch, method, inputs
+):
+    """The contract of the method registry: a combination is refused with one line saying what
+    it needs before any file is read, or it proceeds to reading the files."""
+    from kinefuse.pipelines import session as ps
+    from kinefuse.session import CAMERA_METHODS, METHOD_INFO
+
+    for f in ("imu.csv", "camera.csv", "truth.csv"):
+        (tmp_path / f).write_text("x\n")
+    body = f"""\
+        [session]
+        name = "combo"
+        [imu]
+        format = "imu_csv"
+        path = "imu.csv"
+        [imu.segments]
+        forearm_r = "IMU 2"
+        [skeleton]
+        body_height_m = 1.75
+        [method]
+        name = "{method}"
+    """
+    if "camera" in inputs:
+        body += '[camera]\nformat = "joint_csv"\npath = "camera.csv"\n'
+    if "reference" in inputs:
+        body += '[reference]\nformat = "joint_csv"\npath = "truth.csv"\n'
+
+    def _work(*a, **k):
+        raise _WorkStarted
+
+    monkeypatch.setattr(ps, "load_streams", _work)
+    p = _session(tmp_path, body)
+    refused = method in CAMERA_METHODS and "camera" not in inputs
+    if refused:
+        res = runner.invoke(cli.app, ["run", str(p), "--out", str(tmp_path / "out")])
+        assert res.exit_code == 2, (res.output, _err(res))
+        line = [ln for ln in _err(res).splitlines() if ln.strip()]
+        assert len(line) == 1 and f"needs a camera (it uses {METHOD_INFO[method][0]})" in line[0]
+    else:
+        with pytest.raises(_WorkStarted):
+            ps.run_session(p, tmp_path / "out")

@@ -550,7 +550,7 @@ def evaluate(
     from kinefuse.session import CALIBRATIONS, METHODS, ROOTS
 
     if not recording.exists():
-        raise InputError(f"RECORDING {recording}: no such file or folder")
+        raise InputError(f"RECORDING {recording}: file not found (a file or a dataset folder)")
     if method not in METHODS:
         raise InputError(
             f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}"

@@ -1397,6 +1397,8 @@ def _write_angles(out: SessionOutput, targets: Mapping[str, Path], cfg, force: b
         metadata={
             "convention": "ISB (Wu 2002/2005), flexion first",
             "calibration": str(out.provenance.get("calibration")),
+            "root": out.root,
+            "frame": out.frame,
         },
         force=force,
     )
