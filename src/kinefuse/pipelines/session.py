@@ -107,6 +107,9 @@ _CAMERA_METHODS = CAMERA_METHODS  # the one registry: kinefuse.session.METHOD_IN
 #: Root kinds; "camera" is the old spelling of "vision".
 _ROOTS = ("fixed", "pelvis", "vision", "camera", "reference")
 _HEADINGS = ("auto", "none", "static")
+#: Plausible flexion of hinge joints, deg (1st-99th percentile check of the joint angles):
+#: knee -10 (hyperextension) to 150, elbow -10 to 160 (e.g. Soucie et al. 2011, Haemophilia 17).
+_HINGE_RANGE_DEG = {"knee": (-10.0, 150.0), "elbow": (-10.0, 160.0)}
 _PAPER_A_KEYS = ("q", "r", "horizon", "threshold1", "threshold2", "n_em_iter")
 _VISION_KEYS = (
     "q",
@@ -1059,6 +1062,16 @@ def process_recording(
                 "joint angles (deg, ISB: Wu et al. 2002/2005, Grood & Suntay 1983; zero in the "
                 f"calibration pose): {', '.join(out.angles)}"
             )
+        for j, a in out.angles.items():
+            lo, hi = _HINGE_RANGE_DEG.get(j.rsplit("_", 1)[0], (-np.inf, np.inf))
+            f = a[:, 0][np.isfinite(a[:, 0])]
+            if f.size and (np.percentile(f, 1) < lo or np.percentile(f, 99) > hi):
+                notes.append(
+                    f"warning: {j} flexion spans {f.min():.0f} to {f.max():.0f} deg, beyond the "
+                    f"anatomical {lo:.0f} to {hi:.0f} deg: the facing direction or the pose is "
+                    "probably wrong (with 6-D orientations a still pose cannot tell the facing: "
+                    "declare [calibration] facing, or use functional calibration)"
+                )
     dt = float(np.median(np.diff(t))) if T > 1 else 1.0 / 30.0
     t0 = time.perf_counter()
     flt = params.get("filter", "em-kf-fir" if method == "paper-a" else "none")
