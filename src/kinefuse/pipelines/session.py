@@ -4,26 +4,40 @@
 (:func:`kinefuse.session.load_session`): it loads the IMU file and the optional camera and
 reference, maps sensors to segments, estimates missing orientations from raw data, builds the
 skeleton, calibrates, runs the method, writes the joint positions as CSV (with per-sample source,
-filter branch and standard deviation) and TRC (OpenSim), and, with a reference, the metrics and
-an HTML report. :func:`evaluate_recording` runs one method on any loadable recording that has a
+filter branch and standard deviation) and TRC (OpenSim), the joint angles as CSV and ``.mot``
+(where the calibration gives segment frames), an HTML report, and, with a reference in the
+output's frame, the metrics. :func:`evaluate_recording` runs one method on any loadable recording that has a
 reference and returns the per-joint tables. :func:`process_recording` is the shared core.
 
 Method parameters (``[method.parameters]`` of the session file; all optional)
 -----------------------------------------------------------------------------
 ``calibration``
-    ``"static"``, ``"reference"``, ``"vision"`` or ``"none"`` (default: ``"vision"`` with a
-    camera, else ``"reference"`` with a reference, else ``"static"``).
+    ``"static"``, ``"functional"``, ``"vision"``, ``"reference"`` or ``"none"`` (default:
+    ``"vision"`` with a camera, else ``"static"``; the reference only when asked). The session
+    file's ``[calibration] method`` sets it.
 ``calibration_window_s``, ``calibration_start_s``
-    Calibration window, s (default 2 s from the first sample).
-``pose``
-    Static calibration pose, ``"n"`` (arms hanging, default) or ``"t"``.
+    Calibration window, s (default 2 s; static calibration searches the earliest still window
+    unless the start is given). ``[calibration] window_s`` / ``start_s``.
+``pose``, ``facing``, ``heading``, ``max_rate_rad_s``, ``max_acc_std_m_s2``
+    Static calibration: ``"n"`` (default) or ``"t"``; the subject's facing in the IMU world
+    frame (default north); ``"auto"`` (default: align 6-D sensors' headings at the pose),
+    ``"none"`` or ``"static"``; the stillness thresholds
+    (:func:`kinefuse.kinematics.find_still_window`).
 ``align``
     Camera/reference frame alignment of the calibration: ``"auto"`` (default), ``"none"``,
     ``"heading"``, ``"rotation"``.
-``root``
-    Stream giving the positions of the chain roots (shoulders, hips, or the proximal joint of
-    any segment without a mapped parent): ``"camera"`` or ``"reference"`` (default: the camera if
-    there is one, else the reference).
+``root``, ``root_position_m``
+    Where the chain's root joints (shoulders, hips, or the proximal joint of any segment
+    without a mapped parent) are: ``"fixed"`` (``root_position_m`` [x, y, z] m, or one per
+    root joint; default the origin), ``"pelvis"`` (hips from the pelvis IMU, mid-hip origin),
+    ``"vision"`` (``"camera"``) or ``"reference"``. Default: the camera if there is one, else
+    ``"pelvis"`` for leg chains with a pelvis IMU, else ``"fixed"``. ``[skeleton] root``.
+``axes``
+    Declared sensor axis along each segment (``[skeleton.axes]``): the sensor axes without
+    calibration, the check of the static pose otherwise.
+``align_to_reference``
+    ``"none"`` (default) or ``"rigid"``: Kabsch-align the estimates to the reference before
+    scoring (labelled). ``[reference] align``.
 ``rate_hz``
     Output/filter rate, Hz (default 30 for ``paper-a`` and the camera methods, else the root
     stream's own timeline).
@@ -37,8 +51,10 @@ Method parameters (``[method.parameters]`` of the session file; all optional)
     Paper B settings (:class:`kinefuse.pipelines.VisionParams`) for ``elm-fir``, ``elm-kf``,
     ``imu-only`` / ``camera-only`` with a camera, and ``kinefuse``.
 ``measured_lengths``
-    Use the segment lengths measured in the calibration window (reference/vision calibration;
-    default true). Explicit ``[skeleton.lengths]`` always win; ``body_height_m`` fills the rest.
+    Use the segment lengths measured in the calibration window (``[calibration]
+    lengths_from_data``; default true for ``"vision"``, false otherwise: the reference gives
+    lengths only when asked). Explicit ``[skeleton.lengths]`` always win; ``body_height_m``
+    (Winter 2009 ratios) fills the rest.
 ``orientation_params``
     VQF parameters for sensors without an orientation (:func:`kinefuse.orientation.estimate`).
 ``strict_units``
