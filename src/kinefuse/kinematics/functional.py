@@ -434,12 +434,12 @@ def functional_calibration(
         else:
             pairs[prox] = (None, s)  # fixed centre (paper A's shoulder)
         children = [skeleton.segments[k] for k, q in enumerate(skeleton.parents) if q == i]
-        if children:
+        if children and children[0] in recording.imu:
             pairs[dist] = (s, children[0])
-        elif beyond.get(dist) in recording.imu:
+        elif not children and beyond.get(dist) in recording.imu:
             pairs[dist] = (s, beyond[dist])
         else:
-            want = beyond.get(dist)
+            want = children[0] if children else beyond.get(dist)
             raise InputError(
                 f"segment {s!r}: locating its distal joint {dist!r} needs an IMU on the next segment"
                 + (f" ({want!r})" if want else " (pass distal_segments={joint: segment})")
