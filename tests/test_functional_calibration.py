@@ -105,6 +105,7 @@ def test_joint_centres_and_thigh_axis_match_the_truth(rng):
     assert cal.method == "functional" and cal.heading == "shared"
     assert abs(hip.heading_deg) < 1.0 and abs(knee.heading_deg) < 1.0
     assert min(cal.excitation_s2.values()) > 2.0
+    assert cal.hinge_prior == ()  # a ball-jointed knee is located along every axis
 
 
 def test_heading_offset_between_sensor_frames_is_estimated_and_aligned(rng):
@@ -129,6 +130,14 @@ def test_hinge_axis_from_angular_rates(rng):
     for j in (knee.axis_proximal, knee.axis_distal):  # the hinge is e1 in both frames
         assert np.degrees(np.arccos(min(abs(j[0]), 1.0))) < 1.5
     assert knee.hinge_rate_rad_s[0] > 10 * knee.hinge_rate_rad_s[1]
+    # a pure hinge: the knee centre cannot be located along the axis, so the hinge prior makes
+    # the thigh axis perpendicular to it; the truth is 1.4 deg off perpendicular here
+    assert knee.axial_excitation_s2 < 2.0 < knee.excitation_s2
+    assert cal.hinge_prior == ("knee_l",)
+    assert abs(cal.axes["thigh_l"] @ knee.axis_proximal) < 1e-9
+    d = np.array([0.05, 0.03, -0.22]) - np.array([0.04, 0.06, 0.18])
+    ang = np.degrees(np.arccos(cal.axes["thigh_l"] @ (d / np.linalg.norm(d))))
+    assert ang < 2.5
 
 
 def test_too_little_motion_names_the_joint(rng):
@@ -237,5 +246,5 @@ def test_neura_imu_only_experiment_regression(shared_data):
     assert np.mean([func[j] for j in ("knee_l", "knee_r", "ankle_l", "ankle_r")]) == pytest.approx(
         0.0548, abs=5e-4
     )
-    assert func["flexion_r_deg"] == pytest.approx(3.52, abs=0.05)
+    assert func["flexion_r_deg"] == pytest.approx(3.29, abs=0.05)
     assert len(out["tables"]) == 1

@@ -39,6 +39,7 @@ __all__ = [
     "CUTOFF_HZ",
     "DISTAL_SEGMENTS",
     "GRAVITY_M_S2",
+    "HINGE_JOINTS",
     "MIN_EXCITATION_S2",
     "FunctionalCalibration",
     "JointFit",
@@ -54,6 +55,9 @@ CUTOFF_HZ = 6.0
 #: accelerometer error of 0.05 m/s² (a few mg, typical of a calibrated MEMS accelerometer) maps to
 #: a joint-position error of about ``0.05 / excitation`` m: 2 s⁻² bounds it near 2.5 cm.
 MIN_EXCITATION_S2 = 2.0
+
+#: Joints whose flexion axis is taken as perpendicular to both adjacent segment axes.
+HINGE_JOINTS = ("knee_l", "knee_r")
 
 #: Gravity used by the one-sensor (fixed-centre) model, m/s².
 GRAVITY_M_S2 = 9.81
@@ -90,6 +94,9 @@ class JointFit:
         one large value).
     excitation_s2 : float
         The excitation measure (Notes of :func:`functional_calibration`), s⁻².
+    axial_excitation_s2 : float
+        Excitation along the hinge axis (the centre moved along it in both frames), s⁻²: below
+        the threshold the centre's position along the axis is not observable.
     residual_m_s2 : float
         RMS of the joint-acceleration mismatch after the fit, m/s².
     n_samples : int
@@ -106,6 +113,7 @@ class JointFit:
     axis_distal: np.ndarray
     hinge_rate_rad_s: np.ndarray
     excitation_s2: float
+    axial_excitation_s2: float
     residual_m_s2: float
     n_samples: int
 
@@ -126,6 +134,9 @@ class FunctionalCalibration(Calibration):
     heading : str
         ``"shared"`` (frames taken as one; the estimates only reported) or ``"estimated"``
         (:func:`align_headings` should be applied before using the orientations together).
+    hinge_prior : tuple of str
+        Hinge joints whose centre was not observable along the axis, so that the adjacent
+        segment axes were made perpendicular to the hinge axis.
     cutoff_hz : float
         Low-pass cut-off used, Hz.
     """
@@ -134,6 +145,7 @@ class FunctionalCalibration(Calibration):
     excitation_s2: Mapping[str, float] = field(default_factory=dict)
     heading_deg: Mapping[str, float] = field(default_factory=dict)
     heading: str = "shared"
+    hinge_prior: tuple[str, ...] = ()
     cutoff_hz: float = CUTOFF_HZ
 
 
@@ -220,19 +232,24 @@ def _excitation(sig: _Signals) -> float:
 
 
 def _hinge_axes(A: _Signals | None, B: _Signals, ok: np.ndarray):
-    """Principal axis of the relative angular velocity in B's (and A's) frame [Seel 2012 §III]."""
+    """Hinge axis in A's and B's frame and the RMS relative rates about the principal axes.
+
+    Axis: the invariant direction of the relative rotation ``R_Aᵀ R_B`` (the direction part of
+    Ehrig et al. 2007's SARA): the top singular vectors of ``mean_k R_A(k)ᵀ R_B(k)``. Rates: the
+    principal RMS values of the relative angular velocity ``R_Bᵀ(R_B ω_B − R_A ω_A)``.
+    """
     wB = np.einsum("kij,kj->ki", B.R, B.gyr)
     wrel = wB if A is None else wB - np.einsum("kij,kj->ki", A.R, A.gyr)
-    wrel = wrel[ok]
-    inB = np.einsum("kji,kj->ki", B.R[ok], wrel)
+    inB = np.einsum("kji,kj->ki", B.R[ok], wrel[ok])
     ev, vec = np.linalg.eigh(inB.T @ inB / max(inB.shape[0], 1))
-    jB = vec[:, -1]
     rates = np.sqrt(np.clip(ev[::-1], 0.0, None))
     if A is None:
-        return None, jB, rates
-    jw = np.einsum("kij,j->ki", B.R[ok], jB)
-    jA = np.einsum("kji,kj->i", A.R[ok], jw)
-    jA = jA / max(np.linalg.norm(jA), 1e-12)
+        return None, vec[:, -1], rates
+    M = np.einsum("kji,kjl->il", A.R[ok], B.R[ok]) / max(int(np.sum(ok)), 1)
+    U, _, Vt = np.linalg.svd(M)
+    jA, jB = U[:, 0], Vt[0]
+    if np.dot(np.einsum("ij,j->i", M, jB), jA) < 0:
+        jB = -jB
     return jA, jB, rates
 
 
@@ -280,6 +297,14 @@ def _fit_joint(joint, prox, dist, A: _Signals | None, B: _Signals, min_excitatio
     resid = float(np.sqrt(np.mean(sol.fun**2)))
     jA, jB, rates = _hinge_axes(A, B, ok)
     if A is None:
+        M = np.einsum("kji,kjl->il", KB, KB) / n
+        axial = float(np.sqrt(max(jB @ M @ jB, 0.0)))
+    else:
+        # the centre moved along the hinge in both frames at once: (j_A, j_B)/√2
+        v = np.r_[jA, jB] / np.sqrt(2.0)
+        Gv = Amat.reshape(n, 3, 6) @ v
+        axial = float(np.sqrt(np.mean(np.sum(Gv**2, axis=1))))
+    if A is None:
         rA, rB, psi = None, sol.x[:3], 0.0
     else:
         rA, rB, psi = sol.x[:3], sol.x[3:6], float(np.arctan2(np.sin(sol.x[6]), np.cos(sol.x[6])))
@@ -294,6 +319,7 @@ def _fit_joint(joint, prox, dist, A: _Signals | None, B: _Signals, min_excitatio
         axis_distal=jB,
         hinge_rate_rad_s=rates,
         excitation_s2=exc_joint,
+        axial_excitation_s2=axial,
         residual_m_s2=resid,
         n_samples=n,
     ), exc
@@ -309,6 +335,7 @@ def functional_calibration(
     segments: Sequence[str] | None = None,
     distal_segments: Mapping[str, str] | None = None,
     heading: str = "auto",
+    hinge_joints: Sequence[str] | None = None,
     cutoff_hz: float = CUTOFF_HZ,
     min_excitation_s2: float = MIN_EXCITATION_S2,
 ) -> FunctionalCalibration:
@@ -415,6 +442,7 @@ def functional_calibration(
     for s in segs:
         skeleton.index(s)
     beyond = dict(DISTAL_SEGMENTS if distal_segments is None else distal_segments)
+    hinges = set(HINGE_JOINTS if hinge_joints is None else hinge_joints)
 
     # the two sensors of each joint the segments need
     pairs: dict[str, tuple[str | None, str]] = {}
@@ -469,10 +497,24 @@ def functional_calibration(
         f = fits[joint]
         return f.r_distal_m if f.distal == seg else f.r_proximal_m
 
-    axes, lengths = {}, {}
+    def hinge_in(seg: str, joint: str) -> np.ndarray:
+        f = fits[joint]
+        return f.axis_distal if f.distal == seg else f.axis_proximal
+
+    axes, lengths, prior = {}, {}, set()
     for s in segs:
         i = skeleton.index(s)
         d = r_in(s, skeleton.distal[i]) - r_in(s, skeleton.proximal[i])
+        for jn in (skeleton.proximal[i], skeleton.distal[i]):
+            f = fits[jn]
+            if (
+                jn in hinges
+                and hinge_in(s, jn) is not None
+                and f.axial_excitation_s2 < min_excitation_s2
+            ):
+                h = hinge_in(s, jn)
+                d = d - h * np.dot(d, h)
+                prior.add(jn)
         n = float(np.linalg.norm(d))
         if not np.isfinite(n) or n < 1e-3:
             raise InputError(
@@ -500,6 +542,7 @@ def functional_calibration(
         excitation_s2={j: f.excitation_s2 for j, f in fits.items()},
         heading_deg={s: float((v + 180.0) % 360.0 - 180.0) for s, v in head.items()},
         heading=heading,
+        hinge_prior=tuple(sorted(prior)),
         cutoff_hz=float(cutoff_hz),
     )
 
