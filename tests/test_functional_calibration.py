@@ -7,6 +7,8 @@ differences (error O(h²), far below the noise added) and decimated to 100 Hz.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -248,3 +250,30 @@ def test_neura_imu_only_experiment_regression(shared_data):
     )
     assert func["flexion_r_deg"] == pytest.approx(3.29, abs=0.05)
     assert len(out["tables"]) == 1
+
+
+def test_xio_lower_body_real_data_properties(shared_data):
+    """x-IMU3 lower body (real sensors, no reference): every joint excited, legs alike."""
+    from kinefuse.io import load
+
+    rec = load(shared_data / "xio_imu_mocap_lower_body")
+    cal = calibrate(rec, lower_body(height_m=1.75), "functional")
+    assert min(cal.excitation_s2.values()) > 2.0
+    for side in ("thigh", "shank"):
+        left, right = cal.lengths_m[f"{side}_l"], cal.lengths_m[f"{side}_r"]
+        assert 0.3 < left < 0.55 and 0.3 < right < 0.55
+        assert abs(left - right) < 0.04
+    assert cal.hinge_prior == ()
+
+
+def test_docs_example_runs(shared_data):
+    import re
+
+    from kinefuse.conventions import __file__ as _conv
+
+    doc = (Path(_conv).resolve().parents[2] / "docs" / "calibration_functional.md").read_text()
+    code = re.search(r"```python\n(.*?)```", doc, re.S).group(1)
+    code = code.replace('"../shared/data', f'"{shared_data}')
+    ns: dict = {}
+    exec(compile(code, "calibration_functional.md", "exec"), ns)
+    assert ns["est"].position("ankle_r").shape == (955, 3)
