@@ -249,7 +249,7 @@ def test_neura_imu_only_experiment_regression(shared_data):
         0.0548, abs=5e-4
     )
     assert func["flexion_r_deg"] == pytest.approx(3.29, abs=0.05)
-    assert len(out["tables"]) == 1
+    assert len(out["tables"]) == 2
 
 
 def test_xio_lower_body_real_data_properties(shared_data):

@@ -86,6 +86,12 @@ class JointFit:
     heading_deg : float
         Heading (rotation about the vertical) taking the proximal sensor's world frame onto the
         distal sensor's, deg (0 for the one-sensor model).
+    heading_sd_deg : float
+        Its standard deviation from the fit (Gauss-Newton covariance), deg. It only counts the
+        noise: where the rigid model is violated (soft tissue), ``heading_deg`` also absorbs
+        model error and can be far off while ``heading_sd_deg`` is small.
+    r_sd_m : float
+        Largest standard deviation of the sensor-to-joint vector components, m (same caveat).
     axis_proximal, axis_distal : ndarray, shape (3,)
         Dominant axis of the relative angular velocity (the hinge axis for a hinge joint) in each
         sensor frame, signs matched in the world frame (``axis_proximal`` None without proximal).
@@ -109,6 +115,8 @@ class JointFit:
     r_proximal_m: np.ndarray | None
     r_distal_m: np.ndarray
     heading_deg: float
+    heading_sd_deg: float
+    r_sd_m: float
     axis_proximal: np.ndarray | None
     axis_distal: np.ndarray
     hinge_rate_rad_s: np.ndarray
@@ -253,7 +261,7 @@ def _hinge_axes(A: _Signals | None, B: _Signals, ok: np.ndarray):
     return jA, jB, rates
 
 
-def _fit_joint(joint, prox, dist, A: _Signals | None, B: _Signals, min_excitation):
+def _fit_joint(joint, prox, dist, A: _Signals | None, B: _Signals, min_excitation, n_eff_ratio):
     ok = B.ok if A is None else A.ok & B.ok
     n = int(np.count_nonzero(ok))
     # ---- excitation
@@ -304,6 +312,13 @@ def _fit_joint(joint, prox, dist, A: _Signals | None, B: _Signals, min_excitatio
         v = np.r_[jA, jB] / np.sqrt(2.0)
         Gv = Amat.reshape(n, 3, 6) @ v
         axial = float(np.sqrt(np.mean(np.sum(Gv**2, axis=1))))
+    # standard deviations from the Gauss-Newton covariance, residuals taken as white over the
+    # effective samples (the low-pass leaves about 2 f_c / f_s independent samples per sample)
+    J = sol.jac
+    dof = max(n_eff_ratio * sol.fun.size - J.shape[1], 1.0)
+    s2 = float(np.sum(sol.fun**2)) * n_eff_ratio / dof
+    cov = s2 * np.linalg.pinv(J.T @ J) / n_eff_ratio
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     if A is None:
         rA, rB, psi = None, sol.x[:3], 0.0
     else:
@@ -315,6 +330,8 @@ def _fit_joint(joint, prox, dist, A: _Signals | None, B: _Signals, min_excitatio
         r_proximal_m=rA,
         r_distal_m=rB,
         heading_deg=float(np.degrees(psi)),
+        heading_sd_deg=0.0 if A is None else float(np.degrees(sd[6])),
+        r_sd_m=float(np.max(sd[:6] if A is not None else sd[:3])),
         axis_proximal=jA,
         axis_distal=jB,
         hinge_rate_rad_s=rates,
@@ -487,10 +504,12 @@ def functional_calibration(
     if heading == "auto":
         heading = "shared" if len({st.frame for st in streams.values()}) == 1 else "estimate"
 
+    fs = 1.0 / float(np.median(np.diff(t)))
+    n_eff_ratio = min(1.0, 2.0 * cutoff_hz / fs) if cutoff_hz else 1.0
     fits: dict[str, JointFit] = {}
     for joint, (a, b) in pairs.items():
         fits[joint], _ = _fit_joint(
-            joint, a, b, None if a is None else sig[a], sig[b], min_excitation_s2
+            joint, a, b, None if a is None else sig[a], sig[b], min_excitation_s2, n_eff_ratio
         )
 
     def r_in(seg: str, joint: str) -> np.ndarray:
