@@ -233,23 +233,33 @@ def test_neura_walk_real_data_properties(shared_data):
         assert r[0] > 1.5 * r[1]
 
 
-def test_neura_imu_only_experiment_regression(shared_data):
-    from kinefuse.pipelines.experiments import run_experiment
+def test_neura_imu_only_experiment_through_cli(shared_data, tmp_path):
+    import json
 
-    out = run_experiment("neura-imu-only", shared_data, quiet=True)
-    rows = {r["label"]: r for r in out["results"]["rows"]}
+    from typer.testing import CliRunner
+
+    from kinefuse import cli
+
+    target = tmp_path / "neura.json"
+    res = CliRunner().invoke(
+        cli.app,
+        ["experiment", "neura-imu-only", "--data", str(shared_data), "--json", str(target)],
+    )
+    assert res.exit_code == 0, res.output
+    assert "FROM REFERENCE" in res.output and "Functional calibration from the walk" in res.output
+    rows = {r["label"]: r for r in json.loads(target.read_text())["results"]["rows"]}
     func = rows["functional (IMU only), tape lengths"]
     ref = rows["FROM REFERENCE: first Vicon second (axes, lengths)"]
+    joints = ("knee_l", "knee_r", "ankle_l", "ankle_r")
     # the reference row is examples/neura_chain.py's chain: 3.99 cm mean
-    assert np.mean([ref[j] for j in ("knee_l", "knee_r", "ankle_l", "ankle_r")]) == pytest.approx(
-        0.0399, abs=5e-4
-    )
+    assert np.mean([ref[j] for j in joints]) == pytest.approx(0.0399, abs=5e-4)
     # fixed expected values of the IMU-only chain (regression, not a target)
-    assert np.mean([func[j] for j in ("knee_l", "knee_r", "ankle_l", "ankle_r")]) == pytest.approx(
-        0.0548, abs=5e-4
-    )
+    assert np.mean([func[j] for j in joints]) == pytest.approx(0.0548, abs=5e-4)
     assert func["flexion_r_deg"] == pytest.approx(3.29, abs=0.05)
-    assert len(out["tables"]) == 2
+    from kinefuse.pipelines.experiments import run_experiment
+
+    with pytest.raises(InputError, match="no neura_sparse_sample folder"):
+        run_experiment("neura-imu-only", tmp_path, quiet=True)
 
 
 def test_xio_lower_body_real_data_properties(shared_data):
