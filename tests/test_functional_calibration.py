@@ -287,3 +287,36 @@ def test_docs_example_runs(shared_data):
     ns: dict = {}
     exec(compile(code, "calibration_functional.md", "exec"), ns)
     assert ns["est"].position("ankle_r").shape == (955, 3)
+
+
+def test_cmu_virtual_walk_tuning_set(shared_data):
+    """The tuning set of the defaults (docs): CMU 02_01 walk, virtual IMUs with sensor errors."""
+    from kinefuse.io.cmu import load_motion_asf_amc
+    from kinefuse.sim import virtual_recording
+
+    root = shared_data / "cmu_mocap" / "asfamc" / "02"
+    motion = load_motion_asf_amc(root / "02_01.amc", root / "02.asf")
+    segs = ("pelvis", "thigh_l", "thigh_r", "shank_l", "shank_r", "foot_l", "foot_r")
+    rec = virtual_recording(motion, camera=None, segments=segs, seed=1)
+    cal = calibrate(rec, lower_body(height_m=1.7), "functional")
+    truth = rec.metadata["imu_truth"]
+    for s, a in cal.axes.items():
+        q = truth[s]["q_segment_from_sensor"]
+        a_true = Rotation.from_quat(q, scalar_first=True).inv().apply([0.0, 1.0, 0.0])
+        assert np.degrees(np.arccos(np.clip(a @ a_true, -1, 1))) < 2.5, s
+        assert cal.lengths_m[s] == pytest.approx(rec.metadata["segment_length_m"][s], abs=0.025)
+    assert cal.hinge_prior == ("knee_l", "knee_r")  # CMU knees are 1-DoF hinges
+
+
+def test_knee_flexion_closed_form(rng):
+    from kinefuse.pipelines.neura_imu_only import knee_flexion_deg
+
+    theta = np.radians(5.0 + 60.0 * rng.random(200))
+    Rt = Rotation.random(200, random_state=1)
+    Rs = Rt * Rotation.from_rotvec(np.outer(theta, [1.0, 0.0, 0.0]))
+    down = np.array([0.0, 0.0, -1.0])
+    f = knee_flexion_deg(Rt.as_matrix(), Rs.as_matrix(), down, down, [1.0, 0.0, 0.0])
+    np.testing.assert_allclose(f, np.degrees(theta), atol=1e-9)
+    # the flexion-axis sign does not matter (the walk's mean flexion is made positive)
+    f2 = knee_flexion_deg(Rt.as_matrix(), Rs.as_matrix(), down, down, [-1.0, 0.0, 0.0])
+    np.testing.assert_allclose(f2, f, atol=1e-9)
