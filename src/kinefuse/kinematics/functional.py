@@ -2,7 +2,8 @@
 
 Joint centres from the accelerations and angular rates of the two sensors next to each joint
 (Seel, Schauer & Raisch 2012; the one-sensor, still-proximal form of Crabolu et al. 2017 where
-the proximal segment has no sensor), hinge axes from angular rates (Seel et al. 2012/2014), and a
+the proximal segment has no sensor), hinge axes from the relative rotation (SARA's direction,
+Ehrig et al. 2007) with the angular-rate hinge test of Seel et al. 2012/2014, and a
 heading offset between adjacent sensors' world frames estimated from the same joint constraint.
 Each segment's axis in its sensor frame is the direction from its proximal to its distal joint
 centre, and its length their distance.
@@ -15,6 +16,8 @@ T. Seel, J. Raisch, T. Schauer, "IMU-based joint angle measurement for gait anal
 14(4):6891-6909, 2014.
 M. Crabolu et al., centre-of-rotation estimation from one magneto-inertial sensor with the
 proximal segment still, J. Biomech. 2017.
+R. M. Ehrig et al., "A survey of formal methods for determining functional joint axes",
+J. Biomech. 40(10):2150-2157, 2007 (SARA).
 D. A. Winter, "Biomechanics and Motor Control of Human Movement", 4th ed., Wiley 2009, §2.2
 (6 Hz low-pass for gait kinematics).
 """
