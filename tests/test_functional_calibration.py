@@ -320,3 +320,20 @@ def test_knee_flexion_closed_form(rng):
     # the flexion-axis sign does not matter (the walk's mean flexion is made positive)
     f2 = knee_flexion_deg(Rt.as_matrix(), Rs.as_matrix(), down, down, [-1.0, 0.0, 0.0])
     np.testing.assert_allclose(f2, f, atol=1e-9)
+
+
+def test_norm_constraint_needs_no_common_heading(rng):
+    """Seel 2012's orientation-free form: a drifting relative heading does not matter."""
+    rec, truth = _leg(rng)
+    st = rec.imu["shank_l"]
+    drift = Rotation.from_rotvec(np.outer(np.radians(3.0 * st.t_s), [0.0, 0.0, 1.0]))
+    q = (drift * Rotation.from_quat(st.q_world_from_sensor, scalar_first=True)).as_quat(
+        scalar_first=True
+    )
+    rec.imu["shank_l"] = ImuStream(**{**st.__dict__, "q_world_from_sensor": q})
+    cal = functional_calibration(rec, _thigh_skeleton(), segments=["thigh_l"], constraint="norm")
+    np.testing.assert_allclose(cal.joints["knee_l"].r_proximal_m, truth["thigh_knee"], atol=0.01)
+    np.testing.assert_allclose(cal.joints["knee_l"].r_distal_m, truth["shank_knee"], atol=0.01)
+    assert np.isnan(cal.joints["knee_l"].heading_deg) and cal.heading_deg == {}
+    with pytest.raises(InputError, match="constraint"):
+        functional_calibration(rec, _thigh_skeleton(), constraint="magnitude")

@@ -141,7 +141,8 @@ class FunctionalCalibration(Calibration):
         Excitation per joint, s⁻².
     heading_deg : dict of str -> float
         Heading of each sensor's world frame relative to the first sensor of its chain (the
-        root segment's when it has an IMU), accumulated over the joints, deg.
+        root segment's when it has an IMU), accumulated over the joints, deg (empty with
+        ``constraint="norm"``).
     heading : str
         ``"shared"`` (frames taken as one; the estimates only reported) or ``"estimated"``
         (:func:`align_headings` should be applied before using the orientations together).
@@ -264,7 +265,9 @@ def _hinge_axes(A: _Signals | None, B: _Signals, ok: np.ndarray):
     return jA, jB, rates
 
 
-def _fit_joint(joint, prox, dist, A: _Signals | None, B: _Signals, min_excitation, n_eff_ratio):
+def _fit_joint(
+    joint, prox, dist, A: _Signals | None, B: _Signals, min_excitation, n_eff_ratio, constraint
+):
     ok = B.ok if A is None else A.ok & B.ok
     n = int(np.count_nonzero(ok))
     # ---- excitation
@@ -304,6 +307,14 @@ def _fit_joint(joint, prox, dist, A: _Signals | None, B: _Signals, min_excitatio
         Amat = np.concatenate([GA, -GB], axis=2).reshape(-1, 6)
         b = (wB0 - wA0).reshape(-1)
         x0 = np.r_[np.linalg.lstsq(Amat, b, rcond=None)[0], 0.0]
+        if constraint == "norm":
+            # Seel et al. 2012 Eq. (8) as published: orientation-free, immune to heading drift
+            def fun(x):
+                return np.linalg.norm(
+                    aA + np.einsum("kij,j->ki", KA, x[:3]), axis=1
+                ) - np.linalg.norm(aB + np.einsum("kij,j->ki", KB, x[3:6]), axis=1)
+
+            x0 = x0[:6]
     sol = least_squares(fun, x0, method="trf", x_scale="jac")
     resid = float(np.sqrt(np.mean(sol.fun**2)))
     jA, jB, rates = _hinge_axes(A, B, ok)
@@ -325,7 +336,8 @@ def _fit_joint(joint, prox, dist, A: _Signals | None, B: _Signals, min_excitatio
     if A is None:
         rA, rB, psi = None, sol.x[:3], 0.0
     else:
-        rA, rB, psi = sol.x[:3], sol.x[3:6], float(np.arctan2(np.sin(sol.x[6]), np.cos(sol.x[6])))
+        rA, rB = sol.x[:3], sol.x[3:6]
+        psi = float(np.arctan2(np.sin(sol.x[6]), np.cos(sol.x[6]))) if sol.x.size > 6 else np.nan
     return JointFit(
         joint=joint,
         proximal=prox,
@@ -333,7 +345,7 @@ def _fit_joint(joint, prox, dist, A: _Signals | None, B: _Signals, min_excitatio
         r_proximal_m=rA,
         r_distal_m=rB,
         heading_deg=float(np.degrees(psi)),
-        heading_sd_deg=0.0 if A is None else float(np.degrees(sd[6])),
+        heading_sd_deg=0.0 if A is None else float(np.degrees(sd[6])) if sd.size > 6 else np.nan,
         r_sd_m=float(np.max(sd[:6] if A is not None else sd[:3])),
         axis_proximal=jA,
         axis_distal=jB,
@@ -354,8 +366,10 @@ def functional_calibration(
     window_s: float | None = None,
     segments: Sequence[str] | None = None,
     distal_segments: Mapping[str, str] | None = None,
+    proximal_segments: Mapping[str, str] | None = None,
     heading: str = "auto",
     hinge_joints: Sequence[str] | None = None,
+    constraint: str = "vector",
     cutoff_hz: float = CUTOFF_HZ,
     min_excitation_s2: float = MIN_EXCITATION_S2,
 ) -> FunctionalCalibration:
@@ -376,6 +390,10 @@ def functional_calibration(
     distal_segments : mapping joint -> segment, optional
         The IMU beyond a distal joint no skeleton segment starts at (default
         :data:`DISTAL_SEGMENTS`).
+    proximal_segments : mapping joint -> segment, optional
+        The IMU proximal to a root joint, overriding the skeleton's ``root_segment`` (e.g.
+        ``{"shoulder_r": "chest"}`` for paper A's chain with a trunk IMU). A root joint with
+        neither is taken as still (one-sensor model).
     heading : {"auto", "shared", "estimate"}
         Whether the IMU world frames are one frame. ``"shared"``: yes; the heading offsets the
         joint fits find are reported only. ``"estimate"``: they differ by a heading (6-D fusion,
@@ -387,6 +405,11 @@ def functional_calibration(
         Joints whose flexion axis is anatomically perpendicular to both adjacent segment axes
         (default :data:`HINGE_JOINTS`, the knees); used only where the data cannot locate the
         centre along the axis (Notes).
+    constraint : {"vector", "norm"}
+        ``"vector"``: the joint-acceleration equality in the world frame with a free constant
+        heading (Notes). ``"norm"``: Seel et al. 2012's orientation-free form
+        ``‖a_A + K_A r_A‖ = ‖a_B + K_B r_B‖``, for long recordings whose relative heading
+        drifts (6-D fusion); no heading is estimated (``heading_deg`` NaN).
     cutoff_hz : float
         Zero-phase low-pass (2nd-order Butterworth run forwards and backwards) applied to gyro
         and accelerometer, Hz (default :data:`CUTOFF_HZ`, Winter 2009).
@@ -470,6 +493,8 @@ def functional_calibration(
         raise InputError(f"expected recording as a Recording, got {type(recording).__name__}")
     if not isinstance(skeleton, Skeleton):
         raise InputError(f"expected skeleton as a Skeleton, got {type(skeleton).__name__}")
+    if constraint not in ("vector", "norm"):
+        raise InputError(f"expected constraint in ('vector', 'norm'), got {constraint!r}")
     if heading not in ("auto", "shared", "estimate"):
         raise InputError(f"expected heading in ('auto', 'shared', 'estimate'), got {heading!r}")
     if not (np.isfinite(min_excitation_s2) and min_excitation_s2 >= 0):
@@ -486,8 +511,16 @@ def functional_calibration(
         i = skeleton.index(s)
         prox, dist = skeleton.proximal[i], skeleton.distal[i]
         p = skeleton.parents[i]
+        before = (proximal_segments or {}).get(prox)
         if p >= 0:
             pairs[prox] = (skeleton.segments[p], s)
+        elif before is not None:
+            if before not in recording.imu:
+                raise InputError(
+                    f"proximal_segments[{prox!r}] = {before!r}: no such IMU; the recording has "
+                    f"{sorted(recording.imu)}"
+                )
+            pairs[prox] = (before, s)
         elif skeleton.root_segment is not None and skeleton.root_segment in recording.imu:
             pairs[prox] = (skeleton.root_segment, s)
         elif skeleton.root_segment is not None:
@@ -528,7 +561,14 @@ def functional_calibration(
     fits: dict[str, JointFit] = {}
     for joint, (a, b) in pairs.items():
         fits[joint], _ = _fit_joint(
-            joint, a, b, None if a is None else sig[a], sig[b], min_excitation_s2, n_eff_ratio
+            joint,
+            a,
+            b,
+            None if a is None else sig[a],
+            sig[b],
+            min_excitation_s2,
+            n_eff_ratio,
+            constraint,
         )
 
     def r_in(seg: str, joint: str) -> np.ndarray:
@@ -569,6 +609,8 @@ def functional_calibration(
         for joint, (a, b) in pairs.items():
             if a in head and b not in head:
                 head[b] = head[a] + fits[joint].heading_deg
+    if constraint == "norm":
+        head = {}  # the orientation-free form estimates no heading
     return FunctionalCalibration(
         axes=axes,
         lengths_m=lengths,
