@@ -337,3 +337,12 @@ def test_norm_constraint_needs_no_common_heading(rng):
     assert np.isnan(cal.joints["knee_l"].heading_deg) and cal.heading_deg == {}
     with pytest.raises(InputError, match="constraint"):
         functional_calibration(rec, _thigh_skeleton(), constraint="magnitude")
+
+
+def test_implausible_functional_length_warns(rng):
+    from kinefuse.exceptions import NumericalWarning
+
+    rec, _ = _leg(rng, T=6.0)
+    sk = lower_body(lengths={"thigh_l": 0.6, "shank_l": 0.43, "thigh_r": 0.6, "shank_r": 0.43})
+    with pytest.warns(NumericalWarning, match="segment 'thigh_l' spans 0.40"):
+        functional_calibration(rec, sk, segments=["thigh_l"])

@@ -24,6 +24,7 @@ D. A. Winter, "Biomechanics and Motor Control of Human Movement", 4th ed., Wiley
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
@@ -31,7 +32,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import butter, sosfiltfilt
 
-from kinefuse.exceptions import InputError
+from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.io.recording import ImuStream, Recording
 from kinefuse.kinematics.calibration import Calibration, _imu_orientation
 from kinefuse.kinematics.forward import as_rotation_matrices
@@ -43,6 +44,7 @@ __all__ = [
     "DISTAL_SEGMENTS",
     "GRAVITY_M_S2",
     "HINGE_JOINTS",
+    "LENGTH_WARN_FRACTION",
     "MIN_EXCITATION_S2",
     "FunctionalCalibration",
     "JointFit",
@@ -61,6 +63,10 @@ MIN_EXCITATION_S2 = 2.0
 
 #: Joints whose flexion axis is taken as perpendicular to both adjacent segment axes.
 HINGE_JOINTS = ("knee_l", "knee_r")
+
+#: A functional length farther than this fraction from the skeleton's (tape or anthropometric)
+#: length raises a warning: height-scaled tables predict segment lengths within about 10 %.
+LENGTH_WARN_FRACTION = 0.25
 
 #: Gravity used by the one-sensor (fixed-centre) model, m/s².
 GRAVITY_M_S2 = 9.81
@@ -482,6 +488,12 @@ def functional_calibration(
       ``min_excitation_s2``.
     - One-sensor model: only valid while the proximal segment is still.
 
+    Warns
+    -----
+    NumericalWarning
+        A segment whose functional length differs from the skeleton's by more than
+        :data:`LENGTH_WARN_FRACTION` (its axis is then suspect too).
+
     Raises
     ------
     ValueError (:class:`kinefuse.exceptions.InputError`)
@@ -600,6 +612,16 @@ def functional_calibration(
                 f"{skeleton.distal[i]!r} coincide ({n:.3g} m apart); the movement does not separate them"
             )
         axes[s], lengths[s] = d / n, n
+        expect = skeleton.lengths_m[i]
+        if expect > 0 and abs(n - expect) > LENGTH_WARN_FRACTION * expect:
+            warnings.warn(
+                f"functional calibration: segment {s!r} spans {n:.3f} m between its joint centres, "
+                f"the skeleton says {expect:.3f} m ({100 * (n / expect - 1):+.0f} %); its centres, "
+                "hence its axis, may be wrong (soft tissue, sensor saturation, a joint that is not "
+                "a centre of rotation, or too little motion)",
+                NumericalWarning,
+                stacklevel=2,
+            )
 
     # heading of each sensor's world frame relative to its chain's first sensor
     distal_side = {b for _, b in pairs.values()}
