@@ -198,9 +198,11 @@ def _fill(x: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class _Signals:
     R: np.ndarray  # (K, 3, 3) world_from_sensor
-    K: np.ndarray  # (K, 3, 3) [ω̇]× + [ω]×²
-    acc: np.ndarray  # (K, 3)
-    gyr: np.ndarray  # (K, 3)
+    K: np.ndarray  # (K, 3, 3) LP([ω̇]× + [ω]×²), sensor frame
+    acc: np.ndarray  # (K, 3) LP(a), sensor frame
+    Kw: np.ndarray  # (K, 3, 3) LP(R K), world frame
+    accw: np.ndarray  # (K, 3) LP(R a), world frame
+    gyr: np.ndarray  # (K, 3) LP(ω)
     ok: np.ndarray  # (K,)
 
 
@@ -229,17 +231,31 @@ def _signals(st: ImuStream, segment: str, t: np.ndarray, cutoff_hz: float) -> _S
             f"IMU {segment!r}: expected at least 10 samples with orientation, acc and gyro in the "
             f"calibration window, got {int(np.count_nonzero(ok))}"
         )
+    R = np.where(ok[:, None, None], R, np.eye(3))
+    acc, gyr = _fill(acc), _fill(gyr)
     fs = 1.0 / float(np.median(np.diff(t)))
     if cutoff_hz is not None and cutoff_hz < 0.45 * fs and t.size > 15:
         sos = butter(2, cutoff_hz, fs=fs, output="sos")
-        acc = sosfiltfilt(sos, _fill(acc), axis=0)
-        gyr = sosfiltfilt(sos, _fill(gyr), axis=0)
+
+        def lp(x):
+            return sosfiltfilt(sos, x, axis=0)
     else:
-        acc, gyr = _fill(acc), _fill(gyr)
-    wdot = np.gradient(gyr, t, axis=0)
+
+        def lp(x):
+            return x
+
+    # the model a + K r is linear in r: filtering both sides keeps it exact (the same linear
+    # filter on the measured acceleration and on the regressor K, not on K's inputs)
     W = _skew(gyr)
+    K_raw = W @ W + _skew(np.gradient(gyr, t, axis=0))
     return _Signals(
-        R=np.where(ok[:, None, None], R, np.eye(3)), K=W @ W + _skew(wdot), acc=acc, gyr=gyr, ok=ok
+        R=R,
+        K=lp(K_raw),
+        acc=lp(acc),
+        Kw=lp(R @ K_raw),
+        accw=lp(np.einsum("kij,kj->ki", R, acc)),
+        gyr=lp(gyr),
+        ok=ok,
     )
 
 
@@ -285,23 +301,21 @@ def _fit_joint(
             f"{exc_joint:.3g} s^-2 < {min_excitation:g} s^-2 required; record movement of that joint "
             "(several cycles, in more than one direction for a ball joint) or use a static calibration"
         )
-    RB, KB, aB = B.R[ok], B.K[ok], B.acc[ok]
+    KB, aB = B.K[ok], B.acc[ok]
+    wB0, GB = B.accw[ok], B.Kw[ok]
     if A is None:
         # Crabolu et al. 2017: the centre is still, its specific force is gravity: R_B (a_B + K_B r) = g
         g = np.array([0.0, 0.0, GRAVITY_M_S2])
 
         def fun(x):
-            return (np.einsum("kij,kj->ki", RB, aB + KB @ x) - g).ravel()
+            return (wB0 + GB @ x - g).ravel()
 
-        Amat = np.einsum("kij,kjl->kil", RB, KB).reshape(-1, 3)
-        b = (g - np.einsum("kij,kj->ki", RB, aB)).reshape(-1)
+        Amat = GB.reshape(-1, 3)
+        b = (g - wB0).reshape(-1)
         x0 = np.linalg.lstsq(Amat, b, rcond=None)[0]
     else:
-        RA, KA, aA = A.R[ok], A.K[ok], A.acc[ok]
-        wA0 = np.einsum("kij,kj->ki", RA, aA)
-        wB0 = np.einsum("kij,kj->ki", RB, aB)
-        GA = np.einsum("kij,kjl->kil", RA, KA)
-        GB = np.einsum("kij,kjl->kil", RB, KB)
+        KA, aA = A.K[ok], A.acc[ok]
+        wA0, GA = A.accw[ok], A.Kw[ok]
 
         # Seel et al. 2012 Eq. (8) in vector form, with the world frames allowed to differ by a
         # heading psi: Rz(psi) R_A (a_A + K_A r_A) = R_B (a_B + K_B r_B)
@@ -417,8 +431,11 @@ def functional_calibration(
         ``‖a_A + K_A r_A‖ = ‖a_B + K_B r_B‖``, for long recordings whose relative heading
         drifts (6-D fusion); no heading is estimated (``heading_deg`` NaN).
     cutoff_hz : float
-        Zero-phase low-pass (2nd-order Butterworth run forwards and backwards) applied to gyro
-        and accelerometer, Hz (default :data:`CUTOFF_HZ`, Winter 2009).
+        Zero-phase low-pass (2nd-order Butterworth run forwards and backwards), Hz (default
+        :data:`CUTOFF_HZ`, Winter 2009). It is applied to both sides of the linear model, the
+        measured acceleration ``R a`` and the regressor ``R K`` (not to ``K``'s inputs, which
+        would break the model's ``ω²`` term for fast motion); the hinge axes use the low-passed
+        gyro.
     min_excitation_s2 : float
         Least excitation per joint, s⁻² (default :data:`MIN_EXCITATION_S2`).
 
@@ -441,11 +458,11 @@ def functional_calibration(
         Rz(ψ) R_A(k) (a_A(k) + K_A(k) r_A) = R_B(k) (a_B(k) + K_B(k) r_B)
 
     solved for ``(r_A, r_B, ψ)`` by ``scipy.optimize.least_squares`` from the linear solution at
-    ``ψ = 0``. ``ψ`` is always free in the fit, which makes the centres immune to the heading
+    ``ψ = 0``, both sides low-passed (``cutoff_hz``). ``ψ`` is always free in the fit, which makes the centres immune to the heading
     errors of the orientation filter (the least reliable part of its output). Where the
     proximal segment has no IMU (paper A's shoulder, measured once) the centre is taken as still
     (Crabolu et al. 2017): ``R_B (a_B + K_B r_B) = [0, 0, g]``. ``ω̇`` is the time derivative of
-    the low-passed gyro.
+    the gyro.
 
     A segment with sensor ``s``, proximal centre at ``r_P`` and distal centre at ``r_D`` (both in
     frame ``s``) gets the axis ``(r_D − r_P)/‖r_D − r_P‖`` and the length ``‖r_D − r_P‖``.
