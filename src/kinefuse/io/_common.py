@@ -23,12 +23,14 @@ from kinefuse.exceptions import FormatError, InputError, UnitWarning
 __all__ = [
     "DEG2RAD",
     "G",
+    "ZERO_RULE",
     "Table",
     "canonical_joint",
     "canonical_segment",
     "check_time",
     "check_units",
     "make_metadata",
+    "zero_is_missing",
     "map_joints",
     "map_segments",
     "read_table",
@@ -519,6 +521,33 @@ def map_joints(labels: Sequence[str]) -> tuple[tuple[str, ...], dict[str, str]]:
         out.append(key)
         mapping[lab] = key
     return tuple(out), mapping
+
+
+# --------------------------------------------------------------------------------------------
+# missing markers
+# --------------------------------------------------------------------------------------------
+#: The one rule every position reader applies (documented in ``docs/formats.md``).
+ZERO_RULE = "a point whose three coordinates are all exactly 0 is missing (not tracked)"
+
+
+def zero_is_missing(position: np.ndarray) -> np.ndarray:
+    """Mask of samples encoded as "not tracked" by all-zero coordinates.
+
+    TRC and C3D writers (and Kinect v1, read by :mod:`kinefuse.io.utd_mhad`) write an untracked
+    marker as ``0, 0, 0``; a real marker exactly at the origin to the file's resolution is
+    unlikely enough that every kinefuse position reader treats an all-zero point as missing
+    (:data:`ZERO_RULE`); readers take ``zero_is_missing=False`` to keep such samples.
+
+    Parameters
+    ----------
+    position : ndarray, shape (..., 3)
+
+    Returns
+    -------
+    ndarray of bool, shape (...)
+        True where all three coordinates are exactly 0.
+    """
+    return np.all(np.asarray(position) == 0.0, axis=-1)
 
 
 # --------------------------------------------------------------------------------------------
