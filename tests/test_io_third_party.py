@@ -204,3 +204,134 @@ def test_trc_all_zero_marker_is_missing(tmp_path):
         rec.metadata["n_zero_samples"] == 2 and "all exactly 0" in rec.metadata["availability_rule"]
     )
     assert kio.read_trc(f, zero_is_missing=False).reference.available.all()
+
+
+# ------------------------------------------------------------------------------------------------
+# C3D (defects 1-4, 14; analog channels)
+# ------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def ezc3d():
+    try:
+        import ezc3d as mod
+    except ImportError as e:
+        pytest.skip(f"C3D tests need ezc3d (pip install 'kinefuse[c3d]'): {e}")
+    return mod
+
+
+def _segment_m(js, a, b):
+    d = np.linalg.norm(js.position(a) - js.position(b), axis=-1)
+    return float(np.nanmedian(d))
+
+
+def test_c3d_labels_longer_than_used(tp, ezc3d):
+    """Defect 1: POINT:LABELS has 48 entries, POINT:USED 26: the first 26 labels are read."""
+    rec = kio.read_c3d(tp / "c3d" / "btk_c3d.org_sample01_Eb015pi.c3d")
+    r = rec.reference
+    assert (
+        len(r.joints) == 26 and r.joints[:3] == ("RFT1", "RFT2", "RFT3") and r.joints[-1] == "pv4"
+    )
+    assert len(r) == 450 and rec.metadata["rate_hz"] == 50.0
+    assert r.t_s[-1] == pytest.approx(449 / 50)
+    assert any("first USED = 26" in n for n in rec.metadata["notes"])
+    p = np.where(r.available[..., None], r.position_m, np.nan)
+    assert 0.3 < np.nanmedian(np.linalg.norm(p, axis=-1)) < 5.0  # metres, not mm
+    a = rec.metadata["analog"]  # analog channels exposed, not joints
+    assert a["values"].shape == (1800, 16) and a["rate_hz"] == 200.0
+    assert a["labels"][:3] == ("FX1", "FY1", "FZ1") and a["t_s"][-1] == pytest.approx(1799 / 200)
+
+
+def test_c3d_header_last_frame_disagrees(tp, ezc3d):
+    """Defect 2: header and POINT:FRAMES announce 1149 frames, the data section holds exactly 29
+    whole frames (what ezc3d reads): read them with a warning, no false "truncated" error."""
+    with pytest.warns(FormatWarning, match="announces 1149 frames but the data section holds 29"):
+        rec = kio.read_c3d(tp / "c3d" / "ezc3d_Optotrak.c3d")
+    r = rec.reference
+    c = ezc3d.c3d(str(tp / "c3d" / "ezc3d_Optotrak.c3d"))
+    assert len(r) == 29 == c["parameters"]["POINT"]["FRAMES"]["value"][0]
+    assert rec.metadata["rate_hz"] == 30.0 and r.joints[0] == "Marker_1" and len(r.joints) == 54
+    np.testing.assert_allclose(
+        r.position_m[r.available],
+        np.transpose(c["data"]["points"][:3], (2, 1, 0))[r.available] / 1e3,
+    )
+    assert rec.metadata["analog"] is None
+
+
+def test_c3d_plug_in_gait_outputs_are_not_joints(tp, ezc3d):
+    """Defect 3: angles/forces/moments/powers stored as points are kept apart, not scaled to m."""
+    rec = kio.read_c3d(tp / "c3d" / "btk_c3d.org_sample09_PlugInC3D.c3d")
+    r = rec.reference
+    other = rec.metadata["c3d_other_points"]
+    for grp, n, unit in (
+        ("ANGLES", 10, "deg"),
+        ("FORCES", 8, "N"),
+        ("MOMENTS", 8, "Nmm"),
+        ("POWERS", 6, "W"),
+    ):
+        assert len(other[grp]["labels"]) == n and other[grp]["unit"] == unit
+        assert not set(other[grp]["labels"]) & set(r.joints)
+    assert len(r.joints) == 86 - 32 and "LKneeAngles" not in r.joints
+    knee = other["ANGLES"]["values"][:, other["ANGLES"]["labels"].index("LKneeAngles"), 0]
+    assert 30 < np.nanmax(knee) - np.nanmin(knee) < 90  # knee flexion range over gait, degrees
+    # Plug-in-Gait joint centres: thigh (hip -> knee) 0.3-0.55 m, shank (knee -> ankle) 0.3-0.6 m
+    assert 0.3 < _segment_m(r, "hip_l", "knee_l") < 0.55
+    assert 0.3 < _segment_m(r, "knee_r", "ankle_r") < 0.6
+    assert rec.metadata["analog"]["values"].shape == (5620, 36)
+
+
+def test_c3d_empty_label_can_be_written_to_trc(tp, ezc3d, tmp_path):
+    """Defect 4: an empty label is named point_<n>, and the result writes to TRC."""
+    rec = kio.read_c3d(tp / "c3d" / "btk_c3d.org_sample24_MotionMonitorC3D.c3d")
+    r = rec.reference
+    assert r.joints == ("point_1", "M1", "M2", "M3", "M4", "M5", "M6", "M7") and "" not in r.joints
+    assert (
+        len(r) == 840 and rec.metadata["rate_hz"] == 140.0 and rec.metadata["units_converted"] == []
+    )
+    out = kio.write_trc(tmp_path / "mm.trc", r)
+    back = kio.read_trc(out, map_names=False)
+    assert back.reference.joints == r.joints and back.metadata["rate_hz"] == 140.0
+    assert rec.metadata["analog"]["values"].shape == (5880, 16)
+
+
+def test_c3d_duplicate_labels_get_distinct_names(tp, ezc3d, tmp_path):
+    rec = kio.read_c3d(tp / "c3d" / "btk_others_Gait.c3d")
+    r = rec.reference
+    assert len(r.joints) == 33 and len(set(r.joints)) == 33
+    for lab in ("RKNE", "RANK", "LKNE", "LANK", "RFOO", "LFOO"):
+        assert lab in r.joints and f"{lab}_2" in r.joints
+    assert len(r) == 487 and rec.metadata["rate_hz"] == 100.0
+    kio.write_trc(tmp_path / "gait.trc", r)
+
+
+def test_c3d_qualisys_keeps_working(tp, ezc3d):
+    rec = kio.read_c3d(tp / "c3d" / "ezc3d_Qualisys.c3d")
+    r = rec.reference
+    assert (len(r), len(r.joints), rec.metadata["rate_hz"]) == (340, 55, 200.0)
+    assert r.joints[:2] == ("L_IAS", "L_IPS") and r.available.all()
+    # pelvis width (left to right anterior iliac spine) 0.2-0.35 m
+    assert 0.2 < _segment_m(r, "L_IAS", "R_IAS") < 0.35
+    assert rec.metadata["analog"]["values"].shape == (3400, 69)
+
+
+def test_c3d_all_zero_marker_is_missing(tmp_path, ezc3d):
+    """Defect 14 for C3D: a point written as 0, 0, 0 is missing."""
+    c = ezc3d.c3d()
+    c["parameters"]["POINT"]["RATE"]["value"] = [100.0]
+    c["parameters"]["POINT"]["LABELS"]["value"] = ("a", "b")
+    c["parameters"]["POINT"]["UNITS"]["value"] = ["mm"]
+    data = np.ones((4, 2, 5))
+    data[:3, 1, 2] = 0.0
+    c["data"]["points"] = data
+    c.write(str(tmp_path / "z.c3d"))
+    rec = kio.read_c3d(tmp_path / "z.c3d")
+    assert rec.reference.available.sum() == 9 and not rec.reference.available[2, 1]
+    assert kio.read_c3d(tmp_path / "z.c3d", zero_is_missing_points=False).reference.available.all()
+
+
+def test_c3d_to_trc_read_by_opensim(tp, ezc3d, opensim, tmp_path):
+    """A TRC kinefuse writes from a C3D is read by OpenSim with the same values and rate."""
+    r = kio.read_c3d(tp / "c3d" / "btk_others_Gait.c3d").reference
+    out = kio.write_trc(tmp_path / "g.trc", r, units="mm")
+    t, vals, labels, meta = _osim_trc(opensim, out)
+    assert labels == list(r.joints) and float(meta["DataRate"]) == 100.0
+    expected = np.where(r.available[..., None], r.position_m, np.nan) * 1e3
+    np.testing.assert_allclose(vals, expected, rtol=0, atol=1e-3 * 0.5 + 1e-9, equal_nan=True)
