@@ -14,6 +14,7 @@ import pytest
 
 import kinefuse.io as kio
 from kinefuse.exceptions import FormatError, FormatWarning, UnitWarning
+from kinefuse.io._common import KINECT_LIMB_JOINTS
 from kinefuse.io.recording import JointStream
 
 
@@ -335,3 +336,81 @@ def test_c3d_to_trc_read_by_opensim(tp, ezc3d, opensim, tmp_path):
     assert labels == list(r.joints) and float(meta["DataRate"]) == 100.0
     expected = np.where(r.available[..., None], r.position_m, np.nan) * 1e3
     np.testing.assert_allclose(vals, expected, rtol=0, atol=1e-3 * 0.5 + 1e-9, equal_nan=True)
+
+
+# ------------------------------------------------------------------------------------------------
+# BVH (defects 8-10) and ASF/AMC
+# ------------------------------------------------------------------------------------------------
+def _bvh_channels(path, joint, frame):
+    """The 6 channel values of ``joint`` at ``frame`` of a Bandai file (every joint has 6)."""
+    lines = path.read_text().splitlines()
+    order = [ln.split()[1] for ln in lines if ln.split()[:1] in (["ROOT"], ["JOINT"])]
+    k = lines.index("MOTION")
+    vals = np.array(lines[k + 3 + frame].split(), float)
+    i = order.index(joint)
+    return vals[6 * i : 6 * i + 6]
+
+
+def test_bvh_bandai_position_channels_replace_offset(tp):
+    """Defect 8 (and 9, 10): non-root position channels replace the OFFSET; cm detected;
+    Bandai naming mapped (thigh ~0.39 m, hips ~0.9 m high)."""
+    path = tp / "bvh" / "bandai1_walk_normal_001.bvh"
+    with pytest.warns(
+        UserWarning, match=r"naming 'bandai': no joint found for \['hand_l', 'hand_r'\]"
+    ):
+        rec = kio.read_bvh(path)
+    md, r = rec.metadata, rec.reference
+    assert md["joint_naming"] == "bandai" and md["length_unit_m"] == 0.01
+    assert len(r) == 195 and md["rate_hz"] == pytest.approx(30.0, rel=1e-5)
+    # thigh = |LowerLeg_L position channels| in cm, per the file (not OFFSET + channels)
+    thigh_file = np.linalg.norm(_bvh_channels(path, "LowerLeg_L", 0)[:3]) * 0.01
+    assert md["segment_length_m"]["thigh_l"] == pytest.approx(thigh_file, rel=1e-6)
+    assert md["segment_length_m"]["thigh_l"] == pytest.approx(0.39, abs=0.01)
+    d = np.linalg.norm(r.position("knee_l") - r.position("hip_l"), axis=-1)
+    np.testing.assert_allclose(d, thigh_file, rtol=1e-6)  # rigid bone every frame
+    assert np.median(r.position("pelvis")[:, 2]) == pytest.approx(0.9, abs=0.05)
+    assert 1.3 < np.median(r.position("head")[:, 2]) < 1.9  # m, not 278 "m"
+    assert set(r.joints) >= set(KINECT_LIMB_JOINTS) - {"hand_l", "hand_r"}
+
+
+def test_bvh_motionbuilder_naming(tp):
+    """Defect 9: CMU clip in MotionBuilder naming: LeftShoulder is the clavicle, LeftArm the
+    shoulder joint; every limb joint found, no warning."""
+    path = tp / "bvh" / "fairmotion_01_01.bvh"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rec = kio.read_bvh(path)
+    md, r = rec.metadata, rec.reference
+    assert md["joint_naming"] == "motionbuilder" and md["joint_source"]["shoulder_l"] == "LeftArm"
+    assert set(KINECT_LIMB_JOINTS) <= set(r.joints)
+    width = np.linalg.norm(r.position("shoulder_l") - r.position("shoulder_r"), axis=-1)
+    assert 0.25 < np.median(width) < 0.5  # not 0.0
+    # CMU's ASF unit (1/0.45 inch) detected: shank 7.49 units in the file -> 0.42 m
+    assert md["length_unit_m"] == pytest.approx(0.0254 / 0.45)
+    shank = np.hypot(2.56220, 7.03959) * 0.0254 / 0.45
+    assert md["segment_length_m"]["shank_l"] == pytest.approx(shank, rel=1e-6)
+    assert len(r) == 2752 and md["rate_hz"] == pytest.approx(1 / 0.0083333)
+
+
+def test_bvh_units_checked(tp):
+    """Defect 10: a wrong given unit warns; check_units calls centimetres centimetres."""
+    path = tp / "bvh" / "bandai1_walk_normal_001.bvh"
+    with pytest.warns(UnitWarning, match=r"length_unit_m=1.0 the figure is 133 m"):
+        with pytest.warns(UserWarning, match="no joint found"):
+            rec = kio.read_bvh(path, length_unit_m=1.0)
+    with pytest.warns(UnitWarning, match="looks like centimetres"):
+        from kinefuse.io._common import check_units
+
+        check_units(rec)
+
+
+def test_asf_amc_backflip_keeps_working(tp):
+    rec = kio.load(tp / "asf_amc" / "gsimchoni_backflip.amc")
+    r, md = rec.reference, rec.metadata
+    assert md["format"] == "asf/amc" and set(KINECT_LIMB_JOINTS) <= set(r.joints)
+    assert len(r) == 247
+    assert (
+        0.3 < md["segment_length_m"]["thigh_l"] < 0.55
+        and 0.3 < md["segment_length_m"]["shank_r"] < 0.55
+    )
+    assert md["rate_hz"] == pytest.approx(120.0)

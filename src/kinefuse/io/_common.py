@@ -577,8 +577,9 @@ def check_units(recording, *, where: str = "", stacklevel: int = 3) -> list[str]
 
     * accelerometer: median ``|acc|`` between 0.5 and 2.0 -> looks like g, not m/s²;
     * gyroscope: 99th percentile of ``|gyr|`` above 35 rad/s (2000 deg/s) -> looks like deg/s;
-    * joint positions: median distance of the joints from their per-frame centroid above 10
-      (with one joint: median ``|p|`` above 100) -> looks like millimetres.
+    * joint positions: median distance of the joints from their per-frame centroid (0.2-0.6 m
+      for a body) above 100 -> looks like millimetres, above 10 -> looks like centimetres (with
+      one joint: median ``|p|`` above 100) -> looks like millimetres.
 
     Returns
     -------
@@ -614,9 +615,12 @@ def check_units(recording, *, where: str = "", stacklevel: int = 3) -> list[str]
             d = np.linalg.norm(p - c, axis=-1)
             d = d[np.isfinite(d)]
             if d.size and float(np.median(d)) > 10.0:
+                unit, div = (
+                    ("millimetres", 1000) if float(np.median(d)) > 100.0 else ("centimetres", 100)
+                )
                 msgs.append(
                     f"{prefix}{role} joints: median joint spread {np.median(d):.3g} 'm', which looks like "
-                    "millimetres (divide by 1000 or declare the unit)"
+                    f"{unit} (divide by {div} or declare the unit)"
                 )
         else:
             n = _finite_norm(p.reshape(-1, 3))
