@@ -414,3 +414,39 @@ def test_asf_amc_backflip_keeps_working(tp):
         and 0.3 < md["segment_length_m"]["shank_r"] < 0.55
     )
     assert md["rate_hz"] == pytest.approx(120.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# x-IMU3 (defect 11)
+# ------------------------------------------------------------------------------------------------
+def test_ximu3_on_plain_xio_csv_is_not_a_bare_file_not_found(tp):
+    """Defect 11: format='ximu3' on x-io's plain CSV (not Inertial.csv in a sensor folder) says
+    what the file is, or hands it to the plain-CSV reader when the installation has one."""
+    path = tp / "x-io" / "gait-tracking_short_walk.csv"
+    try:
+        rec, _ = _quiet(kio.load, path, format="ximu3")
+    except FormatError as e:
+        assert "x-io's plain CSV export" in str(
+            e
+        ) and "gait-tracking_short_walk.csv, line 1" in str(e)
+        return
+    (imu,) = rec.imu.values()
+    assert imu.t_s[-1] - imu.t_s[0] == pytest.approx(41.618, abs=0.01)  # last "Time (s)"
+    assert 9.0 < np.median(np.linalg.norm(imu.acc_m_s2, axis=1)) < 10.6  # g -> m/s^2
+    assert np.percentile(np.linalg.norm(imu.gyr_rad_s, axis=1), 99) < 35  # deg/s -> rad/s
+
+
+def test_ximu3_inertial_csv_under_another_name(shared_data, tmp_path):
+    """An x-IMU3 Inertial.csv exported under another name is read as one sensor."""
+    src = shared_data / "xio_imu_mocap_lower_body" / "pelvis_64F0EDBF"
+    f = tmp_path / "pelvis_export.csv"
+    f.write_bytes((src / "Inertial.csv").read_bytes())
+    (one,) = kio.read_ximu3(f).imu.values()
+    ref = kio.read_ximu3(src).imu["pelvis"]
+    np.testing.assert_array_equal(one.gyr_rad_s, ref.gyr_rad_s)
+    np.testing.assert_array_equal(one.acc_m_s2, ref.acc_m_s2)
+    assert one.q_world_from_sensor is None
+    bad = tmp_path / "other.csv"
+    bad.write_text("a,b\n1,2\n")
+    with pytest.raises(FormatError, match=r"other.csv, line 1: expected an x-IMU3 Inertial.csv"):
+        kio.read_ximu3(bad)
