@@ -450,3 +450,54 @@ def test_ximu3_inertial_csv_under_another_name(shared_data, tmp_path):
     bad.write_text("a,b\n1,2\n")
     with pytest.raises(FormatError, match=r"other.csv, line 1: expected an x-IMU3 Inertial.csv"):
         kio.read_ximu3(bad)
+
+
+# ------------------------------------------------------------------------------------------------
+# Kinect v2 recorder CSV (defect 12)
+# ------------------------------------------------------------------------------------------------
+def test_kinect_v2_lsl_kinect_export(tp):
+    """Defect 12: preamble line without '#', TimeSpan (Unix ms) time column, '_Conf' columns."""
+    path = tp / "kinect_v2" / "lslkinect_MoCap.csv"
+    rec = kio.load(path)
+    v, md = rec.vision, rec.metadata
+    assert md["format"] == "kinect_v2" and md["time_column"] == "TimeSpan"
+    assert len(v) == 358 and len(v.joints) == 25 and v.joints[:2] == ("spine_base", "spine_mid")
+    # first/last TimeSpan of the file: 1604056708714.7141, 1604056720622.563 ms
+    assert md["t0_unix_s"] == pytest.approx(1604056708.7147141, abs=1e-6)
+    assert v.t_s[0] == 0.0 and v.t_s[-1] == pytest.approx(11.907849, abs=1e-5)
+    assert md["preamble"]["stream nominal rate"] == "15"
+    assert any("nominal rate" in n and "29.8 Hz" in n for n in md["notes"])
+    # confidences: 7155 x 1 (Tracked), 1795 x 0.5 (Inferred) in the file
+    assert v.available.sum() == 7155
+    assert kio.load(path, min_tracking_state=1).vision.available.sum() == 7155 + 1795
+    upper_arm = np.linalg.norm(v.position("shoulder_l") - v.position("elbow_l"), axis=-1)
+    assert 0.2 < np.nanmedian(upper_arm) < 0.35  # metres
+    same = kio.read_kinect_v2_csv(path, time_column="TimeSpan", time_unit="ms")
+    np.testing.assert_array_equal(same.vision.t_s, v.t_s)
+    allin = kio.read_kinect_v2_csv(path, confidence_states={0.5: 2, 1.0: 2})
+    assert allin.vision.available.sum() == 7155 + 1795
+
+
+def test_kinect_v2_reader_arguments_errors(tp, tmp_path):
+    path = tp / "kinect_v2" / "lslkinect_MoCap.csv"
+    with pytest.raises(FormatError, match="time_column='Stamp' not found"):
+        kio.read_kinect_v2_csv(path, time_column="Stamp")
+    with pytest.raises(
+        FormatError,
+        match=r"line 52, field 'ElbowLeft_Conf': expected a confidence among \[1.0\].*found 0.5",
+    ):
+        kio.read_kinect_v2_csv(path, confidence_states={1.0: 2})
+    f = tmp_path / "k.csv"
+    f.write_text("Recorder v1, nominal rate 30\nframe,foo,bar\n1,2,3\n")
+    with pytest.raises(
+        FormatError, match="k.csv: expected a header line with column names, found none"
+    ):
+        kio.read_kinect_v2_csv(f)
+    g = tmp_path / "g.csv"
+    g.write_text(
+        "Stamp,SpineBase_X,SpineBase_Y,SpineBase_Z,SpineBase_Conf\n10,0,1,2,1\n20,0,1,2,1\n"
+    )
+    r = kio.read_kinect_v2_csv(g, time_column="Stamp", time_unit="ms")
+    np.testing.assert_allclose(r.vision.t_s, [0.01, 0.02])
+    with pytest.raises(FormatError, match="unknown unit of time column 'Stamp'; pass time_unit="):
+        kio.read_kinect_v2_csv(g, time_column="Stamp")

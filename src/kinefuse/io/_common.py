@@ -160,6 +160,7 @@ def read_table(
     delimiter: str | None = None,
     comment_prefixes: Sequence[str] = ("#", "//"),
     min_rows: int = 1,
+    is_header=None,
 ) -> Table:
     """Read a delimited text file with an optional comment preamble and one header line.
 
@@ -173,6 +174,10 @@ def read_table(
         Lines starting with one of these are comments (kept when they precede the header).
     min_rows : int
         Minimum number of data rows; fewer is a truncated file.
+    is_header : callable or None
+        ``is_header(line) -> bool``: the header is the first line it accepts; lines before it are
+        a preamble, kept in ``comments`` (for exports whose preamble has no comment prefix).
+        None: the first line that is not a comment.
 
     Returns
     -------
@@ -200,6 +205,17 @@ def read_table(
         if s:
             comments.append(s)
         k += 1
+    if is_header is not None:
+        j = k
+        while j < len(lines) and not is_header(lines[j]):
+            j += 1
+        if j >= len(lines):
+            raise FormatError(
+                path,
+                "expected a header line with column names, found none that this reader recognises",
+            )
+        comments += [ln.strip() for ln in lines[k:j] if ln.strip()]
+        k = j
     if k >= len(lines):
         raise FormatError(
             path,

@@ -125,6 +125,8 @@ def _detect_csv(path: Path) -> str | None:
     if not body:
         return None
     header = body[0].lower()
+    if header.startswith("software : lsl_kinect") and len(body) > 1:  # preamble without '#'
+        header = body[1].lower()
     cols = [c.strip() for c in header.replace("\t", ",").replace(";", ",").split(",")]
     if (
         cols
