@@ -501,3 +501,72 @@ def test_kinect_v2_reader_arguments_errors(tp, tmp_path):
     np.testing.assert_allclose(r.vision.t_s, [0.01, 0.02])
     with pytest.raises(FormatError, match="unknown unit of time column 'Stamp'; pass time_unit="):
         kio.read_kinect_v2_csv(g, time_column="Stamp")
+
+
+# ------------------------------------------------------------------------------------------------
+# Xsens MT Manager text / OpenSense (defect 13)
+# ------------------------------------------------------------------------------------------------
+def test_mtmanager_dot_times_from_sample_time_fine(tp):
+    """Defect 13: SampleTimeFine (µs, DOT) gives the times and disagrees with 'Update Rate:
+    100Hz' (warned); free acceleration is recognised, not taken for specific force."""
+    folder = tp / "xsens" / "dot_transformed_mtmanager"
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        rec = kio.load(folder)
+    msgs = [str(x.message) for x in w]
+    assert not [m for m in msgs if "looks like g" in m]
+    fmt = [str(x.message) for x in w if issubclass(x.category, FormatWarning)]
+    assert len(fmt) == 5 and all("Update Rate says 100 Hz" in m for m in fmt)
+    md = rec.metadata
+    assert md["time_source"] == "SampleTimeFine" and set(rec.imu) == {
+        "pelvis", "thigh_l", "thigh_r", "shank_l", "shank_r"
+    }  # fmt: skip
+    tib = rec.imu["shank_l"]
+    # LTibia: 381 rows, SampleTimeFine 16667 µs apart -> 60 Hz, 6.33 s (not 3.8 s at 100 Hz)
+    lines = (folder / "XSDot_20210820_202113_LTibia.txt").read_text().splitlines()
+    rows = [ln.split("\t") for ln in lines[6:] if ln.strip()]
+    fine = np.array([float(r[1]) for r in rows])
+    assert len(tib) == len(rows) == 381
+    np.testing.assert_allclose(tib.t_s - tib.t_s[0], (fine - fine[0]) * 1e-6, atol=1e-9)
+    assert tib.rate_hz == pytest.approx(60.0, rel=1e-3) and tib.t_s[-1] - tib.t_s[
+        0
+    ] == pytest.approx(6.333, abs=1e-3)
+    # free acceleration (world frame) kept; specific force rebuilt: R f - g e_z == free acc
+    free = np.array([[float(v) for v in r[14:17]] for r in rows])
+    np.testing.assert_allclose(md["free_acc_m_s2"]["shank_l"], free)
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_quat(tib.q_world_from_sensor, scalar_first=True)
+    np.testing.assert_allclose(R.apply(tib.acc_m_s2) - [0, 0, 9.80665], free, atol=1e-9)
+    for s in rec.imu.values():
+        np.testing.assert_allclose(np.linalg.norm(s.q_world_from_sensor, axis=1), 1.0, atol=1e-6)
+        assert 9.0 < np.median(np.linalg.norm(s.acc_m_s2, axis=1)) < 10.6
+
+
+def test_mtmanager_sample_time_fine_wraps_and_ticks(tmp_path):
+    """SampleTimeFine wraps at 2^32; MTi's 10 kHz ticks agree with a 100 Hz Update Rate."""
+    start = 2**32 - 250
+    rows = [
+        "\t".join([str(k + 1), str((start + 100 * k) % 2**32), "0.1", "0.2", "9.8", "0", "0", "0"])
+        for k in range(6)
+    ]
+    f = tmp_path / "MT_x_00B4227C.txt"
+    header = "PacketCounter\tSampleTimeFine\tAcc_X\tAcc_Y\tAcc_Z\tGyr_X\tGyr_Y\tGyr_Z"
+    f.write_text("// Update Rate: 100.0Hz\n" + header + "\n" + "\n".join(rows) + "\n")
+    from kinefuse.io.opensense import read_xsens_txt
+
+    p = read_xsens_txt(f)
+    np.testing.assert_allclose(
+        p["sample_time_s"] - p["sample_time_s"][0], np.arange(6) * 0.01, atol=1e-12
+    )
+    assert p["sample_time_note"] == "SampleTimeFine in 10 kHz ticks (MTi)"
+
+
+def test_opensense_example_keeps_packet_counter_times(shared_data):
+    """The OpenSense example has an empty SampleTimeFine: times from PacketCounter / 100 Hz."""
+    rec = kio.load(shared_data / "opensense_example_imu")
+    assert rec.metadata["time_source"] == "PacketCounter / Update Rate"
+    assert rec.metadata["free_acc_m_s2"] == {}
+    for s in rec.imu.values():
+        assert s.rate_hz == pytest.approx(100.0)
+        assert 9.0 < np.median(np.linalg.norm(s.acc_m_s2, axis=1)) < 10.6
