@@ -570,3 +570,17 @@ def test_opensense_example_keeps_packet_counter_times(shared_data):
     for s in rec.imu.values():
         assert s.rate_hz == pytest.approx(100.0)
         assert 9.0 < np.median(np.linalg.norm(s.acc_m_s2, axis=1)) < 10.6
+
+
+def test_all_zero_rule_in_camera_readers(tmp_path):
+    """Defect 14: the same all-zero rule in the Kinect v2 and MediaPipe readers."""
+    g = tmp_path / "k.csv"
+    g.write_text(
+        "t_s,SpineBase_X,SpineBase_Y,SpineBase_Z,SpineBase_TrackingState\n0,0,0,0,2\n0.1,0.1,0.2,2.0,2\n"
+    )
+    r = kio.read_kinect_v2_csv(g)
+    assert r.vision.available[:, 0].tolist() == [False, True]
+    assert r.metadata["n_zero_samples"] == 1 and "all exactly 0" in r.metadata["availability_rule"]
+    m = tmp_path / "mp.csv"
+    m.write_text("t_s,nose_x,nose_y,nose_z,nose_visibility\n0,0,0,0,0.9\n0.1,0.1,0.2,0.3,0.9\n")
+    assert kio.read_mediapipe(m).vision.available[:, 0].tolist() == [False, True]

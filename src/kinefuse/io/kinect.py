@@ -668,12 +668,12 @@ def read_azure_kinect_json(path, *, min_confidence: int | None = 2, body_id=None
     t_us = check_time(path, ts, None, "timestamp_usec")
     t = (t_us - t_us[0]) * 1e-6
     pos *= 1e-3
-    avail = np.all(np.isfinite(pos), axis=-1)
-    rule = "finite"
+    avail = np.all(np.isfinite(pos), axis=-1) & ~zero_is_missing(pos)
+    rule = f"finite; {ZERO_RULE}"
     if min_confidence is not None:
         if has_conf:
             avail &= conf >= min_confidence
-            rule = f"confidence level >= {min_confidence} and finite"
+            rule = f"confidence level >= {min_confidence} and finite; {ZERO_RULE}"
         else:
             notes.append(
                 "no joint confidence levels in the file; availability = body present and finite"
