@@ -18,22 +18,42 @@ import sys
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 _SKIP_SUFFIXES = {".md", ".license"}
 
 
+def _median_norm(a) -> float | None:
+    if a is None:
+        return None
+    n = np.linalg.norm(np.asarray(a, dtype=float), axis=-1)
+    n = n[np.isfinite(n)]
+    return round(float(np.median(n)), 6) if n.size else None
+
+
 def _summary(rec) -> dict:
+    """Sizes, durations, names and a numeric fingerprint (median norms, availability)."""
     out = {"format": rec.metadata.get("format")}
     out["imu"] = {
-        k: [len(s), round(float(s.t_s[-1] - s.t_s[0]), 4) if len(s) else 0.0]
+        k: [
+            len(s),
+            round(float(s.t_s[-1] - s.t_s[0]), 4) if len(s) else 0.0,
+            _median_norm(s.acc_m_s2),
+            _median_norm(s.gyr_rad_s),
+            _median_norm(s.q_world_from_sensor),
+        ]
         for k, s in rec.imu.items()
     }
     for role in ("vision", "reference"):
         js = getattr(rec, role)
         if js is not None:
+            p = np.where(js.available[..., None], js.position_m, np.nan)
             out[role] = {
                 "T": len(js),
                 "duration_s": round(float(js.t_s[-1] - js.t_s[0]), 4) if len(js) else 0.0,
                 "joints": list(js.joints),
+                "median_norm_m": _median_norm(p),
+                "available": round(float(js.available.mean()), 6) if js.available.size else None,
             }
     return out
 
@@ -41,7 +61,9 @@ def _summary(rec) -> dict:
 def _targets(root: Path) -> list[Path]:
     items = [root]
     for p in sorted(root.rglob("*")):
-        if p.is_file() and (p.suffix.lower() in _SKIP_SUFFIXES or p.name.upper().startswith("LICENSE")):
+        if p.is_file() and (
+            p.suffix.lower() in _SKIP_SUFFIXES or p.name.upper().startswith("LICENSE")
+        ):
             continue
         items.append(p)
     return items
@@ -79,7 +101,9 @@ def diff(a: dict, b: dict) -> int:
             lost += 1
             print(f"STOPPED LOADING  {key}: {eb.get('error') if eb else 'absent'}")
         elif sa != "ok" and sb == "ok":
-            print(f"now loads        {key}: {eb.get('format')} (was {ea.get('error') if ea else 'absent'})")
+            print(
+                f"now loads        {key}: {eb.get('format')} (was {ea.get('error') if ea else 'absent'})"
+            )
         elif sa == sb == "ok":
             changed = sorted(k for k in set(ea) | set(eb) if ea.get(k) != eb.get(k))
             print(f"content changed  {key}: {', '.join(changed)}")
@@ -87,7 +111,9 @@ def diff(a: dict, b: dict) -> int:
                 print(f"    before {k}: {json.dumps(ea.get(k))[:200]}")
                 print(f"    after  {k}: {json.dumps(eb.get(k))[:200]}")
         else:
-            print(f"error changed    {key}:\n    before: {ea.get('error')}\n    after:  {eb.get('error')}")
+            print(
+                f"error changed    {key}:\n    before: {ea.get('error')}\n    after:  {eb.get('error')}"
+            )
     n_a = sum(v["status"] == "ok" for v in a.values())
     n_b = sum(v["status"] == "ok" for v in b.values())
     print(f"loaded: {n_a}/{len(a)} before, {n_b}/{len(b)} after; stopped loading: {lost}")
