@@ -584,3 +584,38 @@ def test_all_zero_rule_in_camera_readers(tmp_path):
     m = tmp_path / "mp.csv"
     m.write_text("t_s,nose_x,nose_y,nose_z,nose_visibility\n0,0,0,0,0.9\n0.1,0.1,0.2,0.3,0.9\n")
     assert kio.read_mediapipe(m).vision.available[:, 0].tolist() == [False, True]
+
+
+def test_trc_comma_variant_is_refused_by_opensim(tp, opensim):
+    """Why pyomeca's comma-separated TRC is not compared with OpenSim: OpenSim refuses it."""
+    with pytest.raises(RuntimeError, match="TRCFileAdapter"):
+        _osim_trc(opensim, tp / "trc" / "pyomeca_markers.trc")
+
+
+def test_bvh_unit_undecidable_asks_for_it(tmp_path):
+    """A figure no candidate unit makes person-sized: a FormatError asking for length_unit_m."""
+    text = (
+        "HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition "
+        "Zrotation Yrotation Xrotation\n JOINT LeftUpLeg\n {\n  OFFSET 1 0 0\n  CHANNELS 3 Zrotation "
+        "Yrotation Xrotation\n  JOINT LeftLeg\n  {\n   OFFSET 0 -5 0\n   CHANNELS 3 Zrotation Yrotation "
+        "Xrotation\n   End Site\n   {\n    OFFSET 0 -5 0\n   }\n  }\n }\n}\nMOTION\nFrames: 2\n"
+        "Frame Time: 0.01\n" + "0 0 0 0 0 0 0 0 0 0 0 0\n" * 2
+    )
+    f = tmp_path / "tiny.bvh"
+    f.write_text(text)
+    with pytest.raises(
+        FormatError, match=r"figure measures 5 BVH units and none of m, cm.*pass length_unit_m="
+    ):
+        with pytest.warns(UserWarning, match="no joint found"):
+            kio.read_bvh(f)
+    with pytest.warns(UserWarning, match="no joint found"):
+        rec = kio.read_bvh(f, length_unit_m=0.2)  # 1 m figure: accepted without a UnitWarning
+    assert rec.metadata["segment_length_m"]["thigh_l"] == pytest.approx(1.0)
+
+
+def test_ximu3_sibling_csv_is_detected(shared_data):
+    """Any CSV of an x-IMU3 sensor folder loads the sensor (Magnetometer.csv, HighG...)."""
+    rec = kio.load(
+        shared_data / "xio_imu_mocap_lower_body" / "pelvis_64F0EDBF" / "Magnetometer.csv"
+    )
+    assert rec.metadata["format"] == "ximu3" and list(rec.imu) == ["pelvis"]

@@ -112,6 +112,8 @@ def _head(path: Path, n: int = 8192) -> str:
 
 
 def _detect_csv(path: Path) -> str | None:
+    if (path.parent / "Inertial.csv").is_file():  # any CSV of an x-IMU3 sensor folder
+        return "ximu3"
     head = _head(path)
     lines = [ln for ln in head.splitlines() if ln.strip()]
     if not lines:

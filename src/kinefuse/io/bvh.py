@@ -417,10 +417,14 @@ def _length_unit(path: Path, size: float, given: float | None) -> tuple[float, s
         return given, f"length_unit_m={given} given"
     fits = {k: u for k, u in BVH_LENGTH_UNITS.items() if lo <= size * u <= hi}
     if len(fits) != 1:
+        which = (
+            f"several units fit ({', '.join(fits)})"
+            if fits
+            else f"none of {', '.join(BVH_LENGTH_UNITS)} makes it {lo}-{hi} m"
+        )
         raise FormatError(
             path,
-            f"cannot tell the length unit: the figure measures {size:.4g} BVH units, plausible "
-            f"({lo}-{hi} m) as {sorted(fits) or 'none of'} {sorted(BVH_LENGTH_UNITS) if not fits else ''}; "
+            f"cannot tell the length unit: the figure measures {size:.4g} BVH units and {which}; "
             "pass length_unit_m=",
         )
     ((name, unit),) = fits.items()

@@ -296,12 +296,12 @@ def read_c3d(
     if res is not None and np.asarray(res).shape == (1, pts.shape[1], T):
         valid &= np.asarray(res)[0].T >= 0
     # which points are markers
-    stripped = [s for s in all_labels[:used]]
+    original = all_labels[:used]
     other: dict[str, dict] = {}
     non_marker = np.zeros(used, dtype=bool)
     for grp, unit_key in C3D_NON_MARKER_GROUPS.items():
         names = {s for s in _strings(point, grp) if s}
-        idx = [i for i, s in enumerate(stripped) if s in names and not non_marker[i]]
+        idx = [i for i, s in enumerate(original) if s in names and not non_marker[i]]
         if not idx:
             continue
         non_marker[idx] = True
