@@ -619,3 +619,45 @@ def test_ximu3_sibling_csv_is_detected(shared_data):
         shared_data / "xio_imu_mocap_lower_body" / "pelvis_64F0EDBF" / "Magnetometer.csv"
     )
     assert rec.metadata["format"] == "ximu3" and list(rec.imu) == ["pelvis"]
+
+
+def test_session_reader_options_reach_the_reader(tp, shared_data, tmp_path):
+    """Defect 12 via a session: [camera.reader] names the time column and the confidence map."""
+    from kinefuse.exceptions import ConfigError
+    from kinefuse.pipelines.session import load_streams
+    from kinefuse.session import load_session
+
+    cam = tp / "kinect_v2" / "lslkinect_MoCap.csv"
+    imu = shared_data / "xio_imu_mocap_lower_body"
+    text = f"""
+[session]
+name = "s"
+[imu]
+format = "ximu3"
+path = "{imu}"
+[imu.segments]
+pelvis = "pelvis_64F0EDBF"
+[skeleton]
+body_height_m = 1.8
+[camera]
+format = "kinect_v2"
+path = "{cam}"
+[camera.reader]
+time_column = "TimeSpan"
+time_unit = "ms"
+confidence_states = {{"0" = 0, "0.5" = 2, "1" = 2}}
+[method]
+name = "imu-only"
+"""
+    p = tmp_path / "s.toml"
+    p.write_text(text)
+    cfg = load_session(p)
+    assert cfg.camera.reader["time_unit"] == "ms"
+    rec, _ = _quiet(load_streams, cfg, strict_units=False)
+    rec = rec[0] if isinstance(rec, tuple) else rec
+    assert rec.vision.available.sum() == 7155 + 1795  # Inferred accepted by the mapping
+    p.write_text(text.replace('time_unit = "ms"', 'time_units = "ms"'))
+    with pytest.raises(
+        ConfigError, match=r"\[camera.reader\]: .*unexpected keyword argument 'time_units'"
+    ):
+        load_streams(load_session(p), strict_units=False)

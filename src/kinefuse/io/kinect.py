@@ -456,14 +456,15 @@ def _read_wide(tab: Table, min_state, conf_map):
 def _conf_states(tab: Table, col: str, conf_map) -> np.ndarray:
     conf = tab.floats(col)
     out = np.full(conf.shape, np.nan)
-    for v, st in conf_map.items():
-        out[conf == float(v)] = st
+    for v, st in conf_map.items():  # keys may be strings (TOML tables): "0.5" = 1
+        out[conf == float(v)] = float(st)
     bad = np.isfinite(conf) & np.isnan(out)
     if np.any(bad):
         k = int(np.flatnonzero(bad)[0])
         raise FormatError(
             tab.path,
-            f"expected a confidence among {sorted(conf_map)} (confidence_states=), found {float(conf[k])!r}",
+            f"expected a confidence among {sorted(float(v) for v in conf_map)} (confidence_states=), "
+            f"found {float(conf[k])!r}",
             line=int(tab.lines[k]),
             field=col,
         )
