@@ -593,7 +593,7 @@ def test_trc_comma_variant_is_refused_by_opensim(tp, opensim):
 
 
 def test_bvh_unit_undecidable_asks_for_it(tmp_path):
-    """A figure no candidate unit makes person-sized: a FormatError asking for length_unit_m."""
+    """A figure no candidate unit makes person-sized: the nearest is used, with a UnitWarning."""
     text = (
         "HIERARCHY\nROOT Hips\n{\n OFFSET 0 0 0\n CHANNELS 6 Xposition Yposition Zposition "
         "Zrotation Yrotation Xrotation\n JOINT LeftUpLeg\n {\n  OFFSET 1 0 0\n  CHANNELS 3 Zrotation "
@@ -603,11 +603,10 @@ def test_bvh_unit_undecidable_asks_for_it(tmp_path):
     )
     f = tmp_path / "tiny.bvh"
     f.write_text(text)
-    with pytest.raises(
-        FormatError, match=r"figure measures 5 BVH units and none of m, cm.*pass length_unit_m="
-    ):
+    with pytest.warns(UnitWarning, match=r"figure measures 5 BVH units and none of m, cm.*assumed"):
         with pytest.warns(UserWarning, match="no joint found"):
-            kio.read_bvh(f)
+            guess = kio.read_bvh(f)
+    assert guess.metadata["length_unit_m"] == 1.0  # 5 m is nearer to 1.5 m than 0.28 m (CMU unit)
     with pytest.warns(UserWarning, match="no joint found"):
         rec = kio.read_bvh(f, length_unit_m=0.2)  # 1 m figure: accepted without a UnitWarning
     assert rec.metadata["segment_length_m"]["thigh_l"] == pytest.approx(1.0)

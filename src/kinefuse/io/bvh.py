@@ -416,18 +416,22 @@ def _length_unit(path: Path, size: float, given: float | None) -> tuple[float, s
             )
         return given, f"length_unit_m={given} given"
     fits = {k: u for k, u in BVH_LENGTH_UNITS.items() if lo <= size * u <= hi}
+    # the candidate nearest (in ratio) to a 1.5 m figure; warn unless it is the only plausible one
+    name, unit = min(
+        (fits or BVH_LENGTH_UNITS).items(), key=lambda kv: abs(np.log(size * kv[1] / 1.5))
+    )
     if len(fits) != 1:
         which = (
             f"several units fit ({', '.join(fits)})"
             if fits
             else f"none of {', '.join(BVH_LENGTH_UNITS)} makes it {lo}-{hi} m"
         )
-        raise FormatError(
-            path,
-            f"cannot tell the length unit: the figure measures {size:.4g} BVH units and {which}; "
-            "pass length_unit_m=",
+        warnings.warn(
+            f"{path}: cannot tell the length unit: the figure measures {size:.4g} BVH units and "
+            f"{which}; assumed {name} ({size * unit:.3g} m); pass length_unit_m= to say",
+            UnitWarning,
+            stacklevel=4,
         )
-    ((name, unit),) = fits.items()
     return unit, f"detected {name} (figure {size:.4g} units = {size * unit:.3g} m)"
 
 
