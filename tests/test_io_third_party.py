@@ -371,6 +371,11 @@ def test_bvh_bandai_position_channels_replace_offset(tp):
     assert np.median(r.position("pelvis")[:, 2]) == pytest.approx(0.9, abs=0.05)
     assert 1.3 < np.median(r.position("head")[:, 2]) < 1.9  # m, not 278 "m"
     assert set(r.joints) >= set(KINECT_LIMB_JOINTS) - {"hand_l", "hand_r"}
+    assert {"thigh_l", "shank_r", "upper_arm_l", "forearm_r", "pelvis"} <= set(
+        rec.reference_orientation
+    )
+    for s in rec.reference_orientation.values():
+        np.testing.assert_allclose(np.linalg.norm(s.q_world_from_sensor, axis=1), 1.0, atol=1e-9)
 
 
 def test_bvh_motionbuilder_naming(tp):
