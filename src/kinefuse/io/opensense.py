@@ -174,7 +174,11 @@ def _sample_time_fine(tab: Table, rate_hz: float) -> tuple[np.ndarray | None, st
     if not np.all(np.isfinite(raw)):
         return None, None
     fine = _unwrap(raw, 2.0**32)
-    check_time(tab.path, fine, tab.lines, "SampleTimeFine")
+    if np.any(np.diff(fine) <= 0):
+        k = int(np.flatnonzero(np.diff(fine) <= 0)[0]) + 1
+        return None, (
+            f"SampleTimeFine not increasing at line {int(tab.lines[k])}; times from PacketCounter"
+        )
     step = float(np.median(np.diff(fine)))
     name, tick = min(_FINE_TICKS_S.items(), key=lambda kv: abs(np.log(step * kv[1] * rate_hz)))
     t = fine * tick
@@ -312,6 +316,8 @@ def read_opensense(
     use_fine = all(p["sample_time_s"] is not None for _, p in parsed.values())
     for sid, (f, p) in parsed.items():
         note = p["sample_time_note"]
+        if not use_fine and note and "not increasing" in note:
+            notes.append(f"{sid}: {note}")
         if use_fine and note and "Update Rate" in note:
             warnings.warn(f"{f}: {note}", FormatWarning, stacklevel=2)
             notes.append(f"{sid}: {note}")

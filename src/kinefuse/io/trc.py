@@ -107,12 +107,8 @@ def read_trc(
     keys = _split(lines[1], sep)
     vals = _split(lines[2], sep)
     if len(keys) != len(vals):
-        raise FormatError(
-            path,
-            f"expected one value per header key ({len(keys)} keys {keys}), found {len(vals)} values",
-            line=3,
-        )
-    hdr = dict(zip(keys, vals, strict=True))
+        notes.append(f"header has {len(keys)} keys and {len(vals)} values; paired in order")
+    hdr = dict(zip(keys, vals, strict=False))
     for k in _HEADER_KEYS:
         if k not in hdr:
             raise FormatError(path, f"missing header key {k!r}; found keys {keys}", line=2, field=k)
