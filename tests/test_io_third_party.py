@@ -378,6 +378,50 @@ def test_bvh_bandai_position_channels_replace_offset(tp):
         np.testing.assert_allclose(np.linalg.norm(s.q_world_from_sensor, axis=1), 1.0, atol=1e-9)
 
 
+def _bandai_fk(path, frame, target):
+    """Independent FK of a Bandai file (6 channels per joint, position channels replace the
+    OFFSET below the root), in file units and y-up; written apart from the reader."""
+    lines = path.read_text().splitlines()
+    parent, stack, name, order = {}, [], None, []
+    for ln in lines[: lines.index("MOTION")]:
+        tok = ln.split()
+        if tok[:1] in (["ROOT"], ["JOINT"]):
+            name = tok[1]
+            parent[name] = stack[-1] if stack else None
+            order.append(name)
+        elif tok[:1] == ["End"]:
+            name = None
+        elif tok[:1] == ["{"]:
+            stack.append(name)
+        elif tok[:1] == ["}"]:
+            stack.pop()
+    chain = [target]
+    while parent[chain[-1]] is not None:
+        chain.append(parent[chain[-1]])
+    R, p = np.eye(3), np.zeros(3)
+    for j in reversed(chain):
+        v = _bvh_channels(path, j, frame)  # X/Y/Zposition, Z/X/Yrotation
+        p = p + R @ v[:3]  # root OFFSET is 0 in this file
+        c, s_ = np.cos(np.radians(v[3:])), np.sin(np.radians(v[3:]))
+        Rz = np.array([[c[0], -s_[0], 0], [s_[0], c[0], 0], [0, 0, 1]])
+        Rx = np.array([[1, 0, 0], [0, c[1], -s_[1]], [0, s_[1], c[1]]])
+        Ry = np.array([[c[2], 0, s_[2]], [0, 1, 0], [-s_[2], 0, c[2]]])
+        R = R @ Rz @ Rx @ Ry
+    return p
+
+
+@pytest.mark.parametrize("frame", [0, 97, 194])
+def test_bvh_bandai_matches_independent_fk(tp, frame):
+    from kinefuse.io.motion import R_ENU_FROM_YUP
+
+    path = tp / "bvh" / "bandai1_walk_normal_001.bvh"
+    with pytest.warns(UserWarning, match="no joint found"):
+        r = kio.read_bvh(path).reference
+    for joint, bvh_name in (("ankle_l", "Foot_L"), ("wrist_r", "Hand_R"), ("head", "Head")):
+        expected = R_ENU_FROM_YUP @ _bandai_fk(path, frame, bvh_name) * 0.01
+        np.testing.assert_allclose(r.position(joint)[frame], expected, atol=1e-9)
+
+
 def test_bvh_motionbuilder_naming(tp):
     """Defect 9: CMU clip in MotionBuilder naming: LeftShoulder is the clavicle, LeftArm the
     shoulder joint; every limb joint found, no warning."""
