@@ -42,6 +42,7 @@ __all__ = [
     "OPENSIM_IMU_BODIES",
     "OpenSimTable",
     "read_opensense_sto",
+    "read_opensim_mot",
     "read_opensim_table",
     "write_opensense_sto",
 ]
@@ -440,3 +441,28 @@ def write_opensense_sto(
         )
     protect = [md.get("source")] + list(md.get("files", []))
     return write_text_safely(path, "\n".join(out) + "\n", force=force, protect=protect)
+
+
+def read_opensim_mot(path) -> Recording:
+    """:func:`kinefuse.io.load` entry for OpenSim tables that are not orientations (``.mot``, ``.sto``).
+
+    Returns
+    -------
+    Recording
+        No streams; ``metadata["table"]`` the :class:`OpenSimTable` (values as stored),
+        ``metadata["units"]`` column -> unit, ``metadata["rate_hz"]`` (``DataRate`` or None).
+        A quaternion table is read by :func:`read_opensense_sto` instead.
+    """
+    path = Path(path)
+    tab = read_opensim_table(path)
+    if tab.data_type == "Quaternion":
+        return read_opensense_sto(path)
+    md = make_metadata(
+        path,
+        "opensim_table",
+        table=tab,
+        units=tab.units(),
+        rate_hz=tab.rate_hz,
+        notes=[f"OpenSim table of {len(tab.columns)} columns (DataType={tab.data_type})"],
+    )
+    return Recording(metadata=md)
