@@ -212,6 +212,11 @@ def read_mvnx(path, *, sensor_map: Mapping[str, str] | None = None, derive_raw: 
         not match the segment/sensor count, non-increasing time.
     """
     path = Path(path)
+    if path.is_dir():
+        found = sorted(p.name for p in path.glob("*.mvnx"))
+        raise FormatError(
+            path, f"expected an .mvnx file, found a folder (with .mvnx files {found})"
+        )
     subject, segs, sensor_labels, poses, frames = _parse(path)
     seg_names = list(segs)
     if not seg_names or not frames:

@@ -20,6 +20,7 @@ from kinefuse.exceptions import FormatError
 from kinefuse.io._common import (
     DEG2RAD,
     G,
+    _read_text,
     check_time,
     check_units,
     make_metadata,
@@ -74,6 +75,14 @@ def read_xio_csv(path, *, segment: str = "imu") -> Recording:
         with the same time but different values, decreasing time.
     """
     path = Path(path)
+    first = next((ln for ln in _read_text(path).splitlines() if ln.strip()), "")
+    if not is_xio_csv(first.split(",")):
+        raise FormatError(
+            path,
+            "expected an x-io CSV header 'Time (s),Gyroscope X (deg/s),...,Accelerometer X (g),...', "
+            f"found {first[:80]!r}",
+            line=1,
+        )
     tab = read_table(path, delimiter=",")
     if not is_xio_csv(tab.columns):
         raise FormatError(
