@@ -429,3 +429,35 @@ def test_unsupported_messages(tmp_path, tp):
         assert "kinefuse reads: " in msg and "mvnx (Xsens MVN" in msg and "trc (" in msg
     with pytest.raises(FormatError, match=r"a folder \(1 .amc, 1 .asf\) that is not one recording"):
         kio.load(tp / "asf_amc")
+
+
+@needs_opensim
+def test_vec3_table_matches_opensim_adapter(tmp_path):
+    f = tmp_path / "acc.sto"
+    f.write_text(
+        "DataRate=100.000000\nDataType=Vec3\nversion=3\nOpenSimVersion=4.1\nendheader\n"
+        "time\tpelvis_imu\ttorso_imu\n"
+        "0\t0.1,-9.8,0.25\t1e-3,2,3\n0.01\t0.2,-9.7,NaN\t4,5,6\n"
+    )
+    ours = read_opensim_table(f)
+    assert ours.data_type == "Vec3" and ours.values.shape == (2, 2, 3) and ours.rate_hz == 100.0
+    theirs = opensim.TimeSeriesTableVec3(str(f))
+    flat_table = theirs.flatten()
+    matrix = flat_table.getMatrix()
+    np.testing.assert_allclose(
+        np.array(matrix.to_numpy()).reshape(2, 2, 3), ours.values, atol=1e-12, equal_nan=True
+    )
+    assert tuple(theirs.getColumnLabels()) == ours.columns
+
+
+def test_sensor_maps_and_writer_names(tp, tmp_path):
+    rec = kio.load(tp / "xsens" / "dot_realtime", sensor_map={"Yao": "chest"})  # a DeviceTag
+    assert set(rec.imu) == {"thigh_l", "shank_l", "chest"}
+    sto = kio.load(
+        tp / "xsens" / "opensense_walking_orientations.sto", sensor_map={"torso_imu": "trunk"}
+    )
+    assert "trunk" in sto.imu and "chest" not in sto.imu
+    out = write_opensense_sto(
+        tmp_path / "o.sto", {"pelvis": sto.imu["pelvis"]}, names={"pelvis": "pelvis_imu"}
+    )
+    assert out.read_text().splitlines()[4] == "time\tpelvis_imu"
