@@ -427,7 +427,11 @@ def test_unsupported_messages(tmp_path, tp):
         assert f"{name}: unsupported format: this looks like " in msg
         assert re.search(what, msg), msg
         assert "kinefuse reads: " in msg and "mvnx (Xsens MVN" in msg and "trc (" in msg
-    with pytest.raises(FormatError, match=r"a folder \(1 .amc, 1 .asf\) that is not one recording"):
+    with pytest.raises(
+        FormatError,
+        match=r"a folder \(1 .amc, 1 .asf\) that is not one recording; kinefuse reads what is in "
+        r"it one at a time \(gsimchoni_backflip.amc: cmu\); pass one of them",
+    ):
         kio.load(tp / "asf_amc")
 
 

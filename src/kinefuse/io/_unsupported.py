@@ -35,10 +35,24 @@ _BY_EXTENSION = {
     ".tar": "an archive; extract it first",
     ".7z": "a compressed archive; extract it first",
     ".log": "a log file",
+    ".md": "a Markdown document",
+    ".pdf": "a PDF document",
 }
 
-#: Extensions of formats read one file at a time (a folder of them is not a recording).
-_SINGLE_FILE_FORMATS = {".amc", ".bvh", ".c3d", ".trc", ".mvnx", ".sto", ".mot", ".json", ".mat"}
+
+def _readable_files(folder: Path, limit: int = 50) -> list[tuple[str, str]]:
+    """(name, format) of the first ``limit`` entries of ``folder`` that a reader recognises."""
+    from kinefuse.io._registry import _detect_dir, detect_format
+
+    out = []
+    for p in sorted(folder.iterdir())[:limit]:
+        try:  # sub-folders by layout only: no recursion into their own messages
+            fmt = _detect_dir(p) if p.is_dir() else detect_format(p)
+        except (ValueError, OSError):
+            continue
+        if fmt:
+            out.append((p.name + ("/" if p.is_dir() else ""), fmt))
+    return out
 
 
 def _head(path: Path, n: int = 8192) -> bytes:
@@ -66,11 +80,13 @@ def looks_like(path) -> str:
         if not kinds:
             return "a folder without files kinefuse recognises (pass one file or a sensor folder)"
         top = ", ".join(f"{n} {ext}" for ext, n in kinds.most_common(4))
-        single = sorted(set(kinds) & _SINGLE_FILE_FORMATS)
-        if single:
+        readable = _readable_files(path)
+        if readable:
+            shown = ", ".join(f"{name}: {fmt}" for name, fmt in readable[:4])
+            more = f" and {len(readable) - 4} more" if len(readable) > 4 else ""
             return (
-                f"a folder ({top}) that is not one recording: kinefuse reads {', '.join(single)} "
-                "files one at a time; pass one of them"
+                f"a folder ({top}) that is not one recording; kinefuse reads what is in it one "
+                f"at a time ({shown}{more}); pass one of them"
             )
         return f"a folder of files kinefuse does not recognise ({top})"
     ext = path.suffix.lower()
