@@ -465,3 +465,15 @@ def test_sensor_maps_and_writer_names(tp, tmp_path):
         tmp_path / "o.sto", {"pelvis": sto.imu["pelvis"]}, names={"pelvis": "pelvis_imu"}
     )
     assert out.read_text().splitlines()[4] == "time\tpelvis_imu"
+
+
+def test_dot_synced_clock_wrapping_between_sensors(tmp_path):
+    head = _DOT_HEAD.format(rate=60).replace("Unsynced", "Synced")
+    cols = "PacketCounter,SampleTimeFine,Quat_W,Quat_X,Quat_Y,Quat_Z\n"
+    starts = {"LFemur": 2**32 - 16667, "LTibia": 2**32 - 16667 + 2 * 16667 - 2**32}
+    for name, s0 in starts.items():
+        rows = [f"{i + 1},{(s0 + i * 16667) % 2**32},1,0,0,0" for i in range(5)]
+        (tmp_path / f"{name}_20240101_120000.csv").write_text(head + cols + "\n".join(rows) + "\n")
+    rec = kio.load(tmp_path)
+    np.testing.assert_allclose(rec.imu["thigh_l"].t_s, np.arange(5) * 16667e-6, atol=1e-9)
+    np.testing.assert_allclose(rec.imu["shank_l"].t_s, (2 + np.arange(5)) * 16667e-6, atol=1e-9)

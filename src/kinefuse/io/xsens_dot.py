@@ -255,6 +255,12 @@ def read_xsens_dot(
             overrides[name] = sensor_map.get(name) or sensor_map[tag]
     mapping, notes = map_segments(list(parsed), overrides)
     synced = all(p["info"].get("SyncStatus", "").lower() == "synced" for _, p in parsed.values())
+    firsts = [p["stf_us"][0] for _, p in parsed.values()]
+    if synced and max(firsts) - min(firsts) > _STF_WRAP / 2:
+        # the shared clock wrapped between two sensors' first samples: unwrap the late starters
+        for _, p in parsed.values():
+            if p["stf_us"][0] < _STF_WRAP / 2:
+                p["stf_us"] = p["stf_us"] + _STF_WRAP
     s0_common = min(p["stf_us"][0] for _, p in parsed.values())
     if not synced and len(parsed) > 1:
         notes.append(
