@@ -318,6 +318,8 @@ def read_opensense_sto(path, *, sensor_map: Mapping[str, str] | None = None) -> 
             "read it with read_opensim_table",
             field="DataType",
         )
+    if len(tab) == 0:
+        raise FormatError(path, "expected at least one row after the column labels, found none")
     norm = np.linalg.norm(tab.values, axis=-1)
     bad = np.isfinite(norm) & (np.abs(norm - 1.0) > 1e-3)
     if np.any(bad):
