@@ -182,6 +182,49 @@ def test_write_opensense_sto_synthetic_rate_and_missing(tmp_path, rng):
     np.testing.assert_allclose(qq[:, 0], q, atol=1e-9)
 
 
+@needs_opensim
+def test_opensense_ik_tracks_written_orientations(tmp_path, monkeypatch):
+    """End to end: OpenSense IK (IMUInverseKinematicsTool) on a kinefuse-written .sto recovers
+    the orientations, and kinefuse reads the .mot OpenSim writes as OpenSim's adapter does."""
+    monkeypatch.chdir(tmp_path)
+    level = opensim.Logger.getLevelString()
+    opensim.Logger.setLevelString("Warn")
+    try:
+        model = opensim.Model()
+        body = opensim.Body("pelvis", 1.0, opensim.Vec3(0), opensim.Inertia(0.1, 0.1, 0.1))
+        model.addBody(body)
+        model.addJoint(opensim.FreeJoint("ground_pelvis", model.getGround(), body))
+        body.addComponent(opensim.PhysicalOffsetFrame("pelvis_imu", body, opensim.Transform()))
+        model.finalizeConnections()
+        model.printToXML("one_body.osim")
+        t = np.arange(30) / 30.0
+        rot = Rotation.from_rotvec(
+            np.column_stack([0.5 * np.sin(2 * t), 0.3 * t, -0.4 * np.cos(t)])
+        )
+        imu = {"pelvis": ImuStream(t_s=t, q_world_from_sensor=rot.as_quat(scalar_first=True))}
+        write_opensense_sto("walk_orientations.sto", imu, rate_hz=30.0)
+        tool = opensim.IMUInverseKinematicsTool()
+        tool.set_model_file("one_body.osim")
+        tool.set_orientations_file("walk_orientations.sto")
+        tool.set_sensor_to_opensim_rotations(opensim.Vec3(0, 0, 0))
+        tool.set_results_directory("ik")
+        tool.set_time_range(0, 0.0)
+        tool.set_time_range(1, float(t[-1]))
+        tool.run(False)
+    finally:
+        opensim.Logger.setLevelString(level)
+    mot = tmp_path / "ik" / "ik_walk_orientations.mot"
+    ours = read_opensim_table(mot)
+    theirs = opensim.TimeSeriesTable(str(mot))
+    matrix = theirs.getMatrix()
+    np.testing.assert_allclose(matrix.to_numpy(), ours.values, atol=1e-12)
+    assert ours.in_degrees and ours.columns[0] == "ground_pelvis_coord_0"
+    # FreeJoint rotations: body-fixed X-Y-Z, degrees (IK tolerance ~0.01 deg)
+    ik_rot = Rotation.from_euler("XYZ", ours.values[:, :3], degrees=True)
+    np.testing.assert_allclose(ours.t_s, t, atol=1e-9)
+    assert np.degrees((rot.inv() * ik_rot).magnitude()).max() < 0.05
+
+
 def test_write_opensense_sto_refusals(tmp_path):
     t = np.arange(5) / 10.0
     q = np.tile([1.0, 0, 0, 0], (5, 1))
