@@ -86,7 +86,7 @@ def test_opensim_table_errors(tmp_path):
     with pytest.raises(FormatError, match=r"a.mot: expected an OpenSim table header ending"):
         read_opensim_table(f)
     f.write_text("nRows=3\nendheader\ntime\tknee\n0\t1\n0.1\tx\n")
-    with pytest.raises(FormatError, match=r"a.mot, line 5, field 'column 2': expected a number"):
+    with pytest.raises(FormatError, match=r"a.mot, line 5, field 'knee': expected a number"):
         read_opensim_table(f)
     f.write_text("nRows=3\nendheader\ntime\tknee\n0\t1\n0.1\t2\n")
     with pytest.warns(UserWarning, match="nRows=3, the table has 2"):

@@ -157,7 +157,8 @@ class OpenSimTable:
         return int(self.t_s.size)
 
 
-def _parse_fields(path: Path, text: str, lineno: int, n: int, k: int) -> list[float]:
+def _parse_fields(path: Path, text: str, lineno: int, labels: list[str], k: int) -> list[float]:
+    n = len(labels)
     fields = text.split("\t")
     if len(fields) != n and len(fields) == 1:
         fields = text.split()  # space-separated legacy files
@@ -178,7 +179,7 @@ def _parse_fields(path: Path, text: str, lineno: int, n: int, k: int) -> list[fl
                 path,
                 f"expected {k} comma-separated values in a field, found {len(parts)} ({f.strip()!r})",
                 line=lineno,
-                field=f"column {j + 1}",
+                field=labels[j],
             )
         for p in parts:
             try:
@@ -188,7 +189,7 @@ def _parse_fields(path: Path, text: str, lineno: int, n: int, k: int) -> list[fl
                     path,
                     f"expected a number, found {p.strip()!r}",
                     line=lineno,
-                    field=f"column {j + 1}",
+                    field=labels[j],
                 ) from None
     return out
 
@@ -267,7 +268,7 @@ def read_opensim_table(path) -> OpenSimTable:
     for j in range(k_lab + 1, len(lines)):
         if not lines[j].strip():
             continue
-        rows.append(_parse_fields(path, lines[j], j + 1, n, k))
+        rows.append(_parse_fields(path, lines[j], j + 1, labels, k))
         line_no.append(j + 1)
     data = np.asarray(rows, dtype=float).reshape(len(rows), 1 + (n - 1) * k)
     t = check_time(path, data[:, 0], np.asarray(line_no), labels[0])
