@@ -520,3 +520,20 @@ def test_dot_synced_clock_wrapping_between_sensors(tmp_path):
     rec = kio.load(tmp_path)
     np.testing.assert_allclose(rec.imu["thigh_l"].t_s, np.arange(5) * 16667e-6, atol=1e-9)
     np.testing.assert_allclose(rec.imu["shank_l"].t_s, (2 + np.arange(5)) * 16667e-6, atol=1e-9)
+
+
+def test_dot_delta_quantities(tmp_path):
+    """``dq``/``dv`` (orientation and velocity increments per sample) -> rates, as the DOT manual
+    defines them (acceleration = dv / dt, dt = 1 / output rate)."""
+    n, rate = 10, 60.0
+    w = np.array([0.5, -1.0, 2.0])  # rad/s
+    a = np.array([0.1, 0.2, 9.8])  # m/s^2
+    dq = Rotation.from_rotvec(np.tile(w / rate, (n, 1))).as_quat(scalar_first=True)
+    rows = ["PacketCounter,SampleTimeFine,dq_W,dq_X,dq_Y,dq_Z,dv_X,dv_Y,dv_Z"]
+    for i in range(n):
+        rows.append(",".join(str(v) for v in [i + 1, 1000 + i * 16667, *dq[i], *(a / rate)]))
+    f = tmp_path / "wrist_20240101_120000.csv"
+    f.write_text(_DOT_HEAD.format(rate=60) + "\n".join(rows) + "\n")
+    s = kio.load(f).imu["wrist"]
+    np.testing.assert_allclose(s.gyr_rad_s, np.tile(w, (n, 1)), atol=1e-9)
+    np.testing.assert_allclose(s.acc_m_s2, np.tile(a, (n, 1)), atol=1e-9)

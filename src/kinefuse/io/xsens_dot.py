@@ -166,12 +166,16 @@ def _read_one(path: Path) -> dict:
         "mag": _group(tab, "Mag", "XYZ"),
         "info": info,
         "euler": q is not None and not tab.has("Quat_W"),
+        "dq": _group(tab, "dq", "WXYZ"),
+        "dv": _group(tab, "dv", "XYZ"),
     }
-    if out["q"] is None and (out["acc"] is None or out["gyr"] is None):
+    has_acc = out["acc"] is not None or out["dv"] is not None
+    has_gyr = out["gyr"] is not None or out["dq"] is not None
+    if out["q"] is None and not (has_acc and has_gyr):
         raise FormatError(
             path,
-            "expected an orientation (Quat_W..Z or Euler_X..Z) or both Acc_X..Z and Gyr_X..Z, found "
-            f"columns {tab.columns}",
+            "expected an orientation (Quat_W..Z or Euler_X..Z) or both Acc_X..Z (or dv_X..Z) and "
+            f"Gyr_X..Z (or dq_W..Z), found columns {tab.columns}",
             line=tab.header_line,
         )
     return out
@@ -287,7 +291,21 @@ def read_xsens_dot(
             rate = rate if rate is not None else measured
         rates[key] = rate
         dropped[key] = int(np.sum(dc[dc > 1] - 1))
-        acc = p["acc"]
+        acc, gyr = p["acc"], p["gyr"]
+        if (acc is None and p["dv"] is not None) or (gyr is None and p["dq"] is not None):
+            if rate is None:
+                raise FormatError(f, "delta quantities (dq/dv) need the OutputRate header line")
+            # DOT manual: calibrated acceleration = dv / dt, dt = 1 / output rate; dq likewise
+            if acc is None and p["dv"] is not None:
+                acc = p["dv"] * rate
+                units.add("dv (m/s per sample) -> acc_m_s2 = dv * OutputRate")
+            if gyr is None and p["dq"] is not None:
+                dq = p["dq"]
+                gyr = np.full((dq.shape[0], 3), np.nan)
+                ok = np.all(np.isfinite(dq), axis=1)
+                rv = Rotation.from_quat(dq[ok], scalar_first=True).as_rotvec()
+                gyr[ok] = rv * rate
+                units.add("dq (orientation increment) -> gyr_rad_s = rotvec(dq) * OutputRate")
         if p["free_acc"] is not None:
             free[key] = p["free_acc"]
             if acc is None and derive_acc and p["q"] is not None:
@@ -305,7 +323,7 @@ def read_xsens_dot(
             t_s=t,
             q_world_from_sensor=p["q"],
             acc_m_s2=acc,
-            gyr_rad_s=p["gyr"],
+            gyr_rad_s=gyr,
             mag=p["mag"],
             name=name,
             frame="ENU",
