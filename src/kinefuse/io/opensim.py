@@ -132,7 +132,8 @@ class OpenSimTable:
 
         A coordinate is taken as rotational unless its label ends with ``_tx``, ``_ty`` or
         ``_tz`` (OpenSim's naming of translational coordinates; the model, not the file, is
-        the authority).
+        the authority: a translation named otherwise, such as a FreeJoint's default
+        ``*_coord_3..5``, is reported as an angle).
         """
         deg = self.in_degrees
         out = {}
