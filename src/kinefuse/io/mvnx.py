@@ -169,7 +169,9 @@ def _joint_positions(segs, seg_names, pos, q) -> tuple[tuple[str, ...], np.ndarr
     return tuple(names), np.stack(cols, axis=1)
 
 
-def read_mvnx(path, *, sensor_map: Mapping[str, str] | None = None, derive_raw: bool = True):
+def read_mvnx(
+    path, *, sensor_map: Mapping[str, str] | None = None, derive_raw: bool = True
+) -> Recording:
     """Read an Xsens MVNX export: reference skeleton, segment orientations, IMU streams, poses.
 
     Parameters
