@@ -19,7 +19,6 @@ from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import FormatError, FormatWarning, InputError
 from kinefuse.io._common import (
-    G,
     Table,
     canonical_segment,
     check_time,
@@ -29,6 +28,7 @@ from kinefuse.io._common import (
     read_table,
 )
 from kinefuse.io.recording import ImuStream, Recording
+from kinefuse.io.xsens_dot import specific_force_from_free_acc
 
 __all__ = ["OPENSENSE_EXAMPLE_SENSORS", "XSENS_FRAME", "read_opensense", "read_xsens_txt"]
 
@@ -224,15 +224,6 @@ def _acc_kind(acc, q, acceleration: str) -> str:
     return "specific_force"
 
 
-def _specific_force(free_world: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """``f_sensor = R_world_from_sensor^T (a_free + g e_z)``: Xsens defines free acceleration as
-    ``R f - g e_z`` in its z-up global frame, so this inverts it exactly."""
-    R = Rotation.from_quat(np.where(np.isfinite(q), q, [1.0, 0, 0, 0]), scalar_first=True)
-    f = R.inv().apply(free_world + np.array([0.0, 0.0, G]))
-    f[~np.all(np.isfinite(q), axis=1) | ~np.all(np.isfinite(free_world), axis=1)] = np.nan
-    return f
-
-
 def read_opensense(
     path,
     *,
@@ -334,7 +325,7 @@ def read_opensense(
         kind = _acc_kind(acc, p["q"], acceleration)
         if kind == "free":
             free_acc[mapping[sid]] = acc
-            acc = _specific_force(acc, p["q"])
+            acc = specific_force_from_free_acc(p["q"], acc)
             units = sorted(
                 set(units) | {"free acceleration (world) -> specific force (sensor frame)"}
             )
