@@ -133,7 +133,7 @@ def test_static_heading_brings_6d_frames_together():
     rec = _arm_pose_recording(same, T, heading_deg=(0.0, 40.0), flex_deg=flex)
     sk = upper_limb("r", height_m=1.7)
     cal = calibrate(rec, sk, "static", window_s=0.5, heading="static")
-    assert cal.heading_deg["forearm_r"] == pytest.approx(-40.0, abs=1e-6)
+    assert cal.world_heading_deg["forearm_r"] == pytest.approx(-40.0, abs=1e-6)
     ang = joint_angles(segment_orientations(rec, cal, rec.imu["forearm_r"].t_s))["elbow_r"]
     np.testing.assert_allclose(ang[:, 0], flex, atol=1e-6)
     raw = calibrate(rec, sk, "static", window_s=0.5)

@@ -97,7 +97,7 @@ _BACKENDS = {
     "replay": ("kinefuse.streaming", "replay_recording"),
 }
 
-EXPERIMENTS = ("paper-a", "paper-b")
+EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only")
 
 
 class BackendUnavailable(RuntimeError):
@@ -583,7 +583,10 @@ def evaluate(
 def experiment(
     name: Annotated[
         str,
-        typer.Argument(metavar="paper-a|paper-b", help="Which paper's experiment to reproduce."),
+        typer.Argument(
+            metavar="paper-a|paper-b|neura-imu-only",
+            help="Which experiment: a paper's, or the Neura walk from its IMUs alone.",
+        ),
     ],
     data: Annotated[
         Path | None,

@@ -10,6 +10,7 @@ from kinefuse.kinematics.calibration import (
     segment_orientations,
 )
 from kinefuse.kinematics.forward import as_rotation_matrices, euler_to_matrix, forward_kinematics
+from kinefuse.kinematics.functional import FunctionalCalibration, functional_calibration
 from kinefuse.kinematics.skeleton import (
     ANTHROPOMETRIC_RATIOS,
     AXES,
@@ -26,6 +27,7 @@ __all__ = [
     "ANTHROPOMETRIC_RATIOS",
     "AXES",
     "Calibration",
+    "FunctionalCalibration",
     "JOINT_ANGLE_COMPONENTS",
     "Skeleton",
     "StillWindow",
@@ -36,6 +38,7 @@ __all__ = [
     "find_still_window",
     "forward_kinematics",
     "full_body",
+    "functional_calibration",
     "heading_rotation",
     "joint_angles",
     "kabsch_rotation",

@@ -145,9 +145,10 @@ class Calibration:
     frames : dict of str -> ndarray, shape (3, 3)
         Static only: ``R_sensor_from_segment`` of each segment, columns = the segment's ISB axes
         (X anterior, Y superior, Z right) in the sensor frame; used for joint angles.
-    heading_deg : dict of str -> float
-        Static with ``heading="static"``: rotation about the vertical applied to each sensor's
-        world frame, deg (``R_world_from_sensor <- R_z(ψ) R_world_from_sensor``).
+    world_heading_deg : dict of str -> float
+        Static with ``heading="static"``: rotation about the vertical that this calibration
+        applies to each sensor's world frame, deg (``R_world_from_sensor <- R_z(ψ)
+        R_world_from_sensor``, in :func:`chain_positions` and :func:`segment_orientations`).
     still : StillWindow or None
         Static only: the window and how still it was.
     pose_residual_deg : dict of str -> float
@@ -163,13 +164,13 @@ class Calibration:
     residual_deg: Mapping[str, float] = field(default_factory=dict)
     align: str = "none"
     frames: Mapping[str, np.ndarray] = field(default_factory=dict)
-    heading_deg: Mapping[str, float] = field(default_factory=dict)
+    world_heading_deg: Mapping[str, float] = field(default_factory=dict)
     still: StillWindow | None = None
     pose_residual_deg: Mapping[str, float] = field(default_factory=dict)
 
     def heading_matrix(self, segment: str) -> np.ndarray:
         """``R_z(ψ)`` applied to ``segment``'s sensor world frame (identity if none), (3, 3)."""
-        psi = np.radians(self.heading_deg.get(segment, 0.0))
+        psi = np.radians(self.world_heading_deg.get(segment, 0.0))
         c, s = np.cos(psi), np.sin(psi)
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
@@ -360,7 +361,7 @@ def _static(
         residual_deg=resid,
         align="none",
         frames=frames,
-        heading_deg=heading_deg,
+        world_heading_deg=heading_deg,
         still=still,
         pose_residual_deg=pose_res,
     )
@@ -503,12 +504,17 @@ def calibrate(
         ``"vision"`` the joint stream with the skeleton's joint names.
     skeleton : Skeleton
         Defines the segments and their proximal/distal joints.
-    method : {"static", "reference", "vision"}
-        ``"static"``: the subject holds a known pose in the window (SPEC §2.1). ``"reference"`` /
+    method : {"static", "functional", "reference", "vision"}
+        ``"static"``: the subject holds a known pose in the window (SPEC §2.1). ``"functional"``:
+        joint centres from movement, no still pose and no optical data
+        (:func:`kinefuse.kinematics.functional.functional_calibration`, with its defaults; it
+        returns a :class:`~kinefuse.kinematics.functional.FunctionalCalibration` carrying the
+        excitation, residual, heading and hinge axis of every joint). ``"reference"`` /
         ``"vision"``: least squares against the joint directions seen by ``recording.reference`` /
         ``recording.vision`` in the window.
     window_s : float
-        Window length, s (default 1 s).
+        Window length, s (default 1 s; ``"functional"`` uses the whole recording unless
+        ``start_s`` is given).
     start_s : float, optional
         Window start, s. Default: ``"static"`` searches the earliest window in which every
         sensor holds still (:func:`kinefuse.kinematics.find_still_window`: mean angular rate
@@ -585,9 +591,21 @@ def calibrate(
         raise InputError(f"expected recording as a Recording, got {type(recording).__name__}")
     if not isinstance(skeleton, Skeleton):
         raise InputError(f"expected skeleton as a Skeleton, got {type(skeleton).__name__}")
-    if method not in ("static", "reference", "vision"):
+    if method not in ("static", "functional", "reference", "vision"):
         raise InputError(
-            f"unknown calibration method {method!r}; expected 'static', 'reference' or 'vision'"
+            f"unknown calibration method {method!r}; expected 'static', 'functional', 'reference' "
+            "or 'vision'"
+        )
+    if method == "functional":
+        from kinefuse.kinematics.functional import functional_calibration
+
+        # movement calibration uses the whole recording unless a window start is given
+        return functional_calibration(
+            recording,
+            skeleton,
+            start_s=start_s,
+            window_s=None if start_s is None else window_s,
+            segments=segments,
         )
     if heading not in ("none", "static"):
         raise InputError(f"expected heading in ('none', 'static'), got {heading!r}")
@@ -777,7 +795,7 @@ def chain_positions(
         R = as_rotation_matrices(
             slerp_resample(st.t_s, st.q_world_from_sensor, t), f"IMU {s!r} orientation"
         )
-        if calibration is not None and s in calibration.heading_deg:
+        if calibration is not None and s in calibration.world_heading_deg:
             R = np.einsum("ij,kjl->kil", calibration.heading_matrix(s), R)
         ori[s] = R if Rc is None else np.einsum("ji,kjl->kil", Rc, R)  # camera_from_sensor = Rcᵀ R
     pos = forward_kinematics(skeleton, ori, roots)

@@ -18,7 +18,12 @@
     plus noise and outages, Vicon as the reference). Tables like paper B's Tables 3-5 and the
     CDF-0.9 improvements next to the paper's claims.
 
-Both pool the samples of all scenarios of a data set before computing the RMSE.
+``neura-imu-only`` (issue 10)
+    The Neura walk from its IMUs alone: functional calibration from the walk, tape-measure
+    lengths, Vicon hips as the declared root; Vicon scores only
+    (:mod:`kinefuse.pipelines.neura_imu_only`).
+
+The paper experiments pool the samples of all scenarios of a data set before computing the RMSE.
 """
 
 from __future__ import annotations
@@ -43,7 +48,7 @@ __all__ = [
 ]
 
 #: Experiments this module runs.
-EXPERIMENTS = ("paper-a", "paper-b")
+EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only")
 
 #: Paper A's four filter settings (SPEC §12.1): name -> (joint kind, q, r).
 PAPER_A_TESTS = {
@@ -769,7 +774,7 @@ def run_experiment(
 
     Parameters
     ----------
-    name : {"paper-a", "paper-b"}
+    name : {"paper-a", "paper-b", "neura-imu-only"}
         Which experiment (see the module docstring).
     data_dir : str or Path, optional
         The shared data folder (``cmu_mocap/``, ``utd_mhad/``, ``neura_sparse_sample/``).
@@ -804,7 +809,17 @@ def run_experiment(
     data_dir = None if data_dir is None else Path(data_dir)
     notes: list[str] = []
     t0 = time.perf_counter()
-    if name == "paper-a":
+    if name == "neura-imu-only":
+        from kinefuse.pipelines.neura_imu_only import run_neura_imu_only
+
+        if data_dir is None:
+            raise InputError("neura-imu-only: needs --data (the folder with neura_sparse_sample/)")
+        n_steps = 2
+
+        def run(d, q, advance, notes):
+            return run_neura_imu_only(d, advance, notes)
+
+    elif name == "paper-a":
         n_steps = (1 if quick else len(CMU_TRIALS_PAPER_A)) + 1 + (8 if quick else 12)
         run = _paper_a
     else:
