@@ -465,3 +465,29 @@ def test_every_method_and_input_runs_or_is_refused_before_work(
     else:
         with pytest.raises(_WorkStarted):
             ps.run_session(p, tmp_path / "out")
+
+
+def test_fixed_root_positions_closed_form():
+    """Paper A's chain from a fixed, measured shoulder: positions in closed form."""
+    from kinefuse.pipelines.session import process_recording
+
+    T = 300
+    flex = np.where(np.arange(T) < 100, 0.0, np.minimum(np.linspace(-50, 130, T), 90.0))
+    rec = _arm_pose_recording(MOUNTS, T, flex_deg=flex)
+    out = process_recording(
+        rec,
+        "imu-only",
+        {"root_position_m": {"shoulder_r": [1.0, 2.0, 3.0]}, "calibration_window_s": 0.5},
+        lengths={"upper_arm_r": 0.30, "forearm_r": 0.26},
+    )
+    assert (
+        out.joints == ("elbow_r", "wrist_r") and "fixed shoulder_r at [1.0, 2.0, 3.0]" in out.root
+    )
+    elbow, wrist = out.position[:, 0], out.position[:, 1]
+    np.testing.assert_allclose(elbow, np.tile([1.0, 2.0, 2.70], (T, 1)), atol=1e-9)
+    th = np.radians(flex)  # forearm swings forward (north, the declared facing) as it flexes
+    expect = np.stack([np.ones(T), 2.0 + 0.26 * np.sin(th), 2.70 - 0.26 * np.cos(th)], -1)
+    np.testing.assert_allclose(wrist, expect, atol=1e-9)
+    np.testing.assert_allclose(out.angles["elbow_r"][:, 0], flex, atol=1e-6)
+    assert out.provenance["segment_lengths"]["forearm_r"]["source"] == "measured"
+    assert out.reference is None and out.tag == ""
