@@ -529,13 +529,6 @@ def load_session(path: str | Path) -> SessionConfig:
                 "lengths are in metres",
             )
         lengths[seg_name] = val
-    if height is None and not lengths:
-        raise c.error(
-            "skeleton",
-            None,
-            "needs body_height_m or [skeleton.lengths]",
-            "add e.g. body_height_m = 1.75",
-        )
     root = c.string(k, "skeleton", "root", required=False)
     if root is not None and root not in ROOTS:
         raise c.error(
@@ -631,6 +624,14 @@ def load_session(path: str | Path) -> SessionConfig:
     if "lengths_from_data" in cal and not isinstance(cal["lengths_from_data"], bool):
         raise c.error("calibration", "lengths_from_data", "expected true or false")
     calibration = CalibrationConfig(settings=settings)
+    if height is None and not lengths and settings.get("method") != "functional":
+        raise c.error(
+            "skeleton",
+            None,
+            "needs body_height_m or [skeleton.lengths] (or [calibration] method = "
+            "'functional', which estimates lengths from movement)",
+            "add e.g. body_height_m = 1.75",
+        )
 
     camera = None
     cam = c.table(doc, "camera", required=False)
