@@ -30,6 +30,7 @@ from kinefuse.conventions import MODE_NAMES, PAPER_B_JOINTS, SOURCE_NAMES
 from kinefuse.exceptions import InputError
 
 __all__ = [
+    "BASELINE_METHODS",
     "DEMO_SEED",
     "PAPER_A_LABELS",
     "PAPER_A_TEST1",
@@ -51,8 +52,13 @@ PAPER_B_LABELS = {
     "elm-kf": "ELM/KF",
     "imu-only": "IMU only",
     "camera-only": "camera only",
+    "camera-gapfill": "camera gap-fill",
+    "offset-interp": "offset interp",
+    "offset-hold": "offset hold",
     "kinefuse": "kinefuse",
 }
+#: The simple baselines every paper-B table shows (:mod:`kinefuse.pipelines.vision_assisted`).
+BASELINE_METHODS = ("camera-gapfill", "offset-interp", "offset-hold")
 #: Paper A test-1 settings ``joint kind -> (q, r)`` (SPEC §12.1: elbow q=1 R=0.01, wrist q=0.1 R=0.1).
 PAPER_A_TEST1 = {"elbow": (1.0, 0.01), "wrist": (0.1, 0.1)}
 
@@ -97,10 +103,11 @@ def progress(
 
 
 def paper_b_methods(include_kinefuse: bool = True) -> tuple[str, ...]:
-    """Paper B methods available in this installation, in table order (plus ``"kinefuse"``)."""
+    """Paper B methods available in this installation, in table order: paper B's, the simple
+    baselines (:data:`BASELINE_METHODS`), then ``"kinefuse"``."""
     from kinefuse.pipelines import METHODS
 
-    names = ["elm-fir", "elm-kf", "imu-only", "camera-only"]
+    names = ["elm-fir", "elm-kf", "imu-only", "camera-only", *BASELINE_METHODS]
     if include_kinefuse and "kinefuse" in METHODS:
         names.append("kinefuse")
     return tuple(n for n in names if n in METHODS)
