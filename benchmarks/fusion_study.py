@@ -115,15 +115,20 @@ def cmu_trial(name: str, seed: int = 0) -> dict:
 
 
 def utd_trial(action: int, subject: int, trial: int = 1, seed: int = 0) -> dict | None:
-    from kinefuse.io.recording import ImuStream
     from kinefuse.io.utd_mhad import read_utd_mhad
-    from kinefuse.kinematics import upper_limb
-    from kinefuse.orientation import estimate
 
     p = DATA / "utd_mhad" / "Inertial" / f"a{action}_s{subject}_t{trial}_inertial.mat"
     if not p.is_file():
         return None
-    rec = read_utd_mhad(p)
+    return utd_inputs(read_utd_mhad(p), action, subject, trial, seed)
+
+
+def utd_inputs(rec, action: int, subject: int, trial: int = 1, seed: int = 0) -> dict:
+    """The UTD-MHAD scenario of one loaded trial (calibration on camera-seen frames only)."""
+    from kinefuse.io.recording import ImuStream
+    from kinefuse.kinematics import upper_limb
+    from kinefuse.orientation import estimate
+
     imu = rec.imu["forearm_r"]
     q = estimate(imu.acc_m_s2, imu.gyr_rad_s, rate_hz=imu.rate_hz)
     rec.imu["forearm_r"] = ImuStream(

@@ -196,17 +196,25 @@ DEGRADED_AHRS = {
 }
 
 
-def _arm_chain_virtual(motion, seed: int, imu_overrides: Mapping | None = None):
-    """Right-arm elbow/wrist IMU chain (camera shoulder) and truth at 30 Hz of a CMU motion."""
-    from kinefuse.kinematics import calibrate, chain_positions, upper_limb
+def _arm_recording(motion, seed: int, imu_overrides: Mapping | None = None):
+    """Virtual upper-arm and forearm IMUs and camera of paper A's right arm (seeded)."""
     from kinefuse.sim import ImuConfig, virtual_recording
 
-    rec = virtual_recording(
+    return virtual_recording(
         motion,
         imu=ImuConfig(**dict(imu_overrides or {})),
         segments=("upper_arm_r", "forearm_r"),
         seed=seed,
     )
+
+
+def _arm_chain(rec):
+    """Right-arm elbow/wrist IMU chain (camera shoulder, gaps interpolated) and truth at 30 Hz.
+
+    Calibration (axes, lengths) from the camera over the first 5 s, camera-seen samples only.
+    """
+    from kinefuse.kinematics import calibrate, chain_positions, upper_limb
+
     sk = upper_limb("r", height_m=1.75)
     cal = calibrate(rec, sk, "vision", window_s=5.0)
     sk = upper_limb("r", lengths=dict(cal.lengths_m))
@@ -218,6 +226,11 @@ def _arm_chain_virtual(motion, seed: int, imu_overrides: Mapping | None = None):
     z = {j: st.position(j, masked=False) for j in ("elbow_r", "wrist_r")}
     ref = {j: rec.reference.position(j) for j in ("elbow_r", "wrist_r")}
     return t, z, ref
+
+
+def _arm_chain_virtual(motion, seed: int, imu_overrides: Mapping | None = None):
+    """Right-arm elbow/wrist IMU chain (camera shoulder) and truth at 30 Hz of a CMU motion."""
+    return _arm_chain(_arm_recording(motion, seed, imu_overrides))
 
 
 def _utd_trials(data_dir: Path, quick: bool, split: DataSplit) -> list[tuple[Path, Path]]:
