@@ -13,7 +13,13 @@ from __future__ import annotations
 import numpy as np
 import scipy.signal
 
-__all__ = ["BRIDGE_DECAY_SAMPLES", "BRIDGE_HORIZON", "BRIDGE_SMOOTH_SAMPLES", "prequential_bridge"]
+__all__ = [
+    "BRIDGE_DECAY_SAMPLES",
+    "BRIDGE_HORIZON",
+    "BRIDGE_SMOOTH_SAMPLES",
+    "BRIDGE_VAR_WINDOW",
+    "prequential_bridge",
+]
 
 #: Time constants (samples) of the EWMA that smooths the camera-chain offset.
 BRIDGE_SMOOTH_SAMPLES = (1.0, 3.0, 10.0, 30.0, 100.0)
@@ -21,6 +27,9 @@ BRIDGE_SMOOTH_SAMPLES = (1.0, 3.0, 10.0, 30.0, 100.0)
 BRIDGE_DECAY_SAMPLES = (0.0, 3.0, 10.0, 30.0, 100.0, 300.0, np.inf)
 #: Largest horizon (samples) over which candidates are scored: 60 = 2 s at 30 Hz.
 BRIDGE_HORIZON = 60
+#: Most recent history (samples) the predictive variance per horizon is computed from, so that
+#: the cost per onset stays bounded on long recordings (3000 = 100 s at 30 Hz).
+BRIDGE_VAR_WINDOW = 3000
 
 
 def _ewma(e: np.ndarray, seen: np.ndarray, tau: float) -> np.ndarray:
@@ -80,7 +89,7 @@ def prequential_bridge(
         sample), NaN elsewhere.
     var : ndarray, shape (T, 3)
         Per-axis predictive variance, m²: the chosen candidate's mean squared prediction error
-        on the history at that horizon (beyond H: at H).
+        at that horizon (beyond H: at H) over the last :data:`BRIDGE_VAR_WINDOW` samples.
     choices : list of (int, int, float, float)
         Per bridged onset ``(a, base, τ_s, τ_d)``: onset, index of the chosen base, time
         constants in samples.
@@ -109,26 +118,39 @@ def prequential_bridge(
     h_all = np.arange(1, horizon + 1)
     errs = [np.where(seen[:, None], z_cam - b, np.nan) for b in bases]
     smooth = [{ts: _ewma(e, seen, ts) for ts in BRIDGE_SMOOTH_SAMPLES} for e in errs]
+    # |e_{s+h} − w_h ē_s|² = |e_{s+h}|² − 2 w_h e_{s+h}·ē_s + w_h² |ē_s|²: the three terms per h
+    # once per (base, τ_s) and h, weighted for all decays at once
+    decays = [td for td in BRIDGE_DECAY_SAMPLES if td != 0]
+    W = np.array([_weights(td, h_all) for td in decays])  # (D, H)
     cands, cum_sse, cum_n = [], [], []
     for i, e in enumerate(errs):
+        e0 = np.where(np.isfinite(e), e, 0.0)
         for ts in BRIDGE_SMOOTH_SAMPLES:
             eb = smooth[i][ts]
-            for td in BRIDGE_DECAY_SAMPLES:
-                if td == 0 and ts != BRIDGE_SMOOTH_SAMPLES[0]:
-                    continue  # the chain alone does not depend on τ_s
-                w = _weights(td, h_all)
-                sse = np.zeros(T)
-                cnt = np.zeros(T)
-                for k, h in enumerate(h_all):
-                    if h >= T:
-                        break
-                    r = e[h:] - w[k] * eb[:-h]  # pair (s, s + h) completes at s + h
-                    ok = np.all(np.isfinite(r), axis=-1)
-                    sse[h:] += np.sum(np.where(ok[:, None], r, 0.0) ** 2, -1)
-                    cnt[h:] += ok
+            eb0 = np.where(np.isfinite(eb), eb, 0.0)
+            okb = np.all(np.isfinite(eb), axis=-1)
+            a_sum = np.zeros(T)
+            sse = np.zeros((len(decays), T))
+            n = np.zeros(T)
+            for k, h in enumerate(h_all):
+                if h >= T:
+                    break
+                m = seen[h:] & okb[:-h]  # pair (s, s + h) complete at s + h
+                a_k = np.where(m, np.sum(e0[h:] ** 2, -1), 0.0)
+                b_k = np.where(m, np.sum(e0[h:] * eb0[:-h], -1), 0.0)
+                c_k = np.where(m, np.sum(eb0[:-h] ** 2, -1), 0.0)
+                a_sum[h:] += a_k
+                sse[:, h:] += a_k - 2.0 * W[:, k, None] * b_k + W[:, k, None] ** 2 * c_k
+                n[h:] += m
+            n = np.cumsum(n)
+            if ts == BRIDGE_SMOOTH_SAMPLES[0]:  # the chain alone (τ_d = 0) does not depend on τ_s
+                cands.append((i, ts, 0.0))
+                cum_sse.append(np.cumsum(a_sum))
+                cum_n.append(n)
+            for d, td in enumerate(decays):
                 cands.append((i, ts, td))
-                cum_sse.append(np.cumsum(sse))
-                cum_n.append(np.cumsum(cnt))
+                cum_sse.append(np.cumsum(sse[d]))
+                cum_n.append(n)
     cum_sse, cum_n = np.array(cum_sse), np.array(cum_n)
     choices = []
     for a in onsets:
@@ -143,10 +165,11 @@ def prequential_bridge(
         # predictive variance per horizon from the history of the chosen candidate
         w = _weights(td, h_all)
         mse = np.full((horizon, 3), np.nan)
+        lo = max(a - BRIDGE_VAR_WINDOW, 0)
         for k, h in enumerate(h_all):
-            if h >= a:
+            if h >= a - lo:
                 break
-            r = e[h:a] - w[k] * eb[: a - h]
+            r = e[lo + h : a] - w[k] * eb[lo : a - h]
             ok = np.all(np.isfinite(r), axis=-1)
             if np.any(ok):
                 mse[k] = np.mean(r[ok] ** 2, axis=0)
