@@ -115,3 +115,17 @@ def test_baselines_ignore_the_camera_where_it_is_unavailable():
         a = vision_assisted(chain, cam, av, DT, m).position
         b = vision_assisted(chain, cam2, av, DT, m).position
         np.testing.assert_array_equal(a, b)
+
+
+def test_baselines_run_as_session_methods_and_appear_in_the_evaluation():
+    from kinefuse.pipelines.demo import demo_recording
+    from kinefuse.pipelines.session import process_recording
+
+    rec = demo_recording()
+    out = process_recording(rec, "offset-interp", {})
+    assert out.label == "offset interp"
+    np.testing.assert_array_equal(out.position, out.baselines["offset interp"])
+    ev = out.evaluation()
+    assert ev.methods[0] == "offset interp"
+    assert {"offset hold", "camera gap-fill", "IMU chain"} <= set(ev.methods)
+    assert ev.methods.count("offset interp") == 1
