@@ -97,7 +97,7 @@ _BACKENDS = {
     "replay": ("kinefuse.streaming", "replay_recording"),
 }
 
-EXPERIMENTS = ("paper-a", "paper-b")
+EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only")
 
 
 class BackendUnavailable(RuntimeError):
@@ -515,7 +515,10 @@ def evaluate(
 def experiment(
     name: Annotated[
         str,
-        typer.Argument(metavar="paper-a|paper-b", help="Which paper's experiment to reproduce."),
+        typer.Argument(
+            metavar="paper-a|paper-b|neura-imu-only",
+            help="Which experiment: a paper's, or the Neura walk from its IMUs alone.",
+        ),
     ],
     data: Annotated[
         Path | None,
@@ -532,7 +535,7 @@ def experiment(
         typer.Option(
             "--set",
             metavar="report|tuning",
-            help="Declared set of recordings: 'report' (default; nothing was tuned on it) or "
+            help="paper-a/paper-b: declared set of recordings, 'report' (default; nothing is tuned on it) or "
             "'tuning' (the only set kinefuse was developed on).",
         ),
     ] = "report",

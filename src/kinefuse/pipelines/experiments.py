@@ -20,11 +20,16 @@
     improvements next to the paper's claims, a 3-D RMSE summary per data set, kinefuse vs
     camera only per joint in view, and kinefuse vs the best simple baselines (issue 11 targets).
 
-Both pool the samples of all scenarios of a data set before computing the RMSE, and run on a
-declared set of recordings: :data:`REPORT_SET` (default) or :data:`TUNING_SET` (the only one
-anything was developed or chosen on); every table names it. No calibration, alignment, length,
-noise fit or learned correction sees a sample that the evaluation hides (outage-blind; tested
-per protocol in ``tests/test_leakage.py``).
+``neura-imu-only`` (issue 10)
+    The Neura walk from its IMUs alone: functional calibration from the walk, tape-measure
+    lengths, Vicon hips as the declared root; Vicon scores only
+    (:mod:`kinefuse.pipelines.neura_imu_only`).
+
+The paper experiments pool the samples of all scenarios of a data set before computing the RMSE,
+and run on a declared set of recordings: :data:`REPORT_SET` (default) or :data:`TUNING_SET` (the
+only one anything is developed or chosen on); every table names it. No calibration, alignment,
+length, noise fit or learned correction sees a sample that the evaluation hides (outage-blind;
+tested per protocol in ``tests/test_leakage.py``).
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ __all__ = [
 ]
 
 #: Experiments this module runs.
-EXPERIMENTS = ("paper-a", "paper-b")
+EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only")
 
 #: Paper A's four filter settings (SPEC §12.1): name -> (joint kind, q, r).
 PAPER_A_TESTS = {
@@ -1069,7 +1074,7 @@ def run_experiment(
 
     Parameters
     ----------
-    name : {"paper-a", "paper-b"}
+    name : {"paper-a", "paper-b", "neura-imu-only"}
         Which experiment (see the module docstring).
     data_dir : str or Path, optional
         The shared data folder (``cmu_mocap/``, ``utd_mhad/``, ``neura_sparse_sample/``).
@@ -1081,7 +1086,8 @@ def run_experiment(
         No progress bar.
     split : {"report", "tuning"}
         Which declared set of recordings (:data:`REPORT_SET`, default; :data:`TUNING_SET`,
-        the only one to develop on). Every table title names it.
+        the only one to develop on) for ``paper-a`` and ``paper-b``; every table title names
+        it. ``neura-imu-only`` ignores it (the Neura walk, evaluation only).
 
     Returns
     -------
@@ -1111,23 +1117,37 @@ def run_experiment(
     data_dir = None if data_dir is None else Path(data_dir)
     notes: list[str] = []
     t0 = time.perf_counter()
-    if name == "paper-a":
+    if name == "neura-imu-only":
+        from kinefuse.pipelines.neura_imu_only import run_neura_imu_only
+
+        if data_dir is None:
+            raise InputError("neura-imu-only: needs --data (the folder with neura_sparse_sample/)")
+        n_steps = 2
+
+        def run(d, q, split, advance, notes):
+            return run_neura_imu_only(d, advance, notes)
+
+    elif name == "paper-a":
         n_steps = (1 if quick else len(chosen.cmu_trials)) + 1 + (8 if quick else 12)
         run = _paper_a
     else:
         n_steps = (1 if quick else len(chosen.cmu_trials)) + 2
         run = _paper_b
-    with progress(f"Experiment {name} ({split} set)", total=n_steps, quiet=quiet) as advance:
+    paper = name in ("paper-a", "paper-b")  # neura-imu-only: the Neura walk, evaluation only
+    title = f"Experiment {name}" + (f" ({split} set)" if paper else "")
+    with progress(title, total=n_steps, quiet=quiet) as advance:
         out = run(data_dir, bool(quick), chosen, advance, notes)
     out.update(
         notes=notes,
         quick=bool(quick),
-        split=split,
+        split=split if paper else None,
         data_set={
             "cmu_trials": list(chosen.cmu_trials),
             "utd_subjects": list(chosen.utd_subjects),
             "neura": chosen.neura,
-        },
+        }
+        if paper
+        else None,
         data_dir=None if data_dir is None else str(data_dir),
         wall_time_s=time.perf_counter() - t0,
     )

@@ -268,15 +268,27 @@ def _format_name(fmt: str, section: str, source: str) -> str:
     return key
 
 
-def _load(path: Path, fmt: str, section: str, source: str, strict_units: bool, pair=None):
-    """``kinefuse.io.load`` with session context in every error and unit checks escalated."""
+def _load(
+    path: Path, fmt: str, section: str, source: str, strict_units: bool, pair=None, options=None
+):
+    """``kinefuse.io.load`` with session context in every error and unit checks escalated.
+
+    ``options`` (the section's ``[<section>.reader]`` table) go to the reader as keywords.
+    """
     from kinefuse.exceptions import FormatError
     from kinefuse.io import load
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", UnitWarning)
         try:
-            rec = load(path if pair is None else (path, pair), format=fmt)
+            rec = load(path if pair is None else (path, pair), format=fmt, **(options or {}))
+        except TypeError as exc:
+            if "keyword argument" not in str(exc):
+                raise
+            raise ConfigError(
+                f"{source}: [{section}.reader]: {exc} (see the {fmt!r} reader's parameters in "
+                "docs/formats.md)"
+            ) from None
         except FileNotFoundError as exc:
             raise ConfigError(f"{source}: [{section}] path: {exc}") from None
         except FormatError as exc:
@@ -329,7 +341,7 @@ def load_streams(cfg, *, strict_units: bool = True):
     pair = None
     if fmt == "utd_mhad" and cam_fmt == "utd_mhad":
         pair = cfg.camera.path  # one trial: inertial + skeleton, timed together
-    rec, msgs = _load(cfg.imu.path, fmt, "imu", src, strict_units, pair)
+    rec, msgs = _load(cfg.imu.path, fmt, "imu", src, strict_units, pair, cfg.imu.reader)
     notes += msgs
     if not rec.imu:
         raise ConfigError(f"{src}: [imu] path: the file holds no IMU data ({cfg.imu.path.name})")
@@ -357,7 +369,9 @@ def load_streams(cfg, *, strict_units: bool = True):
         if pair is not None:
             vision = rec.vision
         else:
-            crec, msgs = _load(cfg.camera.path, cam_fmt, "camera", src, strict_units)
+            crec, msgs = _load(
+                cfg.camera.path, cam_fmt, "camera", src, strict_units, options=cfg.camera.reader
+            )
             notes += msgs
             vision = crec.vision if crec.vision is not None else crec.reference
         if vision is None:
@@ -373,7 +387,14 @@ def load_streams(cfg, *, strict_units: bool = True):
     reference = None
     if cfg.reference is not None:
         ref_fmt = _format_name(cfg.reference.format, "reference", src)
-        rrec, msgs = _load(cfg.reference.path, ref_fmt, "reference", src, strict_units)
+        rrec, msgs = _load(
+            cfg.reference.path,
+            ref_fmt,
+            "reference",
+            src,
+            strict_units,
+            options=cfg.reference.reader,
+        )
         notes += msgs
         reference = rrec.reference if rrec.reference is not None else rrec.vision
         if reference is None:
