@@ -50,13 +50,25 @@ __all__ = [
 #: writes these lines into the template.
 METHOD_INFO = {
     "paper-a": ("IMUs", "EM-KF/FIR integrated filter on the IMU chain (Sun et al. 2024)"),
-    "imu-only": ("IMUs", "forward kinematics of the IMU chain, no filtering"),
     "elm-fir": ("IMUs + camera", "ELM/FIR with IMM fusion of chain and camera (Xu et al. 2023)"),
     "elm-kf": ("IMUs + camera", "the ELM/KF baseline of Xu et al. 2023"),
+    "imu-only": ("IMUs", "forward kinematics of the IMU chain, no filtering"),
     "camera-only": ("camera", "the camera joints alone, gaps interpolated (a baseline)"),
     "kinefuse": (
         "IMUs + camera",
         "kinefuse's chain + camera fusion with a learned chain-error model",
+    ),
+    "offset-interp": (
+        "IMUs + camera",
+        "baseline: IMU chain + camera-chain offset interpolated across outages (offline)",
+    ),
+    "offset-hold": (
+        "IMUs + camera",
+        "baseline: IMU chain + mean offset of the last 5 camera samples (causal)",
+    ),
+    "camera-gapfill": (
+        "camera",
+        "the camera, gaps up to 20 frames linearly interpolated (as Pose2Sim)",
     ),
 }
 #: Processing methods a session can ask for.
@@ -767,7 +779,6 @@ pose = "n"                       # "n": arms hanging, "t": T-pose (static only)
 # align = "none"                 # "rigid": Kabsch-align the estimates to it before scoring
 
 [method]
-# name        : uses           : what it does
 {methods}
 name = "paper-a"
 
@@ -801,7 +812,8 @@ def session_template(name: str = "my-session", filename: str = "session.toml") -
         w = max(len(k) for k in d) + 2
         return "\n".join(f"#   {k + ' ' * (w - len(k))}: {v}" for k, v in d.items())
 
-    methods = {m: f"{uses:<14} : {what}" for m, (uses, what) in METHOD_INFO.items()}
+    methods = {"name": f"{'uses':<14} : what it does"}
+    methods.update({m: f"{uses:<14} : {what}" for m, (uses, what) in METHOD_INFO.items()})
     return _TEMPLATE.format(
         name=safe,
         filename=filename,

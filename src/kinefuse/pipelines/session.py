@@ -172,6 +172,9 @@ _METHOD_LABELS = {
     "imu-only": "IMU only",
     "camera-only": "camera only",
     "kinefuse": "kinefuse",
+    "offset-interp": "offset interp",
+    "offset-hold": "offset hold",
+    "camera-gapfill": "camera gap-fill",
 }
 
 
@@ -221,6 +224,10 @@ class SessionOutput:
     tag : str
         Label suffix of scores that used the reference beyond evaluation (e.g.
         ``" [calibrated on reference]"``); empty otherwise.
+    baselines : dict of str -> ndarray, shape (T, J, 3)
+        With a camera method: the simple baselines on the same chain and camera, by table
+        label (``offset interp``, ``offset hold``, ``camera gap-fill``;
+        :func:`kinefuse.pipelines.vision_assisted`), m, same frame.
     """
 
     t_s: np.ndarray
@@ -242,6 +249,7 @@ class SessionOutput:
     provenance: dict = field(default_factory=dict)
     angles: dict = field(default_factory=dict)
     tag: str = ""
+    baselines: dict[str, np.ndarray] = field(default_factory=dict)
 
     def trajectories(self) -> dict[str, np.ndarray]:
         """Evaluated trajectories by their table label (tags such as "[calibrated on reference]")."""
@@ -259,6 +267,7 @@ class SessionOutput:
             est["camera" + (" [aligned to reference]" if "aligned" in self.tag else "")] = (
                 self.camera
             )
+        est.update({k + self.tag: v for k, v in self.baselines.items() if k != self.label})
         return est
 
     def evaluation(self):
@@ -1131,6 +1140,8 @@ def process_recording(
     else:
         _vision(out, recording, chain, camera, dt, method, params, cal)
     out.run_time_s = time.perf_counter() - t0
+    if method in _CAMERA_METHODS and out.camera is not None:
+        out.baselines = _baselines(out.chain, out.camera, dt, out.joints)
     tags = []
     if calib == "reference":
         tags.append("calibrated on reference")
@@ -1143,6 +1154,10 @@ def process_recording(
                 arr = getattr(out, name)
                 if arr is not None and np.any(np.isfinite(arr)):
                     setattr(out, name, _rigid_align(arr, reference)[0])
+            out.baselines = {
+                k: _rigid_align(v, reference)[0] if np.any(np.isfinite(v)) else v
+                for k, v in out.baselines.items()
+            }
             tags.append("aligned to reference")
             notes.append(
                 "estimates rigidly aligned to the reference (Kabsch rotation + translation over "
@@ -1267,6 +1282,30 @@ def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, ca
         f"paper B pipeline {method!r} per joint (Xu 2023, SPEC §10.3) on the IMU chain and the "
         "camera joints"
     )
+
+
+def _baselines(chain, camera, dt, joints) -> dict[str, np.ndarray]:
+    """The simple baselines (offset interp / hold, camera gap-fill) on one chain and camera."""
+    from kinefuse.pipelines import vision_assisted
+    from kinefuse.pipelines.demo import BASELINE_METHODS
+
+    avail = np.all(np.isfinite(camera), axis=-1)
+    keep = [j for j in range(len(joints)) if np.any(np.all(np.isfinite(chain[:, j]), axis=-1))]
+    out = {}
+    for m in BASELINE_METHODS:
+        pos = np.full(chain.shape, np.nan)
+        if keep:
+            res = vision_assisted(
+                chain[:, keep],
+                camera[:, keep],
+                avail[:, keep],
+                dt,
+                m,
+                joints=[joints[j] for j in keep],
+            )
+            pos[:, keep] = res.position
+        out[_METHOD_LABELS[m]] = pos
+    return out
 
 
 # --------------------------------------------------------------------------------------------
