@@ -26,6 +26,7 @@ from kinefuse.kinematics import (
     segment_orientations,
     upper_limb,
 )
+from kinefuse.session import METHODS
 
 SESSIONS = Path(__file__).parent / "data" / "sessions"
 runner = CliRunner()
@@ -420,9 +421,7 @@ class _WorkStarted(Exception):
 
 
 @pytest.mark.parametrize("inputs", ["imu", "imu+camera", "imu+reference", "imu+camera+reference"])
-@pytest.mark.parametrize(
-    "method", ["paper-a", "imu-only", "elm-fir", "elm-kf", "camera-only", "kinefuse"]
-)
+@pytest.mark.parametrize("method", METHODS)
 def test_every_method_and_input_runs_or_is_refused_before_work(
     tmp_path, monkeypatch, method, inputs
 ):
