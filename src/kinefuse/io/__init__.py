@@ -22,6 +22,7 @@ _LAZY = {
     "read_c3d": "c3d",
     "read_trc": "trc",
     "write_trc": "trc",
+    "write_mot": "mot",
     "read_kinect_v2_csv": "kinect",
     "read_azure_kinect_json": "kinect",
     "read_mediapipe": "mediapipe",
@@ -41,6 +42,12 @@ _LAZY = {
     "read_neura": "neura",
     "read_asf_amc": "cmu",
     "read_bvh": "bvh",
+    "read_opensim_table": "opensim",
+    "read_opensense_sto": "opensim",
+    "write_opensense_sto": "opensim",
+    "read_mvnx": "mvnx",
+    "read_xsens_dot": "xsens_dot",
+    "read_xio_csv": "xio_csv",
 }
 
 __all__ = ["FORMATS", "ImuStream", "JointStream", "Recording", "detect_format", "load", *_LAZY]
