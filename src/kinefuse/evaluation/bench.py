@@ -419,6 +419,89 @@ def _engine_rows(quick: bool) -> list[dict]:
     return rows
 
 
+# ------------------------------------------------------------------ whole-pipeline throughput
+#: Session methods timed on a long recording (paper A, paper B, kinefuse fusion).
+PIPELINE_METHODS = ("paper-a", "elm-fir", "kinefuse")
+
+
+def pipeline_recording(duration_s: float, seed: int = 0):
+    """A virtual recording of ``duration_s`` seconds: 9 IMUs at 100 Hz, a camera at 30 Hz with
+    occlusions and dropouts, from the packaged CMU clip played forwards and backwards in turn
+    (continuous poses, no jumps at the seams)."""
+    import dataclasses
+
+    from kinefuse.data import demo_motion
+    from kinefuse.sim import virtual_recording
+
+    m = demo_motion()
+    dt = float(np.median(np.diff(m.t_s)))
+    n = int(round(duration_s / dt))
+    period = 2 * (len(m.t_s) - 1)
+    k = np.arange(n) % period
+    idx = np.where(k < len(m.t_s), k, period - k)  # ping-pong through the clip
+    long = dataclasses.replace(
+        m,
+        t_s=m.t_s[0] + dt * np.arange(n),
+        q_world_from_segment=np.ascontiguousarray(m.q_world_from_segment[idx]),
+        position_m=np.ascontiguousarray(m.position_m[idx]),
+    )
+    return virtual_recording(long, seed=seed)
+
+
+_PIPELINE_WORKER = r"""
+import json, resource, sys, time, warnings
+warnings.simplefilter("ignore")
+from kinefuse.evaluation.bench import pipeline_recording
+from kinefuse.pipelines.session import process_recording
+method, duration = sys.argv[1], float(sys.argv[2])
+process_recording(pipeline_recording(5.0, seed=1), method)  # load the kernels (cached)
+rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+rec = pipeline_recording(duration)
+c0, w0 = time.thread_time(), time.perf_counter()
+out = process_recording(rec, method)
+cpu, wall = time.thread_time() - c0, time.perf_counter() - w0
+rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(json.dumps({"cpu_s": cpu, "wall_s": wall, "peak_rss_mb": rss / 1024,
+                  "rss_before_mb": rss0 / 1024,
+                  "camera_frames": int(len(rec.vision)), "joints": len(out.joints)}))
+"""
+
+
+def _pipeline_rows(quick: bool) -> list[dict]:
+    """Seconds of one core per recorded hour for each pipeline, next to filterpy's KF doing the
+    per-joint filtering of the same camera joints (measured on a subset, scaled)."""
+    duration = 120.0 if quick else 3600.0
+    rows = []
+    env = dict(os.environ)
+    for method in PIPELINE_METHODS:
+        proc = subprocess.run(
+            [sys.executable, "-c", _PIPELINE_WORKER, method, str(duration)],
+            capture_output=True, text=True, check=False, env=env,
+        )  # fmt: skip
+        if proc.returncode != 0:
+            err = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed"
+            rows.append({"method": method, "error": err})
+            continue
+        d = json.loads(proc.stdout.strip().splitlines()[-1])
+        d["method"] = method
+        d["duration_s"] = duration
+        d["s_per_hour"] = d["cpu_s"] * 3600.0 / duration
+        d["x_real_time"] = duration / d["cpu_s"]
+        rows.append(d)
+    ok = [r for r in rows if "error" not in r]
+    if ok:
+        frames, joints = ok[0]["camera_frames"], max(r["joints"] for r in ok)
+        n = 300 if quick else 3000
+        z = make_data(1, n, seed=5)
+        fp_cpu, _ = _measure(lambda: _filterpy_filter(_model(), z), 1)
+        per_js = fp_cpu / n
+        s = per_js * frames * joints
+        rows.append({"method": "filterpy KF, per camera joint (peer)", "duration_s": duration,
+                     "cpu_s": s, "s_per_hour": s * 3600.0 / duration, "x_real_time": duration / s,
+                     "peak_rss_mb": None, "note": f"KF of {joints} output joints x {frames} camera frames, timed on 1 x {n}"})  # fmt: skip
+    return rows
+
+
 def second_process_time() -> dict:
     """Import + first KF/step/RTS call in a fresh interpreter (numba cache warm after run 1)."""
     out = {}
@@ -477,6 +560,10 @@ def _targets(results: dict) -> list[dict]:
     if r is not None:
         add("KF.step, 8 joints", "<= 5 µs per call", f"{r['us_per_call']:.2f} µs",
             bool(r["us_per_call"] <= 5.0), "one time slice")  # fmt: skip
+    pb = next((r for r in results.get("pipelines", []) if r.get("method") == "elm-fir"), None)
+    if pb is not None and "error" not in pb:
+        add("paper B pipeline (elm-fir)", ">= 1000x real time", f"{pb['x_real_time']:.0f}x",
+            bool(pb["x_real_time"] >= 1000), f"{pb['duration_s'] / 3600:.2g} h recording")  # fmt: skip
     sp = results["second_process"]
     if "error" not in sp:
         tot = sp["import_s"] + sp["first_call_s"]
@@ -502,6 +589,7 @@ def run_benchmarks(quick: bool = False) -> dict:
         "online": _online_rows(quick),
         "other_filters": _other_filter_rows(quick),
         "engine": _engine_rows(quick),
+        "pipelines": _pipeline_rows(quick),
     }
     results["second_process"] = second_process_time()
     results["load_after"] = _load()
@@ -563,6 +651,24 @@ def format_report(results: dict) -> str:
             f"{r['processor']:<20} p50 {r['p50_ms']:.3f}  p99 {r['p99_ms']:.3f}  max {r['max_ms']:.3f}"
             f"  ({r['frames']} frames){extra}"
         )
+    pl = results.get("pipelines") or []
+    if pl:
+        dur = next((r["duration_s"] for r in pl if "duration_s" in r), 0.0)
+        lines.append("")
+        lines.append(
+            f"Whole pipelines on a {dur / 3600:.2g} h recording (9 IMUs at 100 Hz, camera at 30 Hz"
+            " with outages), one core, thread CPU time; peak RSS of the process"
+        )
+        for r in pl:
+            if "error" in r:
+                lines.append(f"{r['method']:<38} failed: {r['error']}")
+                continue
+            mem = "" if r.get("peak_rss_mb") is None else f"  peak {r['peak_rss_mb']:.0f} MB"
+            note = f"  ({r['note']})" if r.get("note") else ""
+            lines.append(
+                f"{r['method']:<38} {r['s_per_hour']:>8.1f} s per recorded hour"
+                f"  {r['x_real_time']:>7.0f}x real time{mem}{note}"
+            )
     sp = results["second_process"]
     lines.append("")
     if "error" in sp:
