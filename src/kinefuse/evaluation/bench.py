@@ -449,14 +449,15 @@ def pipeline_recording(duration_s: float, seed: int = 0):
 
 
 _PIPELINE_WORKER = r"""
-import json, resource, sys, time, warnings
+import json, pickle, resource, sys, time, warnings
 warnings.simplefilter("ignore")
 from kinefuse.evaluation.bench import pipeline_recording
 from kinefuse.pipelines.session import process_recording
-method, duration = sys.argv[1], float(sys.argv[2])
+method, path = sys.argv[1], sys.argv[2]
 process_recording(pipeline_recording(5.0, seed=1), method)  # load the kernels (cached)
 rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-rec = pipeline_recording(duration)
+with open(path, "rb") as fh:
+    rec = pickle.load(fh)
 c0, w0 = time.thread_time(), time.perf_counter()
 out = process_recording(rec, method)
 cpu, wall = time.thread_time() - c0, time.perf_counter() - w0
@@ -470,14 +471,30 @@ print(json.dumps({"cpu_s": cpu, "wall_s": wall, "peak_rss_mb": rss / 1024,
 def _pipeline_rows(quick: bool) -> list[dict]:
     """Seconds of one core per recorded hour for each pipeline, next to filterpy's KF doing the
     per-joint filtering of the same camera joints (measured on a subset, scaled)."""
+    import pickle
+    import tempfile
+
     duration = 120.0 if quick else 3600.0
     rows = []
-    env = dict(os.environ)
-    for method in PIPELINE_METHODS:
-        proc = subprocess.run(
-            [sys.executable, "-c", _PIPELINE_WORKER, method, str(duration)],
-            capture_output=True, text=True, check=False, env=env,
-        )  # fmt: skip
+    # the recording is simulated once (minutes for an hour: orientation filters on 9 IMUs) and
+    # handed to one fresh process per method, so that each peak RSS is that method's own
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "recording.pickle")
+        with open(path, "wb") as fh:
+            pickle.dump(pipeline_recording(duration), fh)
+        procs = [
+            (
+                m,
+                subprocess.run(
+                    [sys.executable, "-c", _PIPELINE_WORKER, m, path],
+                    capture_output=True,
+                    text=True,
+                    check=False,
+                ),
+            )  # fmt: skip
+            for m in PIPELINE_METHODS
+        ]
+    for method, proc in procs:
         if proc.returncode != 0:
             err = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed"
             rows.append({"method": method, "error": err})
