@@ -154,6 +154,10 @@ class Calibration:
     pose_residual_deg : dict of str -> float
         Static with ``mounting``: RMS angle between the declared sensor axis and the assumed
         pose direction in the window, deg.
+    hinge_residual_rad_s : dict of str -> float
+        Hinge joints whose segment frames come from the measured flexion axis
+        (:func:`kinefuse.kinematics.hinge.hinge_frames`): RMS residual of the joint's
+        angular-rate constraint, rad/s (0 for an ideal joint).
     """
 
     axes: Mapping[str, np.ndarray]
@@ -167,6 +171,7 @@ class Calibration:
     world_heading_deg: Mapping[str, float] = field(default_factory=dict)
     still: StillWindow | None = None
     pose_residual_deg: Mapping[str, float] = field(default_factory=dict)
+    hinge_residual_rad_s: Mapping[str, float] = field(default_factory=dict)
 
     def heading_matrix(self, segment: str) -> np.ndarray:
         """``R_z(ψ)`` applied to ``segment``'s sensor world frame (identity if none), (3, 3)."""
@@ -494,6 +499,7 @@ def calibrate(
     mounting: Mapping[str, object] | None = None,
     max_rate_rad_s: float = MAX_RATE_RAD_S,
     max_acc_std_m_s2: float = MAX_ACC_STD_M_S2,
+    flexion_axes: str = "auto",
 ) -> Calibration:
     """Calibrate the segment axis ``a_i`` in each IMU frame (and the camera/reference alignment).
 
@@ -550,6 +556,15 @@ def calibrate(
     max_rate_rad_s, max_acc_std_m_s2 : float
         Static only: stillness thresholds of the window search (and of the check of a given
         window).
+    flexion_axes : {"auto", "movement", "pose"}
+        Static only: where the segment frames of hinge joints (elbows, knees) get their flexion
+        axis. ``"pose"``: from the declared ``facing`` (Notes). ``"movement"``: from the
+        recording's relative rotation about the hinge, the pose giving only the long axis, and,
+        with ``heading="static"``, the distal sensor's heading refined from the hinge
+        (:func:`kinefuse.kinematics.hinge.hinge_frames`); the flexion sign is fixed by anatomy
+        (the larger excursion from the pose is flexion). ``"auto"`` (default): ``"movement"``
+        when ``heading="static"`` (6-D orientations: the facing is not measured), else
+        ``"pose"``.
 
     Returns
     -------
@@ -609,6 +624,10 @@ def calibrate(
         )
     if heading not in ("none", "static"):
         raise InputError(f"expected heading in ('none', 'static'), got {heading!r}")
+    if flexion_axes not in ("auto", "movement", "pose"):
+        raise InputError(
+            f"expected flexion_axes in ('auto', 'movement', 'pose'), got {flexion_axes!r}"
+        )
     if align not in ("auto", "none", "heading", "rotation"):
         raise InputError(
             f"expected align in ('auto', 'none', 'heading', 'rotation'), got {align!r}"
@@ -620,7 +639,7 @@ def calibrate(
     imus = {s: _imu_orientation(recording, s, "calibration") for s in segs}
 
     if method == "static":
-        return _static(
+        cal = _static(
             recording,
             skeleton,
             segs,
@@ -635,6 +654,13 @@ def calibrate(
             max_rate_rad_s=max_rate_rad_s,
             max_acc_std_m_s2=max_acc_std_m_s2,
         )
+        if flexion_axes == "auto":
+            flexion_axes = "movement" if heading == "static" else "pose"
+        if flexion_axes == "movement":
+            from kinefuse.kinematics.hinge import hinge_frames
+
+            cal = hinge_frames(recording, cal, refine_heading=heading == "static")
+        return cal
 
     stream = _stream(recording, method)
     sel = window_mask(stream.t_s, start_s, window_s)

@@ -23,6 +23,10 @@ Method parameters (``[method.parameters]`` of the session file; all optional)
     frame (default north); ``"auto"`` (default: align 6-D sensors' headings at the pose),
     ``"none"`` or ``"static"``; the stillness thresholds
     (:func:`kinefuse.kinematics.find_still_window`).
+``flexion_axes``
+    Static calibration: the flexion axes of elbows and knees from the movement (``"movement"``,
+    :func:`kinefuse.kinematics.hinge.hinge_frames`) or from ``facing`` (``"pose"``); ``"auto"``
+    (default): from the movement when the headings are aligned at the pose (6-D sensors).
 ``align``
     Camera/reference frame alignment of the calibration: ``"auto"`` (default), ``"none"``,
     ``"heading"``, ``"rotation"``.
@@ -148,6 +152,7 @@ _GENERAL_KEYS = (
     "calibration",
     "facing",
     "heading",
+    "flexion_axes",
     "root_position_m",
     "axes",
     "align_to_reference",
@@ -639,6 +644,7 @@ def _check_params(params: Mapping, method: str) -> None:
         ("filter", _FILTERS),
         ("root", _ROOTS),
         ("heading", _HEADINGS),
+        ("flexion_axes", ("auto", "movement", "pose")),
         ("pose", ("n", "t")),
         ("align_to_reference", ("none", "rigid")),
     ):
@@ -891,6 +897,7 @@ def process_recording(
 
     # calibration
     from kinefuse.kinematics import calibrate, chain_positions
+    from kinefuse.kinematics.angles import JOINTS
 
     axes_decl = _declared_axes(params.get("axes"), segs)
     cal_segs = list(segs) + (["pelvis"] if root_kind == "pelvis" else [])
@@ -911,6 +918,7 @@ def process_recording(
                 pose=params.get("pose", "n"),
                 facing=tuple(params.get("facing", (0.0, 1.0, 0.0))),
                 heading=heading,
+                flexion_axes=params.get("flexion_axes", "auto"),
                 mounting={s: a for s, a in axes_decl.items() if s in cal_segs},
                 segments=cal_segs,
             )
@@ -954,12 +962,26 @@ def process_recording(
         provenance["calibration_window_s"] = list(cal.window_s)
         if calib == "static":
             f = [float(x) for x in params.get("facing", (0.0, 1.0, 0.0))]
-            notes.append(
-                f"segment frames: anterior axis = the facing direction {f} (world frame) in the "
-                "still pose, as declared ([calibration] facing; default north); flexion axes "
-                "follow from it"
-            )
-            provenance["facing"] = f
+            hinged = sorted(cal.hinge_residual_rad_s)
+            moved = {s for j in hinged for s in JOINTS[j][:2]}
+            rest = [s for s in cal.frames if s not in moved]
+            if hinged:
+                notes.append(
+                    "segment frames: long axes from the still pose; flexion axes of "
+                    f"{', '.join(hinged)} from the movement (the two sensors' relative rotation, "
+                    "Laidig et al. 2017's elbow model; RMS residual rad/s: "
+                    + ", ".join(f"{j} {cal.hinge_residual_rad_s[j]:.2f}" for j in hinged)
+                    + "), sign by anatomy (the larger excursion from the pose is flexion); the "
+                    "facing is not used for them"
+                )
+                provenance["flexion_axes"] = {j: "movement" for j in hinged}
+            if rest:
+                notes.append(
+                    f"segment frames of {', '.join(rest)}: anterior axis = the facing direction "
+                    f"{f} (world frame) in the still pose, as declared ([calibration] facing; "
+                    "default north); flexion axes follow from it"
+                )
+                provenance["facing"] = f
             if cal.world_heading_deg:
                 notes.append(
                     "heading: 6-D orientations (arbitrary heading per sensor) brought into the "
@@ -1125,8 +1147,8 @@ def process_recording(
                 notes.append(
                     f"warning: {j} flexion spans {f.min():.0f} to {f.max():.0f} deg, beyond the "
                     f"anatomical {lo:.0f} to {hi:.0f} deg: the facing direction or the pose is "
-                    "probably wrong (with 6-D orientations a still pose cannot tell the facing: "
-                    "declare [calibration] facing, or use functional calibration)"
+                    "probably wrong (the facing, the pose, or too little flexion to fit its axis: "
+                    "see the calibration notes; [calibration] flexion_axes, facing)"
                 )
     dt = float(np.median(np.diff(t))) if T > 1 else 1.0 / 30.0
     t0 = time.perf_counter()
