@@ -143,8 +143,9 @@ class Calibration:
     align : str
         Alignment used: ``"none"``, ``"heading"`` or ``"rotation"``.
     frames : dict of str -> ndarray, shape (3, 3)
-        Static only: ``R_sensor_from_segment`` of each segment, columns = the segment's ISB axes
-        (X anterior, Y superior, Z right) in the sensor frame; used for joint angles.
+        Static and functional: ``R_sensor_from_segment`` of each segment, columns = the
+        segment's ISB axes (X anterior, Y superior, Z right) in the sensor frame; used for joint
+        angles (functional: only segments next to an elbow or knee).
     world_heading_deg : dict of str -> float
         Static with ``heading="static"``: rotation about the vertical that this calibration
         applies to each sensor's world frame, deg (``R_world_from_sensor <- R_z(ψ)

@@ -445,7 +445,11 @@ def functional_calibration(
         ``axes`` and ``lengths_m`` (estimated, m) per segment with both joint centres located,
         ``method="functional"``, ``window_s``, and the report data (``joints``,
         ``excitation_s2``, ``heading_deg``, ``heading``, ``hinge_prior``). ``residual_deg`` is
-        empty (there is no observed direction to compare with).
+        empty (there is no observed direction to compare with). ``frames`` (for
+        :func:`~kinefuse.kinematics.joint_angles`) of the segments next to an elbow or knee:
+        long axis = the calibrated axis, flexion axis from the movement
+        (:func:`kinefuse.kinematics.hinge.hinge_frames`; zero flexion = the long axes aligned,
+        sign by anatomy); a hinge that hardly moved gets no frames (a NumericalWarning).
 
     Notes
     -----
@@ -650,7 +654,7 @@ def functional_calibration(
                 head[b] = head[a] + fits[joint].heading_deg
     if constraint == "norm":
         head = {}  # the orientation-free form estimates no heading
-    return FunctionalCalibration(
+    cal = FunctionalCalibration(
         axes=axes,
         lengths_m=lengths,
         method="functional",
@@ -664,6 +668,12 @@ def functional_calibration(
         hinge_prior=tuple(sorted(prior)),
         cutoff_hz=float(cutoff_hz),
     )
+    # segment frames of elbows and knees for joint angles: long axes from the joint centres,
+    # flexion axes from the movement (kinefuse.kinematics.hinge), orientations in one heading
+    from kinefuse.kinematics.hinge import hinge_frames
+
+    same = recording if heading == "shared" else align_headings(recording, cal)
+    return hinge_frames(same, cal, start_s=start_s, window_s=window_s)
 
 
 def align_headings(recording: Recording, calibration: FunctionalCalibration) -> Recording:

@@ -58,7 +58,7 @@ from kinefuse.io.recording import Recording
 from kinefuse.kinematics.angles import JOINTS, joint_angles
 from kinefuse.kinematics.calibration import Calibration, _imu_orientation
 
-__all__ = ["HINGES", "MIN_HINGE_RATE_RAD_S", "hinge_frames"]
+__all__ = ["HEADING_PRIOR", "HINGES", "MIN_HINGE_RATE_RAD_S", "hinge_frames", "segment_frame"]
 
 #: Joints treated as hinges for their segment frames.
 HINGES = tuple(j for j in JOINTS if j.startswith(("elbow", "knee")))
@@ -71,8 +71,24 @@ MIN_HINGE_RATE_RAD_S = 0.2
 HEADING_PRIOR = 0.01
 
 
-def _frame(axis: np.ndarray, hinge: np.ndarray) -> np.ndarray:
-    """``R_sensor_from_segment`` with ``Y = −axis``, ``Z ⟂ Y`` along ``hinge``, ``X = Y × Z``."""
+def segment_frame(axis, hinge) -> np.ndarray:
+    """ISB segment frame from a long axis and a flexion axis, both in the sensor frame.
+
+    Parameters
+    ----------
+    axis : array_like, shape (3,)
+        Segment axis, proximal -> distal.
+    hinge : array_like, shape (3,)
+        Flexion axis (not parallel to ``axis``).
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        ``R_sensor_from_segment``: columns ``X = Y × Z``, ``Y = −axis``, ``Z`` = ``hinge`` made
+        perpendicular to ``Y`` (unit vectors).
+    """
+    axis = np.asarray(axis, dtype=float)
+    hinge = np.asarray(hinge, dtype=float)
     y = -axis / np.linalg.norm(axis)
     z = hinge - np.dot(hinge, y) * y
     z = z / np.linalg.norm(z)
@@ -210,7 +226,7 @@ def hinge_frames(
         jB = np.einsum("kji,kjl,l->i", RBp[w0], RA[w0], jA)
         jB /= np.linalg.norm(jB)
         RB = RBp
-        Fa, Fb = _frame(axes[prox], jA), _frame(axes[dist], jB)
+        Fa, Fb = segment_frame(axes[prox], jA), segment_frame(axes[dist], jB)
         fl = joint_angles({prox: RA @ Fa, dist: RB @ Fb}, [j])[j][:, 0]
         rate = float(
             np.sqrt(np.mean(np.gradient(np.radians(np.unwrap(fl, period=360.0)), t[ok]) ** 2))
@@ -228,7 +244,7 @@ def hinge_frames(
         # sign by anatomy: the larger excursion from the pose is flexion
         lo, hi = np.nanpercentile(fl, [1.0, 99.0])
         if -lo > hi:
-            Fa, Fb = _frame(axes[prox], -jA), _frame(axes[dist], -jB)
+            Fa, Fb = segment_frame(axes[prox], -jA), segment_frame(axes[dist], -jB)
         frames[prox], frames[dist] = Fa, Fb
         if refine_heading:
             heading[dist] = float((np.degrees(psi) + 180.0) % 360.0 - 180.0)
