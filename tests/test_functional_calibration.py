@@ -168,8 +168,20 @@ def test_missing_sensor_and_raw_data_are_named(rng):
     with pytest.raises(InputError, match="distal joint 'knee_l'"):
         functional_calibration(no_shank, _thigh_skeleton(), segments=["thigh_l"])
     no_foot = rec
-    with pytest.raises(InputError, match="'foot_l'"):
+    with pytest.raises(
+        InputError, match=r"'foot_l'.*\[skeleton.axes\] shank_l.*\[skeleton.lengths\]"
+    ):
         functional_calibration(no_foot, _thigh_skeleton(), segments=["thigh_l", "shank_l"])
+    # without a foot IMU the declared sensor axis (and the session's length) stand in
+    cal = functional_calibration(
+        no_foot,
+        _thigh_skeleton(),
+        segments=["thigh_l", "shank_l"],
+        declared_axes={"shank_l": [0.0, 0.0, -2.0]},
+    )
+    np.testing.assert_allclose(cal.axes["shank_l"], [0.0, 0.0, -1.0])
+    assert cal.declared == ("shank_l",) and "shank_l" not in cal.lengths_m
+    assert "thigh_l" in cal.lengths_m
     bare = dict(rec.imu)
     bare["thigh_l"] = ImuStream(
         t_s=rec.imu["thigh_l"].t_s, q_world_from_sensor=rec.imu["thigh_l"].q_world_from_sensor

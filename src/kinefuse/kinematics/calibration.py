@@ -551,9 +551,10 @@ def calibrate(
         orientations (no magnetometer), whose headings are arbitrary per sensor; ``"none"``
         (default) keeps the frames (9-D / magnetometer-referenced data share north).
     mounting : mapping, optional
-        Static only: the sensor axis declared to run along each segment (proximal -> distal),
-        e.g. ``{"thigh_l": "+e1"}``; its angle to the assumed pose direction is reported as
-        ``pose_residual_deg`` (a NumericalWarning names segments beyond 20 deg).
+        The sensor axis declared to run along each segment (proximal -> distal), e.g.
+        ``{"thigh_l": "+e1"}``. Static: its angle to the assumed pose direction is reported as
+        ``pose_residual_deg`` (a NumericalWarning names segments beyond 20 deg). Functional: the
+        axis of a last segment without a sensor beyond it (``declared_axes``).
     max_rate_rad_s, max_acc_std_m_s2 : float
         Static only: stillness thresholds of the window search (and of the check of a given
         window).
@@ -622,6 +623,7 @@ def calibrate(
             start_s=start_s,
             window_s=None if start_s is None else window_s,
             segments=segments,
+            declared_axes=mounting,
         )
     if heading not in ("none", "static"):
         raise InputError(f"expected heading in ('none', 'static'), got {heading!r}")

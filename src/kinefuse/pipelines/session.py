@@ -927,10 +927,18 @@ def process_recording(
                     kw[k] = float(params[k])
         elif calib in ("vision", "reference"):
             kw["align"] = params.get("align", "auto")
+        elif calib == "functional":
+            kw["mounting"] = {s: a for s, a in axes_decl.items() if s in cal_segs}
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             cal = calibrate(recording, sk, calib, **kw)
         notes += [f"calibration: {w.message}" for w in caught]
+        if calib == "functional" and cal.declared:
+            notes.append(
+                "calibration: no sensor beyond the distal joint of "
+                f"{', '.join(cal.declared)}: the declared sensor axis ([skeleton.axes]) is its "
+                "axis and its length comes from the session"
+            )
         if calib == "functional" and getattr(cal, "heading", "shared") == "estimated":
             from kinefuse.kinematics.functional import align_headings
 
