@@ -295,11 +295,12 @@ def test_docs_example_runs(shared_data):
 
     from kinefuse.conventions import __file__ as _conv
 
-    doc = (Path(_conv).resolve().parents[2] / "docs" / "calibration_functional.md").read_text()
-    code = re.search(r"```python\n(.*?)```", doc, re.S).group(1)
+    doc = (Path(_conv).resolve().parents[2] / "docs" / "calibration.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", doc, re.S)
+    code = next(b for b in blocks if 'calibrate(rec, sk, "functional")' in b)
     code = code.replace('"../shared/data', f'"{shared_data}')
     ns: dict = {}
-    exec(compile(code, "calibration_functional.md", "exec"), ns)
+    exec(compile(code, "calibration.md", "exec"), ns)
     assert ns["est"].position("ankle_r").shape == (955, 3)
 
 

@@ -12,7 +12,7 @@ lengths, hinge axes) and the simplest IMU-only baseline (segments vertical on av
 walk: the static formula over the whole recording).
 
 The Neura walk is evaluation only: no default of the functional calibration was chosen from it
-(see ``docs/calibration_functional.md``).
+(see ``docs/calibration.md``, functional calibration).
 """
 
 from __future__ import annotations
