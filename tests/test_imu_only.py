@@ -273,12 +273,14 @@ def test_write_mot_layout(tmp_path):
     )
     lines = p.read_text().splitlines()
     head = lines[: lines.index("endheader")]
-    assert head[0] == "a" and {"version=1", "nRows=4", "nColumns=2", "inDegrees=yes"} <= set(head)
-    assert "root=pelvis" in head
+    assert head[0] == "a" and {"version=1", "nRows=3", "nColumns=2", "inDegrees=yes"} <= set(head)
+    assert "root=pelvis" in head and any(h.startswith("rows_omitted=1 ") for h in head)
     assert lines[lines.index("endheader") + 1].split("\t") == ["time", "knee_r_flexion"]
     data = np.genfromtxt(lines[lines.index("endheader") + 2 :], delimiter="\t")
-    np.testing.assert_allclose(data[:, 0], t)
-    np.testing.assert_allclose(data[:, 1], [0.0, 1.5, np.nan, 3.0])
+    np.testing.assert_allclose(data[:, 0], t[[0, 1, 3]])  # the NaN row left out (default)
+    np.testing.assert_allclose(data[:, 1], [0.0, 1.5, 3.0])
+    kept = write_mot(tmp_path / "n.mot", t, {"k": [0.0, 1.5, np.nan, 3.0]}, missing="nan")
+    assert "NaN" in kept.read_text().splitlines()[-2]
     with pytest.raises(FileExistsError):
         write_mot(p, t, {"x": t})
     with pytest.raises(InputError, match=r"column 'x' with shape \(T,\) = \(4,\), got \(3,\)"):
