@@ -350,6 +350,14 @@ def test_qmt_right_arm_paper_a_setting(shared_data, tmp_path):
     assert inside or "warning: elbow_r flexion spans" in html
     # the report names window, stillness and heading handling
     assert "stillness" in html and "heading: 6-D orientations" in html
+    # the calibrated sensor orientations for OpenSense IK (issue 13), heading-corrected
+    from kinefuse.io import load
+
+    sto = load(out / "qmt-right-arm_orientations.sto")
+    assert set(sto.imu) == {"upper_arm_r", "forearm_r"} and "OpenSense: " in html
+    q = sto.imu["forearm_r"].q_world_from_sensor
+    assert q.shape == (st.t_s.size, 4)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-9)
 
 
 # ------------------------------------------------------------------ refusals

@@ -91,8 +91,9 @@ def test_synthetic_session_writes_csv_trc_report(synthetic_files, tmp_path):
     p = _good(synthetic_files)
     out = tmp_path / "out"
     summary = run_session(p, out)
-    csv, trc = summary["outputs"]
+    csv, trc, sto = summary["outputs"]
     assert csv.name == "synthetic_joints.csv" and trc.name == "synthetic_joints.trc"
+    assert sto.name == "synthetic_orientations.sto"  # calibrated sensor orientations, OpenSense
     rec = read_joint_csv(csv)
     assert rec.vision.joints == ("elbow_r", "wrist_r")
     extra = rec.metadata["extra_columns"]

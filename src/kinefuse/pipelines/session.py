@@ -226,6 +226,10 @@ class SessionOutput:
     angles : dict of str -> ndarray, shape (T, 3)
         Joint angles, deg, ``[flexion, adduction, internal_rotation]`` (ISB), where the
         calibration gives segment frames.
+    sensor_orientations : dict of str -> ndarray, shape (T, 4)
+        Calibrated sensor orientations per segment, ``q_world_from_sensor`` (wxyz) on ``t_s``
+        with the calibration's heading corrections applied (one world frame for all sensors),
+        for OpenSense IK.
     tag : str
         Label suffix of scores that used the reference beyond evaluation (e.g.
         ``" [calibrated on reference]"``); empty otherwise.
@@ -253,6 +257,7 @@ class SessionOutput:
     root: str = ""
     provenance: dict = field(default_factory=dict)
     angles: dict = field(default_factory=dict)
+    sensor_orientations: dict = field(default_factory=dict)
     tag: str = ""
     baselines: dict[str, np.ndarray] = field(default_factory=dict)
 
@@ -1139,6 +1144,24 @@ def process_recording(
         root=root_desc,
         provenance=provenance,
     )
+    if cal is not None:
+        from scipy.spatial.transform import Rotation
+
+        from kinefuse.orientation.resample import slerp_resample
+
+        for s in cal.axes:
+            st = recording.imu.get(s)
+            if st is None or st.q_world_from_sensor is None:
+                continue
+            q = slerp_resample(st.t_s, st.q_world_from_sensor, t)
+            ok = np.all(np.isfinite(q), axis=1)
+            qw = np.full(q.shape, np.nan)
+            if np.any(ok):
+                H = Rotation.from_matrix(cal.heading_matrix(s))
+                qw[ok] = (H * Rotation.from_quat(q[ok], scalar_first=True)).as_quat(
+                    scalar_first=True
+                )
+            out.sensor_orientations[s] = qw
     if cal is not None and cal.frames:
         from kinefuse.kinematics import joint_angles, segment_orientations
 
@@ -1351,6 +1374,7 @@ def _outputs(out_dir: Path, stem: str) -> dict[str, Path]:
         "trc": out_dir / f"{stem}_joints.trc",
         "angles_csv": out_dir / f"{stem}_angles.csv",
         "mot": out_dir / f"{stem}_angles.mot",
+        "orientations_sto": out_dir / f"{stem}_orientations.sto",
         "report": out_dir / REPORT_NAME,
     }
 
@@ -1388,8 +1412,9 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
     Outputs in ``out_dir``: ``<name>_joints.csv`` (kinefuse joint CSV: ``t_s``, per joint
     ``_x/_y/_z`` in m, ``_available``, ``_source`` (:data:`kinefuse.conventions.SOURCE_NAMES`),
     ``_mode`` (:data:`kinefuse.conventions.MODE_NAMES`, -1 without a filter), ``_std_m_x/y/z``
-    (m)); ``<name>_joints.trc`` (OpenSim, m); with a reference ``report.html``, ``figures/``,
-    ``metrics.json``.
+    (m)); ``<name>_joints.trc`` (OpenSim, m); with a calibration ``<name>_orientations.sto``
+    (OpenSense orientation table of the calibrated sensor orientations, input of OpenSense IK);
+    with a reference ``report.html``, ``figures/``, ``metrics.json``.
     """
     from kinefuse.io import JointStream, write_joint_csv, write_trc
     from kinefuse.session import load_session
@@ -1446,6 +1471,21 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
         targets["trc"], stream, force=force, note=f"root: {out.root}; frame: {out.frame}"
     )
     summary: dict = {"outputs": [csv, trc], "notes": out.notes, "provenance": out.provenance}
+    if out.sensor_orientations:
+        from kinefuse.io import ImuStream
+        from kinefuse.io.opensim import write_opensense_sto
+
+        imus = {
+            s: ImuStream(t_s=out.t_s, q_world_from_sensor=q, name=s)
+            for s, q in out.sensor_orientations.items()
+        }
+        sto = write_opensense_sto(targets["orientations_sto"], imus, force=force)
+        summary["outputs"].append(sto)
+        out.notes.append(
+            f"OpenSense: {sto.name} holds the calibrated sensor orientations (heading corrections "
+            f"applied, frame {out.frame}) for OpenSense IK; for a z-up world set "
+            "sensor_to_opensim_rotations = -1.5707963 0 0 in the IMU IK setup"
+        )
     if out.angles:
         summary["outputs"] += _write_angles(out, targets, cfg, force)
         summary["angles_deg"] = {
