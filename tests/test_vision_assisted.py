@@ -344,7 +344,7 @@ def test_vision_params_defaults():
 
 # ------------------------------------------------------------------------------ recordings
 def test_from_recording_on_virtual_cmu():
-    sim = pytest.importorskip("kinefuse.sim")
+    import kinefuse.sim as sim
     from kinefuse.data import demo_motion
     from kinefuse.pipelines import vision_assisted_from_recording
 
