@@ -247,14 +247,24 @@ def _jsonable(obj: Any) -> Any:
     return str(obj)
 
 
-def _write_json(path: Path, data: Any) -> None:
+def _check_json(path: Path | None, force: bool = False, protect=()) -> None:
+    """``--json FILE`` before any work: never an input, never overwritten without --force."""
+    if path is None or str(path) == "-":
+        return
+    from kinefuse.io.output_folder import check_writable_file
+
+    check_writable_file(path, force=force, protect=protect, what="--json")
+
+
+def _write_json(path: Path, data: Any, force: bool = False) -> None:
     text = json.dumps(_jsonable(data), indent=2)
     if str(path) == "-":
         sys.stdout.write(text + "\n")
         return
-    if not path.parent.is_dir():
-        raise InputError(f"--json {path}: folder {path.parent} does not exist")
-    path.write_text(text + "\n", encoding="utf-8")
+    from kinefuse.io._common import write_text_safely
+
+    _check_json(path, force)
+    write_text_safely(path, text + "\n", force=force)
 
 
 def _check_report_free(out_dir: Path, force: bool) -> None:
@@ -281,10 +291,10 @@ def _fresh_dir(stem: str) -> Path:
     return candidate
 
 
-def _present(summary: Any, *, quiet: bool, json_file: Path | None) -> None:
+def _present(summary: Any, *, quiet: bool, json_file: Path | None, force: bool = False) -> None:
     """Print the tables of a back-end summary, write ``--json``; exit 1 if a target was missed."""
     if json_file is not None:
-        _write_json(json_file, summary if summary is not None else {})
+        _write_json(json_file, summary if summary is not None else {}, force)
         quiet = quiet or str(json_file) == "-"
     evaluation = None
     report = None
@@ -351,7 +361,13 @@ _Json = Annotated[
     ),
 ]
 _Force = Annotated[
-    bool, typer.Option("--force", "-f", help="Overwrite an existing report in the output folder.")
+    bool,
+    typer.Option(
+        "--force", "-f", help="Replace earlier results in the output folder and the --json file."
+    ),
+]
+_JsonForce = Annotated[
+    bool, typer.Option("--force", "-f", help="Overwrite an existing --json file.")
 ]
 
 
@@ -404,6 +420,7 @@ def demo(
     """Run the demo on built-in data and write an HTML report (report.html) to DIR."""
     out_dir = _fresh_dir("kinefuse-demo") if out is None else out
     _check_report_free(out_dir, force)
+    _check_json(json_file, force)
     from kinefuse import _compile
 
     # A first run on this machine: interpreting the kernels on the demo's few hundred samples
@@ -414,7 +431,7 @@ def demo(
             "results; `kinefuse run/experiment/bench` compile them once).[/yellow]"
         )
     summary = _backend("demo")(out_dir, force, quiet)
-    _present(summary, quiet=quiet, json_file=json_file)
+    _present(summary, quiet=quiet, json_file=json_file, force=force)
 
 
 @app.command(epilog=_EPILOG)
@@ -440,8 +457,10 @@ def run(
     cfg = load_session(session)
     out_dir = cfg.out_dir if out is None else out
     _check_report_free(out_dir, force)
+    _check_json(json_file, force, cfg.inputs)
+    # the back-end checks every earlier result and writability before any processing
     summary = _backend("run")(cfg.path, out_dir, force)
-    _present(summary, quiet=quiet, json_file=json_file)
+    _present(summary, quiet=quiet, json_file=json_file, force=force)
 
 
 @app.command("init-session", epilog=_EPILOG)
@@ -497,17 +516,19 @@ def evaluate(
     ],
     quiet: _Quiet = False,
     json_file: _Json = None,
+    force: _JsonForce = False,
 ) -> None:
     """Run one method on a recording and print RMSE tables against its reference."""
     from kinefuse.session import METHODS
 
     _existing_file(recording, "RECORDING")
+    _check_json(json_file, force, (recording,))
     if method not in METHODS:
         raise InputError(
             f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}"
         )
     summary = _backend("evaluate")(recording, method)
-    _present(summary, quiet=quiet, json_file=json_file)
+    _present(summary, quiet=quiet, json_file=json_file, force=force)
 
 
 @app.command(epilog=_EPILOG)
@@ -529,14 +550,16 @@ def experiment(
     ] = False,
     quiet: _Quiet = False,
     json_file: _Json = None,
+    force: _JsonForce = False,
 ) -> None:
     """Reproduce a paper's experiment and compare with the paper's tables."""
     if name not in EXPERIMENTS:
         raise InputError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
     if data is not None and not data.is_dir():
         raise InputError(f"--data {data}: folder not found")
+    _check_json(json_file, force, () if data is None else (data,))
     summary = _backend("experiment")(name, data, quick=quick or None, quiet=quiet)
-    _present(summary, quiet=quiet, json_file=json_file)
+    _present(summary, quiet=quiet, json_file=json_file, force=force)
 
 
 @app.command(epilog=_EPILOG)
@@ -547,10 +570,12 @@ def bench(
     ] = False,
     quiet: _Quiet = False,
     json_file: _Json = None,
+    force: _JsonForce = False,
 ) -> None:
     """Measure per-step latency and batch throughput of the filters, next to peer libraries."""
+    _check_json(json_file, force)
     summary = _backend("bench")(quick)
-    _present(summary, quiet=quiet, json_file=json_file)
+    _present(summary, quiet=quiet, json_file=json_file, force=force)
 
 
 _Seconds = float | None
@@ -648,9 +673,11 @@ def _replay_table(summary: Mapping, rate: float):
     return t
 
 
-def _finish(summary: Any, table_of: Callable, *, quiet: bool, json_file: Path | None) -> None:
+def _finish(
+    summary: Any, table_of: Callable, *, quiet: bool, json_file: Path | None, force: bool = False
+) -> None:
     """Write ``--json`` and print ``table_of(summary)`` (unless quiet or JSON goes to stdout)."""
-    _present(summary, quiet=True, json_file=json_file)
+    _present(summary, quiet=True, json_file=json_file, force=force)
     if not quiet and str(json_file) != "-" and isinstance(summary, Mapping):
         _stdout().print(table_of(summary))
 
@@ -743,15 +770,14 @@ def stream(
     cfg = _stream_session(session, resolve_timeout)
     if out is not None:
         _out_files(out, force)
-    if json_file is not None and str(json_file) != "-" and not json_file.parent.is_dir():
-        raise InputError(f"--json {json_file}: folder {json_file.parent} does not exist")
+    _check_json(json_file, force, (session,))
     if quiet:
         logging.getLogger("kinefuse.streaming").setLevel(logging.ERROR)
     summary = _backend("stream")(
         cfg, duration, out, not (no_status or quiet), idle_timeout_s=idle_timeout,
         wait_for_reader_s=wait_for_reader, record_inputs=record_inputs,
     )  # fmt: skip
-    _finish(summary, _stream_table, quiet=quiet, json_file=json_file)
+    _finish(summary, _stream_table, quiet=quiet, json_file=json_file, force=force)
 
 
 @app.command(epilog=_EPILOG)
@@ -799,6 +825,7 @@ def replay(
     ] = None,
     quiet: _Quiet = False,
     json_file: _Json = None,
+    force: _JsonForce = False,
 ) -> None:
     """Publish a recording as live LSL streams, at its real rate or --rate times faster.
 
@@ -819,8 +846,7 @@ def replay(
             f"RECORDING {recording}: file not found (give a file or folder kinefuse.io.load "
             "reads, or `demo`)"
         )
-    if json_file is not None and str(json_file) != "-" and not json_file.parent.is_dir():
-        raise InputError(f"--json {json_file}: folder {json_file.parent} does not exist")
+    _check_json(json_file, force, () if recording == "demo" else (Path(recording),))
     source = recording if recording == "demo" else Path(recording)
     if not quiet:
         _stderr().print(
@@ -830,7 +856,9 @@ def replay(
         source, rate, prefix, loop, duration, include_raw=not no_raw,
         wait_for_consumers_s=wait_for_consumers, quiet=quiet,
     )  # fmt: skip
-    _finish(summary, lambda s: _replay_table(s, rate), quiet=quiet, json_file=json_file)
+    _finish(
+        summary, lambda s: _replay_table(s, rate), quiet=quiet, json_file=json_file, force=force
+    )
 
 
 def main() -> None:

@@ -150,6 +150,12 @@ class SessionConfig:
     reference: ReferenceConfig | None
     method: MethodConfig
 
+    @property
+    def inputs(self) -> tuple[Path, ...]:
+        """The session file and every file or folder it reads (never written over)."""
+        streams = (self.imu, self.camera, self.reference)
+        return (self.path, *(Path(st.path) for st in streams if st is not None))
+
 
 # --------------------------------------------------------------------------------------------
 # validation helpers

@@ -26,6 +26,7 @@ __all__ = [
     "Table",
     "canonical_joint",
     "canonical_segment",
+    "current_umask",
     "check_time",
     "check_units",
     "make_metadata",
@@ -603,6 +604,20 @@ def check_units(recording, *, where: str = "", stacklevel: int = 3) -> list[str]
 # --------------------------------------------------------------------------------------------
 # writing
 # --------------------------------------------------------------------------------------------
+def current_umask() -> int:
+    """The process umask (read without changing it where /proc allows, else set and restore)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def write_text_safely(path, text: str, *, force: bool = False, protect: Iterable = ()) -> Path:
     """Write ``text`` to ``path`` atomically; refuse to overwrite unless ``force``.
 
@@ -637,6 +652,8 @@ def write_text_safely(path, text: str, *, force: bool = False, protect: Iterable
         raise FileExistsError(f"{path}: is a directory")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        # mkstemp creates 0600; the file gets the mode open() would give it (issue 12)
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
             fh.write(text)
         os.replace(tmp, path)

@@ -915,13 +915,20 @@ def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, ca
 
 
 def _outputs(out_dir: Path, stem: str) -> dict[str, Path]:
+    """Every result ``kinefuse run`` may write into ``out_dir`` (all replaced as one set)."""
     from kinefuse.evaluation.report import REPORT_NAME
 
     return {
         "csv": out_dir / f"{stem}_joints.csv",
         "trc": out_dir / f"{stem}_joints.trc",
         "report": out_dir / REPORT_NAME,
+        "metrics": out_dir / "metrics.json",
+        "figures": out_dir / "figures",
     }
+
+
+def _stem(cfg) -> str:
+    return "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in cfg.name) or "session"
 
 
 def run_session(path, out_dir=None, force: bool = False) -> dict:
@@ -934,7 +941,7 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
     out_dir : str or Path, optional
         Output folder (default the session's ``out_dir``); created if needed.
     force : bool
-        Overwrite existing outputs.
+        Replace the results of an earlier run in ``out_dir``.
 
     Returns
     -------
@@ -948,9 +955,12 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
         Invalid session, unknown format, unreadable file, unknown sensor, wrong units, no
         valid samples, a method that needs a camera without one.
     InputError
-        Data that cannot be processed (the message says what and where).
+        Data that cannot be processed (the message says what and where); an output folder
+        that is a file, not writable, or whose outputs would overwrite an input (checked
+        before any processing).
     FileExistsError
-        An output exists and ``force`` is False (nothing is written).
+        Any earlier result (joints CSV/TRC, ``report.html``, ``metrics.json``, ``figures/``)
+        exists and ``force`` is False (checked before any processing; nothing is written).
 
     Notes
     -----
@@ -959,23 +969,43 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
     ``_mode`` (:data:`kinefuse.conventions.MODE_NAMES`, -1 without a filter), ``_std_m_x/y/z``
     (m)); ``<name>_joints.trc`` (OpenSim, m); with a reference ``report.html``, ``figures/``,
     ``metrics.json``.
+
+    The results are written atomically (:class:`kinefuse.io.output_folder.OutputFolder`):
+    staged in a hidden temporary folder and moved into ``out_dir`` only when complete, so an
+    interrupted or failed run leaves the previous results untouched. Files get the mode the
+    user's umask gives.
     """
-    from kinefuse.io import JointStream, write_joint_csv, write_trc
+    from kinefuse.io.output_folder import OutputFolder
     from kinefuse.session import load_session
 
     cfg = load_session(path)
     out_dir = Path(cfg.out_dir if out_dir is None else out_dir)
-    stem = "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in cfg.name) or "session"
-    targets = _outputs(out_dir, stem)
-    if not force:
-        for p in targets.values():
-            if p.exists():
-                raise FileExistsError(
-                    f"{p} already exists; pass --force to overwrite it, or choose another --out "
-                    "folder"
-                )
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"output folder {out_dir} exists and is not a folder")
+    targets = _outputs(out_dir, _stem(cfg))
+    stage = OutputFolder(
+        out_dir,
+        [p.name for p in targets.values()],
+        force=force,
+        protect=cfg.inputs,
+        what="output folder",
+    )
+    try:
+        summary = _run_and_write(cfg, stage.path)
+        stage.commit()
+    except BaseException:
+        stage.discard()
+        raise
+    final = {p: out_dir / p.name for p in summary["outputs"]}
+    summary["outputs"] = [final[p] for p in summary["outputs"]]
+    if "report" in summary:
+        summary["report"] = out_dir / summary["report"].name
+    return summary
+
+
+def _run_and_write(cfg, folder: Path) -> dict:
+    """Process the session and write every result into ``folder`` (the staging folder)."""
+    from kinefuse.io import JointStream, write_joint_csv, write_trc
+
+    targets = _outputs(folder, _stem(cfg))
     params = dict(cfg.method.parameters)
     strict = params.get("strict_units", True)
     recording, notes = load_streams(cfg, strict_units=bool(strict))
@@ -990,7 +1020,6 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
     except ConfigError as exc:
         raise ConfigError(f"{cfg.path.name}: {exc}") from None
     out.notes[:0] = notes
-    out_dir.mkdir(parents=True, exist_ok=True)
     stream = JointStream(
         t_s=out.t_s,
         position_m=out.position,
@@ -1002,7 +1031,6 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
         targets["csv"],
         stream,
         {"source": out.source, "mode": out.mode, "std_m": out.std_m},
-        force=force,
         metadata={
             "session": cfg.name,
             "method": cfg.method.name,
@@ -1010,7 +1038,7 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
             "mode_codes": ", ".join(f"{k}={v}" for k, v in MODE_NAMES.items()),
         },
     )
-    trc = write_trc(targets["trc"], stream, force=force)
+    trc = write_trc(targets["trc"], stream)
     summary: dict = {"outputs": [csv, trc], "notes": out.notes}
     ev = out.evaluation()
     if ev is not None:
@@ -1018,7 +1046,7 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
 
         summary["evaluation"] = ev
         summary["report"] = write_report(
-            out_dir,
+            folder,
             ev,
             {m: _trajectory(out, m) for m in ev.methods},
             out.reference,
@@ -1028,7 +1056,6 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
             skeleton_edges=out.edges or None,
             title=f"kinefuse: {cfg.name} ({cfg.method.name})",
             notes=out.notes,
-            force=force,
         )
     return summary
 
