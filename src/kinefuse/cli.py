@@ -300,6 +300,9 @@ def _present(summary: Any, *, quiet: bool, json_file: Path | None, force: bool =
     report = None
     extra_tables = []
     passed = None
+    if isinstance(summary, Mapping) and summary.get("warnings"):
+        for w in summary["warnings"]:  # shown even with --quiet: the user must see them
+            _stderr().print(Text(f"kinefuse: warning: {_one_line(w)}", style="yellow"))
     if hasattr(summary, "to_dict") and hasattr(summary, "methods"):
         evaluation = summary
     elif isinstance(summary, Path):

@@ -102,9 +102,12 @@ class Table:
         i = self.index(name)
         raw = [r[i] for r in self.rows]
         try:
-            return np.array(raw, dtype=np.float64)
+            out = np.array(raw, dtype=np.float64)
         except ValueError:
-            pass
+            out = None
+        if out is not None:
+            self._check_no_inf(out, raw, name)
+            return out
         out = np.empty(len(raw), dtype=np.float64)
         for k, v in enumerate(raw):
             s = v.strip()
@@ -127,7 +130,21 @@ class Table:
                     line=int(self.lines[k]),
                     field=name,
                 ) from None
+        self._check_no_inf(out, raw, name)
         return out
+
+    def _check_no_inf(self, out: np.ndarray, raw: list[str], name: str) -> None:
+        """Infinite values are never data (NaN, an empty field, is missing): issue 12."""
+        bad = np.flatnonzero(np.isinf(out))
+        if bad.size:
+            k = int(bad[0])
+            raise FormatError(
+                self.path,
+                f"expected a finite number, found {raw[k].strip()!r} ({bad.size} infinite "
+                "value(s) in this column); leave the field empty for a missing sample",
+                line=int(self.lines[k]),
+                field=name,
+            )
 
     def comment_dict(self) -> dict[str, str]:
         """``key: value`` pairs found in the comment lines (keys lower-cased)."""

@@ -41,6 +41,10 @@ Method parameters (``[method.parameters]`` of the session file; all optional)
     default true). Explicit ``[skeleton.lengths]`` always win; ``body_height_m`` fills the rest.
 ``orientation_params``
     VQF parameters for sensors without an orientation (:func:`kinefuse.orientation.estimate`).
+``estimate_orientation``
+    ``"auto"`` (default: estimate sensor orientations from acc + gyr with VQF only when no
+    mapped sensor has one in the file), ``true`` (for every sensor without one) or ``false``
+    (never); an estimate is always reported as a warning.
 ``strict_units``
     Default true: magnitudes that look like wrong units (acc in g, gyro in deg/s, positions in
     mm; :func:`kinefuse.io.check_units`) are an error instead of a warning.
@@ -61,7 +65,9 @@ from kinefuse.conventions import (
     MODE_NAMES,
     SEGMENTS,
     SOURCE_IMU,
+    SOURCE_KINDS,
     SOURCE_NAMES,
+    SOURCE_PREDICTED,
 )
 from kinefuse.exceptions import ConfigError, InputError, UnitWarning
 
@@ -134,6 +140,7 @@ _GENERAL_KEYS = (
     "orientation_params",
     "strict_units",
     "causal",
+    "estimate_orientation",
 )
 _METHOD_LABELS = {
     "paper-a": "EM-KF/FIR",
@@ -180,6 +187,14 @@ class SessionOutput:
         Bones between output joints (report skeleton).
     notes : list of str
         What was done (calibration, lengths, alignments) and warnings.
+    available : ndarray of bool, shape (T, J) or None
+        The sample is backed by the inputs the method needs (see :func:`apply_coverage`);
+        False where a stream did not cover it, even if the filter predicted a position.
+    coverage : dict of str -> ndarray of bool
+        Per input stream whether it covered each output sample: ``"imu <segment>"`` (T,),
+        ``"imu"``, ``"root"``, ``"camera"``, ``"reference"`` (T, J) per output joint.
+    warnings : list of str
+        Short coverage and other problems the user must see (also in ``notes``).
     """
 
     t_s: np.ndarray
@@ -197,6 +212,9 @@ class SessionOutput:
     run_time_s: float = float("nan")
     edges: tuple[tuple[str, str], ...] = ()
     notes: list[str] = field(default_factory=list)
+    available: np.ndarray | None = None
+    coverage: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
 
     def evaluation(self):
         """Metrics of the method, the unfiltered IMU chain and the camera vs the reference.
@@ -266,6 +284,7 @@ def _load(path: Path, fmt: str, section: str, source: str, strict_units: bool, p
             raise ConfigError(f"{source}: [{section}] path: {exc}") from None
         except InputError as exc:
             raise ConfigError(f"{source}: [{section}]: {exc}") from None
+    _check_no_inf(rec, path, section, source)
     msgs = []
     for w in caught:
         if issubclass(w.category, UnitWarning) and strict_units:
@@ -277,6 +296,46 @@ def _load(path: Path, fmt: str, section: str, source: str, strict_units: bool, p
         if not issubclass(w.category, DeprecationWarning):
             msgs.append(f"{section}: {w.message}")
     return rec, msgs
+
+
+_IMU_COLUMNS = {
+    "q_world_from_sensor": ("qw", "qx", "qy", "qz"),
+    "acc_m_s2": ("acc_x", "acc_y", "acc_z"),
+    "gyr_rad_s": ("gyr_x", "gyr_y", "gyr_z"),
+    "mag": ("mag_x", "mag_y", "mag_z"),
+}
+
+
+def _check_no_inf(rec, path: Path, section: str, source: str) -> None:
+    """Inf is never data: an error naming file, stream, column and sample (issue 12).
+
+    Readers of text tables already name the file line; this catches every other reader.
+    """
+
+    def fail(what: str, column: str, t_s: np.ndarray, k: int, n: int) -> None:
+        raise ConfigError(
+            f"{source}: [{section}] path: {Path(path).name}: {what}, column {column}: infinite "
+            f"value at sample {k} (t = {t_s[k]:.3f} s; {n} infinite in all); kinefuse does not "
+            "replace it: fix the file (an empty field or NaN marks a missing sample)"
+        )
+
+    for key, st in (rec.imu or {}).items():
+        for attr, cols in _IMU_COLUMNS.items():
+            a = getattr(st, attr)
+            if a is None:
+                continue
+            bad = np.isinf(a)
+            if np.any(bad):
+                k, c = (int(i[0]) for i in np.nonzero(bad))
+                fail(f"sensor {st.name or key!r}", cols[c], st.t_s, k, int(bad.sum()))
+    for role in ("vision", "reference"):
+        stream = getattr(rec, role, None)
+        if stream is None:
+            continue
+        bad = np.isinf(stream.position_m)
+        if np.any(bad):
+            k, j, c = (int(i[0]) for i in np.nonzero(bad))
+            fail(f"{role} joint {stream.joints[j]!r}", "xyz"[c], stream.t_s, k, int(bad.sum()))
 
 
 def load_streams(cfg, *, strict_units: bool = True):
@@ -389,6 +448,12 @@ def _check_stream(st, seg: str, sensor: str, src: str) -> None:
         raise ConfigError(
             f"{src}: [imu.segments] {seg}: sensor {sensor!r} has no valid sample (all NaN)"
         )
+    if np.sum(ok) < 2:
+        k = int(np.flatnonzero(ok)[0])
+        raise ConfigError(
+            f"{src}: [imu.segments] {seg}: sensor {sensor!r} has a single valid sample (t = "
+            f"{st.t_s[k]:.3f} s); an IMU stream needs a sample rate (at least 2 samples)"
+        )
 
 
 def _check_joints(stream, what: str, src: str) -> None:
@@ -401,13 +466,39 @@ def _check_joints(stream, what: str, src: str) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def _ensure_orientations(recording, params: Mapping, notes: list[str]):
-    """Estimate ``q_world_from_sensor`` with VQF for every stream that has raw data only."""
+def _ensure_orientations(recording, params: Mapping, notes: list[str], warnings_out: list[str]):
+    """Estimate ``q_world_from_sensor`` with VQF for the streams that have raw data only.
+
+    The policy is ``estimate_orientation`` of ``[method.parameters]``: ``"auto"`` (default)
+    estimates only when no mapped sensor has an orientation (a raw-only recording), ``true``
+    for every sensor without one, ``false`` never. The substitution is always reported (a
+    warning in the run summary and the report), never silent.
+    """
     from dataclasses import replace
 
     from kinefuse.orientation import estimate
 
     vqf_params = params.get("orientation_params")
+    policy = params.get("estimate_orientation", "auto")
+    if policy not in ("auto", True, False):
+        raise ConfigError(
+            f"[method.parameters] estimate_orientation: expected true, false or 'auto', got "
+            f"{policy!r}"
+        )
+    lacking = [seg for seg, st in recording.imu.items() if st.q_world_from_sensor is None]
+    having = [seg for seg in recording.imu if seg not in lacking]
+    if lacking and (policy is False or (policy == "auto" and having)):
+        why = (
+            f"while {', '.join(having)} {'has' if len(having) == 1 else 'have'} one"
+            if having
+            else "and estimate_orientation = false"
+        )
+        raise InputError(
+            f"no orientation for {', '.join(lacking)} in the IMU file (quaternion columns "
+            f"missing or all empty) {why}; kinefuse does not substitute an estimate silently: "
+            "set estimate_orientation = true in [method.parameters] to estimate it from acc + "
+            "gyr with VQF, or fix the file"
+        )
     for seg, st in list(recording.imu.items()):
         if st.q_world_from_sensor is not None:
             continue
@@ -431,6 +522,14 @@ def _ensure_orientations(recording, params: Mapping, notes: list[str]):
             f"{seg}: orientation estimated from raw data with VQF "
             f"({'9D, magnetometer' if mag is not None else '6D, arbitrary heading'})"
         )
+    if lacking:
+        msg = (
+            f"the IMU file has no orientation for {', '.join(lacking)}: estimated from acc + "
+            "gyr with VQF (policy estimate_orientation = "
+            f"{'true' if policy is True else 'auto: no sensor has one'})"
+        )
+        notes.append(f"WARNING: {msg}")
+        warnings_out.append(msg)
 
 
 def build_chain(
@@ -600,6 +699,211 @@ def _rigid_align(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 # --------------------------------------------------------------------------------------------
+# coverage: which input backs each output sample (issue 12)
+# --------------------------------------------------------------------------------------------
+
+#: Longest interval between two IMU orientation samples interpolated across, s (SLERP); a
+#: stream sampled more sparsely covers only its own sample times.
+IMU_MAX_GAP_S = 0.25
+#: Longest gap of the root stream (camera or reference root joints) bridged by linear
+#: interpolation, s; beyond it, or outside the stream, the chain has no root.
+ROOT_MAX_GAP_S = 1.0
+#: A joint whose available fraction is below this gets a coverage warning.
+COVERAGE_WARN_FRACTION = 0.95
+
+
+def _valid_span(t: np.ndarray, ok: np.ndarray) -> tuple[float, float] | None:
+    idx = np.flatnonzero(ok)
+    return None if idx.size == 0 else (float(t[idx[0]]), float(t[idx[-1]]))
+
+
+def _imu_span(st) -> tuple[float, float] | None:
+    return _valid_span(st.t_s, np.all(np.isfinite(st.q_world_from_sensor), axis=1))
+
+
+def _stream_span(stream) -> tuple[float, float] | None:
+    return _valid_span(stream.t_s, np.any(stream.available, axis=1))
+
+
+def _check_overlap(recording, root_stream, root_name: str) -> None:
+    """Streams that never overlap in time are an error naming the spans (not a calibration one)."""
+    spans = {seg: _imu_span(st) for seg, st in recording.imu.items()}
+    common = (max(a for a, _ in spans.values()), min(b for _, b in spans.values()))
+    if common[0] > common[1]:
+        listed = ", ".join(f"{seg} {a:.2f}-{b:.2f} s" for seg, (a, b) in spans.items())
+        raise InputError(
+            f"the IMU streams do not overlap in time ({listed}): no instant has every mapped "
+            "sensor; check the files' clocks or map sensors of one recording"
+        )
+    root = _stream_span(root_stream)
+    if root is None or root[0] > common[1] or root[1] < common[0]:
+        where = "no valid sample" if root is None else f"{root[0]:.2f}-{root[1]:.2f} s"
+        raise InputError(
+            f"the IMU streams ({common[0]:.2f}-{common[1]:.2f} s) and the {root_name} "
+            f"({where}) do not overlap in time; check the clocks (time offset) of the files"
+        )
+
+
+def _extend_to_imu(t: np.ndarray, recording) -> np.ndarray:
+    """The root timeline extended (same step) over the span the IMUs cover; never cut."""
+    if t.size < 2:
+        return t
+    spans = [sp for sp in (_imu_span(st) for st in recording.imu.values()) if sp is not None]
+    a, b = min(sp[0] for sp in spans), max(sp[1] for sp in spans)
+    dt = float(np.median(np.diff(t)))
+    n_before = int(np.floor((t[0] - a) / dt + 1e-9)) if a < t[0] - 0.5 * dt else 0
+    n_after = int(np.floor((b - t[-1]) / dt + 1e-9)) if b > t[-1] + 0.5 * dt else 0
+    if not (n_before or n_after):
+        return t
+    before = t[0] - dt * np.arange(n_before, 0, -1)
+    after = t[-1] + dt * np.arange(1, n_after + 1)
+    return np.concatenate([before, t, after])
+
+
+def _covered(t_src, p, t: np.ndarray, max_gap_s: float | None = None) -> np.ndarray:
+    from kinefuse.io import resample_positions
+
+    return resample_positions(t_src, p, t, max_gap_s=max_gap_s)[1]
+
+
+def _input_coverage(recording, sk, root_stream, t: np.ndarray, joints) -> dict:
+    """Per-sample coverage of the chain's inputs on ``t``: each IMU, and per joint imu/root."""
+    cov: dict[str, np.ndarray] = {}
+    for seg in sk.segments:
+        st = recording.imu[seg]
+        q = st.q_world_from_sensor
+        step = float(np.median(np.diff(st.t_s))) if st.t_s.size > 1 else 0.0
+        gap = min(1.5 * step, IMU_MAX_GAP_S) if step > 0 else IMU_MAX_GAP_S
+        cov[f"imu {seg}"] = _covered(st.t_s, q, t, gap) if st.t_s.size > 1 else np.isin(t, st.t_s)
+    seg_of = dict(zip(sk.distal, sk.segments, strict=True))
+    parent = {
+        s: (sk.segments[p] if p >= 0 else None)
+        for s, p in zip(sk.segments, sk.parents, strict=True)
+    }
+    T = t.size
+    imu = np.ones((T, len(joints)), bool)
+    root = np.ones((T, len(joints)), bool)
+    step = float(np.median(np.diff(root_stream.t_s))) if root_stream.t_s.size > 1 else 0.0
+    for j, joint in enumerate(joints):
+        s = seg_of[joint]
+        while s is not None:
+            imu[:, j] &= cov[f"imu {s}"]
+            top, s = s, parent[s]
+        r = sk.proximal[sk.segments.index(top)]
+        if r in root_stream.joints:
+            root[:, j] = _covered(
+                root_stream.t_s, root_stream.position(r), t, max(ROOT_MAX_GAP_S, 1.5 * step)
+            )
+    cov["imu"], cov["root"] = imu, root
+    return cov
+
+
+def apply_coverage(out: SessionOutput, coverage: Mapping, joints, method: str) -> None:
+    """Set ``available``, ``coverage`` and the predicted source code of ``out`` in place.
+
+    A sample is *available* when its position is finite and the inputs of the method back
+    it: the IMUs of the joint's chain and the chain's root (``paper-a``, ``imu-only``), that
+    or the camera (the camera methods), the camera (``camera-only``). Elsewhere the source is
+    :data:`~kinefuse.conventions.SOURCE_PREDICTED` and ``available`` is False, whatever the
+    filter predicted. Warnings are added for joints below :data:`COVERAGE_WARN_FRACTION`.
+    """
+    cols = [list(joints).index(j) for j in out.joints]
+    T, J = out.position.shape[:2]
+    cov = {k: (v if v.ndim == 1 else v[:, cols]) for k, v in coverage.items()}
+    chain_ok = cov["imu"] & cov["root"]
+    finite = np.all(np.isfinite(out.position), axis=-1)
+    cam = np.zeros((T, J), bool) if out.camera is None else np.all(np.isfinite(out.camera), -1)
+    if out.camera is not None:
+        cov["camera"] = cam
+    if out.reference is not None:
+        cov["reference"] = np.all(np.isfinite(out.reference), axis=-1)
+    if method == "camera-only":
+        backed = cam
+    elif method in _CAMERA_METHODS:
+        backed = chain_ok | cam
+    else:
+        backed = chain_ok
+    out.available = finite & backed
+    out.source = np.where(finite & ~backed, SOURCE_PREDICTED, out.source).astype(np.int64)
+    out.coverage = cov
+    span = f"{out.t_s[0]:.2f}-{out.t_s[-1]:.2f} s" if T else "no samples"
+    for j, joint in enumerate(out.joints):
+        frac = float(np.mean(out.available[:, j])) if T else 0.0
+        if frac >= COVERAGE_WARN_FRACTION:
+            continue
+        short = [
+            k.split(" ", 1)[1] + " IMU" if k.startswith("imu ") else k
+            for k, v in cov.items()
+            if k != "reference" and k != "imu" and np.mean(v if v.ndim == 1 else v[:, j]) < 0.999
+        ]
+        why = f"; not covered by: {', '.join(short)}" if short else ""
+        msg = (
+            f"{joint}: only {frac:.0%} of the {T} output samples ({span}) are backed by the "
+            f"inputs{why}; the rest is predicted (source 'predicted', available = 0)"
+        )
+        out.warnings.append(msg)
+        out.notes.append(f"WARNING: {msg}")
+    for joint, row in coverage_counts(out).items():
+        kinds = ", ".join(f"{row[k]} {k}" for k in ("measured", "fused", "bridged", "predicted"))
+        streams = ", ".join(f"{k[:-8]} {v}" for k, v in row.items() if k.endswith(" covered"))
+        out.notes.append(
+            f"coverage {joint}: {row['available']} of {row['samples']} samples available "
+            f"({kinds}); covered by {streams}"
+        )
+    if out.reference is not None and T:
+        frac = float(np.mean(np.any(cov["reference"], axis=1)))
+        if frac < COVERAGE_WARN_FRACTION:
+            msg = (
+                f"the reference covers only {frac:.0%} of the {T} output samples ({span}); "
+                "the metrics are computed on that part only"
+            )
+            out.warnings.append(msg)
+            out.notes.append(f"WARNING: {msg}")
+
+
+def coverage_counts(out: SessionOutput) -> dict:
+    """Per joint: samples, available, each source kind and each stream's covered samples."""
+    kinds = ("measured", "fused", "bridged", "predicted")
+    res = {}
+    for j, joint in enumerate(out.joints):
+        src = out.source[:, j]
+        row = {"samples": int(src.size), "available": int(np.sum(out.available[:, j]))}
+        for kind in kinds:
+            codes = [c for c, k in SOURCE_KINDS.items() if k == kind]
+            row[kind] = int(np.sum(np.isin(src, codes)))
+        row["none"] = int(np.sum(src < 0))
+        for name, v in out.coverage.items():
+            if name != "imu" and not name.startswith("imu "):
+                row[f"{name} covered"] = int(np.sum(v[:, j]))
+        row["imu covered"] = int(np.sum(out.coverage["imu"][:, j]))
+        res[joint] = row
+    return res
+
+
+def coverage_table(out: SessionOutput):
+    """:func:`coverage_counts` as a :class:`~kinefuse.evaluation.tables.ResultTable`."""
+    from kinefuse.evaluation.tables import ResultTable, TableRow
+
+    counts = coverage_counts(out)
+    headers = tuple(next(iter(counts.values())))
+    return ResultTable(
+        title="Coverage per joint (output samples)",
+        label_headers=("Joint",),
+        value_headers=headers,
+        rows=tuple(
+            TableRow((joint,), tuple(float(row[h]) for h in headers))
+            for joint, row in counts.items()
+        ),
+        digits=0,
+        notes=(
+            "available = backed by the inputs the method needs; measured = one stream (IMU "
+            "chain or camera), fused = camera-fused, bridged = outage bridged by the learned "
+            "model, predicted = no input (the filter's prediction, never available).",
+        ),
+    )
+
+
+# --------------------------------------------------------------------------------------------
 # the core
 # --------------------------------------------------------------------------------------------
 
@@ -662,7 +966,8 @@ def process_recording(
     has_cam = recording.vision is not None
     if method in _CAMERA_METHODS and not has_cam:
         raise ConfigError(f"method {method!r} needs a camera; add a [camera] section")
-    _ensure_orientations(recording, params, notes)
+    run_warnings: list[str] = []
+    _ensure_orientations(recording, params, notes, run_warnings)
 
     segs = [s for s in SEGMENT_JOINTS if s in recording.imu]
     if not segs:
@@ -687,6 +992,8 @@ def process_recording(
     default_rate = 30.0 if method in ("paper-a", *_CAMERA_METHODS) else None
     rate = params.get("rate_hz", default_rate)
     t = _timeline(root_stream.t_s, None if rate is None else float(rate))
+    _check_overlap(recording, root_stream, root_name)
+    t = _extend_to_imu(t, recording)
 
     # skeleton, calibration
     from kinefuse.kinematics import calibrate, chain_positions
@@ -730,6 +1037,8 @@ def process_recording(
     frame = root_stream.frame
     joints = tuple(s for s in sk.distal)
     chain = np.stack([chain_st.position(j, masked=False) for j in joints], axis=1)
+    coverage = _input_coverage(recording, sk, root_stream, t, joints)
+    chain[~(coverage["imu"] & coverage["root"])] = np.nan  # no chain without its inputs
     notes.append(
         f"IMU chain from {', '.join(roots)} ({root_name}{', gaps interpolated' if root_name == 'camera' else ''})"
         f" through {', '.join(sk.segments)}; {t.size} samples at "
@@ -775,6 +1084,7 @@ def process_recording(
         reference=reference,
         edges=tuple((p, d) for p, d in zip(sk.proximal, sk.distal, strict=True) if p in joints),
         notes=notes,
+        warnings=run_warnings,
     )
     dt = float(np.median(np.diff(t))) if T > 1 else 1.0 / 30.0
     t0 = time.perf_counter()
@@ -788,6 +1098,7 @@ def process_recording(
     else:
         _vision(out, recording, chain, camera, dt, method, params, cal)
     out.run_time_s = time.perf_counter() - t0
+    apply_coverage(out, coverage, joints, method)
     if (
         reference is not None
         and recording.reference.frame != frame
@@ -1023,23 +1334,37 @@ def _run_and_write(cfg, folder: Path) -> dict:
     stream = JointStream(
         t_s=out.t_s,
         position_m=out.position,
-        available=np.all(np.isfinite(out.position), axis=-1),
+        available=out.available,
         joints=out.joints,
         frame=out.frame,
     )
+    extra = {"source": out.source, "mode": out.mode, "std_m": out.std_m}
+    for name, v in out.coverage.items():  # "imu thigh_r" (T,) -> imu_thigh_r_covered
+        extra[f"{name.replace(' ', '_')}_covered"] = v.astype(np.int8)
     csv = write_joint_csv(
         targets["csv"],
         stream,
-        {"source": out.source, "mode": out.mode, "std_m": out.std_m},
+        extra,
         metadata={
             "session": cfg.name,
             "method": cfg.method.name,
-            "source_codes": ", ".join(f"{k}={v}" for k, v in SOURCE_NAMES.items()),
+            "source_codes": ", ".join(
+                f"{k}={v} ({SOURCE_KINDS[k]})" for k, v in SOURCE_NAMES.items()
+            ),
             "mode_codes": ", ".join(f"{k}={v}" for k, v in MODE_NAMES.items()),
+            "available": "1 where the inputs the method needs cover the sample (else the "
+            "position, if any, is a prediction)",
+            "covered": "<stream>_covered: 1 where that input stream has data at the sample",
         },
     )
     trc = write_trc(targets["trc"], stream)
-    summary: dict = {"outputs": [csv, trc], "notes": out.notes}
+    summary: dict = {
+        "outputs": [csv, trc],
+        "notes": out.notes,
+        "coverage": coverage_counts(out),
+        "warnings": list(out.warnings),
+        "tables": [coverage_table(out)],
+    }
     ev = out.evaluation()
     if ev is not None:
         from kinefuse.evaluation import write_report
