@@ -35,7 +35,10 @@ _SETTINGS = settings(
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
 
-EXTENSIONS = (".mat", ".c3d", ".trc", ".bvh", ".amc", ".asf", ".json", ".txt", ".csv", ".tsv")
+EXTENSIONS = (
+    ".mat", ".c3d", ".trc", ".bvh", ".amc", ".asf", ".mvnx", ".xml", ".sto", ".mot", ".json",
+    ".txt", ".csv", ".tsv",
+)  # fmt: skip
 #: Folder formats (a log folder, a dataset sample) are not single files.
 FILE_FORMATS = tuple(f for f in kio.FORMATS if f not in ("ximu3", "neura"))
 
@@ -54,6 +57,8 @@ HEADERS = (
     "PacketCounter\tAcc_X\tAcc_Y\tAcc_Z\tMat[1][1]\n",
     "Timestamp (us),Gyroscope X (deg/s),Gyroscope Y (deg/s)\n",
     "SpineBase_x,SpineBase_y,SpineBase_z,SpineBase_TrackingState\n",
+    '<?xml version="1.0"?>\n<mvnx version="4">\n<subject frameRate="60">\n',
+    "name\nversion=1\nnRows=2\nnColumns=4\ninDegrees=yes\nendheader\ntime\tpelvis_imu\n",
 )
 _NOISE = st.text(alphabet="0123456789.,-+e\t \nnaif#;", max_size=300)
 CONTENT = st.one_of(
