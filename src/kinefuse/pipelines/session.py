@@ -228,7 +228,10 @@ class SessionOutput:
 
         if self.reference is None:
             return None
-        est = {self.label: self.position}
+        position = self.position
+        if self.available is not None:  # predictions no input backs are not scored (issue 12)
+            position = np.where(self.available[..., None], position, np.nan)
+        est = {self.label: position}
         if self.method != "camera-only" and not np.array_equal(
             self.position, self.chain, equal_nan=True
         ):
@@ -843,6 +846,12 @@ def apply_coverage(out: SessionOutput, coverage: Mapping, joints, method: str) -
         )
         out.warnings.append(msg)
         out.notes.append(f"WARNING: {msg}")
+    n_pred = int(np.sum(finite & ~backed))
+    if n_pred and out.reference is not None:
+        out.notes.append(
+            f"metrics: the {n_pred} predicted joint samples (no input backs them) are excluded; "
+            "every method is scored on the samples it outputs as available"
+        )
     for joint, row in coverage_counts(out).items():
         kinds = ", ".join(f"{row[k]} {k}" for k in ("measured", "fused", "bridged", "predicted"))
         streams = ", ".join(f"{k[:-8]} {v}" for k, v in row.items() if k.endswith(" covered"))
