@@ -271,3 +271,30 @@ def test_every_filter_gives_finite_means_and_psd_covariances(case):
         k0 = started[0]
         assert np.all(np.isfinite(res.mean[k0:])), name
         _assert_psd(res.cov[k0:], name)
+
+
+@_SETTINGS
+@given(case=models_and_measurements(), other=models_and_measurements())
+def test_imm_gives_finite_means_and_psd_covariances(case, other):
+    from kinefuse.filters import IMM
+    from kinefuse.models import constant_velocity
+
+    (m_imu, z_imu), (m_cam, z_cam) = case, other
+    T = min(len(z_imu), len(z_cam))
+    m_cam = constant_velocity(m_imu.dt_s, float(m_cam.Q[1, 1]), m_cam.R)  # one dt for both
+    z = np.stack([z_imu[:T], z_cam[:T]], axis=-2)  # (T, 2 models, 3)
+    seen = np.flatnonzero(np.any(np.all(np.isfinite(z), axis=-1), axis=-1))
+    imm = IMM(m_imu, m_cam)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if seen.size == 0:
+            with pytest.raises(InputError):  # nothing observed: a clear error, not NaN
+                imm.filter(z)
+            return
+        _, res = imm.filter(z)
+    k0 = seen[0]
+    assert np.all(np.isfinite(res.mean[k0:]))
+    _assert_psd(res.cov[k0:], "IMM combined")
+    _assert_psd(res.model_cov[k0:], "IMM per model")
+    mu = res.mu[k0:]
+    assert np.all(mu >= 0) and np.allclose(mu.sum(axis=-1), 1.0)
