@@ -801,7 +801,9 @@ def _input_coverage(recording, sk, root_stream, t: np.ndarray, joints) -> dict:
     return cov
 
 
-def apply_coverage(out: SessionOutput, coverage: Mapping, joints, method: str) -> None:
+def apply_coverage(
+    out: SessionOutput, coverage: Mapping, joints, method: str, root_name: str = "root"
+) -> None:
     """Set ``available``, ``coverage`` and the predicted source code of ``out`` in place.
 
     A sample is *available* when its position is finite and the inputs of the method back
@@ -834,8 +836,9 @@ def apply_coverage(out: SessionOutput, coverage: Mapping, joints, method: str) -
         frac = float(np.mean(out.available[:, j])) if T else 0.0
         if frac >= COVERAGE_WARN_FRACTION:
             continue
+        label = {"root": f"the chain's root ({root_name})"}
         short = [
-            k.split(" ", 1)[1] + " IMU" if k.startswith("imu ") else k
+            k.split(" ", 1)[1] + " IMU" if k.startswith("imu ") else label.get(k, k)
             for k, v in cov.items()
             if k != "reference" and k != "imu" and np.mean(v if v.ndim == 1 else v[:, j]) < 0.999
         ]
@@ -1107,7 +1110,7 @@ def process_recording(
     else:
         _vision(out, recording, chain, camera, dt, method, params, cal)
     out.run_time_s = time.perf_counter() - t0
-    apply_coverage(out, coverage, joints, method)
+    apply_coverage(out, coverage, joints, method, root_name)
     if (
         reference is not None
         and recording.reference.frame != frame
