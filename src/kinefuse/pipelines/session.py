@@ -1143,7 +1143,9 @@ def _paper_a_filter(out: SessionOutput, chain, dt, flt: str, params: Mapping) ->
     try:
         # compile outside the timed run (numba compiles on the first call)
         z0 = chain[:, 0][np.all(np.isfinite(chain[:, 0]), axis=1)][:30]
-        upper_limb(z0, None, dt, method, q=q[0], r=r[0], **kw)
+        with warnings.catch_warnings():  # e.g. "horizon longer than the series": warm-up only
+            warnings.simplefilter("ignore")
+            upper_limb(z0, None, dt, method, q=q[0], r=r[0], **kw)
         t0 = time.perf_counter()
         for j, name in enumerate(out.joints):
             res = upper_limb(chain[:, j], None, dt, method, q=q[j], r=r[j], joints=(name,), **kw)
