@@ -13,7 +13,7 @@ import pytest
 
 import test_session_run as _base
 from kinefuse import cli
-from kinefuse.conventions import SOURCE_PREDICTED
+from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_PREDICTED
 from kinefuse.exceptions import ConfigError, InputError
 from kinefuse.io import read_imu_csv, read_joint_csv, read_trc, write_imu_csv, write_joint_csv
 from kinefuse.pipelines.session import run_session
@@ -209,3 +209,32 @@ def test_single_sample_stream_says_so(synthetic_files, tmp_path):
     with pytest.raises(ConfigError, match="single valid sample") as err:
         run_session(_base._good(synthetic_files, imu=imu), tmp_path / "out")
     assert "calibration" not in str(err.value)
+
+
+def _camera_gap(folder: Path, name: str, t0: float, t1: float) -> str:
+    cam = read_joint_csv(folder / "camera.csv").vision
+    avail = cam.available.copy()
+    avail[(cam.t_s > t0) & (cam.t_s < t1)] = False
+    pos = np.where(avail[..., None], cam.position_m, np.nan)
+    write_joint_csv(
+        folder / name, dataclasses.replace(cam, position_m=pos, available=avail), force=True
+    )
+    return name
+
+
+@pytest.mark.parametrize(("gap_s", "available"), [(0.5, True), (2.0, False)])
+def test_root_gap_is_bridged_or_predicted(synthetic_files, tmp_path, gap_s, available):
+    # paper A with the shoulder from the camera: a short camera gap is interpolated (the
+    # samples say "bridged"), a long one leaves the chain without a root (predicted)
+    cam = _camera_gap(synthetic_files, f"camera_gap{gap_s}.csv", 3.0, 3.0 + gap_s)
+    body = _base._good(synthetic_files).read_text().replace("camera.csv", cam)
+    p = _base._write_session(synthetic_files, body, name=f"gap{gap_s}.toml")
+    summary = run_session(p, tmp_path / "out")
+    st, j, source, _, extra = _check_written(summary, "elbow_r")
+    inside = (st.t_s > 3.05) & (st.t_s < 2.95 + gap_s)
+    root = np.asarray(extra["root_covered"], dtype=float)[:, j]
+    assert np.all(root[inside] == 0) and np.all(root[st.t_s < 2.9] == 1)
+    assert np.all(st.available[inside, j] == available)
+    want = SOURCE_BRIDGED if available else SOURCE_PREDICTED
+    assert np.all(source[inside] == want)
+    assert summary["coverage"]["elbow_r"]["bridged" if available else "predicted"] >= inside.sum()

@@ -64,6 +64,7 @@ import numpy as np
 from kinefuse.conventions import (
     MODE_NAMES,
     SEGMENTS,
+    SOURCE_BRIDGED,
     SOURCE_IMU,
     SOURCE_KINDS,
     SOURCE_NAMES,
@@ -769,8 +770,18 @@ def _covered(t_src, p, t: np.ndarray, max_gap_s: float | None = None) -> np.ndar
     return resample_positions(t_src, p, t, max_gap_s=max_gap_s)[1]
 
 
-def _input_coverage(recording, sk, root_stream, t: np.ndarray, joints) -> dict:
-    """Per-sample coverage of the chain's inputs on ``t``: each IMU, and per joint imu/root."""
+def _input_coverage(recording, sk, root_stream, t: np.ndarray, joints):
+    """Per-sample coverage of the chain's inputs on ``t``.
+
+    Returns
+    -------
+    coverage : dict
+        ``"imu <segment>"`` (T,) per IMU; ``"imu"`` (T, J): every IMU of the joint's chain;
+        ``"root"`` (T, J): the root stream has the chain's root joint there (usual sampling).
+    root_ok : ndarray of bool, shape (T, J)
+        The root is usable: data, or a gap of at most :data:`ROOT_MAX_GAP_S` interpolated
+        across (never extrapolated).
+    """
     cov: dict[str, np.ndarray] = {}
     for seg in sk.segments:
         st = recording.imu[seg]
@@ -786,6 +797,7 @@ def _input_coverage(recording, sk, root_stream, t: np.ndarray, joints) -> dict:
     T = t.size
     imu = np.ones((T, len(joints)), bool)
     root = np.ones((T, len(joints)), bool)
+    root_ok = np.ones((T, len(joints)), bool)
     step = float(np.median(np.diff(root_stream.t_s))) if root_stream.t_s.size > 1 else 0.0
     for j, joint in enumerate(joints):
         s = seg_of[joint]
@@ -794,15 +806,20 @@ def _input_coverage(recording, sk, root_stream, t: np.ndarray, joints) -> dict:
             top, s = s, parent[s]
         r = sk.proximal[sk.segments.index(top)]
         if r in root_stream.joints:
-            root[:, j] = _covered(
-                root_stream.t_s, root_stream.position(r), t, max(ROOT_MAX_GAP_S, 1.5 * step)
-            )
+            p = root_stream.position(r)
+            root[:, j] = _covered(root_stream.t_s, p, t)
+            root_ok[:, j] = _covered(root_stream.t_s, p, t, max(ROOT_MAX_GAP_S, 1.5 * step))
     cov["imu"], cov["root"] = imu, root
-    return cov
+    return cov, root_ok
 
 
 def apply_coverage(
-    out: SessionOutput, coverage: Mapping, joints, method: str, root_name: str = "root"
+    out: SessionOutput,
+    coverage: Mapping,
+    root_ok: np.ndarray,
+    joints,
+    method: str,
+    root_name: str = "root",
 ) -> None:
     """Set ``available``, ``coverage`` and the predicted source code of ``out`` in place.
 
@@ -810,12 +827,14 @@ def apply_coverage(
     it: the IMUs of the joint's chain and the chain's root (``paper-a``, ``imu-only``), that
     or the camera (the camera methods), the camera (``camera-only``). Elsewhere the source is
     :data:`~kinefuse.conventions.SOURCE_PREDICTED` and ``available`` is False, whatever the
-    filter predicted. Warnings are added for joints below :data:`COVERAGE_WARN_FRACTION`.
+    filter predicted. An IMU-chain sample whose root was interpolated across a gap of the
+    root stream is ``SOURCE_BRIDGED``. Warnings are added for joints below
+    :data:`COVERAGE_WARN_FRACTION`.
     """
     cols = [list(joints).index(j) for j in out.joints]
     T, J = out.position.shape[:2]
     cov = {k: (v if v.ndim == 1 else v[:, cols]) for k, v in coverage.items()}
-    chain_ok = cov["imu"] & cov["root"]
+    chain_ok = cov["imu"] & root_ok[:, cols]
     finite = np.all(np.isfinite(out.position), axis=-1)
     cam = np.zeros((T, J), bool) if out.camera is None else np.all(np.isfinite(out.camera), -1)
     if out.camera is not None:
@@ -830,6 +849,8 @@ def apply_coverage(
         backed = chain_ok
     out.available = finite & backed
     out.source = np.where(finite & ~backed, SOURCE_PREDICTED, out.source).astype(np.int64)
+    root_gap = out.available & chain_ok & ~cov["root"] & (out.source == SOURCE_IMU)
+    out.source[root_gap] = SOURCE_BRIDGED  # root interpolated across a gap of its stream
     out.coverage = cov
     span = f"{out.t_s[0]:.2f}-{out.t_s[-1]:.2f} s" if T else "no samples"
     for j, joint in enumerate(out.joints):
@@ -1049,8 +1070,8 @@ def process_recording(
     frame = root_stream.frame
     joints = tuple(s for s in sk.distal)
     chain = np.stack([chain_st.position(j, masked=False) for j in joints], axis=1)
-    coverage = _input_coverage(recording, sk, root_stream, t, joints)
-    chain[~(coverage["imu"] & coverage["root"])] = np.nan  # no chain without its inputs
+    coverage, root_ok = _input_coverage(recording, sk, root_stream, t, joints)
+    chain[~(coverage["imu"] & root_ok)] = np.nan  # no chain without its inputs
     notes.append(
         f"IMU chain from {', '.join(roots)} ({root_name}{', gaps interpolated' if root_name == 'camera' else ''})"
         f" through {', '.join(sk.segments)}; {t.size} samples at "
@@ -1110,7 +1131,7 @@ def process_recording(
     else:
         _vision(out, recording, chain, camera, dt, method, params, cal)
     out.run_time_s = time.perf_counter() - t0
-    apply_coverage(out, coverage, joints, method, root_name)
+    apply_coverage(out, coverage, root_ok, joints, method, root_name)
     if (
         reference is not None
         and recording.reference.frame != frame
