@@ -42,15 +42,16 @@ calibration_window_s = {window}
 """
 
 
-def _imu_variant(folder: Path, name: str, **edit) -> str:
-    """imu.csv with IMU 2 cut (``t_end``) or reduced to ``n`` samples."""
+def _imu_variant(folder: Path, name: str, sensors=("IMU 2",), **edit) -> str:
+    """imu.csv with ``sensors`` cut (``t_end``) or reduced to ``n`` samples."""
     imu = dict(read_imu_csv(folder / "imu.csv").imu)
-    st = imu["IMU 2"]
-    keep = st.t_s <= edit["t_end"] if "t_end" in edit else np.arange(st.t_s.size) < edit["n"]
-    fields = ("t_s", "q_world_from_sensor", "acc_m_s2", "gyr_rad_s", "mag")
-    imu["IMU 2"] = dataclasses.replace(
-        st, **{f: getattr(st, f)[keep] for f in fields if getattr(st, f) is not None}
-    )
+    for sensor in sensors:
+        st = imu[sensor]
+        keep = st.t_s <= edit["t_end"] if "t_end" in edit else np.arange(st.t_s.size) < edit["n"]
+        fields = ("t_s", "q_world_from_sensor", "acc_m_s2", "gyr_rad_s", "mag")
+        imu[sensor] = dataclasses.replace(
+            st, **{f: getattr(st, f)[keep] for f in fields if getattr(st, f) is not None}
+        )
     write_imu_csv(folder / name, imu, force=True)
     return name
 
@@ -115,13 +116,16 @@ def test_coverage_warning_reaches_the_cli(synthetic_files, tmp_path):
 
 
 # ------------------------------------------------------------------------------------ case 2
-def test_imu_of_two_samples_is_not_extrapolated(synthetic_files, tmp_path):
-    imu = _imu_variant(synthetic_files, "imu_two.csv", n=2)
+@pytest.mark.parametrize("sensors", [("IMU 2",), ("IMU 1", "IMU 2")], ids=["one", "all"])
+def test_imu_of_two_samples_is_not_extrapolated(synthetic_files, tmp_path, sensors):
+    imu = _imu_variant(synthetic_files, f"imu_two_{len(sensors)}.csv", sensors, n=2)
     summary = run_session(_base._good(synthetic_files, imu=imu), tmp_path / "out")
-    st, j, source, trc, _ = _check_written(summary, "wrist_r")
-    assert st.available[:, j].sum() <= 2
-    assert np.sum(source == SOURCE_PREDICTED) >= st.t_s.size - 2
-    assert summary["warnings"]
+    for joint in ("wrist_r", "elbow_r") if len(sensors) == 2 else ("wrist_r",):
+        st, j, source, trc, _ = _check_written(summary, joint)
+        assert st.available[:, j].sum() <= 2  # used to be 9.5 s of predictions marked 1
+        assert np.sum(source == SOURCE_PREDICTED) >= st.t_s.size - 2
+        assert np.sum(np.isfinite(trc.position_m[:, j, 0])) <= 2
+        assert any(w.startswith(f"{joint}: only") for w in summary["warnings"])
 
 
 # ------------------------------------------------------------------------------ case 3
