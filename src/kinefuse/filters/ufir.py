@@ -299,7 +299,7 @@ class UFIRFilter:
             every output is the KF dead zone.
         """
         out = run_filter(self, z, state)
-        T = out[1].observed.shape[-1]
+        T = np.shape(z)[-2]  # z passed run_filter's checks: (..., T, n_z)
         if state is None and 0 < T < self.horizon:
             warnings.warn(
                 f"UFIR horizon {self.horizon} samples is longer than the series ({T} samples): "
