@@ -78,9 +78,14 @@ def test_json_never_targets_an_input_file(synthetic_files, tmp_path, monkeypatch
                 ["run", str(p), "--out", str(tmp_path / "o"), "--json", str(target)] + extra,
             )
             assert res.exit_code == 2, (res.output, _err(res))
-            assert "is an input of this run" in _err(res)
+            assert "is an input or a result of this run" in _err(res)
     assert p.read_bytes() == before
     assert not (tmp_path / "o").exists()
+    # nor one of the run's own results (it would replace the joints CSV after writing it)
+    out = tmp_path / "o"
+    for name in ("synthetic_joints.csv", "metrics.json", "figures/x.json"):
+        res = runner.invoke(cli.app, ["run", str(p), "--out", str(out), "--json", str(out / name)])
+        assert res.exit_code == 2 and "result of this run" in _err(res), _err(res)
 
 
 def test_json_never_overwrites_without_force(synthetic_files, tmp_path, monkeypatch):

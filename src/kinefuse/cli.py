@@ -460,9 +460,11 @@ def run(
     cfg = load_session(session)
     out_dir = cfg.out_dir if out is None else out
     _check_report_free(out_dir, force)
-    _check_json(json_file, force, cfg.inputs)
+    backend = _backend("run")
+    results = importlib.import_module(backend.__module__).output_paths(cfg, out_dir)
+    _check_json(json_file, force, (*cfg.inputs, *results))  # never an input nor a result
     # the back-end checks every earlier result and writability before any processing
-    summary = _backend("run")(cfg.path, out_dir, force)
+    summary = backend(cfg.path, out_dir, force)
     _present(summary, quiet=quiet, json_file=json_file, force=force)
 
 

@@ -82,7 +82,8 @@ def check_writable_file(
     force : bool
         Allow replacing an existing file (never an input).
     protect : iterable of path
-        Input files and folders: ``path`` may be none of them nor lie inside an input folder.
+        Input files and folders (and the run's own results): ``path`` may be none of them
+        nor lie inside one of those folders.
     what : str
         Label in messages (``"--json"``).
 
@@ -99,10 +100,10 @@ def check_writable_file(
         if not p:
             continue
         p = Path(p).resolve()
-        if target == p or (p.is_dir() and p in target.parents):
+        if target == p or p in target.parents:
             raise InputError(
-                f"{what} {path}: is an input of this run ({p}); refusing to write over it, "
-                "even with --force"
+                f"{what} {path}: is an input or a result of this run ({p}); refusing to write "
+                "over it, even with --force"
             )
     if path.is_dir():
         raise InputError(f"{what} {path}: is a folder, expected a file name")

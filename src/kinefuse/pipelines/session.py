@@ -1337,6 +1337,11 @@ def _outputs(out_dir: Path, stem: str) -> dict[str, Path]:
     }
 
 
+def output_paths(cfg, out_dir=None) -> tuple[Path, ...]:
+    """Every path :func:`run_session` may write for ``cfg`` (``--json`` may be none of them)."""
+    return tuple(_outputs(Path(cfg.out_dir if out_dir is None else out_dir), _stem(cfg)).values())
+
+
 def _stem(cfg) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in cfg.name) or "session"
 
