@@ -242,3 +242,29 @@ def test_outputs_get_the_users_umask(synthetic_files, tmp_path, umask):
     for p in [out, *out.rglob("*")]:
         mode = p.stat().st_mode & 0o777
         assert mode == (want_dir if p.is_dir() else want_file), (p, oct(mode))
+
+
+def test_ctrl_c_during_the_swap_is_held_until_the_new_set_is_in(tmp_path, monkeypatch):
+    from kinefuse.io.output_folder import OutputFolder
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.txt").write_text("old a")
+    (out / "c.txt").write_text("old c, not written by the new run")
+    stage = OutputFolder(out, ["a.txt", "b.txt", "c.txt"], force=True)
+    (stage.path / "a.txt").write_text("new a")
+    (stage.path / "b.txt").write_text("new b")
+    real = os.rename
+    calls = []
+
+    def rename_then_ctrl_c(src, dst):
+        if not calls:
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of the swap
+        calls.append(dst)
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "rename", rename_then_ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        stage.commit()
+    assert len(calls) == 4  # 2 old out, 2 new in: all done before the interrupt
+    assert {p.name: p.read_text() for p in out.iterdir()} == {"a.txt": "new a", "b.txt": "new b"}
