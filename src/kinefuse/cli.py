@@ -464,7 +464,8 @@ def run(
     results = importlib.import_module(backend.__module__).output_paths(cfg, out_dir)
     _check_json(json_file, force, (*cfg.inputs, *results))  # never an input nor a result
     # the back-end checks every earlier result and writability before any processing
-    summary = backend(cfg.path, out_dir, force)
+    with progress(f"Processing {cfg.name}", quiet=quiet):
+        summary = backend(cfg.path, out_dir, force)
     _present(summary, quiet=quiet, json_file=json_file, force=force)
 
 
