@@ -31,13 +31,16 @@ upper_arm_r = "IMU 1"
 forearm_r = "IMU 2"
 [skeleton]
 body_height_m = 1.75
+root = "reference"
 [reference]
 format = "joint-csv"
 path = "{ref}"
+[calibration]
+method = "reference"
+window_s = {window}
 [method]
 name = "{method}"
 [method.parameters]
-calibration_window_s = {window}
 {extra}
 """
 
