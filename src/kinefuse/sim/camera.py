@@ -216,6 +216,22 @@ def _outages(
         k += m
 
 
+def bone_edges(names) -> list[tuple[str, str]]:
+    """Bones ``(parent, child)`` among ``names`` along :data:`SKELETON_PARENT`.
+
+    A joint whose canonical parent is absent hangs from its nearest present ancestor.
+    """
+    names = tuple(names)
+
+    def parent_of(j):
+        p = SKELETON_PARENT.get(j)
+        while p is not None and p not in names:
+            p = SKELETON_PARENT.get(p)
+        return p
+
+    return [(parent_of(j), j) for j in names if parent_of(j) is not None]
+
+
 def _gm_scale(rng, n: int, n_edges: int, std: float, tau_s: float, dt: float) -> np.ndarray:
     w = rng.standard_normal((n, n_edges))
     phi = math.exp(-dt / tau_s) if tau_s > 0 else 0.0
@@ -251,13 +267,7 @@ def simulate_camera(
     all_names = motion.joints
 
     # bone-length variation along the canonical tree
-    def parent_of(j):
-        p = SKELETON_PARENT.get(j)
-        while p is not None and p not in all_names:
-            p = SKELETON_PARENT.get(p)
-        return p
-
-    edges = [(parent_of(j), j) for j in all_names if parent_of(j) is not None]
+    edges = bone_edges(all_names)
     eps = _gm_scale(rng, n, len(edges), config.bone_length_std, config.bone_length_corr_time_s, dt)
     scale = {child: 1.0 + eps[:, e] for e, (_, child) in enumerate(edges)}
     parent = dict((c, p) for p, c in edges)
