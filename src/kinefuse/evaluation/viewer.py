@@ -23,6 +23,7 @@ from importlib import resources
 import numpy as np
 
 from kinefuse.conventions import SOURCE_NAMES
+from kinefuse.evaluation import plots
 from kinefuse.exceptions import InputError
 
 __all__ = [
@@ -37,9 +38,10 @@ __all__ = [
 #: three.js release inlined into the pages (``_vendor/three/three.min.js``).
 THREE_VERSION = "r187 (npm three@0.187.0)"
 
-#: Colour of each source code (Okabe & Ito 2008 colour-blind-safe palette); the codes are
-#: :data:`kinefuse.conventions.SOURCE_NAMES` plus ``4`` = predicted (streaming only).
-SOURCE_COLORS = {0: "#0072B2", 1: "#E69F00", 2: "#CC79A7", 3: "#009E73", 4: "#D55E00"}
+#: Colour of each source code (Okabe & Ito 2008 colour-blind-safe palette, as the report's
+#: source timeline): :data:`kinefuse.conventions.SOURCE_NAMES` plus ``-1`` = predicted
+#: (streaming's ``SOURCE_PREDICT``).
+SOURCE_COLORS = {**plots.code_colors(SOURCE_NAMES), -1: plots.OKABE_ITO[4]}
 
 _MISSING = -32768  # int16 code of a missing (NaN) coordinate
 
@@ -195,7 +197,6 @@ def report_viewer_html(
         HTML.
     """
     t = np.asarray(t_s, dtype=float)
-    J = len(joints)
     series = []  # (name, kind, positions (T, n, 3), colour, src, own joints, own edges)
     if body is not None:
         names, pos, bedges = body
@@ -252,9 +253,9 @@ def report_viewer_html(
             entry["joints"] = own_joints
             entry["edges"] = own_edges
         if src is not None:
-            entry["src"] = base64.b64encode(
-                np.clip(src[keep], 0, 255).astype(np.uint8).tobytes()
-            ).decode("ascii")
+            codes = src[keep]  # negative (no source) -> 255: drawn in the bone colour
+            codes = np.where((codes < 0) | (codes > 254), 255, codes).astype(np.uint8)
+            entry["src"] = base64.b64encode(codes.tobytes()).decode("ascii")
         payload["series"].append(entry)
     script, _ = viewer_assets()
     data = json.dumps(payload, separators=(",", ":")).replace("</", "<\\/")
@@ -266,7 +267,6 @@ def report_viewer_html(
         f"the table gives each shown method's Euclidean error per joint at the current time. "
         f"three.js {e(THREE_VERSION)}, MIT licence, inlined (works offline)."
     )
-    del J
     return (
         '<section id="viewer"><h2>3-D viewer</h2>'
         '<div id="kf-viewer" class="kf-viewer"><div class="kf-main"><div class="kf-stage"></div>'

@@ -143,7 +143,8 @@
         s.kind === "body" ? 5 : s.kind === "reference" ? 3.5 : 2.5, s.kind === "body" ? 4 : 9);
       return { name: s.name, kind: s.kind, pos: pos, src: src, nJ: nJ, sk: sk, visible: s.visible, color: s.color };
     });
-    var state = { frame: 0, playing: false, speed: 1, framesDrawn: 0, visible: {} };
+    var state = { frame: 0, playing: false, speed: 1, framesDrawn: 0, visible: {},
+      series: series.map(function (s) { return { name: s.name, kind: s.kind, color: s.color }; }) };
     window.kfViewer = state;
     var ref = series.filter(function (s) { return s.kind === "reference"; })[0] || null;
 
