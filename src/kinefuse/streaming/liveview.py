@@ -151,6 +151,7 @@ class LiveView:
         script, css = viewer_assets()
         center, radius = self._bounds or ([0.0, 0.0, 0.0, -1.0], 1.0)
         meta = {
+            "auto_aim": self._bounds is None,
             "joints": list(self.joints),
             "edges": self.edges,
             "color": "#332288",

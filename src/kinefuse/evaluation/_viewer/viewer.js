@@ -85,14 +85,20 @@
     var scene = new THREE.Scene();
     scene.background = new THREE.Color("#ffffff");
     var camera = new THREE.PerspectiveCamera(40, 1, 0.01, 200);
-    var c = new THREE.Vector3(center[0], center[2], -center[1]);
-    camera.position.set(c.x + 1.5 * radius, c.y + 0.7 * radius, c.z + 2.1 * radius);
     var controls = new THREE.OrbitControls(camera, canvas);
-    controls.target.copy(c);
-    controls.update();
-    var grid = new THREE.GridHelper(Math.max(4 * radius, 1), 20, 0xb8bfcc, 0xe3e6ec);
-    grid.position.set(c.x, center[3], c.z);
-    scene.add(grid);
+    var grid = null;
+    // look at center = (x, y, z, floor z) from a fixed direction, radius m around it
+    function aim(center, radius) {
+      var c = new THREE.Vector3(center[0], center[2], -center[1]);
+      camera.position.set(c.x + 1.5 * radius, c.y + 0.7 * radius, c.z + 2.1 * radius);
+      controls.target.copy(c);
+      controls.update();
+      if (grid) scene.remove(grid);
+      grid = new THREE.GridHelper(Math.max(4 * radius, 1), 20, 0xb8bfcc, 0xe3e6ec);
+      grid.position.set(c.x, center[3], c.z);
+      scene.add(grid);
+    }
+    aim(center, radius);
     function resize() {
       var w = Math.max(container.clientWidth - 4, 200), h = Math.round(Math.min(w * 0.62, 560));
       renderer.setSize(w, h, true);
@@ -103,7 +109,7 @@
     }
     resize();
     window.addEventListener("resize", resize);
-    return { canvas: canvas, renderer: renderer, scene: scene, camera: camera, controls: controls };
+    return { canvas: canvas, renderer: renderer, scene: scene, camera: camera, controls: controls, aim: aim };
   }
 
   function legendRow(list, color, label, shape) {
@@ -312,8 +318,22 @@
     var es = new EventSource(meta.events_url);
     es.onopen = function () { state.connected = true; conn.textContent = "connected"; };
     es.onerror = function () { state.connected = false; conn.textContent = "stream ended or unreachable (retrying)"; };
+    var aimed = !meta.auto_aim;
     es.onmessage = function (ev) {
       var m = JSON.parse(ev.data);
+      if (!aimed) {  // the page opened before any frame: frame the body once it is seen
+        var lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+        for (var i = 0; i < m.pos.length; i++) {
+          var v = m.pos[i];
+          if (v === null) continue;
+          lo[i % 3] = Math.min(lo[i % 3], v); hi[i % 3] = Math.max(hi[i % 3], v);
+        }
+        if (isFinite(lo[0])) {
+          var r = Math.max(0.6, 0.5 * Math.max(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]));
+          stage.aim([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2, lo[2]], r);
+          aimed = true;
+        }
+      }
       state.frames++;
       state.last = m;
       count.textContent = String(state.frames);
