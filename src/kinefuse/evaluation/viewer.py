@@ -47,7 +47,7 @@ _MISSING = -32768  # int16 code of a missing (NaN) coordinate
 
 VIEWER_CSS = """
 .kf-viewer { display: flex; flex-wrap: wrap; gap: 16px; align-items: flex-start; }
-.kf-main { flex: 1 1 620px; min-width: 320px; }
+.kf-main { flex: 1 1 620px; min-width: 320px; overflow: hidden; }
 .kf-stage canvas { display: block; border: 1px solid var(--line, #d9dee7); border-radius: 4px;
                    cursor: grab; touch-action: none; }
 .kf-side { flex: 0 1 330px; font-size: 13px; }

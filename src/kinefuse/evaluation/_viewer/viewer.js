@@ -90,7 +90,7 @@
     // look at center = (x, y, z, floor z) from a fixed direction, radius m around it
     function aim(center, radius) {
       var c = new THREE.Vector3(center[0], center[2], -center[1]);
-      camera.position.set(c.x + 1.5 * radius, c.y + 0.7 * radius, c.z + 2.1 * radius);
+      camera.position.set(c.x + 2.0 * radius, c.y + 0.9 * radius, c.z + 2.8 * radius);
       controls.target.copy(c);
       controls.update();
       if (grid) scene.remove(grid);
@@ -108,8 +108,17 @@
       camera.updateProjectionMatrix();
     }
     resize();
-    window.addEventListener("resize", resize);
-    return { canvas: canvas, renderer: renderer, scene: scene, camera: camera, controls: controls, aim: aim };
+    var onResize = [];
+    var lastW = container.clientWidth;
+    function refit() {
+      if (container.clientWidth === lastW) return;
+      lastW = container.clientWidth;
+      resize();
+      onResize.forEach(function (f) { f(); });
+    }
+    if (window.ResizeObserver) new ResizeObserver(refit).observe(container);
+    else window.addEventListener("resize", refit);
+    return { canvas: canvas, renderer: renderer, scene: scene, camera: camera, controls: controls, aim: aim, onResize: onResize };
   }
 
   function legendRow(list, color, label, shape) {
@@ -198,7 +207,7 @@
     }
     function errorsTable(f) {
       if (!ref) { errBox.textContent = ""; return; }
-      var shown = series.filter(function (s) { return s.kind !== "reference" && state.visible[s.name] && !s.joints; });
+      var shown = series.filter(function (s) { return (s.kind === "method" || s.kind === "camera") && state.visible[s.name]; });
       var tab = el("table", { class: "results kf-err-table" });
       tab.appendChild(el("caption", {}, "error now (cm)"));
       var hr = el("tr");
@@ -264,7 +273,7 @@
     slider.addEventListener("input", function () { state.frame = +slider.value; t0 = null; draw(); });
     speed.addEventListener("change", function () { state.speed = +speed.value; t0 = null; });
     stage.controls.addEventListener("change", function () { stage.renderer.render(stage.scene, stage.camera); });
-    window.addEventListener("resize", draw);
+    stage.onResize.push(draw);
     draw();
     state.ready = true;
   };
@@ -315,6 +324,7 @@
     }
     stage.controls.addEventListener("change", function () { stage.renderer.render(stage.scene, stage.camera); });
     stage.renderer.render(stage.scene, stage.camera);
+    stage.onResize.push(function () { stage.renderer.render(stage.scene, stage.camera); });
     var es = new EventSource(meta.events_url);
     es.onopen = function () { state.connected = true; conn.textContent = "connected"; };
     es.onerror = function () { state.connected = false; conn.textContent = "stream ended or unreachable (retrying)"; };
