@@ -316,7 +316,7 @@ def test_cli_stream_view_in_chromium(lsl_env, tmp_path):
     )
     out, summary_json, replay_json = tmp_path / "live", tmp_path / "s.json", tmp_path / "r.json"
     replay_args = [*KINEFUSE, "replay", "demo", "--loop", "--duration", "20", "--rate", "2",
-                   "--prefix", prefix, "--wait-for-consumers", "60", "--json", str(replay_json)]
+                   "--prefix", prefix, "--wait-for-consumers", "60", "--json", str(replay_json)]  # fmt: skip
     stream_args = [*KINEFUSE, "stream", str(session), "--idle-timeout", "2", "--out", str(out),
                    "--record-inputs", "--no-status", "--view", "--json", str(summary_json)]  # fmt: skip
     procs = {}
