@@ -252,6 +252,7 @@ def test_cli_stream_accepts_offline_session(lsl_env, tmp_path):
         (["stream", "s.toml", "--out", "existing"], ["existing.npz already exists", "--force"]),
         (["stream", "s.toml", "--record-inputs"], ["--record-inputs needs --out"]),
         (["stream", "s.toml", "--idle-timeout", "0"], ["--idle-timeout", "> 0"]),
+        (["stream", "s.toml", "--view", "--view-port", "70000"], ["--view-port", "[0, 65535]"]),
     ],
 )
 def test_cli_stream_replay_bad_input_exits_2_before_lsl(args, needles, tmp_path, monkeypatch):
