@@ -43,9 +43,26 @@ __all__ = [
 ]
 
 #: Processing methods a session can ask for.
-METHODS = ("paper-a", "elm-fir", "elm-kf", "imu-only", "camera-only", "kinefuse")
+METHODS = (
+    "paper-a",
+    "elm-fir",
+    "elm-kf",
+    "imu-only",
+    "camera-only",
+    "kinefuse",
+    "offset-interp",
+    "offset-hold",
+    "camera-gapfill",
+)
 #: Methods that cannot run without a ``[camera]`` section.
-CAMERA_METHODS = ("elm-fir", "elm-kf", "camera-only")
+CAMERA_METHODS = (
+    "elm-fir",
+    "elm-kf",
+    "camera-only",
+    "offset-interp",
+    "offset-hold",
+    "camera-gapfill",
+)
 
 _PATH_HINT = "relative paths are resolved against the TOML's folder"
 
@@ -514,8 +531,8 @@ body_height_m = 1.75             # anthropometric segment lengths from the body 
 # upper_arm_r = 0.30
 # forearm_r = 0.26
 
-# Optional: a camera skeleton (Kinect, Azure Kinect, MediaPipe...). Needed by elm-fir, elm-kf
-# and camera-only; used by kinefuse when present.
+# Optional: a camera skeleton (Kinect, Azure Kinect, MediaPipe...). Needed by elm-fir, elm-kf,
+# camera-only and the baselines; used by kinefuse when present.
 # [camera]
 # format = "kinect-csv"
 # path = "data/kinect.csv"
@@ -535,6 +552,9 @@ body_height_m = 1.75             # anthropometric segment lengths from the body 
 # elm-kf      : the ELM/KF baseline of Xu et al. 2023
 # imu-only    : forward kinematics of the IMU chain, no filtering
 # camera-only : the camera skeleton alone
+# camera-gapfill : the camera, gaps up to 20 frames linearly interpolated (as Pose2Sim)
+# offset-interp  : baseline, IMU chain + camera-chain offset interpolated across outages (offline)
+# offset-hold    : baseline, IMU chain + mean offset of the last 5 camera samples (causal)
 # kinefuse    : kinefuse's recommended combination
 name = "paper-a"
 
