@@ -176,17 +176,14 @@ def test_report_renders_in_chromium_with_every_figure(report, tmp_path):
     assert shot.stat().st_size > 20_000  # a rendered page, not a blank one
 
 
-def test_report_without_viewer_has_no_script(case, tmp_path):
-    html = _write(case, tmp_path, interactive=False).read_text(encoding="utf-8")
-    assert "<script" not in html and "http" not in html
-
-
-def test_report_tables_drop_empty_rows(case, tmp_path):
+def test_report_tables_drop_empty_rows_and_no_viewer_no_script(case, tmp_path):
     est = dict(case["est"])
     est["arm only"] = case["est"]["KF"].copy()
     est["arm only"][:, 2] = np.nan  # no estimate at the wrist
     ev = evaluate(est, case["ref"], case["outage"], joints=JOINTS)
-    html = write_report(tmp_path, ev, est, case["ref"], case["t"], interactive=False).read_text()
+    path = write_report(tmp_path, ev, est, case["ref"], case["t"], interactive=False, dpi=40)
+    html = path.read_text(encoding="utf-8")
+    assert "<script" not in html and "http" not in html  # interactive=False: static as before
     assert "Not applicable at wrist_r: arm only (no estimate there)." in html
     # no row of dashes with N = 0 for the wrist
     wrist = html[html.index('id="joint-wrist_r"') :]
