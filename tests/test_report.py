@@ -242,3 +242,19 @@ def test_report_viewer_in_chromium(case, report, tmp_path):
     assert color_fraction(on["pixels"], color) > 5e-4
     assert color_fraction(off["pixels"], color) < 0.1 * color_fraction(on["pixels"], color)
     assert err_rows == 1 + len(JOINTS)
+
+
+def test_viewer_quantization_and_thinning():
+    from kinefuse.evaluation import viewer
+
+    p = np.array([[[0.0, 1.2344, -0.0006], [np.nan, 2.0, 3.0]]])  # (1, 2, 3)
+    origin = np.array([0.0, 1.0, 0.0])
+    q = np.frombuffer(base64.b64decode(viewer.quantize(p, origin, 0.001)), dtype="<i2")
+    assert q.tolist() == [0, 234, -1, -32768, 1000, 3000]  # round((p - origin) / 1 mm); NaN
+    assert viewer.quantization_scale([p], origin) == 0.001
+    far = np.array([[100.0, 0.0, 0.0]])
+    assert viewer.quantization_scale([far], np.zeros(3)) == pytest.approx(100.0 / 32767)
+    t = np.arange(6000) / 100.0  # 60 s at 100 Hz
+    assert viewer.downsample_stride(t, 30, max_rate_hz=30, max_bytes=10**9) == 4  # <= 30 Hz
+    k = viewer.downsample_stride(t, 3000, max_rate_hz=30, max_bytes=1_000_000)
+    assert 6000 / k * 3000 * 2 * 4 / 3 <= 1_000_000 < 6000 / (k - 1) * 3000 * 2 * 4 / 3

@@ -5,7 +5,8 @@ The viewer is plain JavaScript (``_viewer/viewer.js``) on a vendored copy of thr
 page so that a report opens offline, from a file, with no network access.
 
 :func:`report_viewer_html` builds the report's section: every series (reference, camera, each
-method and an optional whole-body context skeleton) as millimetre ``int16`` positions, joints
+method and an optional whole-body context skeleton) as ``int16`` positions (1 mm steps around
+the recording's centre, coarser only beyond +-32 m), joints
 coloured by their per-sample source code (:data:`kinefuse.conventions.SOURCE_NAMES`), thinned
 to at most ``max_rate_hz`` and to a byte budget so that long recordings stay light.
 :func:`viewer_assets` returns the script and style for other pages (the live view).
@@ -30,7 +31,8 @@ __all__ = [
     "SOURCE_COLORS",
     "THREE_VERSION",
     "downsample_stride",
-    "quantize_mm",
+    "quantization_scale",
+    "quantize",
     "report_viewer_html",
     "viewer_assets",
 ]
@@ -82,23 +84,37 @@ def viewer_assets() -> tuple[str, str]:
     return script.replace("</script", "<\\/script"), VIEWER_CSS
 
 
-def quantize_mm(position_m: np.ndarray) -> str:
-    """Positions in m as base64 little-endian ``int16`` millimetres (NaN -> -32768).
+def quantize(position_m: np.ndarray, origin_m, scale_m: float) -> str:
+    """Positions as base64 little-endian ``int16`` steps of ``scale_m`` from ``origin_m``.
 
-    Raises
-    ------
-    InputError
-        A finite coordinate beyond +-32.767 m (the viewer's range).
+    Parameters
+    ----------
+    position_m : array_like, shape (..., 3)
+        Positions, m; NaN -> -32768 (missing).
+    origin_m : array_like, shape (3,)
+    scale_m : float
+        One step, m (:func:`quantization_scale`).
+
+    Returns
+    -------
+    str
+        ``round((p - origin) / scale)`` as int16, base64.
     """
-    p = np.asarray(position_m, dtype=float)
+    p = (np.asarray(position_m, dtype=float) - np.asarray(origin_m, dtype=float)) / scale_m
     finite = np.isfinite(p)
-    if np.any(np.abs(p[finite]) > 32.767):
-        raise InputError(
-            f"positions beyond +-32.767 m cannot be shown in the viewer (max |x| = "
-            f"{np.abs(p[finite]).max():.1f} m); are they in m?"
-        )
-    q = np.where(finite, np.round(p * 1000.0), _MISSING).astype("<i2")
+    q = np.where(finite, np.clip(np.round(p), -32767, 32767), _MISSING).astype("<i2")
     return base64.b64encode(q.tobytes()).decode("ascii")
+
+
+def quantization_scale(arrays: Sequence[np.ndarray], origin_m) -> float:
+    """1 mm, or coarser when the positions reach further than 32.767 m from ``origin_m``."""
+    reach = 0.0
+    for a in arrays:
+        d = np.abs(np.asarray(a, dtype=float).reshape(-1, 3) - np.asarray(origin_m, dtype=float))
+        d = d[np.isfinite(d)]
+        if d.size:
+            reach = max(reach, float(d.max()))
+    return max(0.001, reach / 32767.0)
 
 
 def downsample_stride(
@@ -234,12 +250,21 @@ def report_viewer_html(
     k = downsample_stride(t, values, max_rate_hz=max_rate_hz, max_bytes=max_bytes)
     keep = np.arange(0, t.size, k)
     center, radius = _bounds([s[2][keep] for s in series])
+    origin = np.round(np.asarray(center[:3]), 1)  # positions are sent relative to it
+    scale = quantization_scale([s[2][keep] for s in series], origin)
+    center = [
+        center[0] - origin[0],
+        center[1] - origin[1],
+        center[2] - origin[2],
+        center[3] - origin[2],
+    ]
     payload = {
         "t": [round(float(x), 4) for x in t[keep]],
         "stride": k,
         "joints": list(joints),
         "edges": _edge_index(joints, edges),
-        "scale_m": 0.001,
+        "scale_m": scale,
+        "origin_m": [float(x) for x in origin],
         "center": center,
         "radius": radius,
         "source_names": {str(c): n for c, n in source_names.items()},
@@ -248,7 +273,7 @@ def report_viewer_html(
     }
     for name, kind, pos, col, src, own_joints, own_edges in series:
         entry = {"name": name, "kind": kind, "color": col, "visible": name in shown,
-                 "pos": quantize_mm(pos[keep])}  # fmt: skip
+                 "pos": quantize(pos[keep], origin, scale)}  # fmt: skip
         if own_joints is not None:
             entry["joints"] = own_joints
             entry["edges"] = own_edges
