@@ -337,6 +337,7 @@ def write_report(
             estimates=traj,
             colors=colors,
             edges=skeleton_edges,
+            dashed=[m for m, ls in styles.items() if ls != "-"],
             sources=source_codes,
             camera=meas,
             body=body,

@@ -170,6 +170,7 @@ def report_viewer_html(
     estimates: Mapping[str, np.ndarray],
     colors: Mapping[str, str],
     edges: Sequence[tuple[str, str]] | None,
+    dashed: Sequence[str] = (),
     sources: Mapping[str, np.ndarray] | None = None,
     camera: np.ndarray | None = None,
     body: tuple[Sequence[str], np.ndarray, Sequence[tuple[str, str]]] | None = None,
@@ -191,6 +192,9 @@ def report_viewer_html(
         Positions per method, m.
     colors : mapping method -> CSS colour
         Bone colour per method (the figures' colours).
+    dashed : sequence of str
+        Methods whose bones are dashed (those with a dashed line style in the figures, so that
+        methods sharing a colour stay apart).
     edges : sequence of (str, str), optional
         Bones between ``joints`` (without bones the joints are drawn as points only).
     sources : mapping method -> int array, shape (T, J), optional
@@ -274,6 +278,8 @@ def report_viewer_html(
     for name, kind, pos, col, src, own_joints, own_edges in series:
         entry = {"name": name, "kind": kind, "color": col, "visible": name in shown,
                  "pos": quantize(pos[keep], origin, scale)}  # fmt: skip
+        if name in dashed and kind == "method":
+            entry["dashed"] = True
         if own_joints is not None:
             entry["joints"] = own_joints
             entry["edges"] = own_edges

@@ -26,13 +26,15 @@
   // One skeleton: bones (wide line segments) in one colour, joints as points coloured per
   // sample. Missing joints (NaN) and their bones are not drawn.
   var materials = [], viewSize = [800, 500];
-  function Skeleton(scene, nJoints, edges, color, lineWidth, pointSize) {
+  function Skeleton(scene, nJoints, edges, color, lineWidth, pointSize, dashed) {
     this.n = nJoints;
     this.edges = edges;
     this.group = new THREE.Group();
     this.linePos = new Float32Array(Math.max(edges.length, 1) * 6);
     this.geom = new THREE.LineSegmentsGeometry();
-    this.mat = new THREE.LineMaterial({ color: color, linewidth: lineWidth, worldUnits: false });
+    this.mat = new THREE.LineMaterial({ color: color, linewidth: lineWidth, worldUnits: false,
+      dashed: !!dashed, dashSize: 0.03, gapSize: 0.02 });
+    this.dashed = !!dashed;
     this.mat.resolution.set(viewSize[0], viewSize[1]);
     materials.push(this.mat);
     this.lines = new THREE.LineSegments2(this.geom, this.mat);
@@ -72,7 +74,10 @@
       m++;
     }
     this.lines.visible = m > 0;
-    if (m > 0) this.geom.setPositions(this.linePos.subarray(0, 6 * m));
+    if (m > 0) {
+      this.geom.setPositions(this.linePos.subarray(0, 6 * m));
+      if (this.dashed) this.lines.computeLineDistances();
+    }
     this.points.geometry.attributes.position.needsUpdate = true;
     this.points.geometry.attributes.color.needsUpdate = true;
   };
@@ -155,8 +160,8 @@
       var src = s.src ? decodeUint8(s.src) : null;
       var nJ = s.joints ? s.joints.length : J;
       var sk = new Skeleton(stage.scene, nJ, s.edges || data.edges, s.color,
-        s.kind === "body" ? 5 : s.kind === "reference" ? 3.5 : 2.5, s.kind === "body" ? 4 : 9);
-      return { name: s.name, kind: s.kind, pos: pos, src: src, nJ: nJ, sk: sk, visible: s.visible, color: s.color };
+        s.kind === "body" ? 5 : s.kind === "reference" ? 3.5 : 2.5, s.kind === "body" ? 4 : 9, s.dashed);
+      return { name: s.name, kind: s.kind, pos: pos, src: src, nJ: nJ, sk: sk, visible: s.visible, color: s.color, dashed: !!s.dashed };
     });
     var state = { frame: 0, playing: false, speed: 1, framesDrawn: 0, visible: {},
       series: series.map(function (s) { return { name: s.name, kind: s.kind, color: s.color }; }) };
@@ -185,7 +190,8 @@
       cb.addEventListener("change", function () { state.visible[s.name] = cb.checked; draw(); });
       var lab = el("label", { for: "kf-toggle-" + i });
       var sw = el("span", { class: "kf-swatch kf-line" });
-      sw.style.background = s.color;
+      sw.style.background = s.dashed
+        ? "repeating-linear-gradient(90deg," + s.color + " 0 5px,transparent 5px 8px)" : s.color;
       lab.appendChild(sw);
       lab.appendChild(document.createTextNode(" " + s.name));
       li.appendChild(cb); li.appendChild(lab);
