@@ -125,6 +125,8 @@ def write_report(
     body=None,
     viewer_methods: Sequence[str] | None = None,
     interactive: bool = True,
+    sections: Sequence[str] = (),
+    extra_metrics: Mapping | None = None,
 ) -> Path:
     """Write a self-contained HTML report with figures and tables of an evaluation.
 
@@ -179,6 +181,11 @@ def write_report(
     interactive : bool
         Include the interactive 3-D viewer (about 0.6 MB of inlined three.js plus the
         positions, thinned to at most 30 Hz and 1.5 MB).
+    sections : sequence of str
+        Extra HTML fragments shown after the notes (e.g.
+        :func:`kinefuse.evaluation.angles.angle_section`).
+    extra_metrics : mapping, optional
+        Merged into ``metrics.json`` (e.g. ``provenance``: which data calibrated what).
 
     Returns
     -------
@@ -357,10 +364,14 @@ def write_report(
         paper=paper,
         viewer_html=viewer_html,
     )
+    if sections:
+        anchor = '<section id="summary">'
+        doc = doc.replace(anchor, "".join(sections) + anchor, 1)
     tmp = report_path.with_name(REPORT_NAME + ".part")
     tmp.write_text(doc, encoding="utf-8")
     tmp.replace(report_path)
-    (out / "metrics.json").write_text(json.dumps(evaluation.to_dict(), indent=2), encoding="utf-8")
+    metrics = {**evaluation.to_dict(), **dict(extra_metrics or {})}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2), encoding="utf-8")
     return report_path
 
 
