@@ -187,13 +187,13 @@ def _local(url: str) -> bool:
 
 
 @contextlib.contextmanager
-def browser(*, width: int = 1280, height: int = 900):
+def browser(*, width: int = 1280, height: int = 900, extra_args=()):
     """A Playwright browser context on the system Chromium (no browser download).
 
     Yields ``(context, log)``: new pages opened with ``context.new_page()`` record console
     errors and uncaught page errors in ``log["errors"]``; every request that is not to a
     local file or to 127.0.0.1 is aborted and recorded in ``log["blocked"]``. Skips the
-    calling test when Playwright or Chromium is missing.
+    calling test when Playwright or Chromium is missing. ``extra_args``: more Chromium flags.
     """
     path = ensure_chromium()
     try:
@@ -219,7 +219,9 @@ def browser(*, width: int = 1280, height: int = 900):
             r.abort()
 
     with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=path, args=_PLAYWRIGHT_ARGS, headless=True)
+        b = pw.chromium.launch(
+            executable_path=path, args=[*_PLAYWRIGHT_ARGS, *extra_args], headless=True
+        )
         try:
             ctx = b.new_context(viewport={"width": width, "height": height})
             ctx.on("page", watch)

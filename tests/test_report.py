@@ -258,3 +258,13 @@ def test_viewer_quantization_and_thinning():
     assert viewer.downsample_stride(t, 30, max_rate_hz=30, max_bytes=10**9) == 4  # <= 30 Hz
     k = viewer.downsample_stride(t, 3000, max_rate_hz=30, max_bytes=1_000_000)
     assert 6000 / k * 3000 * 2 * 4 / 3 <= 1_000_000 < 6000 / (k - 1) * 3000 * 2 * 4 / 3
+
+
+def test_report_without_webgl_says_so_and_keeps_the_figures(report):
+    with browser(extra_args=["--disable-webgl", "--disable-3d-apis"]) as (ctx, log):
+        page = ctx.new_page()
+        page.goto(report.as_uri())
+        page.wait_for_selector(".kf-no-webgl", timeout=15_000)
+        loaded = page.evaluate("Array.from(document.images).filter(i => i.naturalWidth > 0).length")
+    assert loaded == 10
+    assert not [e for e in log["errors"] if e.startswith("page error")]  # no uncaught error

@@ -85,7 +85,15 @@
   function makeStage(container, center, radius) {
     var canvas = el("canvas", { class: "kf-canvas", "aria-label": "3-D skeleton view" });
     container.appendChild(canvas);
-    var renderer = new THREE.WebGLRenderer({ canvas: canvas, antialias: true, preserveDrawingBuffer: true });
+    var renderer;
+    try {
+      renderer = new THREE.WebGLRenderer({ canvas: canvas, antialias: true, preserveDrawingBuffer: true });
+    } catch (err) {  // no WebGL (disabled, or a very old browser): say so, keep the page
+      container.replaceChildren(el("p", { class: "note kf-no-webgl" },
+        "The 3-D viewer needs WebGL, which this browser does not provide; the figures below " +
+        "show the same data."));
+      throw err;
+    }
     renderer.setPixelRatio(window.devicePixelRatio || 1);
     var scene = new THREE.Scene();
     scene.background = new THREE.Color("#ffffff");
@@ -150,6 +158,9 @@
 
   // ---------------------------------------------------------------- report (whole recording)
   window.kinefuseReport = function (data) {
+    try { report(data); } catch (err) { console.warn("kinefuse viewer: " + err); }
+  };
+  function report(data) {
     var root = document.getElementById("kf-viewer");
     var stageBox = root.querySelector(".kf-stage"), side = root.querySelector(".kf-side");
     var J = data.joints.length, F = data.t.length;
@@ -282,7 +293,7 @@
     stage.onResize.push(draw);
     draw();
     state.ready = true;
-  };
+  }
 
   // ---------------------------------------------------------------- live (kinefuse stream --view)
   window.kinefuseLive = function (meta) {
