@@ -97,7 +97,7 @@ _BACKENDS = {
     "replay": ("kinefuse.streaming", "replay_recording"),
 }
 
-EXPERIMENTS = ("paper-a", "paper-b")
+EXPERIMENTS = ("paper-a", "paper-b", "realism")
 
 
 class BackendUnavailable(RuntimeError):
@@ -515,7 +515,10 @@ def evaluate(
 def experiment(
     name: Annotated[
         str,
-        typer.Argument(metavar="paper-a|paper-b", help="Which paper's experiment to reproduce."),
+        typer.Argument(
+            metavar="paper-a|paper-b|realism",
+            help="Which paper's experiment to reproduce, or 'realism' (virtual vs real sensors).",
+        ),
     ],
     data: Annotated[
         Path | None,

@@ -1,4 +1,6 @@
-"""``kinefuse experiment paper-a|paper-b``: the papers' experiments, next to the papers' numbers.
+"""``kinefuse experiment paper-a|paper-b|realism``: the papers' experiments, next to the papers' numbers.
+
+``realism`` (the virtual sensors next to real ones) lives in :mod:`kinefuse.pipelines.realism`.
 
 ``paper-a`` (Sun 2024 §4.2-4.4)
     Elbow and wrist positions from the IMU chain (shoulder from the camera), filtered with KF,
@@ -43,7 +45,7 @@ __all__ = [
 ]
 
 #: Experiments this module runs.
-EXPERIMENTS = ("paper-a", "paper-b")
+EXPERIMENTS = ("paper-a", "paper-b", "realism")
 
 #: Paper A's four filter settings (SPEC §12.1): name -> (joint kind, q, r).
 PAPER_A_TESTS = {
@@ -769,8 +771,9 @@ def run_experiment(
 
     Parameters
     ----------
-    name : {"paper-a", "paper-b"}
-        Which experiment (see the module docstring).
+    name : {"paper-a", "paper-b", "realism"}
+        Which experiment (see the module docstring; ``realism``:
+        :mod:`kinefuse.pipelines.realism`).
     data_dir : str or Path, optional
         The shared data folder (``cmu_mocap/``, ``utd_mhad/``, ``neura_sparse_sample/``).
         Default ``../shared/data`` when it exists, else the packaged CMU clip only.
@@ -807,6 +810,11 @@ def run_experiment(
     if name == "paper-a":
         n_steps = (1 if quick else len(CMU_TRIALS_PAPER_A)) + 1 + (8 if quick else 12)
         run = _paper_a
+    elif name == "realism":
+        from kinefuse.pipelines.realism import run_realism
+
+        n_steps = 7
+        run = run_realism
     else:
         n_steps = (1 if quick else len(CMU_TRIALS_PAPER_B)) + 2
         run = _paper_b
