@@ -147,7 +147,9 @@ _A_METHODS = {"kf": "KF", "fir": "FIR", "em-kf-fir": "EM-KF/FIR"}
 
 
 #: A consumer-grade on-board orientation (paper A's chain errors are decimetres): larger
-#: heading offset, drift and noise and mounting error than the ICM-20948 defaults [J].
+#: heading offset, drift and noise and mounting error [J]. Idealised: applied to the true
+#: orientation (``ImuConfig(orientation="idealised-ahrs")``), unlike the default virtual IMUs,
+#: whose orientation comes from VQF on their raw signals.
 DEGRADED_AHRS = {
     "ahrs_initial_heading_deg": 5.0,
     "ahrs_heading_drift_deg_per_min": 5.0,
@@ -315,19 +317,22 @@ def _paper_a(data_dir: Path | None, quick: bool, advance: Callable, notes: list[
         t, z, ref = _arm_chain_virtual(motion, _SEED + i)
         datasets["CMU (virtual IMUs)"].append({"name": name, "z": z, "ref": ref})
         if not quick:
-            t, z, ref = _arm_chain_virtual(motion, _SEED + i, DEGRADED_AHRS)
+            t, z, ref = _arm_chain_virtual(
+                motion, _SEED + i, {**DEGRADED_AHRS, "orientation": "idealised-ahrs"}
+            )
             datasets["CMU (virtual IMUs, degraded AHRS)"].append({"name": name, "z": z, "ref": ref})
         advance()
     if not quick:
         notes.append(
             "Degraded AHRS: "
             + ", ".join(f"{k} = {v:g}" for k, v in DEGRADED_AHRS.items())
-            + " (a consumer-grade on-board orientation; same trials and seeds, so the same camera)"
+            + " (an idealised consumer-grade on-board orientation: the true orientation times "
+            "these errors, not VQF on raw signals; same trials and seeds, so the same camera)"
         )
     notes.append(
         "CMU scenarios: "
         + ", ".join(p["name"] for p in datasets["CMU (virtual IMUs)"])
-        + " (right arm; virtual ICM-20948 IMUs on the upper arm and forearm, shoulder from a "
+        + " (right arm; virtual ICM-20948 IMUs with VQF orientation on the upper arm and forearm, shoulder from a "
         "virtual Kinect with outages, gaps interpolated; reference = mocap truth)"
     )
     if data_dir is not None and (Path(data_dir) / "utd_mhad").is_dir():
