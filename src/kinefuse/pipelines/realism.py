@@ -466,7 +466,7 @@ def run_realism(data_dir: Path | None, quick: bool, advance: Callable, notes: li
         ("Measure", "Set", "Trials (real / virtual)"),
         ("Real", "Virtual", "Diff. %", "±30 %"),
         rows,
-        (),
+        tuple(notes),
         digits=2,
     )
     return {"tables": [table], "results": {"rows": res}}
