@@ -104,9 +104,10 @@ def _filled_orientation(t: np.ndarray, q: np.ndarray) -> np.ndarray:
     return rot.as_quat(scalar_first=True)
 
 
-def _filled(t: np.ndarray, x: np.ndarray) -> np.ndarray:
+def _filled_at(t_src: np.ndarray, x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``x`` (T, 3) at times ``t``, linear through its finite rows (NaN rows skipped)."""
     ok = np.all(np.isfinite(x), axis=1)
-    return np.stack([np.interp(t, t[ok], x[ok, k]) for k in range(x.shape[1])], axis=-1)
+    return np.stack([np.interp(t, t_src[ok], x[ok, k]) for k in range(3)], axis=-1)
 
 
 # ------------------------------------------------------------------------------------ (i) BROAD
@@ -138,7 +139,7 @@ def broad_trial(path: Path, seed: int, stop_s: float | None = None) -> dict:
     )
     t = st.t_s[:n]
     q_true = _filled_orientation(t, q_ref)
-    p_true = _filled(t, rec.reference.position_m[:n, 0])
+    p_true = _filled_at(t, rec.reference.position_m[:n, 0], t)
     vst, truth = simulate_imu_from_pose(
         t, q_true, p_true, cfg, np.random.default_rng([seed]), t, name="imu"
     )
@@ -169,11 +170,6 @@ def _camera_from(ref, rng: np.random.Generator, names: Sequence[str]):
         joints=tuple(names),
         frame=ref.frame,
     )
-
-
-def _filled_at(t_src: np.ndarray, x: np.ndarray, t: np.ndarray) -> np.ndarray:
-    ok = np.all(np.isfinite(x), axis=1)
-    return np.stack([np.interp(t, t_src[ok], x[ok, k]) for k in range(3)], axis=-1)
 
 
 _LEG_SEGMENTS = ("thigh_l", "thigh_r", "shank_l", "shank_r")
