@@ -15,7 +15,8 @@ Motion smoothing
 Orientation
     ``q_world_from_segment(t)`` is a C2 rotation spline (:class:`scipy.spatial.transform.RotationSpline`)
     through the mocap samples, evaluated at ``t_k``; the sensor is mounted with a constant
-    ``q_segment_from_sensor`` (mounting misalignment), ``R_ws = R_world_from_segment · R_segment_from_sensor``.
+    ``q_segment_from_sensor`` (mounting misalignment) and moves on the soft tissue (below):
+    ``R_ws = R_world_from_segment · exp(δθ) · R_segment_from_sensor``.
 Gyroscope
     ``gyr_k = log(R_ws,k-1ᵀ R_ws,k) / dt`` for k >= 1 (``gyr_0 = gyr_1``): the constant body rate
     that carries the sensor from sample k-1 to sample k. Integrating it with
@@ -24,7 +25,8 @@ Gyroscope
 Accelerometer
     Specific force ``acc_k = R_ws,kᵀ (a(t_k) − g)``, ``g = [0, 0, −9.80665]`` m/s² (ENU). The
     sensor sits on the segment axis at ``position_along_segment · length`` from the proximal
-    joint (default the midpoint; the pelvis sensor at the pelvis joint). ``a(t)`` is the central
+    joint (default the midpoint; the pelvis sensor at the pelvis joint), displaced by the soft
+    tissue ``R_world_from_segment δp`` (below). ``a(t)`` is the central
     second difference, with step ``h`` = the mocap sample interval, of a cubic spline through the
     sensor positions at the mocap samples: ``a(t) = [p(t+h) − 2 p(t) + p(t−h)] / h²``. At mocap
     sample times this *is* the plain central difference of the mocap positions; at other times it
@@ -475,7 +477,6 @@ def simulate_imu(
     Module docstring: motion smoothing, mounting, soft-tissue artefact (Dumas et al. 2014 linear
     model with literature amplitudes), then :func:`simulate_imu_from_pose`.
     """
-    dt_mocap = motion.t_s
     i = motion.segment_index(segment)
 
     def _smoothed_rot(k: int) -> Rotation:
@@ -511,7 +512,7 @@ def simulate_imu(
     rot_sensor = rot_seg * Rotation.from_rotvec(sta_rot) * mount
     p_sensor = p + rot_seg.apply(sta_tr)
 
-    t = time_grid(dt_mocap, config.rate_hz) if t_s is None else np.asarray(t_s, dtype=float)
+    t = time_grid(motion.t_s, config.rate_hz) if t_s is None else np.asarray(t_s, dtype=float)
     stream, truth = simulate_imu_from_pose(
         motion.t_s, rot_sensor.as_quat(scalar_first=True), p_sensor, config, rng, t, name=segment
     )
