@@ -50,14 +50,15 @@ def test_undetectable_and_missing(tmp_path):
     f.write_text("hello\n")
     with pytest.raises(
         FormatError,
-        match=r"notes.xyz: could not detect the format; pass format= \(known formats: .*trc",
+        match=r"notes.xyz: unsupported format: this looks like a text file without a recognisable "
+        r"header \(.xyz\); kinefuse reads: .*trc \(TRC marker file",
     ):
         kio.load(f)
     with pytest.raises(FileNotFoundError, match="nope.csv: no such file"):
         kio.load(tmp_path / "nope.csv")
     empty = tmp_path / "empty.csv"
     empty.write_text("")
-    with pytest.raises(FormatError, match="could not detect"):
+    with pytest.raises(FormatError, match="unsupported format: this looks like an empty file"):
         kio.load(empty)
     with pytest.raises(FormatError, match="empty or truncated"):
         kio.load(empty, format="joint_csv")

@@ -97,7 +97,7 @@ _BACKENDS = {
     "replay": ("kinefuse.streaming", "replay_recording"),
 }
 
-EXPERIMENTS = ("paper-a", "paper-b", "realism")
+EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only", "realism")
 
 
 class BackendUnavailable(RuntimeError):
@@ -516,8 +516,9 @@ def experiment(
     name: Annotated[
         str,
         typer.Argument(
-            metavar="paper-a|paper-b|realism",
-            help="Which paper's experiment to reproduce, or 'realism' (virtual vs real sensors).",
+            metavar="paper-a|paper-b|neura-imu-only|realism",
+            help="Which experiment: a paper's, the Neura walk from its IMUs alone, or 'realism' "
+            "(virtual vs real sensors).",
         ),
     ],
     data: Annotated[
@@ -530,6 +531,15 @@ def experiment(
         bool,
         typer.Option("--quick", help="A reduced configuration (seconds) instead of the full run."),
     ] = False,
+    data_set: Annotated[
+        str,
+        typer.Option(
+            "--set",
+            metavar="report|tuning",
+            help="paper-a/paper-b: declared set of recordings, 'report' (default; nothing is tuned on it) or "
+            "'tuning' (the only set kinefuse was developed on).",
+        ),
+    ] = "report",
     quiet: _Quiet = False,
     json_file: _Json = None,
 ) -> None:
@@ -538,7 +548,9 @@ def experiment(
         raise InputError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
     if data is not None and not data.is_dir():
         raise InputError(f"--data {data}: folder not found")
-    summary = _backend("experiment")(name, data, quick=quick or None, quiet=quiet)
+    if data_set not in ("report", "tuning"):
+        raise InputError(f"--set: expected 'report' or 'tuning', got {data_set!r}")
+    summary = _backend("experiment")(name, data, quick=quick or None, quiet=quiet, split=data_set)
     _present(summary, quiet=quiet, json_file=json_file)
 
 

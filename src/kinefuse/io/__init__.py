@@ -41,6 +41,12 @@ _LAZY = {
     "read_neura": "neura",
     "read_asf_amc": "cmu",
     "read_bvh": "bvh",
+    "read_opensim_table": "opensim",
+    "read_opensense_sto": "opensim",
+    "write_opensense_sto": "opensim",
+    "read_mvnx": "mvnx",
+    "read_xsens_dot": "xsens_dot",
+    "read_xio_csv": "xio_csv",
 }
 
 __all__ = ["FORMATS", "ImuStream", "JointStream", "Recording", "detect_format", "load", *_LAZY]

@@ -74,6 +74,19 @@ _REGISTRY: dict[str, _Format] = {
         "cmu", "read_asf_amc", "CMU ASF/AMC optical mocap (pass the .amc; asf_path= optional)"
     ),
     "bvh": _Format("bvh", "read_bvh", "BVH motion capture"),
+    "opensense_sto": _Format(
+        "opensim", "read_opensense_sto", "OpenSense orientation .sto (DataType=Quaternion)"
+    ),
+    "opensim_table": _Format(
+        "opensim", "read_opensim_mot", "OpenSim .mot/.sto table (joint coordinates, units)"
+    ),
+    "mvnx": _Format("mvnx", "read_mvnx", "Xsens MVN MVNX: segments, sensors, calibration poses"),
+    "xsens_dot": _Format(
+        "xsens_dot", "read_xsens_dot", "Movella/Xsens DOT CSV (file or folder, SampleTimeFine)"
+    ),
+    "xio_csv": _Format(
+        "xio_csv", "read_xio_csv", "x-io plain CSV: Time (s), Gyroscope, Accelerometer"
+    ),
 }
 
 #: Format name -> one-line description of every format :func:`load` knows.
@@ -112,6 +125,8 @@ def _head(path: Path, n: int = 8192) -> str:
 
 
 def _detect_csv(path: Path) -> str | None:
+    if (path.parent / "Inertial.csv").is_file():  # any CSV of an x-IMU3 sensor folder
+        return "ximu3"
     head = _head(path)
     lines = [ln for ln in head.splitlines() if ln.strip()]
     if not lines:
@@ -121,10 +136,14 @@ def _detect_csv(path: Path) -> str | None:
         return "imu_csv"
     if first.startswith("# kinefuse-joint-csv"):
         return "joint_csv"
+    if any(ln.startswith("PacketCounter,") and "SampleTimeFine" in ln for ln in lines):
+        return "xsens_dot"
     body = [ln for ln in lines if not ln.lstrip().startswith(("#", "//"))]
     if not body:
         return None
     header = body[0].lower()
+    if header.startswith("software : lsl_kinect") and len(body) > 1:  # preamble without '#'
+        header = body[1].lower()
     cols = [c.strip() for c in header.replace("\t", ",").replace(";", ",").split(",")]
     if (
         cols
@@ -132,6 +151,8 @@ def _detect_csv(path: Path) -> str | None:
         and any("gyroscope" in c or c in ("w", "x") for c in cols)
     ):
         return "ximu3"
+    if cols and cols[0].startswith("time (") and any(c.startswith("gyroscope x") for c in cols):
+        return "xio_csv"
     if head.lstrip().startswith("//") and any(
         c.startswith(("ori_", "rfeo_", "pelv_", "acc_1")) for c in cols
     ):
@@ -177,6 +198,8 @@ def _detect_dir(path: Path) -> str | None:
         return "neura"
     if any("PacketCounter" in _head(p, 4096) for p in path.glob("*.txt")):
         return "opensense"
+    if any(_detect_csv(p) == "xsens_dot" for p in path.glob("*.csv")):
+        return "xsens_dot"
     if (path / "Inertial").is_dir() and (path / "Skeleton").is_dir():
         raise FormatError(
             path,
@@ -193,7 +216,8 @@ def detect_format(path) -> str:
     FileNotFoundError
         ``path`` does not exist.
     FormatError
-        The format could not be recognised (the message lists the known formats).
+        The format could not be recognised: "unsupported format: this looks like X; kinefuse
+        reads: ..." (what the file appears to be, and the known formats).
     """
     path = Path(path)
     if not path.exists():
@@ -218,6 +242,11 @@ def detect_format(path) -> str:
                 path,
                 "an ASF file holds only the skeleton; pass the motion (.amc) file (asf_path= optional)",
             )
+        elif ext in (".mvnx", ".xml") and "<mvnx" in _head(path, 4096):
+            fmt = "mvnx"
+        elif ext in (".sto", ".mot"):
+            quat = "DataType=Quaternion" in _head(path, 4096)
+            fmt = "opensense_sto" if quat else "opensim_table"
         elif ext == ".json":
             fmt = _detect_json(path)
         elif ext == ".txt" and "PacketCounter" in _head(path, 4096):
@@ -225,9 +254,9 @@ def detect_format(path) -> str:
         elif ext in (".csv", ".txt", ".tsv"):
             fmt = _detect_csv(path)
     if fmt is None:
-        raise FormatError(
-            path, f"could not detect the format; pass format= (known formats: {_known()})"
-        )
+        from kinefuse.io._unsupported import unsupported_message
+
+        raise FormatError(path, unsupported_message(path, FORMATS))
     return fmt
 
 
