@@ -66,10 +66,11 @@ def test_scenario_small_configuration():
     # fused ELM/KF is within a few cm of the truth where the camera sees the joints
     k = ev.methods.index("ELM/KF")
     assert np.all(ev.mean_rmse[k] < 0.15), ev.mean_rmse[k]
-    # paper A's KF on the (accurate) virtual chain: elbows within 5 cm
+    # paper A's KF on the virtual chain (VQF orientation, soft tissue, calibrated against a
+    # camera with Kinect-like tracking error, as real chains are): elbows within 8 cm
     kf = ev.methods.index("KF")
     for j in ("elbow_l", "elbow_r"):
-        assert ev.mean_rmse[kf, ev.joints.index(j)] < 0.05
+        assert ev.mean_rmse[kf, ev.joints.index(j)] < 0.08
 
 
 def test_demo_recording_is_seeded():

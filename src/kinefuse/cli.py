@@ -97,7 +97,7 @@ _BACKENDS = {
     "replay": ("kinefuse.streaming", "replay_recording"),
 }
 
-EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only")
+EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only", "realism")
 
 
 class BackendUnavailable(RuntimeError):
@@ -584,8 +584,9 @@ def experiment(
     name: Annotated[
         str,
         typer.Argument(
-            metavar="paper-a|paper-b|neura-imu-only",
-            help="Which experiment: a paper's, or the Neura walk from its IMUs alone.",
+            metavar="paper-a|paper-b|neura-imu-only|realism",
+            help="Which experiment: a paper's, the Neura walk from its IMUs alone, or 'realism' "
+            "(virtual vs real sensors).",
         ),
     ],
     data: Annotated[
