@@ -36,6 +36,7 @@ __all__ = [
     "ImuConfig",
     "MethodConfig",
     "ReferenceConfig",
+    "SESSION_KEYS",
     "SessionConfig",
     "SkeletonConfig",
     "load_session",
@@ -44,6 +45,16 @@ __all__ = [
 
 #: Processing methods a session can ask for.
 METHODS = ("paper-a", "elm-fir", "elm-kf", "imu-only", "camera-only", "kinefuse")
+#: Keys each section of a session file accepts (``kinefuse batch`` checks a study's defaults
+#: against the same lists).
+SESSION_KEYS = {
+    "session": ("name", "out_dir"),
+    "imu": ("format", "path", "rate_hz", "segments"),
+    "skeleton": ("body_height_m", "lengths"),
+    "camera": ("format", "path", "availability_threshold"),
+    "reference": ("format", "path"),
+    "method": ("name", "parameters"),
+}
 #: Methods that cannot run without a ``[camera]`` section.
 CAMERA_METHODS = ("elm-fir", "elm-kf", "camera-only")
 
@@ -290,13 +301,17 @@ def read_toml(path: str | Path, *, missing: str = "file not found") -> dict:
         raise ConfigError(f"{p.name}: not a UTF-8 text file") from None
 
 
-def load_session(path: str | Path) -> SessionConfig:
+def load_session(path: str | Path, *, document: Mapping | None = None) -> SessionConfig:
     """Read and validate a session TOML file.
 
     Parameters
     ----------
     path : str or Path
         The session file.
+    document : mapping, optional
+        The parsed TOML to validate instead of reading ``path`` (``kinefuse batch`` merges a
+        study's defaults into it); ``path`` still names the file in messages and is the base of
+        relative paths.
 
     Returns
     -------
@@ -311,22 +326,24 @@ def load_session(path: str | Path) -> SessionConfig:
         and key, and says how to fix it.
     """
     p = Path(path).expanduser()
-    doc = read_toml(
-        p, missing=f"session file not found (create one with `kinefuse init-session {p}`)"
-    )
+    doc = document
+    if doc is None:
+        doc = read_toml(
+            p, missing=f"session file not found (create one with `kinefuse init-session {p}`)"
+        )
     p = p.resolve()
     c = _Ctx(p)
-    c.check_keys(doc, "top level", ("session", "imu", "skeleton", "camera", "reference", "method"))
+    c.check_keys(doc, "top level", tuple(SESSION_KEYS))
 
     s = c.table(doc, "session", required=True)
-    c.check_keys(s, "session", ("name", "out_dir"))
+    c.check_keys(s, "session", SESSION_KEYS["session"])
     name = c.string(s, "session", "name")
     out_raw = c.string(s, "session", "out_dir", required=False, default="results")
     out_dir = Path(out_raw).expanduser()
     out_dir = (out_dir if out_dir.is_absolute() else p.parent / out_dir).resolve()
 
     t = c.table(doc, "imu", required=True)
-    c.check_keys(t, "imu", ("format", "path", "rate_hz", "segments"))
+    c.check_keys(t, "imu", SESSION_KEYS["imu"])
     imu_path = c.file(t, "imu")
     seg = t.get("segments")
     if seg is None:
@@ -364,7 +381,7 @@ def load_session(path: str | Path) -> SessionConfig:
     )
 
     k = c.table(doc, "skeleton", required=True)
-    c.check_keys(k, "skeleton", ("body_height_m", "lengths"))
+    c.check_keys(k, "skeleton", SESSION_KEYS["skeleton"])
     height = c.number(k, "skeleton", "body_height_m")
     if height is not None and not (0.5 <= height <= 2.8):
         raise c.error(
@@ -410,7 +427,7 @@ def load_session(path: str | Path) -> SessionConfig:
     camera = None
     cam = c.table(doc, "camera", required=False)
     if cam is not None:
-        c.check_keys(cam, "camera", ("format", "path", "availability_threshold"))
+        c.check_keys(cam, "camera", SESSION_KEYS["camera"])
         camera = CameraConfig(
             format=c.string(cam, "camera", "format"),
             path=c.file(cam, "camera"),
@@ -422,13 +439,13 @@ def load_session(path: str | Path) -> SessionConfig:
     reference = None
     ref = c.table(doc, "reference", required=False)
     if ref is not None:
-        c.check_keys(ref, "reference", ("format", "path"))
+        c.check_keys(ref, "reference", SESSION_KEYS["reference"])
         reference = ReferenceConfig(
             format=c.string(ref, "reference", "format"), path=c.file(ref, "reference")
         )
 
     m = c.table(doc, "method", required=True)
-    c.check_keys(m, "method", ("name", "parameters"))
+    c.check_keys(m, "method", SESSION_KEYS["method"])
     mname = c.string(m, "method", "name")
     if mname not in METHODS:
         close = difflib.get_close_matches(mname, METHODS, n=1)

@@ -929,8 +929,8 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
 
     Parameters
     ----------
-    path : str or Path
-        Session TOML (:func:`kinefuse.session.load_session`).
+    path : str or Path or SessionConfig
+        Session TOML (:func:`kinefuse.session.load_session`), or an already validated one.
     out_dir : str or Path, optional
         Output folder (default the session's ``out_dir``); created if needed.
     force : bool
@@ -963,7 +963,9 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
     from kinefuse.io import JointStream, write_joint_csv, write_trc
     from kinefuse.session import load_session
 
-    cfg = load_session(path)
+    from kinefuse.session import SessionConfig
+
+    cfg = path if isinstance(path, SessionConfig) else load_session(path)
     out_dir = Path(cfg.out_dir if out_dir is None else out_dir)
     stem = "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in cfg.name) or "session"
     targets = _outputs(out_dir, stem)
