@@ -174,7 +174,7 @@ def test_study_matches_single_session_runs_despite_a_killed_worker(first_run, se
     assert not (rec_root / "broken" / "imu-only").exists()
 
 
-def test_rerun_skips_finished_and_force_redoes(first_run, serial, client):
+def test_rerun_skips_finished_and_force_redoes_despite_a_restart(first_run, serial, client):
     from kinefuse.batch.table import read_table
 
     study, _, _ = first_run
@@ -187,7 +187,17 @@ def test_rerun_skips_finished_and_force_redoes(first_run, serial, client):
     # --force on two recordings: redone (new result files), same numbers
     pick = ("utd-a1_s1_t1", "utd-a1_s2_t1")
     two = replace(study, tasks=tuple(t for t in study.tasks if t.recording in pick))
-    forced = kb.run_study(two, client=client, force=True, quiet=True, report=False)
+    events = []
+
+    def restart_once(kind, payload):  # the cluster loses the submitted tasks: resubmitted
+        events.append(kind)
+        if kind == "poll" and events.count("poll") == 1:
+            client.restart()
+
+    forced = kb.run_study(
+        two, client=client, force=True, quiet=True, report=False, on_event=restart_once
+    )
+    assert "resubmitted" in events
     assert forced["counts"] == {"done": 2, "skipped": 0, "failed": 0, "total": 2}
     assert marker.stat().st_mtime_ns != before
     rows = _rows(read_table(forced["table"][0]))
@@ -315,3 +325,11 @@ def test_study_file_bad_glob_placeholder_and_session(tmp_path, shared_data):
     p.write_text(text.replace("body_height_m = 1.75", "body_height_m = 175"))
     st = kb.load_study(p)
     assert all("not a plausible body height" in t.error for t in st.tasks)
+
+
+def test_example_study_lists_the_utd_mhad_wrist_trials(shared_data):
+    root = Path(__file__).resolve().parents[1]
+    st = kb.load_study(root / "examples" / "studies" / "utd_mhad_wrist.toml")
+    assert len(st.recordings) == 503  # actions 1-21 x subjects 1-6 x 4 trials, 1 never released
+    assert st.methods == ("imu-only", "elm-fir", "kinefuse") and len(st.tasks) == 3 * 503
+    assert all(t.error is None for t in st.tasks)

@@ -149,7 +149,7 @@ class _Progress:
 
 def _lost(future) -> bool:
     """True when the cluster lost the task (cancelled, worker died too often), not the recording."""
-    return future.status in ("cancelled", "lost") or (
+    return future.cancelled() or future.status == "lost" or (
         future.status == "error" and type(future.exception()).__name__ in ("KilledWorker",)
     )
 
@@ -198,7 +198,10 @@ def _schedule(
             wait(list(live), timeout=_POLL_S, return_when="FIRST_COMPLETED")
         except TimeoutError:  # nothing finished within the poll interval
             pass
-        for fut in [f for f in live if f.done()]:
+        except Exception:  # FuturesCancelledError: client.restart(), scheduler restart
+            if not any(f.cancelled() for f in live):
+                raise
+        for fut in [f for f in live if f.done() or f.cancelled()]:
             key = live.pop(fut)
             task = by_key[key]
             if _lost(fut):
@@ -240,6 +243,8 @@ def _schedule(
         except Exception:  # pragma: no cover - scheduler restarting
             pass
         prog.update(n_done + len(results), min(running, len(live)), failed)
+        if on_event and live:
+            on_event("poll", len(live))
 
 
 def _kernels_cached() -> bool:
@@ -301,7 +306,7 @@ def run_study(
         Use this client (tests, notebooks); the caller owns it.
     on_event : callable, optional
         ``on_event(kind, payload)`` with ``("started", client)``, ``("finished", key)``,
-        ``("resubmitted", key)``.
+        ``("resubmitted", key)``, ``("poll", number of unfinished tasks)`` (every 0.25 s).
     report : bool
         Write the HTML study report.
 

@@ -961,9 +961,7 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
     ``metrics.json``.
     """
     from kinefuse.io import JointStream, write_joint_csv, write_trc
-    from kinefuse.session import load_session
-
-    from kinefuse.session import SessionConfig
+    from kinefuse.session import SessionConfig, load_session
 
     cfg = path if isinstance(path, SessionConfig) else load_session(path)
     out_dir = Path(cfg.out_dir if out_dir is None else out_dir)
