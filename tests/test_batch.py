@@ -68,6 +68,12 @@ def sessions(shared_data, tmp_path_factory) -> Path:
     return d
 
 
+def _numba_threads() -> int:
+    import numba
+
+    return numba.config.NUMBA_NUM_THREADS
+
+
 @pytest.fixture(scope="module")
 def client():
     from distributed import Client
@@ -77,6 +83,7 @@ def client():
     cluster = start_local_cluster(2)
     c = Client(cluster)
     assert all(a.startswith("tcp://127.0.0.1:") for a in (cluster.scheduler_address, *c.nthreads()))
+    assert set(c.run(_numba_threads).values()) == {1}  # numba single-threaded in each worker
     yield c
     c.close()
     cluster.close()

@@ -68,7 +68,7 @@ def start_local_cluster(n_workers: int | None = None, *, dashboard: bool = False
     if dashboard and not _has_bokeh():
         raise InputError("--dashboard: the Dask dashboard needs bokeh; pip install 'bokeh>=3.1'")
     n = n_workers or os.cpu_count() or 1
-    env = {"NUMBA_NUM_THREADS": "1", "KINEFUSE_BATCH_WORKER": "1"}
+    env = {"NUMBA_NUM_THREADS": "1"}
     cache = _numba_cache_dir()
     if cache:
         env["NUMBA_CACHE_DIR"] = cache
