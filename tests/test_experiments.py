@@ -75,3 +75,24 @@ def test_unknown_experiment_and_missing_folder(tmp_path):
         run_experiment("paper-c")
     with pytest.raises(InputError, match="not found"):
         run_experiment("paper-a", tmp_path / "nope")
+    with pytest.raises(InputError, match="unknown set"):
+        run_experiment("paper-b", split="everything")
+    res = runner.invoke(cli.app, ["experiment", "paper-b", "--set", "everything"])
+    assert res.exit_code != 0 and "--set" in res.output
+
+
+def test_paper_b_quick_tuning_set_tables_name_the_set_and_baselines(shared_data):
+    from kinefuse.pipelines.experiments import REPORT_SET, TUNING_SET
+
+    assert not set(TUNING_SET.utd_subjects) & set(REPORT_SET.utd_subjects)
+    assert not {t[:2] for t in TUNING_SET.cmu_trials} & {t[:2] for t in REPORT_SET.cmu_trials}
+    out = run_experiment("paper-b", shared_data, quick=True, quiet=True, split="tuning")
+    assert out["split"] == "tuning"
+    assert all("tuning set" in t.title for t in out["tables"])
+    assert "Neura walk (real IMUs)" not in out["results"]  # evaluation-only: report set
+    ev = out["results"]["UTD-MHAD (real IMU)"]["evaluation"]
+    assert {"offset interp", "offset hold", "camera gap-fill", "kinefuse causal"} <= set(
+        ev["methods"]
+    )
+    t = out["targets"]["UTD-MHAD (real IMU)"]
+    assert t["offline_vs_offset_interp_pct"] is not None

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import kinefuse.io as kio
-from kinefuse.exceptions import FormatError, UnitWarning
+from kinefuse.exceptions import FormatError, FormatWarning, UnitWarning
 from kinefuse.io.kinect import AZURE_JOINTS, KINECT_V2_JOINTS, KINECT_V2_TO_CANONICAL
 from kinefuse.io.mediapipe import MEDIAPIPE_LANDMARKS
 from kinefuse.io.recording import JointStream
@@ -335,10 +335,11 @@ def test_trc_read_hand_written(tmp_path):
 
 def test_trc_broken(tmp_path):
     f = tmp_path / "t.trc"
-    f.write_text(_TRC.rsplit("\n", 2)[0] + "\n")  # last frame missing
-    with pytest.raises(
-        FormatError, match=r"expected 3 frames \(NumFrames\), found 2 \(truncated file\)"
-    ):
+    f.write_text(_TRC.rsplit("\n", 2)[0] + "\n")  # last frame missing: read, as OpenSim does
+    with pytest.warns(FormatWarning, match=r"NumFrames = 3 but the file has 2 data rows"):
+        assert len(kio.read_trc(f).reference) == 2
+    f.write_text(_TRC[:-12])  # a truncated last line is still an error
+    with pytest.raises(FormatError, match=r"line 9: expected 8 fields"):
         kio.read_trc(f)
     f.write_text(_TRC.replace("mm\t60.00", "furlong\t60.00"))
     with pytest.raises(FormatError, match="line 3, field 'Units': expected Units one of"):

@@ -16,7 +16,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import kinefuse.io as kio
-from kinefuse.exceptions import FormatError, InputError, UnitWarning
+from kinefuse.exceptions import FormatError, FormatWarning, InputError, UnitWarning
 from kinefuse.io.opensim import read_opensim_table, write_opensense_sto
 from kinefuse.io.recording import ImuStream, Recording
 
@@ -89,7 +89,7 @@ def test_opensim_table_errors(tmp_path):
     with pytest.raises(FormatError, match=r"a.mot, line 5, field 'knee': expected a number"):
         read_opensim_table(f)
     f.write_text("nRows=3\nendheader\ntime\tknee\n0\t1\n0.1\t2\n")
-    with pytest.warns(UserWarning, match="nRows=3, the table has 2"):
+    with pytest.warns(FormatWarning, match="nRows=3, the table has 2"):
         assert len(read_opensim_table(f)) == 2
     f.write_text("DataType=Mat33\nendheader\ntime\tR\n0\t1\n")
     with pytest.raises(FormatError, match="unsupported DataType 'Mat33'"):
@@ -319,7 +319,7 @@ def test_dot_wrap_euler_gyro_and_rate_warning(tmp_path):
     assert np.degrees((expected.inv() * got).magnitude()).max() < 1e-6
     g = tmp_path / "arm_20240101_120001.csv"
     g.write_text(_DOT_HEAD.format(rate=120) + "\n".join(rows) + "\n")
-    with pytest.warns(UserWarning, match="OutputRate 120 Hz disagrees with SampleTimeFine"):
+    with pytest.warns(FormatWarning, match="OutputRate 120 Hz disagrees with SampleTimeFine"):
         kio.load(g)
     bad = tmp_path / "x_20240101_120002.csv"
     bad.write_text(_DOT_HEAD.format(rate=60) + rows[0] + "\n1,100,1,2\n")

@@ -98,7 +98,7 @@ _BACKENDS = {
     "replay": ("kinefuse.streaming", "replay_recording"),
 }
 
-EXPERIMENTS = ("paper-a", "paper-b")
+EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only")
 
 
 class BackendUnavailable(RuntimeError):
@@ -516,7 +516,10 @@ def evaluate(
 def experiment(
     name: Annotated[
         str,
-        typer.Argument(metavar="paper-a|paper-b", help="Which paper's experiment to reproduce."),
+        typer.Argument(
+            metavar="paper-a|paper-b|neura-imu-only",
+            help="Which experiment: a paper's, or the Neura walk from its IMUs alone.",
+        ),
     ],
     data: Annotated[
         Path | None,
@@ -528,6 +531,15 @@ def experiment(
         bool,
         typer.Option("--quick", help="A reduced configuration (seconds) instead of the full run."),
     ] = False,
+    data_set: Annotated[
+        str,
+        typer.Option(
+            "--set",
+            metavar="report|tuning",
+            help="paper-a/paper-b: declared set of recordings, 'report' (default; nothing is tuned on it) or "
+            "'tuning' (the only set kinefuse was developed on).",
+        ),
+    ] = "report",
     quiet: _Quiet = False,
     json_file: _Json = None,
 ) -> None:
@@ -536,7 +548,9 @@ def experiment(
         raise InputError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
     if data is not None and not data.is_dir():
         raise InputError(f"--data {data}: folder not found")
-    summary = _backend("experiment")(name, data, quick=quick or None, quiet=quiet)
+    if data_set not in ("report", "tuning"):
+        raise InputError(f"--set: expected 'report' or 'tuning', got {data_set!r}")
+    summary = _backend("experiment")(name, data, quick=quick or None, quiet=quiet, split=data_set)
     _present(summary, quiet=quiet, json_file=json_file)
 
 

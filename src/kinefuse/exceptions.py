@@ -40,3 +40,7 @@ class NumericalWarning(UserWarning):
 
 class UnitWarning(UserWarning):
     """Data whose magnitude suggests a unit other than the declared SI one (e.g. mm, g, deg/s)."""
+
+
+class FormatWarning(UserWarning):
+    """A file that can be read but disagrees with itself (e.g. a header count that the rows do not match)."""

@@ -44,19 +44,36 @@ __all__ = [
 ]
 
 #: Processing methods a session can ask for.
-METHODS = ("paper-a", "elm-fir", "elm-kf", "imu-only", "camera-only", "kinefuse")
+METHODS = (
+    "paper-a",
+    "elm-fir",
+    "elm-kf",
+    "imu-only",
+    "camera-only",
+    "kinefuse",
+    "offset-interp",
+    "offset-hold",
+    "camera-gapfill",
+)
 #: Keys each section of a session file accepts (``kinefuse batch`` checks a study's defaults
 #: against the same lists).
 SESSION_KEYS = {
     "session": ("name", "out_dir"),
-    "imu": ("format", "path", "rate_hz", "segments"),
+    "imu": ("format", "path", "rate_hz", "segments", "reader"),
     "skeleton": ("body_height_m", "lengths"),
-    "camera": ("format", "path", "availability_threshold"),
-    "reference": ("format", "path"),
+    "camera": ("format", "path", "availability_threshold", "reader"),
+    "reference": ("format", "path", "reader"),
     "method": ("name", "parameters"),
 }
 #: Methods that cannot run without a ``[camera]`` section.
-CAMERA_METHODS = ("elm-fir", "elm-kf", "camera-only")
+CAMERA_METHODS = (
+    "elm-fir",
+    "elm-kf",
+    "camera-only",
+    "offset-interp",
+    "offset-hold",
+    "camera-gapfill",
+)
 
 _PATH_HINT = "relative paths are resolved against the TOML's folder"
 
@@ -75,12 +92,15 @@ class ImuConfig:
         Sampling rate, Hz, when the file has no time stamps (None: from the file).
     segments : dict of str -> str
         Canonical segment name (:data:`kinefuse.conventions.SEGMENTS`) -> sensor name in the file.
+    reader : dict
+        ``[imu.reader]``: keyword arguments of the format's reader (e.g. ``earth_frame``).
     """
 
     format: str
     path: Path
     rate_hz: float | None
     segments: dict[str, str]
+    reader: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -110,19 +130,29 @@ class CameraConfig:
     availability_threshold : float or None
         Joints whose tracker confidence is below this are treated as unavailable (None: the
         reader's default, e.g. Kinect TrackingState == Tracked).
+    reader : dict
+        ``[camera.reader]``: keyword arguments of the format's reader, e.g. for a Kinect v2
+        recorder CSV ``time_column = "TimeSpan"``, ``time_unit = "ms"``,
+        ``confidence_states = {"0" = 0, "0.5" = 1, "1" = 2}``.
     """
 
     format: str
     path: Path
     availability_threshold: float | None = None
+    reader: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
 class ReferenceConfig:
-    """``[reference]`` (optional): ground-truth joints (optical mocap) for evaluation."""
+    """``[reference]`` (optional): ground-truth joints (optical mocap) for evaluation.
+
+    ``reader``: ``[reference.reader]``, keyword arguments of the format's reader (e.g.
+    ``length_unit_m`` for a BVH file).
+    """
 
     format: str
     path: Path
+    reader: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -202,6 +232,18 @@ class _Ctx:
                 f"write it as a [{section}] section",
             )
         return value
+
+    def reader(self, table: Mapping, section: str) -> dict:
+        """``[<section>.reader]``: reader keyword arguments (checked by the reader on load)."""
+        value = table.get("reader", {})
+        if not isinstance(value, dict):
+            raise self.error(
+                f"{section}.reader",
+                None,
+                f"expected a table of reader arguments, got {value!r}",
+                f'e.g. [{section}.reader] time_column = "TimeSpan"',
+            )
+        return dict(value)
 
     def check_keys(self, table: Mapping, section: str, allowed: tuple[str, ...]) -> None:
         for key in table:
@@ -378,6 +420,7 @@ def load_session(path: str | Path, *, document: Mapping | None = None) -> Sessio
         path=imu_path,
         rate_hz=c.number(t, "imu", "rate_hz"),
         segments=segments,
+        reader=c.reader(t, "imu"),
     )
 
     k = c.table(doc, "skeleton", required=True)
@@ -434,6 +477,7 @@ def load_session(path: str | Path, *, document: Mapping | None = None) -> Sessio
             availability_threshold=c.number(
                 cam, "camera", "availability_threshold", positive=False, minimum=0.0
             ),
+            reader=c.reader(cam, "camera"),
         )
 
     reference = None
@@ -441,7 +485,9 @@ def load_session(path: str | Path, *, document: Mapping | None = None) -> Sessio
     if ref is not None:
         c.check_keys(ref, "reference", SESSION_KEYS["reference"])
         reference = ReferenceConfig(
-            format=c.string(ref, "reference", "format"), path=c.file(ref, "reference")
+            format=c.string(ref, "reference", "format"),
+            path=c.file(ref, "reference"),
+            reader=c.reader(ref, "reference"),
         )
 
     m = c.table(doc, "method", required=True)
@@ -502,12 +548,15 @@ body_height_m = 1.75             # anthropometric segment lengths from the body 
 # upper_arm_r = 0.30
 # forearm_r = 0.26
 
-# Optional: a camera skeleton (Kinect, Azure Kinect, MediaPipe...). Needed by elm-fir, elm-kf
-# and camera-only; used by kinefuse when present.
+# Optional: a camera skeleton (Kinect, Azure Kinect, MediaPipe...). Needed by elm-fir, elm-kf,
+# camera-only and the baselines; used by kinefuse when present.
 # [camera]
 # format = "kinect-csv"
 # path = "data/kinect.csv"
 # availability_threshold = 2     # tracker confidence below this = joint unavailable
+# [camera.reader]                # optional: the reader's own arguments (docs/formats.md),
+# time_column = "TimeSpan"       # e.g. an LSL-Kinect recorder CSV's time column, Unix ms
+# time_unit = "ms"               # ([imu.reader] and [reference.reader] work the same way)
 
 # Optional: ground truth (optical mocap) to evaluate against; enables the RMSE tables.
 # [reference]
@@ -520,6 +569,9 @@ body_height_m = 1.75             # anthropometric segment lengths from the body 
 # elm-kf      : the ELM/KF baseline of Xu et al. 2023
 # imu-only    : forward kinematics of the IMU chain, no filtering
 # camera-only : the camera skeleton alone
+# camera-gapfill : the camera, gaps up to 20 frames linearly interpolated (as Pose2Sim)
+# offset-interp  : baseline, IMU chain + camera-chain offset interpolated across outages (offline)
+# offset-hold    : baseline, IMU chain + mean offset of the last 5 camera samples (causal)
 # kinefuse    : kinefuse's recommended combination
 name = "paper-a"
 

@@ -149,8 +149,10 @@ class _Progress:
 
 def _lost(future) -> bool:
     """True when the cluster lost the task (cancelled, worker died too often), not the recording."""
-    return future.cancelled() or future.status == "lost" or (
-        future.status == "error" and type(future.exception()).__name__ in ("KilledWorker",)
+    return (
+        future.cancelled()
+        or future.status == "lost"
+        or (future.status == "error" and type(future.exception()).__name__ in ("KilledWorker",))
     )
 
 

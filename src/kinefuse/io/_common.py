@@ -23,12 +23,14 @@ from kinefuse.exceptions import FormatError, InputError, UnitWarning
 __all__ = [
     "DEG2RAD",
     "G",
+    "ZERO_RULE",
     "Table",
     "canonical_joint",
     "canonical_segment",
     "check_time",
     "check_units",
     "make_metadata",
+    "zero_is_missing",
     "map_joints",
     "map_segments",
     "read_table",
@@ -158,6 +160,7 @@ def read_table(
     delimiter: str | None = None,
     comment_prefixes: Sequence[str] = ("#", "//"),
     min_rows: int = 1,
+    is_header=None,
 ) -> Table:
     """Read a delimited text file with an optional comment preamble and one header line.
 
@@ -171,6 +174,10 @@ def read_table(
         Lines starting with one of these are comments (kept when they precede the header).
     min_rows : int
         Minimum number of data rows; fewer is a truncated file.
+    is_header : callable or None
+        ``is_header(line) -> bool``: the header is the first line it accepts; lines before it are
+        a preamble, kept in ``comments`` (for exports whose preamble has no comment prefix).
+        None: the first line that is not a comment.
 
     Returns
     -------
@@ -198,6 +205,17 @@ def read_table(
         if s:
             comments.append(s)
         k += 1
+    if is_header is not None:
+        j = k
+        while j < len(lines) and not is_header(lines[j]):
+            j += 1
+        if j >= len(lines):
+            raise FormatError(
+                path,
+                "expected a header line with column names, found none that this reader recognises",
+            )
+        comments += [ln.strip() for ln in lines[k:j] if ln.strip()]
+        k = j
     if k >= len(lines):
         raise FormatError(
             path,
@@ -522,6 +540,33 @@ def map_joints(labels: Sequence[str]) -> tuple[tuple[str, ...], dict[str, str]]:
 
 
 # --------------------------------------------------------------------------------------------
+# missing markers
+# --------------------------------------------------------------------------------------------
+#: The one rule every position reader applies (documented in ``docs/formats.md``).
+ZERO_RULE = "a point whose three coordinates are all exactly 0 is missing (not tracked)"
+
+
+def zero_is_missing(position: np.ndarray) -> np.ndarray:
+    """Mask of samples encoded as "not tracked" by all-zero coordinates.
+
+    TRC and C3D writers (and Kinect v1, read by :mod:`kinefuse.io.utd_mhad`) write an untracked
+    marker as ``0, 0, 0``; a real marker exactly at the origin to the file's resolution is
+    unlikely enough that every kinefuse position reader treats an all-zero point as missing
+    (:data:`ZERO_RULE`); readers take ``zero_is_missing=False`` to keep such samples.
+
+    Parameters
+    ----------
+    position : ndarray, shape (..., 3)
+
+    Returns
+    -------
+    ndarray of bool, shape (...)
+        True where all three coordinates are exactly 0.
+    """
+    return np.all(np.asarray(position) == 0.0, axis=-1)
+
+
+# --------------------------------------------------------------------------------------------
 # metadata, unit checks
 # --------------------------------------------------------------------------------------------
 def make_metadata(path, fmt: str, *, subject=None, units_converted=(), **extra) -> dict:
@@ -548,8 +593,9 @@ def check_units(recording, *, where: str = "", stacklevel: int = 3) -> list[str]
 
     * accelerometer: median ``|acc|`` between 0.5 and 2.0 -> looks like g, not m/s²;
     * gyroscope: 99th percentile of ``|gyr|`` above 35 rad/s (2000 deg/s) -> looks like deg/s;
-    * joint positions: median distance of the joints from their per-frame centroid above 10
-      (with one joint: median ``|p|`` above 100) -> looks like millimetres.
+    * joint positions: median distance of the joints from their per-frame centroid (0.2-0.6 m
+      for a body) above 100 -> looks like millimetres, above 10 -> looks like centimetres (with
+      one joint: median ``|p|`` above 100) -> looks like millimetres.
 
     Returns
     -------
@@ -585,9 +631,12 @@ def check_units(recording, *, where: str = "", stacklevel: int = 3) -> list[str]
             d = np.linalg.norm(p - c, axis=-1)
             d = d[np.isfinite(d)]
             if d.size and float(np.median(d)) > 10.0:
+                unit, div = (
+                    ("millimetres", 1000) if float(np.median(d)) > 100.0 else ("centimetres", 100)
+                )
                 msgs.append(
                     f"{prefix}{role} joints: median joint spread {np.median(d):.3g} 'm', which looks like "
-                    "millimetres (divide by 1000 or declare the unit)"
+                    f"{unit} (divide by {div} or declare the unit)"
                 )
         else:
             n = _finite_norm(p.reshape(-1, 3))

@@ -125,6 +125,8 @@ def _head(path: Path, n: int = 8192) -> str:
 
 
 def _detect_csv(path: Path) -> str | None:
+    if (path.parent / "Inertial.csv").is_file():  # any CSV of an x-IMU3 sensor folder
+        return "ximu3"
     head = _head(path)
     lines = [ln for ln in head.splitlines() if ln.strip()]
     if not lines:
@@ -140,6 +142,8 @@ def _detect_csv(path: Path) -> str | None:
     if not body:
         return None
     header = body[0].lower()
+    if header.startswith("software : lsl_kinect") and len(body) > 1:  # preamble without '#'
+        header = body[1].lower()
     cols = [c.strip() for c in header.replace("\t", ",").replace(";", ",").split(",")]
     if (
         cols

@@ -15,16 +15,19 @@ from kinefuse.exceptions import FormatError, InputError
 from kinefuse.io._common import (
     KINECT_LIMB_JOINTS,
     TIME_COLUMNS,
+    ZERO_RULE,
     Table,
     check_time,
     check_units,
     make_metadata,
     read_table,
     table_time,
+    zero_is_missing,
 )
 from kinefuse.io.recording import JointStream, Recording
 
 __all__ = [
+    "LSL_KINECT_CONFIDENCE",
     "AZURE_JOINTS",
     "AZURE_TO_CANONICAL",
     "KINECT_V2_JOINTS",
@@ -140,8 +143,15 @@ AZURE_TO_CANONICAL = (
 
 _TRACKING = {"nottracked": 0, "not_tracked": 0, "inferred": 1, "tracked": 2}
 _COL = re.compile(
-    r"^(?P<joint>.+?)[ _.:](?P<what>x|y|z|trackingstate|tracking_state|state)$", re.IGNORECASE
+    r"^(?P<joint>.+?)[ _.:](?P<what>x|y|z|trackingstate|tracking_state|state|conf|confidence)$",
+    re.IGNORECASE,
 )
+#: LSL-Kinect's per-joint confidence -> Kinect v2 TrackingState (NotTracked, Inferred, Tracked).
+LSL_KINECT_CONFIDENCE = {0.0: 0, 0.5: 1, 1.0: 2}
+#: Time columns whose unit is known from the producer: LSL-Kinect's ``TimeSpan`` is Unix time, ms.
+_PRODUCER_TIME = {"timespan": 1e-3}
+_TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "100ns": 1e-7}
+_EPOCH_S = 1e8  # times above this (> 3 years) are absolute (Unix) times
 _BODY_COLS = ("body", "body_index", "bodyindex", "tracking_id", "trackingid", "body_id")
 
 
@@ -211,6 +221,29 @@ def _pick_body(tab: Table, body):
     return np.array([i == body for i in ids]), body, notes
 
 
+def _is_v2_header(line: str) -> bool:
+    """A Kinect v2 CSV header: a ``joint`` column or at least one ``<Joint>_X`` column."""
+    cols = [c.strip() for c in re.split(r"[,\t;]", line)]
+    if any(c.lower() == "joint" for c in cols):
+        return True
+    for c in cols:
+        m = _COL.match(c)
+        if m and _norm(m.group("joint")) in _V2_LOOKUP:
+            return True
+    return False
+
+
+def _preamble(comments: list[str]) -> dict[str, str]:
+    """``key : value`` pairs of a preamble line (LSL-Kinect: comma-separated, ' : ')."""
+    out = {}
+    for c in comments:
+        for part in c.split(","):
+            if ":" in part:
+                k, v = part.split(":", 1)
+                out[k.strip().lower()] = v.strip()
+    return out
+
+
 def read_kinect_v2_csv(
     path,
     *,
@@ -218,15 +251,22 @@ def read_kinect_v2_csv(
     body=None,
     rate_hz: float | None = None,
     units: str = "m",
+    time_column: str | None = None,
+    time_unit: str | None = None,
+    confidence_states: dict | None = None,
 ) -> Recording:
     """Read Kinect v2 joints from a CSV file (wide or long layout, see ``docs/formats.md``).
 
     Wide layout: a time column (``t_s``, ``time_ms``, ``timestamp_us``, ``RelativeTime`` in
-    100 ns ticks ... or ``frame`` with ``rate_hz=``) and per joint ``<Joint>_X, <Joint>_Y,
-    <Joint>_Z, <Joint>_TrackingState`` (separators ``_ . : space``; joint names as Kinect v2
-    ``JointType`` — ``SpineBase`` ... ``ThumbRight`` — or canonical, case-insensitive).
-    Long layout: columns ``time, joint, x, y, z, tracking_state`` (one row per joint and frame).
-    Either may have a body column (``body``/``tracking_id``...).
+    100 ns ticks, LSL-Kinect's ``TimeSpan`` in Unix ms ... any other with ``time_column=`` and
+    ``time_unit=``, or ``frame`` with ``rate_hz=``) and per joint ``<Joint>_X, <Joint>_Y,
+    <Joint>_Z`` and ``<Joint>_TrackingState`` or a confidence ``<Joint>_Conf`` (separators
+    ``_ . : space``; joint names as Kinect v2 ``JointType`` — ``SpineBase`` ... ``ThumbRight`` —
+    or canonical, case-insensitive). Long layout: columns ``time, joint, x, y, z,
+    tracking_state`` (one row per joint and frame). Either may have a body column
+    (``body``/``tracking_id``...). Lines before the header without a comment prefix (the
+    LSL-Kinect ``Software : LSL_Kinect,...`` line) are a preamble, kept in
+    ``metadata["preamble"]``.
 
     Parameters
     ----------
@@ -238,16 +278,29 @@ def read_kinect_v2_csv(
     body : str or int or None
         Body to read when the file has several; default the one with the most rows.
     rate_hz : float or None
-        Needed when the file has a frame column instead of times.
+        Needed when the file has a frame column instead of times (then ``t = frame / rate``);
+        ignored when the file has times.
     units : {"m", "mm"}
         Unit of the coordinates (CameraSpacePoint is metres).
+    time_column : str or None
+        Name of the time column; default the first known one (see above).
+    time_unit : {"s", "ms", "us", "100ns"} or None
+        Unit of ``time_column`` (required with it, unless it is a known column). Times above
+        1e8 s are absolute (Unix) times: they are shifted to start at 0 and the first is kept in
+        ``metadata["t0_unix_s"]``.
+    confidence_states : mapping of float -> int or None
+        Confidence value -> TrackingState for ``<Joint>_Conf`` columns (used when there is no
+        TrackingState column). Default :data:`LSL_KINECT_CONFIDENCE` (0 -> NotTracked,
+        0.5 -> Inferred, 1 -> Tracked).
 
     Returns
     -------
     Recording
         ``vision``: positions (T, J, 3) in m in the Kinect camera frame (x toward the sensor's
         left, y up, z away from the sensor), canonical joint names (``hand_tip_l`` etc. for the
-        non-canonical ones); ``metadata["tracking_state"]`` (T, J).
+        non-canonical ones); ``metadata["tracking_state"]`` (T, J); ``metadata["time_column"]``;
+        ``available`` = TrackingState >= ``min_tracking_state``, finite and not all zero
+        (:data:`kinefuse.io._common.ZERO_RULE`).
 
     Raises
     ------
@@ -259,18 +312,43 @@ def read_kinect_v2_csv(
     factor = {"m": 1.0, "mm": 1e-3}.get(units)
     if factor is None:
         raise InputError(f"expected units 'm' or 'mm', got {units!r}")
-    tab = read_table(path)
+    if time_unit is not None and time_unit not in _TIME_UNITS:
+        raise InputError(f"expected time_unit one of {sorted(_TIME_UNITS)}, got {time_unit!r}")
+    conf_map = dict(LSL_KINECT_CONFIDENCE if confidence_states is None else confidence_states)
+    tab = read_table(path, is_header=_is_v2_header)
     lower = {c.lower(): c for c in tab.columns}
     rows_mask, body_id, notes = _pick_body(tab, body)
+    preamble = _preamble(tab.comments)
     if "joint" in lower:
         t, pos, state, idx = _read_long(tab, lower, rows_mask, min_tracking_state)
+        tcol = None
     else:
         if rows_mask is not None:
             tab.rows = [r for r, m in zip(tab.rows, rows_mask, strict=True) if m]
             tab.lines = tab.lines[rows_mask]
-        t, pos, state, idx = _read_wide(tab, rate_hz, min_tracking_state)
+        t, tcol = _wide_time(tab, rate_hz, time_column, time_unit)
+        pos, state, idx, conf_used = _read_wide(tab, min_tracking_state, conf_map)
+        if conf_used:
+            notes.append(f"TrackingState from the confidence columns via {conf_map}")
+    t0_unix = None
+    if t.size and t[0] > _EPOCH_S:
+        t0_unix = float(t[0])
+        t = t - t[0]
+    nominal = preamble.get("stream nominal rate")
+    if nominal and t.size > 1:
+        measured = 1.0 / float(np.median(np.diff(t)))
+        try:
+            nominal_hz = float(nominal)
+        except ValueError:
+            nominal_hz = None
+        if nominal_hz and abs(measured - nominal_hz) > 0.1 * nominal_hz:
+            notes.append(
+                f"preamble says 'Stream nominal rate : {nominal}', the timestamps give {measured:.3g} Hz "
+                "(median step); the timestamps are used"
+            )
     pos *= factor
-    avail = np.all(np.isfinite(pos), axis=-1)
+    zero = zero_is_missing(pos)
+    avail = np.all(np.isfinite(pos), axis=-1) & ~zero
     if min_tracking_state is not None:
         avail &= state >= min_tracking_state
     joints = tuple(KINECT_V2_TO_CANONICAL[i] for i in idx)
@@ -284,8 +362,13 @@ def read_kinect_v2_csv(
             f"TrackingState >= {min_tracking_state} and finite"
             if min_tracking_state is not None
             else "finite"
-        ),
+        )
+        + f"; {ZERO_RULE}",
         tracking_state=state,
+        time_column=tcol,
+        t0_unix_s=t0_unix,
+        preamble=preamble,
+        n_zero_samples=int(zero.sum()),
         body=body_id,
         frame_notes="Kinect camera space: x toward the sensor's left, y up, z away from the sensor, m",
         notes=notes,
@@ -295,8 +378,33 @@ def read_kinect_v2_csv(
     return rec
 
 
-def _read_wide(tab: Table, rate_hz, min_state):
-    t, _ = table_time(tab, rate_hz=rate_hz)
+def _wide_time(tab: Table, rate_hz, time_column, time_unit) -> tuple[np.ndarray, str]:
+    lower = {c.lower(): c for c in tab.columns}
+    if time_column is None:
+        known = next((lower[n] for n in _PRODUCER_TIME if n in lower), None)
+        if known is None or any(n in lower for n in TIME_COLUMNS):
+            return table_time(tab, rate_hz=rate_hz)
+        time_column = known
+    col = time_column if time_column in tab.columns else lower.get(time_column.lower())
+    if col is None:
+        raise FormatError(
+            tab.path,
+            f"time_column={time_column!r} not found; found columns {tab.columns[:8]}...",
+            line=tab.header_line,
+            field=time_column,
+        )
+    factor = _TIME_UNITS.get(time_unit) if time_unit else _PRODUCER_TIME.get(col.lower())
+    if factor is None:
+        raise FormatError(
+            tab.path,
+            f"unknown unit of time column {col!r}; pass time_unit= (one of {sorted(_TIME_UNITS)})",
+            field=col,
+        )
+    t = tab.floats(col, allow_empty=False) * factor
+    return check_time(tab.path, t, tab.lines, col), col
+
+
+def _read_wide(tab: Table, min_state, conf_map):
     cols: dict[int, dict[str, str]] = {}
     for c in tab.columns:
         m = _COL.match(c)
@@ -304,7 +412,7 @@ def _read_wide(tab: Table, rate_hz, min_state):
             continue
         i = _v2_index(tab, m.group("joint"), c)
         what = m.group("what").lower()
-        what = "state" if "state" in what else what
+        what = "state" if "state" in what else ("conf" if what.startswith("conf") else what)
         cols.setdefault(i, {})[what] = c
     if not cols:
         raise FormatError(
@@ -315,13 +423,20 @@ def _read_wide(tab: Table, rate_hz, min_state):
     idx = sorted(cols)
     pos = np.empty((len(tab), len(idx), 3))
     state = np.full((len(tab), len(idx)), 2.0)
+    conf_used = False
     for j, i in enumerate(idx):
-        need = ["x", "y", "z"] + (["state"] if min_state is not None else [])
+        need = ["x", "y", "z"]
+        if min_state is not None and "conf" not in cols[i]:
+            need.append("state")
         for w in need:
             if w not in cols[i]:
                 base = next(iter(cols[i].values()))
                 name = f"{KINECT_V2_JOINTS[i]}_{'TrackingState' if w == 'state' else w.upper()}"
-                hint = " (or pass min_tracking_state=None)" if w == "state" else ""
+                hint = (
+                    " (or a '_Conf' column, or pass min_tracking_state=None)"
+                    if w == "state"
+                    else ""
+                )
                 raise FormatError(
                     tab.path,
                     f"missing column {name!r} (found {base!r}){hint}",
@@ -332,7 +447,28 @@ def _read_wide(tab: Table, rate_hz, min_state):
             pos[:, j, a] = tab.floats(cols[i][w])
         if "state" in cols[i]:
             state[:, j] = _states(tab, cols[i]["state"])
-    return t, pos, state, idx
+        elif "conf" in cols[i]:
+            state[:, j] = _conf_states(tab, cols[i]["conf"], conf_map)
+            conf_used = True
+    return pos, state, idx, conf_used
+
+
+def _conf_states(tab: Table, col: str, conf_map) -> np.ndarray:
+    conf = tab.floats(col)
+    out = np.full(conf.shape, np.nan)
+    for v, st in conf_map.items():  # keys may be strings (TOML tables): "0.5" = 1
+        out[conf == float(v)] = float(st)
+    bad = np.isfinite(conf) & np.isnan(out)
+    if np.any(bad):
+        k = int(np.flatnonzero(bad)[0])
+        raise FormatError(
+            tab.path,
+            f"expected a confidence among {sorted(float(v) for v in conf_map)} (confidence_states=), "
+            f"found {float(conf[k])!r}",
+            line=int(tab.lines[k]),
+            field=col,
+        )
+    return out
 
 
 def _read_long(tab: Table, lower, rows_mask, min_state):
@@ -533,12 +669,12 @@ def read_azure_kinect_json(path, *, min_confidence: int | None = 2, body_id=None
     t_us = check_time(path, ts, None, "timestamp_usec")
     t = (t_us - t_us[0]) * 1e-6
     pos *= 1e-3
-    avail = np.all(np.isfinite(pos), axis=-1)
-    rule = "finite"
+    avail = np.all(np.isfinite(pos), axis=-1) & ~zero_is_missing(pos)
+    rule = f"finite; {ZERO_RULE}"
     if min_confidence is not None:
         if has_conf:
             avail &= conf >= min_confidence
-            rule = f"confidence level >= {min_confidence} and finite"
+            rule = f"confidence level >= {min_confidence} and finite; {ZERO_RULE}"
         else:
             notes.append(
                 "no joint confidence levels in the file; availability = body present and finite"

@@ -8,7 +8,15 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import check_time, check_units, make_metadata, read_table, table_time
+from kinefuse.io._common import (
+    ZERO_RULE,
+    check_time,
+    check_units,
+    make_metadata,
+    read_table,
+    table_time,
+    zero_is_missing,
+)
 from kinefuse.io.kinect import _load_json
 from kinefuse.io.recording import JointStream, Recording
 
@@ -124,7 +132,7 @@ def read_mediapipe(
         t, pos, vis, idx = _read_json(path, rate_hz)
     else:
         t, pos, vis, idx = _read_csv(path, rate_hz)
-    avail = np.all(np.isfinite(pos), axis=-1)
+    avail = np.all(np.isfinite(pos), axis=-1) & ~zero_is_missing(pos)
     if min_visibility is not None:
         avail &= np.nan_to_num(vis, nan=1.0) >= float(min_visibility)
     joints = tuple(MEDIAPIPE_TO_CANONICAL[i] for i in idx)
@@ -134,9 +142,10 @@ def read_mediapipe(
         "mediapipe",
         units_converted=[],
         joint_map={MEDIAPIPE_LANDMARKS[i]: MEDIAPIPE_TO_CANONICAL[i] for i in idx},
-        availability_rule=f"visibility >= {min_visibility} and finite"
-        if min_visibility is not None
-        else "finite",
+        availability_rule=(
+            f"visibility >= {min_visibility} and finite" if min_visibility is not None else "finite"
+        )
+        + f"; {ZERO_RULE}",
         visibility=vis,
         frame_notes="MediaPipe world landmarks: metres, origin at the hip midpoint, axes image-right/down/depth",
     )

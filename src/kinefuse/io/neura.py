@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError
+from kinefuse.io._common import zero_is_missing
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["IMU_SEGMENTS", "VICON_JOINTS", "VICON_SEGMENTS", "read_neura"]
@@ -243,8 +244,9 @@ def read_neura(path, *, trial: str | None = None) -> Recording:
         if p is not None:
             jnames.append(joint)
             jpos.append(p)
+    jp = np.stack(jpos, axis=1)
     reference = JointStream(
-        t_s=t, position_m=np.stack(jpos, axis=1), joints=tuple(jnames), frame="vicon"
+        t_s=t, position_m=jp, available=~zero_is_missing(jp), joints=tuple(jnames), frame="vicon"
     )
     ref_ori = {}
     for code, seg in VICON_SEGMENTS.items():

@@ -9,6 +9,7 @@ column by column) or as ``Quat_q0..q3`` (wxyz).
 from __future__ import annotations
 
 import re
+import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from pathlib import Path
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinefuse.exceptions import FormatError
+from kinefuse.exceptions import FormatError, FormatWarning, InputError
 from kinefuse.io._common import (
     Table,
     canonical_segment,
@@ -27,6 +28,7 @@ from kinefuse.io._common import (
     read_table,
 )
 from kinefuse.io.recording import ImuStream, Recording
+from kinefuse.io.xsens_dot import specific_force_from_free_acc
 
 __all__ = ["OPENSENSE_EXAMPLE_SENSORS", "XSENS_FRAME", "read_opensense", "read_xsens_txt"]
 
@@ -70,7 +72,10 @@ def read_xsens_txt(path, *, rate_hz: float | None = None) -> dict:
     Returns
     -------
     dict
-        ``counter`` (N,) unwrapped packet counter, ``rate_hz``, ``acc`` (N, 3) m/s² or None,
+        ``counter`` (N,) unwrapped packet counter, ``sample_time_s`` (N,) from
+        ``SampleTimeFine`` (unwrapped at 2³², s, see :func:`_sample_time_fine`) or None when the
+        column is absent or empty, ``sample_time_note`` (str or None: how its tick was chosen,
+        and whether it disagrees with the Update Rate), ``rate_hz``, ``acc`` (N, 3) m/s² or None,
         ``gyr`` (N, 3) rad/s or None, ``mag`` (N, 3) or None, ``q`` (N, 4) wxyz sensor -> Xsens
         global, or None; ``lines`` (N,) file line numbers.
     """
@@ -86,11 +91,9 @@ def read_xsens_txt(path, *, rate_hz: float | None = None) -> dict:
             raise FormatError(
                 path, "missing '// Update Rate: <x>Hz' header line; pass rate_hz=", line=1
             )
-    counter = tab.floats("PacketCounter", allow_empty=False)
-    d = np.diff(counter)
-    wraps = np.concatenate([[0], np.cumsum(d < -_COUNTER_WRAP // 2)])
-    counter = counter + _COUNTER_WRAP * wraps
+    counter = _unwrap(tab.floats("PacketCounter", allow_empty=False), _COUNTER_WRAP)
     check_time(path, counter, tab.lines, "PacketCounter")
+    fine_s, fine_note = _sample_time_fine(tab, rate)
 
     def group(names):
         present = [tab.has(n) for n in names]
@@ -136,6 +139,8 @@ def read_xsens_txt(path, *, rate_hz: float | None = None) -> dict:
         )
     return {
         "counter": counter,
+        "sample_time_s": fine_s,
+        "sample_time_note": fine_note,
         "rate_hz": rate,
         "acc": acc,
         "gyr": gyr,
@@ -143,6 +148,49 @@ def read_xsens_txt(path, *, rate_hz: float | None = None) -> dict:
         "q": q,
         "lines": tab.lines,
     }
+
+
+def _unwrap(v: np.ndarray, period: float) -> np.ndarray:
+    """Undo the wrap-around of an unsigned counter (a drop by more than half the period)."""
+    wraps = np.concatenate([[0], np.cumsum(np.diff(v) < -period / 2)])
+    return v + period * wraps
+
+
+#: SampleTimeFine tick candidates, s: MTi devices count 10 kHz ticks, Xsens DOT microseconds.
+_FINE_TICKS_S = {"10 kHz ticks (MTi)": 1e-4, "microseconds (Xsens DOT)": 1e-6}
+
+
+def _sample_time_fine(tab: Table, rate_hz: float) -> tuple[np.ndarray | None, str | None]:
+    """Device times (s, unwrapped, not shifted) from the ``SampleTimeFine`` column, or (None, None).
+
+    The column is a uint32 (wraps at 2³²) whose tick depends on the device: the tick of
+    :data:`_FINE_TICKS_S` whose median step is closest (in ratio) to ``1 / rate_hz`` is used.
+    A step that still disagrees with the header's Update Rate by more than 1 % is reported in
+    the note (the times are then the device's, not the header's).
+    """
+    if not tab.has("SampleTimeFine") or len(tab) < 2:
+        return None, None
+    raw = tab.floats("SampleTimeFine")
+    if not np.all(np.isfinite(raw)):
+        return None, None
+    fine = _unwrap(raw, 2.0**32)
+    if np.any(np.diff(fine) <= 0):
+        k = int(np.flatnonzero(np.diff(fine) <= 0)[0]) + 1
+        return None, (
+            f"SampleTimeFine not increasing at line {int(tab.lines[k])}; times from PacketCounter"
+        )
+    step = float(np.median(np.diff(fine)))
+    name, tick = min(_FINE_TICKS_S.items(), key=lambda kv: abs(np.log(step * kv[1] * rate_hz)))
+    t = fine * tick
+    measured = 1.0 / (step * tick)
+    note = f"SampleTimeFine in {name}"
+    if abs(measured - rate_hz) > 0.01 * rate_hz:
+        note += (
+            f": its median step gives {measured:.4g} Hz, the header's Update Rate says {rate_hz:g} Hz; "
+            f"times from SampleTimeFine: {t[-1] - t[0]:.3f} s (the Update Rate would give "
+            f"{(len(t) - 1) / rate_hz:.3f} s)"
+        )
+    return t, note
 
 
 def _xml_mapping(folder: Path) -> dict[str, str]:
@@ -161,8 +209,27 @@ def _xml_mapping(folder: Path) -> dict[str, str]:
     return out
 
 
+_FREE_ACC_MAX = 3.0  # m/s^2: a worn sensor's specific force has median |f| ~ g
+
+
+def _acc_kind(acc, q, acceleration: str) -> str:
+    if acc is None:
+        return "none"
+    if acceleration != "auto":
+        return acceleration
+    n = np.linalg.norm(acc, axis=1)
+    n = n[np.isfinite(n)]
+    if q is not None and n.size and float(np.median(n)) < _FREE_ACC_MAX:
+        return "free"
+    return "specific_force"
+
+
 def read_opensense(
-    path, *, sensor_map: Mapping[str, str] | None = None, rate_hz: float | None = None
+    path,
+    *,
+    sensor_map: Mapping[str, str] | None = None,
+    rate_hz: float | None = None,
+    acceleration: str = "auto",
 ) -> Recording:
     """Read Xsens MT Manager exports: one ``.txt`` file or a folder of them (one per sensor).
 
@@ -177,15 +244,25 @@ def read_opensense(
         their own name.
     rate_hz : float or None
         Sampling rate; default from the ``// Update Rate`` header line.
+    acceleration : {"auto", "specific_force", "free"}
+        What ``Acc_X..Z`` hold. ``"free"``: free acceleration (gravity removed, in the
+        orientation's world frame, as Movella DOT exports converted to MT Manager text carry);
+        the specific force is rebuilt from it and the orientation. ``"auto"``: free when the
+        file has an orientation and the median ``|acc|`` is below 3 m/s² (a worn sensor's
+        specific force has median ``|f|`` near g).
 
     Returns
     -------
     Recording
         ``imu[key]``: ``q_world_from_sensor`` (N, 4) wxyz from the orientation matrix (via
         :class:`scipy.spatial.transform.Rotation`), frame :data:`XSENS_FRAME`; ``acc_m_s2``
-        (N, 3); ``gyr_rad_s``/``mag`` when the export has them. Times
-        ``t = (PacketCounter - c0) / rate`` with ``c0`` the smallest first counter over all
-        sensors, so sensors stay aligned by packet counter (they start at different counters).
+        (N, 3) specific force in the sensor frame; ``gyr_rad_s``/``mag`` when the export has
+        them. Times: when every file has ``SampleTimeFine`` (µs on DOT, 10 kHz ticks on MTi,
+        unwrapped at 2³²), ``t = SampleTimeFine time - the earliest first one over all sensors``
+        (synchronised sensors share that clock; a :class:`~kinefuse.exceptions.FormatWarning`
+        when it disagrees with the Update Rate); else ``t = (PacketCounter - c0) / rate``, with ``c0`` the smallest first counter over
+        all sensors, so sensors stay aligned by packet counter (they start at different
+        counters). ``metadata["time_source"]`` says which.
 
     Raises
     ------
@@ -194,6 +271,10 @@ def read_opensense(
         non-orthonormal matrices; a folder without Xsens files.
     """
     path = Path(path)
+    if acceleration not in ("auto", "specific_force", "free"):
+        raise InputError(
+            f"expected acceleration 'auto', 'specific_force' or 'free', got {acceleration!r}"
+        )
     if path.is_dir():
         files = sorted(p for p in path.glob("*.txt") if _is_xsens(p))
         if not files:
@@ -223,24 +304,54 @@ def read_opensense(
     rates = {p["rate_hz"] for _, p in parsed.values()}
     if len(rates) > 1:
         notes.append(f"sensors report different update rates {sorted(rates)}")
+    use_fine = all(p["sample_time_s"] is not None for _, p in parsed.values())
+    for sid, (f, p) in parsed.items():
+        note = p["sample_time_note"]
+        if not use_fine and note and "not increasing" in note:
+            notes.append(f"{sid}: {note}")
+        if use_fine and note and "Update Rate" in note:
+            warnings.warn(f"{f}: {note}", FormatWarning, stacklevel=2)
+            notes.append(f"{sid}: {note}")
+    fine0 = min(p["sample_time_s"][0] for _, p in parsed.values()) if use_fine else 0.0
     imu = {}
+    free_acc = {}
+    units = ["orientation matrix -> quaternion wxyz"]
     for sid, (_f, p) in parsed.items():
-        t = (p["counter"] - c0) / p["rate_hz"]
+        if use_fine:  # synchronised sensors share the SampleTimeFine clock
+            t = p["sample_time_s"] - fine0
+        else:
+            t = (p["counter"] - c0) / p["rate_hz"]
+        acc = p["acc"]
+        kind = _acc_kind(acc, p["q"], acceleration)
+        if kind == "free":
+            free_acc[mapping[sid]] = acc
+            acc = specific_force_from_free_acc(p["q"], acc)
+            units = sorted(
+                set(units) | {"free acceleration (world) -> specific force (sensor frame)"}
+            )
         imu[mapping[sid]] = ImuStream(
             t_s=t,
             q_world_from_sensor=p["q"],
-            acc_m_s2=p["acc"],
+            acc_m_s2=acc,
             gyr_rad_s=p["gyr"],
             mag=p["mag"],
             name=sid,
             frame=XSENS_FRAME,
         )
+    if free_acc:
+        notes.append(
+            f"Acc_X..Z of {sorted(free_acc)} hold free acceleration (gravity removed, world frame; median "
+            f"|acc| < {_FREE_ACC_MAX} m/s^2); specific force rebuilt as R^T (a_free + g e_z), the "
+            "free acceleration kept in metadata['free_acc_m_s2']"
+        )
     md = make_metadata(
         path,
         "opensense",
         subject=None,
-        units_converted=["orientation matrix -> quaternion wxyz"],
+        units_converted=units,
         segment_map=mapping,
+        time_source="SampleTimeFine" if use_fine else "PacketCounter / Update Rate",
+        free_acc_m_s2=free_acc,
         files=[str(f) for f, _ in parsed.values()],
         packet_counter_origin=int(c0),
         frame_notes=(

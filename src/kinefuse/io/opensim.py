@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kinefuse.exceptions import FormatError, InputError
+from kinefuse.exceptions import FormatError, FormatWarning, InputError
 from kinefuse.io._common import (
     _read_text,
     check_time,
@@ -217,7 +217,7 @@ def read_opensim_table(path) -> OpenSimTable:
 
     Warns
     -----
-    UserWarning
+    FormatWarning
         ``nRows`` / ``nColumns`` in the header disagree with the table (the rows there are are
         read, as OpenSim does).
     """
@@ -280,7 +280,7 @@ def read_opensim_table(path) -> OpenSimTable:
         if key in header and header[key].strip().isdigit() and int(header[key]) != found:
             warnings.warn(
                 f"{path}: header says {key}={header[key]}, the table has {found}; read what is there",
-                UserWarning,
+                FormatWarning,
                 stacklevel=2,
             )
     return OpenSimTable(t, tuple(labels[1:]), values, dtype, header, tuple(description), labels[0])

@@ -9,17 +9,20 @@ Layout (tab-separated)::
                   X1   Y1   Z1     X2   Y2   Z2
     1       0.00  ...
 
-Missing markers are empty fields.
+Missing markers are empty fields (or all-zero coordinates, read as missing too).
 """
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
-from kinefuse.exceptions import FormatError, InputError
+from kinefuse.exceptions import FormatError, FormatWarning, InputError
 from kinefuse.io._common import (
+    ZERO_RULE,
     _read_text,
     check_time,
     check_units,
@@ -28,6 +31,7 @@ from kinefuse.io._common import (
     map_joints,
     write_text_safely,
 )
+from kinefuse.io._common import zero_is_missing as _zero_mask
 from kinefuse.io.recording import JointStream, Recording
 
 __all__ = ["read_trc", "write_trc"]
@@ -36,31 +40,51 @@ _TO_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "meters": 1.0, "millimeters": 1e-3}
 _HEADER_KEYS = ("DataRate", "CameraRate", "NumFrames", "NumMarkers", "Units")
 
 
-def read_trc(path, *, role: str = "reference", map_names: bool = True) -> Recording:
+def _split(line: str, sep: str) -> list[str]:
+    """Header tokens as OpenSim's TRCFileAdapter reads them: split on ``sep``, empty ones dropped."""
+    return [v.strip() for v in line.split(sep) if v.strip()]
+
+
+def read_trc(
+    path, *, role: str = "reference", map_names: bool = True, zero_is_missing: bool = True
+) -> Recording:
     """Read a TRC marker file.
 
     Parameters
     ----------
     path : str or Path
-        ``.trc`` file.
+        ``.trc`` file (tab-separated as OpenSim writes it; the comma-separated variant some tools
+        write is read too, with a note).
     role : {"reference", "vision"}
         Where the markers go in the Recording.
     map_names : bool
         Map marker names that name a joint to canonical joint names (``metadata["joint_map"]``);
         others are kept.
+    zero_is_missing : bool
+        Treat a marker whose three coordinates are all exactly 0 as missing
+        (:data:`kinefuse.io._common.ZERO_RULE`, the "not tracked" encoding of many TRC writers).
 
     Returns
     -------
     Recording
         ``reference`` (or ``vision``): positions (T, M, 3) in m (converted from the header's
         ``Units``), frame ``"trc_lab"``, times from the ``Time`` column; ``available`` = all
-        three coordinates present.
+        three coordinates present (and not all zero). ``metadata["rate_hz"]`` is the header's
+        ``DataRate``; ``metadata["header"]`` holds every header key (``DataRate``,
+        ``CameraRate``, ``OrigDataRate``, ``OrigDataStartFrame`` ...) so that
+        ``write_trc(..., header=rec.metadata["header"])`` keeps them.
+
+    Notes
+    -----
+    As OpenSim's ``TRCFileAdapter``: empty tokens of the header rows (repeated tabs) are dropped,
+    and the rows there are are read when ``NumFrames`` disagrees with them (a
+    :class:`~kinefuse.exceptions.FormatWarning` says so).
 
     Raises
     ------
     FormatError
-        Missing header keys, unknown units, wrong field counts, fewer rows than ``NumFrames``
-        (truncated), non-numeric fields, non-monotonic time.
+        Missing header keys, unknown units, wrong field counts, non-numeric fields,
+        non-monotonic time.
     """
     path = Path(path)
     if role not in ("reference", "vision"):
@@ -75,11 +99,18 @@ def read_trc(path, *, role: str = "reference", map_names: bool = True) -> Record
         raise FormatError(
             path, f"expected 'PathFileType' on the first line, found {lines[0][:40]!r}", line=1
         )
-    keys = [k.strip() for k in lines[1].split("\t")]
-    vals = [v.strip() for v in lines[2].split("\t")]
+    notes = []
+    sep = "\t"
+    if "\t" not in lines[1] and "," in lines[1]:
+        sep = ","
+        notes.append("comma-separated TRC (OpenSim reads only tab-separated TRC)")
+    keys = _split(lines[1], sep)
+    vals = _split(lines[2], sep)
+    if len(keys) != len(vals):
+        notes.append(f"header has {len(keys)} keys and {len(vals)} values; paired in order")
     hdr = dict(zip(keys, vals, strict=False))
     for k in _HEADER_KEYS:
-        if k not in hdr or not hdr[k]:
+        if k not in hdr:
             raise FormatError(path, f"missing header key {k!r}; found keys {keys}", line=2, field=k)
     try:
         rate = float(hdr["DataRate"])
@@ -95,7 +126,7 @@ def read_trc(path, *, role: str = "reference", map_names: bool = True) -> Record
         raise FormatError(
             path, f"expected Units one of {sorted(_TO_M)}, found {unit!r}", line=3, field="Units"
         )
-    names_f = lines[3].split("\t")
+    names_f = lines[3].split(sep)
     if len(names_f) < 2 or names_f[0].strip() != "Frame#" or names_f[1].strip() != "Time":
         raise FormatError(
             path, f"expected 'Frame#<tab>Time<tab><markers>', found {lines[3][:60]!r}", line=4
@@ -113,9 +144,9 @@ def read_trc(path, *, role: str = "reference", map_names: bool = True) -> Record
     line_no = []
     for j in range(5, len(lines)):
         ln = lines[j]
-        if not ln.strip():
+        f = ln.split(sep)
+        if not any(x.strip() for x in f):
             continue
-        f = ln.split("\t")
         if len(f) > n_fields and not any(x.strip() for x in f[n_fields:]):
             f = f[:n_fields]
         if len(f) != n_fields:
@@ -150,16 +181,23 @@ def read_trc(path, *, role: str = "reference", map_names: bool = True) -> Record
                 ) from None
         rows.append(row)
         line_no.append(j + 1)
+    if not rows:
+        raise FormatError(path, f"expected {n_frames} frames (NumFrames), found no data rows")
     if len(rows) != n_frames:
-        what = "truncated file" if len(rows) < n_frames else "extra rows"
-        raise FormatError(
-            path,
-            f"expected {n_frames} frames (NumFrames), found {len(rows)} ({what})",
-            field="NumFrames",
+        msg = (
+            f"{path}: header NumFrames = {n_frames} but the file has {len(rows)} data rows; "
+            f"read the {len(rows)} rows (as OpenSim does)"
         )
+        warnings.warn(msg, FormatWarning, stacklevel=2)
+        notes.append(msg)
     data = np.asarray(rows).reshape(len(rows), n_fields)
     t = check_time(path, data[:, 1], np.asarray(line_no), "Time")
     pos = data[:, 2:].reshape(-1, n_markers, 3) * factor
+    n_zero = 0
+    if zero_is_missing:
+        zero = _zero_mask(pos)
+        n_zero = int(zero.sum())
+        pos[zero] = np.nan
     if map_names:
         joints, jmap = map_joints(markers)
     else:
@@ -172,10 +210,26 @@ def read_trc(path, *, role: str = "reference", map_names: bool = True) -> Record
         joint_map=jmap,
         rate_hz=rate,
         header=hdr,
+        frame_numbers=data[:, 0].copy(),
+        availability_rule=f"all three coordinates present; {ZERO_RULE}"
+        if zero_is_missing
+        else "all three coordinates present",
+        n_zero_samples=n_zero,
+        notes=notes,
     )
     rec = Recording(**{role: js}, metadata=md)
     check_units(rec, where=str(path))
     return rec
+
+
+def _nice_rate(t_s: np.ndarray) -> float:
+    """Sampling rate from the span of the times, snapped to 6 significant digits when that is
+    within 1e-6 (so rounded time columns and float noise give 60, not 58.82 or 120.000005)."""
+    if t_s.size < 2:
+        return 0.0
+    rate = float((t_s.size - 1) / (t_s[-1] - t_s[0]))
+    nice = float(f"{rate:.6g}")
+    return nice if abs(nice - rate) <= 1e-6 * rate else rate
 
 
 def write_trc(
@@ -186,8 +240,10 @@ def write_trc(
     decimals: int | None = None,
     force: bool = False,
     masked: bool = True,
+    rate_hz: float | None = None,
+    header: Mapping[str, str] | None = None,
 ) -> Path:
-    """Write a joint stream as a TRC file.
+    """Write a joint stream as a TRC file (tab-separated, readable by OpenSim).
 
     Parameters
     ----------
@@ -203,6 +259,15 @@ def write_trc(
         Replace an existing file.
     masked : bool
         Write unavailable samples as empty fields (TRC's missing-marker convention).
+    rate_hz : float or None
+        ``DataRate`` (and, unless ``header`` says otherwise, ``CameraRate``/``OrigDataRate``).
+        Default ``header["DataRate"]`` if given, else ``(T - 1) / (t[-1] - t[0])`` snapped to
+        6 significant digits.
+    header : mapping or None
+        Header values of the file the stream was read from (``rec.metadata["header"]`` of
+        :func:`read_trc`): ``DataRate``, ``CameraRate``, ``OrigDataRate``,
+        ``OrigDataStartFrame`` and ``OrigNumFrames`` are written as given (``NumFrames``,
+        ``NumMarkers`` and ``Units`` always describe the data written).
 
     Returns
     -------
@@ -223,34 +288,43 @@ def write_trc(
     for j in stream.joints:
         if "\t" in j or not j.strip():
             raise InputError(f"joint name {j!r} cannot be written to TRC (empty or contains a tab)")
+    hdr = {str(k): str(v).strip() for k, v in (header or {}).items()}
+    for k, v in hdr.items():
+        if "\t" in v or not v:
+            raise InputError(f"header value {k}={v!r} cannot be written to TRC (empty or a tab)")
     path = Path(path)
     T, J = len(stream), len(stream.joints)
     p = stream.position_m * factor
     if masked:
         p = np.where(stream.available[..., None], p, np.nan)
-    rate = float(1.0 / np.median(np.diff(stream.t_s))) if T > 1 else 0.0
+    if rate_hz is not None:
+        if not (np.isfinite(rate_hz) and rate_hz > 0):
+            raise InputError(f"expected rate_hz finite and > 0, got {rate_hz!r}")
+        rate = f"{float(rate_hz):.10g}"
+    else:
+        rate = hdr.get("DataRate") or f"{_nice_rate(stream.t_s):.10g}"
+    out_hdr = {
+        "DataRate": rate,
+        "CameraRate": hdr.get("CameraRate", rate),
+        "NumFrames": str(T),
+        "NumMarkers": str(J),
+        "Units": units,
+        "OrigDataRate": hdr.get("OrigDataRate", rate),
+        "OrigDataStartFrame": hdr.get("OrigDataStartFrame", "1"),
+        "OrigNumFrames": hdr.get("OrigNumFrames", str(T)),
+    }
     out = [
         f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
-        "\t".join(
-            (
-                "DataRate",
-                "CameraRate",
-                "NumFrames",
-                "NumMarkers",
-                "Units",
-                "OrigDataRate",
-                "OrigDataStartFrame",
-                "OrigNumFrames",
-            )
-        ),
-        "\t".join(
-            (f"{rate:.6f}", f"{rate:.6f}", str(T), str(J), units, f"{rate:.6f}", "1", str(T))
-        ),
+        "\t".join(out_hdr),
+        "\t".join(out_hdr.values()),
         "\t".join(["Frame#", "Time"] + [f"{j}\t\t" for j in stream.joints]).rstrip("\t"),
         "\t".join(["", ""] + [f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(J)]),
         "",
     ]
     for k in range(T):
         vals = [fmt_float(v, decimals) for v in p[k].reshape(-1)]
-        out.append("\t".join([str(k + 1), repr(float(stream.t_s[k])), *vals]))
+        row = "\t".join([str(k + 1), repr(float(stream.t_s[k])), *vals])
+        # OpenSim's tokenizer drops one trailing empty field: a row ending in a missing marker
+        # gets a closing tab so that every row keeps 2 + 3 J fields there too
+        out.append(row + "\t" if vals and not vals[-1] else row)
     return write_text_safely(path, "\n".join(out) + "\n", force=force)

@@ -15,7 +15,15 @@ import numpy as np
 import scipy.io
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import DEG2RAD, KINECT_LIMB_JOINTS, G, check_units, make_metadata
+from kinefuse.io._common import (
+    DEG2RAD,
+    KINECT_LIMB_JOINTS,
+    ZERO_RULE,
+    G,
+    check_units,
+    make_metadata,
+    zero_is_missing,
+)
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["KINECT_V1_JOINTS", "KINECT_V1_TO_CANONICAL", "read_utd_mhad", "utd_mhad_partner"]
@@ -217,7 +225,7 @@ def read_utd_mhad(
         else:
             ts = np.arange(T) / 30.0
             notes.append("skeleton times assumed: t = n / 30 Hz")
-        avail = np.all(np.isfinite(pos), axis=-1) & np.any(pos != 0.0, axis=-1)
+        avail = np.all(np.isfinite(pos), axis=-1) & ~zero_is_missing(pos)
         vision = JointStream(
             t_s=ts,
             position_m=pos,
@@ -244,7 +252,7 @@ def read_utd_mhad(
         },
         segment_map={"utd_mhad_inertial": segment} if imu else {},
         joint_map=dict(zip(KINECT_V1_JOINTS, KINECT_V1_TO_CANONICAL, strict=True)),
-        availability_rule="finite and not all-zero (Kinect v1 has no tracking state)",
+        availability_rule=f"finite; {ZERO_RULE} (Kinect v1 has no tracking state)",
         frame_notes="vision in Kinect v1 camera frame: x toward the sensor's left, y up, z away from the sensor",
         notes=notes,
     )

@@ -44,8 +44,31 @@ EARTH_TO_ENU = {
 _UNIT = re.compile(r"\(([^)]*)\)\s*$")
 
 
+def _header_line(path: Path) -> str:
+    try:
+        with open(path, encoding="utf-8-sig", errors="replace") as fh:
+            return fh.readline().strip()
+    except OSError as e:
+        raise FormatError(path, f"could not read the file: {e}") from None
+
+
+def _plain_csv_reader():
+    """The registered reader of x-io's plain CSV (``Time (s), Gyroscope X (deg/s) ...``), if any."""
+    from kinefuse.io import _registry
+
+    for key, spec in _registry._REGISTRY.items():
+        if spec.module == "xio_csv":
+            return key, _registry._reader(key)
+    return None, None
+
+
 def _sensor_dirs(path: Path) -> list[Path]:
     if path.is_file():
+        if not (path.parent / "Inertial.csv").is_file():
+            raise FormatError(
+                path.parent,
+                f"expected an x-IMU3 sensor folder with Inertial.csv beside {path.name}, found none",
+            )
         return [path.parent]
     if (path / "Inertial.csv").is_file():
         return [path]
@@ -117,7 +140,10 @@ def read_ximu3(
     ----------
     path : str or Path
         Log folder (e.g. ``xio_imu_mocap_lower_body/``), a sensor folder
-        (``Right_Upper_Leg_64F61C2E/``), or a CSV file inside a sensor folder.
+        (``Right_Upper_Leg_64F61C2E/``), a CSV file inside a sensor folder, or one inertial CSV
+        under another name (read alone). x-io's plain CSV export (``Time (s), Gyroscope X
+        (deg/s) ...``) is handed to its own reader when this installation has one, else a
+        FormatError says what the file is.
     sensor_map : mapping or None
         Folder name -> key overrides. Default: folder names mapped to canonical segments
         (``Right_Upper_Leg_64F61C2E`` -> ``thigh_r``, ``pelvis_64F0EDBF`` -> ``pelvis``); others
@@ -147,12 +173,43 @@ def read_ximu3(
     path = Path(path)
     if earth_frame not in EARTH_TO_ENU:
         raise InputError(f"expected earth_frame one of {sorted(EARTH_TO_ENU)}, got {earth_frame!r}")
-    dirs = _sensor_dirs(path)
-    names = [_sensor_name(d) for d in dirs]
+    if not path.exists():
+        raise FormatError(
+            path, "expected an x-IMU3 log folder, sensor folder or CSV file, found nothing"
+        )
+    single = None
+    if path.is_file() and not (path.parent / "Inertial.csv").is_file():
+        head = _header_line(path).lower()
+        if head.startswith("timestamp (") and "gyroscope" in head and "accelerometer" in head:
+            single = path  # an Inertial.csv under another name
+        elif head.startswith("time (s)") and "gyroscope" in head:
+            key, reader = _plain_csv_reader()
+            if reader is None:
+                raise FormatError(
+                    path,
+                    "this is x-io's plain CSV export ('Time (s), Gyroscope X (deg/s), ...'), not an "
+                    "x-IMU3 log (a folder of sensor folders with Inertial.csv); this installation has "
+                    "no reader for it",
+                    line=1,
+                )
+            rec = reader(path, **({"sensor_map": sensor_map} if sensor_map else {}))
+            rec.metadata.setdefault("notes", []).append(
+                f"format='ximu3' given for x-io's plain CSV: read with the {key!r} reader"
+            )
+            return rec
+        else:
+            raise FormatError(
+                path,
+                "expected an x-IMU3 Inertial.csv ('Timestamp (us), Gyroscope X (deg/s), ..., "
+                f"Accelerometer X (g), ...') or a sensor folder, found header {head[:80]!r}",
+                line=1,
+            )
+    dirs = [path.parent] if single is not None else _sensor_dirs(path)
+    names = [single.stem] if single is not None else [_sensor_name(d) for d in dirs]
     mapping, notes = map_segments(names, sensor_map)
     raw = {}
     for d, name in zip(dirs, names, strict=True):
-        tab = read_table(d / "Inertial.csv", delimiter=",")
+        tab = read_table(single if single is not None else d / "Inertial.csv", delimiter=",")
         t = _time(tab)
         gyr, gu = _triplet(tab, "Gyroscope")
         acc, au = _triplet(tab, "Accelerometer")
@@ -172,7 +229,7 @@ def read_ximu3(
             )
         q = None
         qf = d / "Quaternion.csv"
-        if qf.is_file():
+        if single is None and qf.is_file():
             qt = read_table(qf, delimiter=",")
             tq = _time(qt)
             qq = np.stack([qt.floats(c) for c in ("W", "X", "Y", "Z")], axis=1)
@@ -186,7 +243,7 @@ def read_ximu3(
             q = _to_enu(q, earth_frame)
         mag = None
         mf = d / "Magnetometer.csv"
-        if include_mag and mf.is_file():
+        if single is None and include_mag and mf.is_file():
             mt = read_table(mf, delimiter=",")
             tm = _time(mt)
             mv = np.stack([mt.floats(c) for c in _mag_cols(mt)], axis=1)

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinefuse.exceptions import FormatError
+from kinefuse.exceptions import FormatError, FormatWarning
 from kinefuse.io._common import (
     DEG2RAD,
     G,
@@ -232,7 +232,7 @@ def read_xsens_dot(
 
     Warns
     -----
-    UserWarning
+    FormatWarning
         ``OutputRate`` disagrees with ``SampleTimeFine`` by more than ``rate_tolerance``.
     """
     path = Path(path)
@@ -285,7 +285,7 @@ def read_xsens_dot(
                 warnings.warn(
                     f"{f}: header OutputRate {rate:g} Hz disagrees with SampleTimeFine "
                     f"({measured:.4g} Hz per packet); times follow SampleTimeFine",
-                    UserWarning,
+                    FormatWarning,
                     stacklevel=2,
                 )
             rate = rate if rate is not None else measured

@@ -8,6 +8,7 @@ from kinefuse.kinematics.calibration import (
     kabsch_rotation,
 )
 from kinefuse.kinematics.forward import as_rotation_matrices, euler_to_matrix, forward_kinematics
+from kinefuse.kinematics.functional import FunctionalCalibration, functional_calibration
 from kinefuse.kinematics.skeleton import (
     ANTHROPOMETRIC_RATIOS,
     AXES,
@@ -22,6 +23,7 @@ __all__ = [
     "ANTHROPOMETRIC_RATIOS",
     "AXES",
     "Calibration",
+    "FunctionalCalibration",
     "Skeleton",
     "as_rotation_matrices",
     "calibrate",
@@ -29,6 +31,7 @@ __all__ = [
     "euler_to_matrix",
     "forward_kinematics",
     "full_body",
+    "functional_calibration",
     "heading_rotation",
     "kabsch_rotation",
     "lengths_from_joints",

@@ -330,12 +330,17 @@ def calibrate(
         ``"vision"`` the joint stream with the skeleton's joint names.
     skeleton : Skeleton
         Defines the segments and their proximal/distal joints.
-    method : {"static", "reference", "vision"}
-        ``"static"``: the subject holds a known pose in the window (SPEC §2.1). ``"reference"`` /
+    method : {"static", "functional", "reference", "vision"}
+        ``"static"``: the subject holds a known pose in the window (SPEC §2.1). ``"functional"``:
+        joint centres from movement, no still pose and no optical data
+        (:func:`kinefuse.kinematics.functional.functional_calibration`, with its defaults; it
+        returns a :class:`~kinefuse.kinematics.functional.FunctionalCalibration` carrying the
+        excitation, residual, heading and hinge axis of every joint). ``"reference"`` /
         ``"vision"``: least squares against the joint directions seen by ``recording.reference`` /
         ``recording.vision`` in the window.
     window_s : float
-        Window length, s (default 1 s).
+        Window length, s (default 1 s; ``"functional"`` uses the whole recording unless
+        ``start_s`` is given).
     start_s : float, optional
         Window start, s (default: the first sample).
     pose : {"n", "t"}
@@ -385,9 +390,21 @@ def calibrate(
         raise InputError(f"expected recording as a Recording, got {type(recording).__name__}")
     if not isinstance(skeleton, Skeleton):
         raise InputError(f"expected skeleton as a Skeleton, got {type(skeleton).__name__}")
-    if method not in ("static", "reference", "vision"):
+    if method not in ("static", "functional", "reference", "vision"):
         raise InputError(
-            f"unknown calibration method {method!r}; expected 'static', 'reference' or 'vision'"
+            f"unknown calibration method {method!r}; expected 'static', 'functional', 'reference' "
+            "or 'vision'"
+        )
+    if method == "functional":
+        from kinefuse.kinematics.functional import functional_calibration
+
+        # movement calibration uses the whole recording unless a window start is given
+        return functional_calibration(
+            recording,
+            skeleton,
+            start_s=start_s,
+            window_s=None if start_s is None else window_s,
+            segments=segments,
         )
     if align not in ("auto", "none", "heading", "rotation"):
         raise InputError(

@@ -30,6 +30,7 @@ from kinefuse.conventions import MODE_NAMES, PAPER_B_JOINTS, SOURCE_NAMES
 from kinefuse.exceptions import InputError
 
 __all__ = [
+    "BASELINE_METHODS",
     "DEMO_SEED",
     "PAPER_A_LABELS",
     "PAPER_A_TEST1",
@@ -51,8 +52,13 @@ PAPER_B_LABELS = {
     "elm-kf": "ELM/KF",
     "imu-only": "IMU only",
     "camera-only": "camera only",
+    "camera-gapfill": "camera gap-fill",
+    "offset-interp": "offset interp",
+    "offset-hold": "offset hold",
     "kinefuse": "kinefuse",
 }
+#: The simple baselines every paper-B table shows (:mod:`kinefuse.pipelines.vision_assisted`).
+BASELINE_METHODS = ("camera-gapfill", "offset-interp", "offset-hold")
 #: Paper A test-1 settings ``joint kind -> (q, r)`` (SPEC §12.1: elbow q=1 R=0.01, wrist q=0.1 R=0.1).
 PAPER_A_TEST1 = {"elbow": (1.0, 0.01), "wrist": (0.1, 0.1)}
 
@@ -97,10 +103,11 @@ def progress(
 
 
 def paper_b_methods(include_kinefuse: bool = True) -> tuple[str, ...]:
-    """Paper B methods available in this installation, in table order (plus ``"kinefuse"``)."""
+    """Paper B methods available in this installation, in table order: paper B's, the simple
+    baselines (:data:`BASELINE_METHODS`), then ``"kinefuse"``."""
     from kinefuse.pipelines import METHODS
 
-    names = ["elm-fir", "elm-kf", "imu-only", "camera-only"]
+    names = ["elm-fir", "elm-kf", "imu-only", "camera-only", *BASELINE_METHODS]
     if include_kinefuse and "kinefuse" in METHODS:
         names.append("kinefuse")
     return tuple(n for n in names if n in METHODS)
@@ -245,18 +252,27 @@ def _paper_a(recording, calibration, settings, methods, result: ScenarioResult) 
     result.paper_a = tuple(PAPER_A_LABELS[m] for m in methods)
 
 
-def _paper_b(recording, calibration, methods, params, result: ScenarioResult) -> None:
-    """Paper B on the eight joints with each method (shared calibration and alignment)."""
+def _paper_b(recording, calibration, methods, params, result: ScenarioResult, causal=()) -> None:
+    """Paper B on the eight joints with each method (shared calibration and alignment).
+
+    ``causal``: methods also run causally, labelled ``"<label> causal"``.
+    """
     from kinefuse.pipelines import vision_assisted_from_recording
 
     done = []
-    for m in methods:
-        label = PAPER_B_LABELS.get(m, m)
+    runs = [(m, False) for m in methods] + [(m, True) for m in causal]
+    for m, is_causal in runs:
+        label = PAPER_B_LABELS.get(m, m) + (" causal" if is_causal else "")
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             fused = vision_assisted_from_recording(
-                recording, calibration=calibration, method=m, joints=result.joints, params=params
+                recording,
+                calibration=calibration,
+                method=m,
+                joints=result.joints,
+                params=params,
+                causal=is_causal,
             )
         result.run_time_s[label] = time.perf_counter() - t0
         result.estimates[label] = fused.result.position
@@ -271,6 +287,7 @@ def run_scenario(
     *,
     paper_a: Sequence[str] = ("kf", "fir", "em-kf-fir"),
     paper_b: Sequence[str] | None = None,
+    paper_b_causal: Sequence[str] = (),
     paper_a_settings: Mapping[str, tuple[float, float]] = PAPER_A_TEST1,
     paper_b_params=None,
     calibration_window_s: float = 5.0,
@@ -288,6 +305,8 @@ def run_scenario(
         Paper A filters (:data:`PAPER_A_LABELS` keys); empty to skip paper A.
     paper_b : sequence of str, optional
         Paper B methods (default :func:`paper_b_methods`); empty to skip paper B.
+    paper_b_causal : sequence of str
+        Paper B methods to run causally as well (table label ``"<label> causal"``).
     paper_a_settings : mapping
         ``{"elbow": (q, r), "wrist": (q, r)}``, q in (m/s)² per step, r in m² (default paper
         A's test 1, :data:`PAPER_A_TEST1`).
@@ -357,7 +376,7 @@ def run_scenario(
             "dt = 1/30 s, N = 20, thresholds 2 and 2. Shown only at the elbows and wrists."
         )
     if paper_b:
-        _paper_b(recording, calibration, paper_b, paper_b_params, result)
+        _paper_b(recording, calibration, paper_b, paper_b_params, result, tuple(paper_b_causal))
         advance()
         result.notes.append(
             "Paper B (Xu 2023): IMU chain from the chest (offsets and lengths from the camera), "

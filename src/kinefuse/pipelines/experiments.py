@@ -10,15 +10,26 @@
     like paper A's Tables 4-5 (RMSE per axis, mean, error at CDF 0.9), the EM-KF/FIR branch
     fractions, and Table 6 (run time per step vs the 33.3 ms sampling time).
 ``paper-b`` (Xu 2023 §4.2)
-    ELM/FIR vs ELM/KF (and IMU only, camera only, ``kinefuse`` if registered) on the eight
-    joints, overall and inside camera outages, on CMU-driven scenarios (nine virtual IMUs,
-    virtual Kinect with outages); with real data also on UTD-MHAD (right wrist: real IMU chain
-    from the Kinect elbow, Kinect wrist with simulated outages, unmasked Kinect wrist as the
-    reference) and the Neura walk (real Xsens IMUs, a camera made from the Vicon joint centres
-    plus noise and outages, Vicon as the reference). Tables like paper B's Tables 3-5 and the
-    CDF-0.9 improvements next to the paper's claims.
+    ELM/FIR vs ELM/KF (and IMU only, camera only, the simple baselines camera gap-fill, offset
+    interp and offset hold, ``kinefuse`` offline and causal) on the eight joints, overall and
+    inside camera outages, on CMU-driven scenarios (nine virtual IMUs, virtual Kinect with
+    outages); with real data also on UTD-MHAD (right wrist: real IMU chain from the Kinect
+    elbow, Kinect wrist with simulated outages, unmasked Kinect wrist as the reference) and the
+    Neura walk (real Xsens IMUs, a camera made from the Vicon joint centres plus noise and
+    outages, Vicon as the reference). Tables like paper B's Tables 3-5 and the CDF-0.9
+    improvements next to the paper's claims, a 3-D RMSE summary per data set, kinefuse vs
+    camera only per joint in view, and kinefuse vs the best simple baselines (issue 11 targets).
 
-Both pool the samples of all scenarios of a data set before computing the RMSE.
+``neura-imu-only`` (issue 10)
+    The Neura walk from its IMUs alone: functional calibration from the walk, tape-measure
+    lengths, Vicon hips as the declared root; Vicon scores only
+    (:mod:`kinefuse.pipelines.neura_imu_only`).
+
+The paper experiments pool the samples of all scenarios of a data set before computing the RMSE,
+and run on a declared set of recordings: :data:`REPORT_SET` (default) or :data:`TUNING_SET` (the
+only one anything is developed or chosen on); every table names it. No calibration, alignment,
+length, noise fit or learned correction sees a sample that the evaluation hides (outage-blind;
+tested per protocol in ``tests/test_leakage.py``).
 """
 
 from __future__ import annotations
@@ -27,6 +38,7 @@ import os
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,16 +46,18 @@ import numpy as np
 from kinefuse.exceptions import InputError
 
 __all__ = [
-    "CMU_TRIALS_PAPER_A",
-    "CMU_TRIALS_PAPER_B",
     "EXPERIMENTS",
     "PAPER_A_TESTS",
+    "REPORT_SET",
+    "SPLITS",
+    "TUNING_SET",
     "UTD_ACTIONS",
+    "DataSplit",
     "run_experiment",
 ]
 
 #: Experiments this module runs.
-EXPERIMENTS = ("paper-a", "paper-b")
+EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only")
 
 #: Paper A's four filter settings (SPEC §12.1): name -> (joint kind, q, r).
 PAPER_A_TESTS = {
@@ -61,12 +75,50 @@ PAPER_A_CLAIMS = {
     "wrist, test 2": "figure only (Fig. 12): at CDF 0.9 KF worst, FIR better, proposed ≈ KF",
 }
 
-#: CMU trials (subject 02 arm-dominant) driving paper A's scenarios.
-CMU_TRIALS_PAPER_A = ("02_05", "02_07", "02_09", "02_10")
-#: CMU trials (walking and arm-dominant, long enough to train the ELMs) for paper B.
-CMU_TRIALS_PAPER_B = ("02_05", "02_07", "02_10", "03_03")
 #: UTD-MHAD actions with the IMU on the right wrist used for the real-data checks.
 UTD_ACTIONS = (1, 5, 9, 10, 12, 14)
+
+
+@dataclass(frozen=True)
+class DataSplit:
+    """A declared set of recordings (issue 11: tune on one set, report on another).
+
+    Attributes
+    ----------
+    name : str
+        ``"tuning"`` or ``"report"``.
+    cmu_trials : tuple of str
+        CMU trials (``SS_TT``) driving the virtual scenarios (long enough to train the ELMs).
+    utd_subjects : tuple of int
+        UTD-MHAD subjects (trial 1 of :data:`UTD_ACTIONS`).
+    neura : bool
+        Whether the Neura walk belongs to the set (it is evaluation-only: report set).
+    """
+
+    name: str
+    cmu_trials: tuple[str, ...]
+    utd_subjects: tuple[int, ...]
+    neura: bool
+
+    def describe(self) -> str:
+        """One line naming the recordings of the set."""
+        parts = [
+            f"CMU {', '.join(self.cmu_trials)}",
+            f"UTD-MHAD subjects {', '.join(map(str, self.utd_subjects))} (trial 1)",
+        ]
+        if self.neura:
+            parts.append("Neura walk")
+        return f"{self.name} set: " + "; ".join(parts)
+
+
+#: The only recordings anything in kinefuse was developed or chosen on (CMU subject 02,
+#: UTD-MHAD subjects 1-3).
+TUNING_SET = DataSplit("tuning", ("02_05", "02_07", "02_10"), (1, 2, 3), False)
+#: The recordings the tables report on; nothing is chosen by looking at them (CMU subject 03,
+#: UTD-MHAD subjects 4-6, the Neura walk).
+REPORT_SET = DataSplit("report", ("03_03", "03_04"), (4, 5, 6), True)
+#: ``kinefuse experiment --set`` choices.
+SPLITS = {"tuning": TUNING_SET, "report": REPORT_SET}
 
 #: Paper B's CDF-0.9 improvement claims (ELM/FIR vs ELM/KF), SPEC §14.
 PAPER_B_CDF_CLAIMS = {
@@ -155,17 +207,25 @@ DEGRADED_AHRS = {
 }
 
 
-def _arm_chain_virtual(motion, seed: int, imu_overrides: Mapping | None = None):
-    """Right-arm elbow/wrist IMU chain (camera shoulder) and truth at 30 Hz of a CMU motion."""
-    from kinefuse.kinematics import calibrate, chain_positions, upper_limb
+def _arm_recording(motion, seed: int, imu_overrides: Mapping | None = None):
+    """Virtual upper-arm and forearm IMUs and camera of paper A's right arm (seeded)."""
     from kinefuse.sim import ImuConfig, virtual_recording
 
-    rec = virtual_recording(
+    return virtual_recording(
         motion,
         imu=ImuConfig(**dict(imu_overrides or {})),
         segments=("upper_arm_r", "forearm_r"),
         seed=seed,
     )
+
+
+def _arm_chain(rec):
+    """Right-arm elbow/wrist IMU chain (camera shoulder, gaps interpolated) and truth at 30 Hz.
+
+    Calibration (axes, lengths) from the camera over the first 5 s, camera-seen samples only.
+    """
+    from kinefuse.kinematics import calibrate, chain_positions, upper_limb
+
     sk = upper_limb("r", height_m=1.75)
     cal = calibrate(rec, sk, "vision", window_s=5.0)
     sk = upper_limb("r", lengths=dict(cal.lengths_m))
@@ -179,10 +239,15 @@ def _arm_chain_virtual(motion, seed: int, imu_overrides: Mapping | None = None):
     return t, z, ref
 
 
-def _utd_trials(data_dir: Path, quick: bool) -> list[tuple[Path, Path]]:
+def _arm_chain_virtual(motion, seed: int, imu_overrides: Mapping | None = None):
+    """Right-arm elbow/wrist IMU chain (camera shoulder) and truth at 30 Hz of a CMU motion."""
+    return _arm_chain(_arm_recording(motion, seed, imu_overrides))
+
+
+def _utd_trials(data_dir: Path, quick: bool, split: DataSplit) -> list[tuple[Path, Path]]:
     root = Path(data_dir) / "utd_mhad"
     pairs = []
-    subjects = (1,) if quick else (1, 2, 3, 4, 5, 6)
+    subjects = split.utd_subjects[:1] if quick else split.utd_subjects
     actions = UTD_ACTIONS[:2] if quick else UTD_ACTIONS
     for a in actions:
         for s in subjects:
@@ -193,15 +258,46 @@ def _utd_trials(data_dir: Path, quick: bool) -> list[tuple[Path, Path]]:
     return pairs
 
 
-def _utd_wrist_chain(inertial: Path, skeleton: Path):
-    """Real UTD-MHAD trial: wrist chain (Kinect elbow + forearm IMU) and Kinect wrist at 30 Hz."""
+#: Paper-B UTD-MHAD protocol: the Kinect wrist is hidden from 55 % of each trial for 25 % of it.
+UTD_HIDDEN = (0.55, 0.25)
+
+
+def _utd_recording(inertial: Path, skeleton: Path):
+    """One UTD-MHAD trial as loaded (inertial + Kinect skeleton)."""
+    from kinefuse.io import load
+
+    return load((inertial, skeleton))
+
+
+def _utd_hidden(t: np.ndarray, t_cam: np.ndarray, hidden=UTD_HIDDEN) -> np.ndarray:
+    """Rows of ``t`` inside the simulated outage ``[t_cam[a], t_cam[a + L])`` (fractions of T)."""
+    T = t_cam.size
+    a = int(hidden[0] * T)
+    b = a + int(hidden[1] * T)
+    hi = t_cam[b] if b < T else np.inf
+    return (t >= t_cam[a]) & (t < hi)
+
+
+def _utd_wrist_chain(rec, hidden: tuple[float, float] | None = None):
+    """Real UTD-MHAD trial: wrist chain (Kinect elbow + forearm IMU) and Kinect wrist at 30 Hz.
+
+    ``hidden = (start, length)`` (fractions of the trial): the Kinect wrist is unavailable
+    there to everything that calibrates (axis, camera rotation, forearm length) and to the
+    returned camera; the reference keeps it. None: calibration over the whole trial.
+    Returns ``t, chain, reference, camera, origin`` (wrist, (T, 3); origin = Kinect
+    spine_shoulder) and the hidden mask ``(T,)``.
+    """
     from dataclasses import replace
 
-    from kinefuse.io import load
     from kinefuse.pipelines.session import process_recording
 
-    rec = load((inertial, skeleton))
-    rec = replace(rec, reference=rec.vision)
+    v = rec.vision
+    cam = v
+    if hidden is not None:
+        av = v.available.copy()
+        av[_utd_hidden(v.t_s, v.t_s, hidden), v.index("wrist_r")] = False
+        cam = replace(v, available=av)
+    rec = replace(rec, vision=cam, reference=v)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         out = process_recording(
@@ -210,10 +306,16 @@ def _utd_wrist_chain(inertial: Path, skeleton: Path):
             {"calibration": "vision", "calibration_window_s": 100.0, "rate_hz": 30.0},
         )
     j = out.joints.index("wrist_r")
-    sc = rec.vision.position("spine_shoulder")
+    sc = v.position("spine_shoulder")
     ok = np.all(np.isfinite(sc), axis=1)
-    origin = np.stack([np.interp(out.t_s, rec.vision.t_s[ok], sc[ok, k]) for k in range(3)], -1)
-    return out.t_s, out.chain[:, j], out.reference[:, j], out.camera[:, j], origin
+    origin = np.stack([np.interp(out.t_s, v.t_s[ok], sc[ok, k]) for k in range(3)], -1)
+    hide = (
+        np.zeros(out.t_s.size, dtype=bool)
+        if hidden is None
+        else _utd_hidden(out.t_s, v.t_s, hidden)
+    )
+    camera = np.where(hide[:, None], np.nan, out.camera[:, j])
+    return out.t_s, out.chain[:, j], out.reference[:, j], camera, origin, hide
 
 
 def _filter_runs(z: np.ndarray, q: float, r: float) -> dict[str, dict]:
@@ -301,11 +403,13 @@ def _branch_fractions(modes: np.ndarray) -> dict[str, float]:
     }
 
 
-def _paper_a(data_dir: Path | None, quick: bool, advance: Callable, notes: list[str]) -> dict:
+def _paper_a(
+    data_dir: Path | None, quick: bool, split: DataSplit, advance: Callable, notes: list[str]
+) -> dict:
     from kinefuse.evaluation import evaluate
     from kinefuse.evaluation.tables import PAPER_A_RMSE_M, PAPER_A_TIME_PER_STEP_MS
 
-    motions = _cmu_motions(data_dir, CMU_TRIALS_PAPER_A, quick, notes)
+    motions = _cmu_motions(data_dir, split.cmu_trials, quick, notes)
     datasets: dict[str, list[dict]] = {"CMU (virtual IMUs)": []}
     if not quick:
         datasets["CMU (virtual IMUs, degraded AHRS)"] = []
@@ -330,9 +434,9 @@ def _paper_a(data_dir: Path | None, quick: bool, advance: Callable, notes: list[
     )
     if data_dir is not None and (Path(data_dir) / "utd_mhad").is_dir():
         utd = []
-        for inertial, skeleton in _utd_trials(Path(data_dir), quick):
+        for inertial, skeleton in _utd_trials(Path(data_dir), quick, split):
             try:
-                _, zw, rw, _, _ = _utd_wrist_chain(inertial, skeleton)
+                _, zw, rw, _, _, _ = _utd_wrist_chain(_utd_recording(inertial, skeleton))
             except InputError as exc:
                 notes.append(f"UTD-MHAD {inertial.name}: skipped ({exc})")
                 continue
@@ -347,8 +451,10 @@ def _paper_a(data_dir: Path | None, quick: bool, advance: Callable, notes: list[
             datasets["UTD-MHAD (real wrist IMU)"] = utd
             notes.append(
                 f"UTD-MHAD: {len(utd)} trials ({', '.join(u['name'] for u in utd)}); wrist = "
-                "Kinect elbow + real forearm IMU (VQF 6D, axis and camera rotation calibrated "
-                "against Kinect over the trial), resampled to 30 Hz; reference = Kinect wrist"
+                "Kinect elbow + real forearm IMU (VQF 6D, axis, camera rotation and length "
+                "calibrated against the Kinect wrist over the whole trial: paper A hides "
+                "nothing, and this Kinect wrist is also the reference), resampled to 30 Hz; "
+                "reference = Kinect wrist"
             )
         advance()
 
@@ -384,7 +490,7 @@ def _paper_a(data_dir: Path | None, quick: bool, advance: Callable, notes: list[
             tables.append(
                 _table(
                     f"Paper A {'Table 4' if test == 'elbow, test 1' else 'Table 5' if test == 'wrist, test 1' else 'test 2'}"
-                    f" layout: {test} — {ds_name}, {ref.shape[0]} samples",
+                    f" layout: {test} — {ds_name}, {split.name} set, {ref.shape[0]} samples",
                     ("Method",),
                     ("East (m)", "North (m)", "Up (m)", "Mean (m)", "@CDF 0.9 (m)"),
                     rows,
@@ -490,102 +596,132 @@ def _pooled(parts: list[dict], methods: Sequence[str], joints: Sequence[str]):
     )
 
 
-def _paper_b_cmu(data_dir, quick, advance, notes) -> list[dict]:
-    from kinefuse.pipelines.demo import run_scenario
+#: Methods also run causally in the paper-B experiment (label ``"<label> causal"``).
+PAPER_B_CAUSAL = ("kinefuse",)
+
+
+def _cmu_recording(motion, i: int):
+    """The virtual recording of the i-th CMU scenario (seeded)."""
     from kinefuse.sim import virtual_recording
 
-    motions = _cmu_motions(data_dir, CMU_TRIALS_PAPER_B, quick, notes)
+    return virtual_recording(motion, seed=_SEED + 100 + i)
+
+
+def _cmu_scenario(rec, name: str) -> dict:
+    """Paper B's methods (and the causal ones) on one virtual recording, as a pooled part."""
+    from kinefuse.pipelines import METHODS
+    from kinefuse.pipelines.demo import run_scenario
+
+    causal = tuple(m for m in PAPER_B_CAUSAL if m in METHODS)
+    sc = run_scenario(rec, paper_a=(), paper_b_causal=causal)
+    return {
+        "name": name,
+        "estimates": sc.estimates,
+        "reference": sc.reference,
+        "outage": sc.outage,
+        "run_time_s": sc.run_time_s,
+        "methods": sc.paper_b,
+        "joints": sc.joints,
+    }
+
+
+def _paper_b_cmu(data_dir, quick, split, advance, notes) -> list[dict]:
+    motions = _cmu_motions(data_dir, split.cmu_trials, quick, notes)
     parts = []
     for i, (name, motion) in enumerate(motions):
-        rec = virtual_recording(motion, seed=_SEED + 100 + i)
-        sc = run_scenario(rec, paper_a=())
-        parts.append(
-            {
-                "name": name,
-                "estimates": sc.estimates,
-                "reference": sc.reference,
-                "outage": sc.outage,
-                "run_time_s": sc.run_time_s,
-                "methods": sc.paper_b,
-                "joints": sc.joints,
-            }
-        )
+        parts.append(_cmu_scenario(_cmu_recording(motion, i), name))
         advance()
     notes.append(
         "CMU scenarios: "
         + ", ".join(p["name"] for p in parts)
         + " (nine virtual ICM-20948 IMUs, virtual Kinect at 30 Hz with occlusions and dropouts; "
+        "calibration from the camera over the first 5 s, camera-seen samples only; "
         "reference = mocap truth; positions relative to spine_shoulder)"
     )
     return parts
 
 
 def _vision_methods(methods, z_imu, z_cam, avail, params, joints):
+    """Each method (offline) and :data:`PAPER_B_CAUSAL` (causal) on arrays, by table label."""
     from kinefuse.pipelines import vision_assisted
     from kinefuse.pipelines.demo import PAPER_B_LABELS
 
     est, times = {}, {}
-    for m in methods:
+    runs = [(m, False) for m in methods] + [(m, True) for m in PAPER_B_CAUSAL if m in methods]
+    for m, causal in runs:
+        label = PAPER_B_LABELS.get(m, m) + (" causal" if causal else "")
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            res = vision_assisted(z_imu, z_cam, avail, 1.0 / 30.0, m, joints=joints, params=params)
-        times[PAPER_B_LABELS.get(m, m)] = time.perf_counter() - t0
-        est[PAPER_B_LABELS.get(m, m)] = res.position
+            res = vision_assisted(
+                z_imu, z_cam, avail, 1.0 / 30.0, m, joints=joints, params=params, causal=causal
+            )
+        times[label] = time.perf_counter() - t0
+        est[label] = res.position
     return est, times
 
 
-def _paper_b_utd(data_dir: Path, quick: bool, methods, advance, notes) -> list[dict]:
+#: ELM settings of the short UTD-MHAD trials (about 3.5 s each).
+_UTD_PARAMS = {"n_hidden": 5, "min_train": 30}
+
+
+def _utd_scenario(rec, name: str, methods) -> dict:
+    """Paper B's methods on one UTD-MHAD trial with the wrist hidden (:data:`UTD_HIDDEN`).
+
+    Everything that calibrates sees the Kinect wrist only outside the hidden window
+    (:func:`_utd_wrist_chain`); the methods get the masked camera.
+    """
     from kinefuse.pipelines import VisionParams
 
-    params = VisionParams(n_hidden=5, min_train=30)
+    t, zi, ref, cam, origin, hide = _utd_wrist_chain(rec, UTD_HIDDEN)
+    # paper B works in body-relative coordinates: relative to the Kinect spine_shoulder
+    zi, ref, cam = zi - origin, ref - origin, cam - origin
+    avail = np.all(np.isfinite(cam), axis=-1)
+    zc = np.where(avail[:, None], cam, np.nan)
+    est, times = _vision_methods(
+        methods, zi[:, None], zc[:, None], avail[:, None], VisionParams(**_UTD_PARAMS), ("wrist_r",)
+    )
+    return {
+        "name": name,
+        "estimates": est,
+        "reference": ref[:, None],
+        "outage": hide[:, None],
+        "run_time_s": times,
+        "joints": ("wrist_r",),
+    }
+
+
+def _paper_b_utd(data_dir: Path, quick: bool, split, methods, advance, notes) -> list[dict]:
     parts = []
-    for inertial, skeleton in _utd_trials(data_dir, quick):
+    for inertial, skeleton in _utd_trials(data_dir, quick, split):
+        name = inertial.name.replace("_inertial.mat", "")
         try:
-            t, zi, ref, cam, origin = _utd_wrist_chain(inertial, skeleton)
-            # paper B works in body-relative coordinates: relative to the Kinect spine_shoulder
-            zi, ref, cam = zi - origin, ref - origin, cam - origin
+            parts.append(_utd_scenario(_utd_recording(inertial, skeleton), name, methods))
         except InputError as exc:
             notes.append(f"UTD-MHAD {inertial.name}: skipped ({exc})")
-            continue
-        T = t.size
-        avail = np.all(np.isfinite(cam), axis=-1)
-        out = np.zeros(T, dtype=bool)
-        a = int(0.55 * T)
-        out[a : a + int(0.25 * T)] = True  # simulated outage: a quarter of the trial
-        avail &= ~out
-        zc = np.where(avail[:, None], cam, np.nan)
-        est, times = _vision_methods(
-            methods, zi[:, None], zc[:, None], avail[:, None], params, ("wrist_r",)
-        )
-        parts.append(
-            {
-                "name": inertial.name.replace("_inertial.mat", ""),
-                "estimates": est,
-                "reference": ref[:, None],
-                "outage": out[:, None],
-                "run_time_s": times,
-                "joints": ("wrist_r",),
-            }
-        )
     advance()
     if parts:
+        a, n = UTD_HIDDEN
         notes.append(
             f"UTD-MHAD: {len(parts)} trials; right wrist: real IMU chain (Kinect elbow + forearm "
-            "IMU, VQF 6D, calibrated against Kinect), Kinect wrist with a simulated outage "
-            "(55-80 % of each trial) as the camera, the unmasked Kinect wrist as the reference, "
-            "all relative to the Kinect spine_shoulder; "
+            "IMU, VQF 6D; forearm axis, camera rotation and length calibrated against the Kinect "
+            f"wrist outside the simulated outage only), Kinect wrist hidden over "
+            f"{100 * a:.0f}-{100 * (a + n):.0f} % of each trial as the camera, the unmasked "
+            "Kinect wrist as the reference, all relative to the Kinect spine_shoulder; "
             "ELM d = 5, minimum 30 training samples (the trials last about 3.5 s)"
         )
     return parts
 
 
-def _paper_b_neura(data_dir: Path, methods, advance, notes) -> list[dict]:
+def _neura_inputs(data_dir: Path):
+    """The Neura walk with its virtual camera: ``(recording, joints)`` (seeded).
+
+    Camera = Vicon joint centres at 30 Hz + 1 cm white noise per axis, one 0.6-1.5 s outage
+    per knee/ankle in the second half (``available`` False there).
+    """
     from dataclasses import replace
 
     from kinefuse.io import JointStream, load
-    from kinefuse.pipelines import VisionParams
-    from kinefuse.pipelines.session import process_recording
 
     root = Path(data_dir) / "neura_sparse_sample"
     rec = load(root, format="neura")
@@ -593,7 +729,6 @@ def _paper_b_neura(data_dir: Path, methods, advance, notes) -> list[dict]:
     rng = np.random.default_rng([_SEED, 3])
     joints = ("knee_l", "knee_r", "ankle_l", "ankle_r")
     names = ("hip_l", "hip_r", *joints)
-    # virtual camera from Vicon: 30 Hz, 1 cm white noise per axis, outages on knees and ankles
     t = np.arange(int(np.floor(ref.t_s[-1] * 30.0)) + 1) / 30.0
     pos = np.stack(
         [
@@ -609,11 +744,19 @@ def _paper_b_neura(data_dir: Path, methods, advance, notes) -> list[dict]:
         avail[start : start + int(rng.uniform(0.6, 1.5) * 30), j] = False
     cam = JointStream(t_s=t, position_m=pos, available=avail, joints=names, frame=ref.frame)
     imu = {k: rec.imu[k] for k in ("thigh_l", "thigh_r", "shank_l", "shank_r")}
-    rec2 = replace(rec, imu=imu, vision=cam)
+    return replace(rec, imu=imu, vision=cam), joints
+
+
+def _neura_scenario(rec, joints, methods) -> dict:
+    """Paper B's methods on the Neura walk (:func:`_neura_inputs`)."""
+    from kinefuse.pipelines import VisionParams
+    from kinefuse.pipelines.session import process_recording
+
+    cam, ref = rec.vision, rec.reference
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         out = process_recording(
-            rec2,
+            rec,
             "imu-only",
             {"calibration": "vision", "calibration_window_s": 3.0, "rate_hz": 30.0},
         )
@@ -628,7 +771,7 @@ def _paper_b_neura(data_dir: Path, methods, advance, notes) -> list[dict]:
         ],
         -1,
     )[:, None]
-    if out.t_s.size != t.size:
+    if out.t_s.size != cam.t_s.size:
         raise InputError("Neura: the camera timeline changed during processing")
     zi = out.chain[:, idx] - o_cam[:, None]
     zc = out.camera[:, idx] - o_cam[:, None]
@@ -636,24 +779,29 @@ def _paper_b_neura(data_dir: Path, methods, advance, notes) -> list[dict]:
     av = np.all(np.isfinite(zc), axis=-1)
     params = VisionParams(n_hidden=10, min_train=90)
     est, times = _vision_methods(methods, zi, zc, av, params, joints)
+    return {
+        "name": "S02-Trial-Walk-1",
+        "estimates": est,
+        "reference": rf,
+        "outage": ~av,
+        "run_time_s": times,
+        "joints": joints,
+    }
+
+
+def _paper_b_neura(data_dir: Path, methods, advance, notes) -> list[dict]:
+    rec, joints = _neura_inputs(data_dir)
+    part = _neura_scenario(rec, joints, methods)
     advance()
     notes.append(
-        "Neura walk (9.55 s): real Xsens thigh/shank IMUs, chain from the camera hips; camera = "
+        "Neura walk (9.55 s): real Xsens thigh/shank IMUs, chain from the camera hips "
+        "(calibration from the camera over the first 3 s, before any outage); camera = "
         "Vicon joint centres at 30 Hz + 1 cm white noise, one 0.6-1.5 s outage per knee/ankle "
         "in the second half; reference = Vicon; positions relative to the hip midpoint (camera "
         "for the inputs, Vicon for the reference), as paper B works chest-relative; ELM d = 10, "
         "minimum 90 training samples. Evaluation only (no parameter tuned on it)"
     )
-    return [
-        {
-            "name": "S02-Trial-Walk-1",
-            "estimates": est,
-            "reference": rf,
-            "outage": ~av,
-            "run_time_s": times,
-            "joints": joints,
-        }
-    ]
+    return [part]
 
 
 def _cdf_table(ev, title: str):
@@ -706,18 +854,156 @@ def _cdf_table(ev, title: str):
     return t, res
 
 
-def _paper_b(data_dir: Path | None, quick: bool, advance: Callable, notes: list[str]) -> dict:
+def _rmse3_pooled(ev, method: str, outage: bool) -> tuple[float, int]:
+    """3-D RMSE (m) pooled over joints inside (or outside) the outages, and its sample count."""
+    m = ev.methods.index(method)
+    e = ev.errors[m]  # (J, T)
+    sel = (ev.outage_mask.T == outage) & np.isfinite(e)
+    n = int(sel.sum())
+    return (float(np.sqrt(np.mean(e[sel] ** 2))) if n else float("nan")), n
+
+
+def _rel(a: float, b: float) -> float | None:
+    """Relative difference ``100 (a − b) / b`` (%; negative: a is lower)."""
+    return _num(100.0 * (a - b) / b) if b > 0 and np.isfinite(a) else None
+
+
+def _summary_table(ev, title: str, notes=()):
+    """Every method, 3-D RMSE pooled over joints in view and in outages, next to the baselines."""
+    n_all = max(_rmse3_pooled(ev, m, True)[1] for m in ev.methods)
+    ref = {b: _rmse3_pooled(ev, b, True)[0] for b in ("offset interp", "offset hold")}
+    rows, res = [], {}
+    for m in ev.methods:
+        out, n = _rmse3_pooled(ev, m, True)
+        inv, _ = _rmse3_pooled(ev, m, False)
+        cover = 100.0 * n / n_all if n_all else float("nan")
+        vs = [_rel(out, ref[b]) if b in ev.methods else None for b in ref]
+        rows.append(((m,), (1e3 * inv, 1e3 * out, cover, *vs), False))
+        res[m] = {
+            "rmse_3d_in_view_m": _num(inv),
+            "rmse_3d_outage_m": _num(out),
+            "outage_coverage": _num(cover / 100.0),
+            "vs_offset_interp_pct": vs[0],
+            "vs_offset_hold_pct": vs[1],
+        }
+    t = _table(
+        title,
+        ("Method",),
+        (
+            "3-D in view",
+            "3-D out",
+            "covered out %",
+            "out vs offset interp %",
+            "out vs offset hold %",
+        ),
+        rows,
+        (
+            "3-D RMSE in mm, pooled over joints and trials; 'out' = inside camera outages, "
+            "'covered out %' = share of outage samples with an estimate (camera gap-fill "
+            "bridges gaps of <= 20 frames only: its 'out' figure is over those); 'vs' = "
+            "relative difference of the 3-D outage RMSE to the baseline (negative = lower). "
+            "offset interp is offline (reads the camera after the outage), offset hold causal.",
+            *notes,
+        ),
+        digits=1,
+    )
+    return t, res
+
+
+def _in_view_table(ev, title: str, notes=()):
+    """Per joint in view: kinefuse (offline, causal) vs camera only, 3-D RMSE (mm)."""
+    rows, res = [], {}
+    ours = [m for m in ("kinefuse", "kinefuse causal") if m in ev.methods]
+    if "camera only" not in ev.methods or not ours:
+        return None, res
+    for j in ev.joints:
+        cam = ev.row("camera only", j, in_view=True)["rmse_3d"]
+        vals = [1e3 * cam]
+        for m in ours:
+            r = ev.row(m, j, in_view=True)["rmse_3d"]
+            vals += [1e3 * r, _rel(r, cam)]
+            res.setdefault(m, {})[j] = _rel(r, cam)
+        rows.append(((j,), tuple(vals), False))
+    heads = ["camera only"]
+    for m in ours:
+        heads += [m, f"{m} vs camera %"]
+    return _table(title, ("Joint",), heads, rows, notes, digits=1), res
+
+
+def _targets_table(summaries: Mapping[str, dict], split: DataSplit, in_view: Mapping[str, dict]):
+    """Issue 11's targets: kinefuse vs the best simple baseline inside outages, per data set."""
+    rows, res = [], {}
+    for ds, sm in summaries.items():
+        vals = []
+        for ours, base in (("kinefuse", "offset interp"), ("kinefuse causal", "offset hold")):
+            a, b = ((sm.get(m) or {}).get("rmse_3d_outage_m") for m in (ours, base))
+            vals += [
+                None if a is None else 1e3 * a,
+                None if b is None else 1e3 * b,
+                None if a is None or b is None else _rel(a, b),
+            ]
+        for ours in ("kinefuse", "kinefuse causal"):
+            worst = [v for v in (in_view.get(ds, {}).get(ours) or {}).values() if v is not None]
+            vals.append(max(worst) if worst else None)
+        rows.append(((ds,), tuple(vals), False))
+        res[ds] = dict(
+            zip(
+                (
+                    "kinefuse_out_mm",
+                    "offset_interp_out_mm",
+                    "offline_vs_offset_interp_pct",
+                    "kinefuse_causal_out_mm",
+                    "offset_hold_out_mm",
+                    "causal_vs_offset_hold_pct",
+                    "worst_joint_in_view_vs_camera_pct",
+                    "causal_worst_joint_in_view_vs_camera_pct",
+                ),
+                vals,
+                strict=True,
+            )
+        )
+    t = _table(
+        f"Fusion vs the simple baselines inside outages (3-D RMSE, mm) — {split.name} set",
+        ("Data",),
+        (
+            "kinefuse",
+            "offset interp",
+            "Δ %",
+            "causal",
+            "offset hold",
+            "Δ % c",
+            "view %",
+            "view % c",
+        ),
+        rows,
+        (
+            "kinefuse = offline, causal = kinefuse causal; Δ % = kinefuse vs offset interp, "
+            "Δ % c = causal vs offset hold (target, issue 11: <= -25 %); view % (c) = the worst "
+            "joint's in-view 3-D RMSE of kinefuse (causal) relative to camera only (target: "
+            "<= +5 %; UTD-MHAD: none, the in-view reference is the camera input itself).",
+            split.describe(),
+        ),
+        digits=1,
+    )
+    return t, res
+
+
+def _paper_b(
+    data_dir: Path | None, quick: bool, split: DataSplit, advance: Callable, notes: list[str]
+) -> dict:
     from kinefuse.evaluation import tables as T
+    from kinefuse.pipelines import METHODS
     from kinefuse.pipelines.demo import PAPER_B_LABELS, paper_b_methods
 
     methods = paper_b_methods()
     labels = [PAPER_B_LABELS.get(m, m) for m in methods]
-    datasets = {"CMU (virtual)": _paper_b_cmu(data_dir, quick, advance, notes)}
+    labels += [f"{PAPER_B_LABELS.get(m, m)} causal" for m in PAPER_B_CAUSAL if m in METHODS]
+    datasets = {"CMU (virtual)": _paper_b_cmu(data_dir, quick, split, advance, notes)}
     if data_dir is not None and (Path(data_dir) / "utd_mhad").is_dir():
-        utd = _paper_b_utd(Path(data_dir), quick, methods, advance, notes)
+        utd = _paper_b_utd(Path(data_dir), quick, split, methods, advance, notes)
         if utd:
             datasets["UTD-MHAD (real IMU)"] = utd
-    if data_dir is not None and (Path(data_dir) / "neura_sparse_sample").is_dir():
+    if split.neura and data_dir is not None and (Path(data_dir) / "neura_sparse_sample").is_dir():
         datasets["Neura walk (real IMUs)"] = _paper_b_neura(Path(data_dir), methods, advance, notes)
     # what the in-view figures mean where the reference is not independent of the camera
     footnotes = {
@@ -728,29 +1014,47 @@ def _paper_b(data_dir: Path | None, quick: bool, advance: Callable, notes: list[
             "error; only 'Mean out' measures accuracy against a reference the methods did not see.",
         ),
     }
-    tables, results = [], {}
+    notes.append(split.describe() + ". Calibration never sees samples inside the outages.")
+    tables, results, summaries, in_view = [], {}, {}, {}
     for ds_name, parts in datasets.items():
         joints = parts[0]["joints"]
         ev = _pooled(parts, labels, joints)
         n = sum(p["reference"].shape[0] for p in parts)
+        where = f"{ds_name}, {split.name} set"
         tables.append(
             T.joint_method_table(
                 ev,
                 paper=T.PAPER_B_RMSE_M,
                 include_outage=True,
-                title=f"Paper B Tables 3-5 layout: RMSE per joint (m) — {ds_name}, {n} samples "
+                title=f"Paper B Tables 3-5 layout: RMSE per joint (m) — {where}, {n} samples "
                 f"x {len(joints)} joints, {100 * float(np.mean(ev.outage_mask)):.0f} % in outages",
                 notes=footnotes.get(ds_name, ()),
             )
         )
-        ct, cres = _cdf_table(ev, f"Paper B CDF claims: ELM/FIR vs ELM/KF at CDF 0.9 — {ds_name}")
+        st, sres = _summary_table(
+            ev, f"3-D RMSE pooled over joints (mm) — {where}", footnotes.get(ds_name, ())
+        )
+        tables.append(st)
+        summaries[ds_name] = sres
+        vt, vres = _in_view_table(
+            ev, f"In view, 3-D RMSE per joint (mm): kinefuse vs camera only — {where}"
+        )
+        if vt is not None and ds_name != "UTD-MHAD (real IMU)":
+            tables.append(vt)
+            in_view[ds_name] = vres
+        ct, cres = _cdf_table(ev, f"Paper B CDF claims: ELM/FIR vs ELM/KF at CDF 0.9 — {where}")
         tables.append(ct)
         results[ds_name] = {
             "evaluation": ev.to_dict(),
+            "summary": sres,
+            "in_view_vs_camera_pct": vres,
             "cdf_0.9": cres,
             "trials": [p["name"] for p in parts],
+            "split": split.name,
         }
-    return {"tables": tables, "results": results}
+    tt, tres = _targets_table(summaries, split, in_view)
+    tables.append(tt)
+    return {"tables": tables, "results": results, "targets": tres}
 
 
 # --------------------------------------------------------------------------------------------
@@ -764,12 +1068,13 @@ def run_experiment(
     *,
     quick: bool | None = None,
     quiet: bool = False,
+    split: str = "report",
 ) -> dict:
     """Back-end of ``kinefuse experiment``: reproduce paper A's or paper B's experiment.
 
     Parameters
     ----------
-    name : {"paper-a", "paper-b"}
+    name : {"paper-a", "paper-b", "neura-imu-only"}
         Which experiment (see the module docstring).
     data_dir : str or Path, optional
         The shared data folder (``cmu_mocap/``, ``utd_mhad/``, ``neura_sparse_sample/``).
@@ -779,22 +1084,30 @@ def run_experiment(
         Default from the environment variable ``KINEFUSE_EXPERIMENT_QUICK`` (``1`` = quick).
     quiet : bool
         No progress bar.
+    split : {"report", "tuning"}
+        Which declared set of recordings (:data:`REPORT_SET`, default; :data:`TUNING_SET`,
+        the only one to develop on) for ``paper-a`` and ``paper-b``; every table title names
+        it. ``neura-imu-only`` ignores it (the Neura walk, evaluation only).
 
     Returns
     -------
     dict
         ``tables`` (ResultTable list, printed by the CLI), ``results`` (nested dict of every
-        number, for ``--json``), ``notes``, ``quick``, ``data_dir``, ``wall_time_s``.
+        number, for ``--json``), ``targets`` (paper-b: kinefuse vs the baselines), ``notes``,
+        ``quick``, ``data_dir``, ``split``, ``data_set`` (its recordings), ``wall_time_s``.
 
     Raises
     ------
     InputError
-        Unknown experiment or missing data folder.
+        Unknown experiment or split, or missing data folder.
     """
     from kinefuse.pipelines.demo import progress
 
     if name not in EXPERIMENTS:
         raise InputError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
+    if split not in SPLITS:
+        raise InputError(f"unknown set {split!r}; expected one of {', '.join(SPLITS)}")
+    chosen = SPLITS[split]
     if quick is None:
         quick = os.environ.get(_QUICK_ENV, "") not in ("", "0")
     if data_dir is None:
@@ -804,17 +1117,37 @@ def run_experiment(
     data_dir = None if data_dir is None else Path(data_dir)
     notes: list[str] = []
     t0 = time.perf_counter()
-    if name == "paper-a":
-        n_steps = (1 if quick else len(CMU_TRIALS_PAPER_A)) + 1 + (8 if quick else 12)
+    if name == "neura-imu-only":
+        from kinefuse.pipelines.neura_imu_only import run_neura_imu_only
+
+        if data_dir is None:
+            raise InputError("neura-imu-only: needs --data (the folder with neura_sparse_sample/)")
+        n_steps = 2
+
+        def run(d, q, split, advance, notes):
+            return run_neura_imu_only(d, advance, notes)
+
+    elif name == "paper-a":
+        n_steps = (1 if quick else len(chosen.cmu_trials)) + 1 + (8 if quick else 12)
         run = _paper_a
     else:
-        n_steps = (1 if quick else len(CMU_TRIALS_PAPER_B)) + 2
+        n_steps = (1 if quick else len(chosen.cmu_trials)) + 2
         run = _paper_b
-    with progress(f"Experiment {name}", total=n_steps, quiet=quiet) as advance:
-        out = run(data_dir, bool(quick), advance, notes)
+    paper = name in ("paper-a", "paper-b")  # neura-imu-only: the Neura walk, evaluation only
+    title = f"Experiment {name}" + (f" ({split} set)" if paper else "")
+    with progress(title, total=n_steps, quiet=quiet) as advance:
+        out = run(data_dir, bool(quick), chosen, advance, notes)
     out.update(
         notes=notes,
         quick=bool(quick),
+        split=split if paper else None,
+        data_set={
+            "cmu_trials": list(chosen.cmu_trials),
+            "utd_subjects": list(chosen.utd_subjects),
+            "neura": chosen.neura,
+        }
+        if paper
+        else None,
         data_dir=None if data_dir is None else str(data_dir),
         wall_time_s=time.perf_counter() - t0,
     )

@@ -18,6 +18,7 @@ from kinefuse._compile import njit
 from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED, SOURCE_IMU
 from kinefuse.exceptions import InputError
 from kinefuse.pipelines.features import chain_features
+from kinefuse.pipelines.offset_bridge import prequential_bridge
 
 __all__ = [
     "KinefuseResult",
@@ -916,6 +917,7 @@ def kinefuse_fusion(
     max_lag: int | None = None,
     min_history: int = 30,
     refit_every: int | None = 60,
+    bridge: bool = True,
 ) -> KinefuseResult:
     """Fuse an IMU chain and a camera with a learned, state-dependent chain-error model.
 
@@ -956,6 +958,10 @@ def kinefuse_fusion(
         correction is zero and the noise parameters are the conservative prior (Notes).
     refit_every : int or None
         Causal mode: also refit every this many samples (None: only at outage onsets).
+    bridge : bool
+        Causal mode: inside outages output the prequentially chosen offset bridge
+        (:func:`kinefuse.pipelines.offset_bridge.prequential_bridge`, Notes "Causal outage
+        bridge") instead of the filter's prediction (default True).
 
     Returns
     -------
@@ -1026,6 +1032,16 @@ def kinefuse_fusion(
     Before the first refit the prior parameters are used with no correction; outputs in
     outages before any camera-seen history are the (smoothed) chain, ``SOURCE_IMU``.
 
+    **Causal outage bridge** (``bridge=True``): inside an outage that starts after at least
+    ``min_history`` camera-seen samples, the output is the chain (raw, or corrected by the
+    causal f̂) plus the smoothed last camera-chain offset decaying towards that chain,
+    ``z_t + exp(−h/τ_d) ē_{τ_s}``, with the chain and (τ_s, τ_d) chosen at the onset by the mean squared error of that predictor on all complete
+    pairs ``(s, s + h)``, ``h <= 2 s``, of the camera-seen history (prequential selection;
+    candidates include the chain alone and the held offset); the covariance is that
+    predictor's historical error at the horizon h. Developed on the tuning set (issue 11):
+    there the filter's own prediction decayed the chain error with a prior time constant and
+    was no better than the chain alone, and a held offset carries the camera's noise.
+
     Deviations from the papers
     --------------------------
     Not in paper A or B: a third method of this package. It replaces paper B's IMM of two
@@ -1081,6 +1097,16 @@ def kinefuse_fusion(
             n_refits.append(n)
         pos[:, j] = m[..., 0].T
         cov[:, j, range(3), range(3)] = P[..., 0, 0].T
+        if causal and bridge:
+            bp, bv, choices = prequential_bridge(
+                (zi[:, j], zi[:, j] + corr), zc[:, j], seen, min_history=min_history
+            )
+            rows = np.flatnonzero(np.all(np.isfinite(bp), axis=-1))
+            pos[rows, j] = bp[rows]
+            cov[rows, j] = 0.0
+            ax = np.arange(3)
+            cov[rows[:, None], j, ax, ax] = bv[rows]
+            last["bridge"] = choices
         bias[:, j] = m[..., 2].T
         corr_all[:, j] = corr
         params.append(last)

@@ -102,7 +102,15 @@ SEGMENT_JOINTS = {
 
 _FILTERS = ("none", "kf", "fir", "em-kf", "em-kf-fir")
 _CALIBRATIONS = ("static", "reference", "vision", "none")
-_CAMERA_METHODS = ("elm-fir", "elm-kf", "camera-only", "kinefuse")
+_CAMERA_METHODS = (
+    "elm-fir",
+    "elm-kf",
+    "camera-only",
+    "kinefuse",
+    "offset-interp",
+    "offset-hold",
+    "camera-gapfill",
+)
 _PAPER_A_KEYS = ("q", "r", "horizon", "threshold1", "threshold2", "n_em_iter")
 _VISION_KEYS = (
     "q",
@@ -142,6 +150,9 @@ _METHOD_LABELS = {
     "imu-only": "IMU only",
     "camera-only": "camera only",
     "kinefuse": "kinefuse",
+    "offset-interp": "offset interp",
+    "offset-hold": "offset hold",
+    "camera-gapfill": "camera gap-fill",
 }
 
 
@@ -180,6 +191,10 @@ class SessionOutput:
         Bones between output joints (report skeleton).
     notes : list of str
         What was done (calibration, lengths, alignments) and warnings.
+    baselines : dict of str -> ndarray, shape (T, J, 3)
+        With a camera method: the simple baselines on the same chain and camera, by table
+        label (``offset interp``, ``offset hold``, ``camera gap-fill``;
+        :func:`kinefuse.pipelines.vision_assisted`), m, same frame.
     """
 
     t_s: np.ndarray
@@ -197,6 +212,7 @@ class SessionOutput:
     run_time_s: float = float("nan")
     edges: tuple[tuple[str, str], ...] = ()
     notes: list[str] = field(default_factory=list)
+    baselines: dict[str, np.ndarray] = field(default_factory=dict)
 
     def evaluation(self):
         """Metrics of the method, the unfiltered IMU chain and the camera vs the reference.
@@ -221,6 +237,7 @@ class SessionOutput:
             and not np.array_equal(self.camera, self.reference, equal_nan=True)
         ):
             est["camera"] = self.camera
+        est.update({k: v for k, v in self.baselines.items() if k != self.label})
         outage = None
         if self.camera is not None:
             outage = ~np.all(np.isfinite(self.camera), axis=-1)
@@ -251,15 +268,27 @@ def _format_name(fmt: str, section: str, source: str) -> str:
     return key
 
 
-def _load(path: Path, fmt: str, section: str, source: str, strict_units: bool, pair=None):
-    """``kinefuse.io.load`` with session context in every error and unit checks escalated."""
+def _load(
+    path: Path, fmt: str, section: str, source: str, strict_units: bool, pair=None, options=None
+):
+    """``kinefuse.io.load`` with session context in every error and unit checks escalated.
+
+    ``options`` (the section's ``[<section>.reader]`` table) go to the reader as keywords.
+    """
     from kinefuse.exceptions import FormatError
     from kinefuse.io import load
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", UnitWarning)
         try:
-            rec = load(path if pair is None else (path, pair), format=fmt)
+            rec = load(path if pair is None else (path, pair), format=fmt, **(options or {}))
+        except TypeError as exc:
+            if "keyword argument" not in str(exc):
+                raise
+            raise ConfigError(
+                f"{source}: [{section}.reader]: {exc} (see the {fmt!r} reader's parameters in "
+                "docs/formats.md)"
+            ) from None
         except FileNotFoundError as exc:
             raise ConfigError(f"{source}: [{section}] path: {exc}") from None
         except FormatError as exc:
@@ -312,7 +341,7 @@ def load_streams(cfg, *, strict_units: bool = True):
     pair = None
     if fmt == "utd_mhad" and cam_fmt == "utd_mhad":
         pair = cfg.camera.path  # one trial: inertial + skeleton, timed together
-    rec, msgs = _load(cfg.imu.path, fmt, "imu", src, strict_units, pair)
+    rec, msgs = _load(cfg.imu.path, fmt, "imu", src, strict_units, pair, cfg.imu.reader)
     notes += msgs
     if not rec.imu:
         raise ConfigError(f"{src}: [imu] path: the file holds no IMU data ({cfg.imu.path.name})")
@@ -340,7 +369,9 @@ def load_streams(cfg, *, strict_units: bool = True):
         if pair is not None:
             vision = rec.vision
         else:
-            crec, msgs = _load(cfg.camera.path, cam_fmt, "camera", src, strict_units)
+            crec, msgs = _load(
+                cfg.camera.path, cam_fmt, "camera", src, strict_units, options=cfg.camera.reader
+            )
             notes += msgs
             vision = crec.vision if crec.vision is not None else crec.reference
         if vision is None:
@@ -356,7 +387,14 @@ def load_streams(cfg, *, strict_units: bool = True):
     reference = None
     if cfg.reference is not None:
         ref_fmt = _format_name(cfg.reference.format, "reference", src)
-        rrec, msgs = _load(cfg.reference.path, ref_fmt, "reference", src, strict_units)
+        rrec, msgs = _load(
+            cfg.reference.path,
+            ref_fmt,
+            "reference",
+            src,
+            strict_units,
+            options=cfg.reference.reader,
+        )
         notes += msgs
         reference = rrec.reference if rrec.reference is not None else rrec.vision
         if reference is None:
@@ -788,6 +826,8 @@ def process_recording(
     else:
         _vision(out, recording, chain, camera, dt, method, params, cal)
     out.run_time_s = time.perf_counter() - t0
+    if method in _CAMERA_METHODS and out.camera is not None:
+        out.baselines = _baselines(out.chain, out.camera, dt, out.joints)
     if (
         reference is not None
         and recording.reference.frame != frame
@@ -907,6 +947,30 @@ def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, ca
         f"paper B pipeline {method!r} per joint (Xu 2023, SPEC §10.3) on the IMU chain and the "
         "camera joints"
     )
+
+
+def _baselines(chain, camera, dt, joints) -> dict[str, np.ndarray]:
+    """The simple baselines (offset interp / hold, camera gap-fill) on one chain and camera."""
+    from kinefuse.pipelines import vision_assisted
+    from kinefuse.pipelines.demo import BASELINE_METHODS
+
+    avail = np.all(np.isfinite(camera), axis=-1)
+    keep = [j for j in range(len(joints)) if np.any(np.all(np.isfinite(chain[:, j]), axis=-1))]
+    out = {}
+    for m in BASELINE_METHODS:
+        pos = np.full(chain.shape, np.nan)
+        if keep:
+            res = vision_assisted(
+                chain[:, keep],
+                camera[:, keep],
+                avail[:, keep],
+                dt,
+                m,
+                joints=[joints[j] for j in keep],
+            )
+            pos[:, keep] = res.position
+        out[_METHOD_LABELS[m]] = pos
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -1038,6 +1102,8 @@ def _trajectory(out: SessionOutput, label: str) -> np.ndarray:
         return out.position
     if label == "camera":
         return out.camera
+    if label in out.baselines:
+        return out.baselines[label]
     return out.chain
 
 

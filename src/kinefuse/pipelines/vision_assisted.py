@@ -37,6 +37,7 @@ from kinefuse.models import LinearGaussianModel, constant_velocity
 from kinefuse.pipelines._outages import (
     SOURCE_NONE,
     OutageEpisode,
+    available_runs,
     find_episodes,
     interpolate_gaps,
     outage_intervals,
@@ -45,7 +46,9 @@ from kinefuse.pipelines._outages import (
 )
 
 __all__ = [
+    "GAPFILL_MAX_SAMPLES",
     "METHODS",
+    "OFFSET_HOLD_SAMPLES",
     "SOURCE_NONE",
     "FusionResult",
     "OutageEpisode",
@@ -373,6 +376,114 @@ def _camera_only(ctx: _Context) -> FusionResult:
     return _finish(ctx, pos, cov, src, causal=False)
 
 
+#: Longest camera gap (samples) ``"camera-gapfill"`` bridges by linear interpolation: 20 frames
+#: (0.67 s at 30 Hz). Pose2Sim's ``interp_gap_smaller_than`` does the same (its default is 10).
+GAPFILL_MAX_SAMPLES = 20
+#: Number of last camera-seen samples whose mean chain offset ``"offset-hold"`` holds.
+OFFSET_HOLD_SAMPLES = 5
+
+
+def _imu_rows(ctx: _Context, j: int) -> np.ndarray:
+    return np.all(np.isfinite(ctx.z_imu[j]), axis=-1)
+
+
+def _offset_interp(ctx: _Context) -> FusionResult:
+    """Baseline ``"offset-interp"`` (offline): IMU chain + interpolated camera-chain offset.
+
+    Per joint, the offset ``d_t = z^V_t − z^I_t`` at the camera-seen samples is interpolated
+    linearly across each outage (held constant before the first and after the last seen
+    sample) and added to the chain: ``out_t = z^I_t + d̂_t``. Where the camera sees the joint
+    the output is the camera itself (source CAMERA); elsewhere source BRIDGED (IMU where the
+    camera never sees the joint: ``d̂ = 0``). Reads the camera after each outage: never causal.
+    The simplest fusion a skeptic would try: it assumes the chain error is constant or drifts
+    linearly through an outage. Covariance: ``R_V`` in view, ``R_I`` in outages (nominal).
+    """
+    pos, cov, src = _output(ctx)
+    J, T = ctx.shape
+    t = np.arange(T)
+    R_V, R_I = np.asarray(ctx.params.r_cam), np.asarray(ctx.params.r_imu)
+    for j in range(J):
+        ok_i = _imu_rows(ctx, j)
+        seen = ctx.available[j] & ok_i
+        idx = np.flatnonzero(seen)
+        off = np.zeros((T, 3))
+        if idx.size:
+            d = ctx.z_cam[j, idx] - ctx.z_imu[j, idx]
+            for k in range(3):
+                off[:, k] = np.interp(t, idx, d[:, k])
+        pos[j] = ctx.z_imu[j] + off
+        pos[j, seen] = ctx.z_cam[j, seen]
+        src[j, ok_i] = SOURCE_BRIDGED if idx.size else SOURCE_IMU
+        src[j, seen] = SOURCE_CAMERA
+        cov[j, ok_i] = R_I
+        cov[j, seen] = R_V
+    return _finish(ctx, pos, cov, src, causal=False)
+
+
+def _offset_hold(ctx: _Context) -> FusionResult:
+    """Baseline ``"offset-hold"`` (causal): IMU chain + the last seen camera-chain offset.
+
+    Where the camera sees the joint the output is the camera (source CAMERA). In an outage it
+    is the chain plus the mean offset ``z^V − z^I`` of the last :data:`OFFSET_HOLD_SAMPLES` (5)
+    camera-seen samples before it (source BRIDGED); before the first camera sample the chain
+    alone (source IMU). Every output at t reads inputs up to t only. The simplest causal
+    bridge a skeptic would try (it holds the chain error constant through the outage).
+    """
+    pos, cov, src = _output(ctx)
+    J, T = ctx.shape
+    R_V, R_I = np.asarray(ctx.params.r_cam), np.asarray(ctx.params.r_imu)
+    n = OFFSET_HOLD_SAMPLES
+    for j in range(J):
+        ok_i = _imu_rows(ctx, j)
+        seen = ctx.available[j] & ok_i
+        idx = np.flatnonzero(seen)
+        pos[j] = ctx.z_imu[j]
+        src[j, ok_i] = SOURCE_IMU
+        cov[j, ok_i] = R_I
+        if idx.size:
+            d = ctx.z_cam[j, idx] - ctx.z_imu[j, idx]
+            c = np.concatenate([np.zeros((1, 3)), np.cumsum(d, axis=0)])
+            m = np.arange(1, idx.size + 1)  # seen samples so far, at each seen sample
+            lo = np.maximum(m - n, 0)
+            mean = (c[m] - c[lo]) / (m - lo)[:, None]  # mean of the last <= n offsets
+            last = np.searchsorted(idx, np.arange(T), side="right") - 1  # last seen <= t
+            gap = ok_i & ~seen & (last >= 0)
+            pos[j, gap] = ctx.z_imu[j, gap] + mean[last[gap]]
+            src[j, gap] = SOURCE_BRIDGED
+        pos[j, seen] = ctx.z_cam[j, seen]
+        src[j, seen] = SOURCE_CAMERA
+        cov[j, seen] = R_V
+    return _finish(ctx, pos, cov, src, causal=True)
+
+
+def _camera_gapfill(ctx: _Context) -> FusionResult:
+    """Baseline ``"camera-gapfill"`` (offline): camera only, short gaps interpolated.
+
+    The camera positions where available (source CAMERA); gaps of at most
+    :data:`GAPFILL_MAX_SAMPLES` (20) samples between two camera samples are filled by linear
+    interpolation (source BRIDGED), as Pose2Sim's ``interp_gap_smaller_than`` does; longer gaps
+    and the samples before the first / after the last camera sample have no estimate (NaN,
+    :data:`SOURCE_NONE`), so its outage figures cover the short gaps only. The gap filling
+    users already have with a camera-only pipeline; reads the next camera sample: not causal.
+    """
+    pos, cov, src = _output(ctx)
+    J, T = ctx.shape
+    R_V = np.asarray(ctx.params.r_cam)
+    for j in range(J):
+        av = ctx.available[j]
+        pj, filled = interpolate_gaps(ctx.z_cam[j], av)
+        g_s, g_e = available_runs(~av)
+        for a, e in zip(g_s, g_e, strict=True):
+            if a == 0 or e == T or e - a > GAPFILL_MAX_SAMPLES:
+                filled[a:e] = False
+        keep = av | filled
+        pos[j, keep] = pj[keep]
+        src[j, av] = SOURCE_CAMERA
+        src[j, filled] = SOURCE_BRIDGED
+        cov[j, keep] = R_V
+    return _finish(ctx, pos, cov, src, causal=False)
+
+
 def _elm_bridge(ctx: _Context, kind: str) -> FusionResult:
     """Paper B pipeline with FIR-1..3 = UFIR (``kind="fir"``) or KF (``kind="kf"``)."""
     p = ctx.params
@@ -534,6 +645,9 @@ METHODS: dict[str, Callable[[_Context], FusionResult]] = {
     "imu-only": _imu_only,
     "camera-only": _camera_only,
     "kinefuse": _kinefuse,
+    "offset-interp": _offset_interp,
+    "offset-hold": _offset_hold,
+    "camera-gapfill": _camera_gapfill,
 }
 
 
@@ -590,7 +704,7 @@ def _check_inputs(z_imu, z_cam, available, dt_s, method, joints, features):
         )
     if av.shape != (T, J):
         raise InputError(f"expected available with shape (T, J) = {(T, J)}, got {av.shape}")
-    if method not in ("camera-only",):
+    if method not in ("camera-only", "camera-gapfill"):
         bad = ~np.any(np.all(np.isfinite(zi), axis=-1), axis=0)
         if np.any(bad):
             raise InputError(
@@ -658,7 +772,9 @@ def vision_assisted(
         ``"elm-fir"`` (paper B), ``"elm-kf"`` (paper B's comparator: KFs with the same Q, R in
         place of FIR-1..3), ``"imu-only"`` (FIR-1 everywhere), ``"camera-only"`` (camera where
         available, linear interpolation across gaps, the last value held after the last camera
-        sample, NaN before the first); further methods via :func:`register_method`.
+        sample, NaN before the first); the baselines ``"offset-interp"`` (offline),
+        ``"offset-hold"`` (causal) and ``"camera-gapfill"`` (gaps <= 20 samples) and
+        ``"kinefuse"`` (:data:`METHODS`); further methods via :func:`register_method`.
     joints : sequence of str, optional
         Joint names (default ``joint_0 ...``).
     causal : bool

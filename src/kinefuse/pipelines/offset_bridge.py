@@ -1,0 +1,190 @@
+"""Causal outage bridge of ``"kinefuse"``: the chain plus a decaying offset, chosen prequentially.
+
+During a camera outage a causal method has the IMU chain and the past only. The chain error
+``e_t = z^V_t − z^I_t`` is neither constant (a held offset adds the camera's noise and goes stale)
+nor zero (a biased chain): :func:`prequential_bridge` predicts it as a smoothed last offset that
+decays towards the chain, ``ê_{a−1+h} = φ_d^h · ē_{a−1}``, and chooses the smoothing and the
+decay at each outage onset by their predictive error on the camera-seen history (prequential
+model selection, Dawid 1984), which also gives the covariance per horizon.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.signal
+
+__all__ = [
+    "BRIDGE_DECAY_SAMPLES",
+    "BRIDGE_HORIZON",
+    "BRIDGE_SMOOTH_SAMPLES",
+    "BRIDGE_VAR_WINDOW",
+    "prequential_bridge",
+]
+
+#: Time constants (samples) of the EWMA that smooths the camera-chain offset.
+BRIDGE_SMOOTH_SAMPLES = (1.0, 3.0, 10.0, 30.0, 100.0)
+#: Decay time constants (samples) of the held offset; 0 = no offset (the chain alone), inf = hold.
+BRIDGE_DECAY_SAMPLES = (0.0, 3.0, 10.0, 30.0, 100.0, 300.0, np.inf)
+#: Largest horizon (samples) over which candidates are scored: 60 = 2 s at 30 Hz.
+BRIDGE_HORIZON = 60
+#: Most recent history (samples) the predictive variance per horizon is computed from, so that
+#: the cost per onset stays bounded on long recordings (3000 = 100 s at 30 Hz).
+BRIDGE_VAR_WINDOW = 3000
+
+
+def _ewma(e: np.ndarray, seen: np.ndarray, tau: float) -> np.ndarray:
+    """Causal EWMA over the seen rows of ``e (T, 3)``, held through gaps; NaN before the first."""
+    T = e.shape[0]
+    out = np.full((T, 3), np.nan)
+    idx = np.flatnonzero(seen)
+    if idx.size == 0:
+        return out
+    a = 1.0 - np.exp(-1.0 / tau)
+    x = e[idx]
+    # m_k = m_{k-1} + a (x_k − m_{k-1}), m_0 = x_0
+    m, _ = scipy.signal.lfilter([a], [1.0, a - 1.0], x[1:], axis=0, zi=((1 - a) * x[:1]))
+    m = np.concatenate([x[:1], m])
+    last = np.searchsorted(idx, np.arange(T), side="right") - 1
+    ok = last >= 0
+    out[ok] = m[last[ok]]
+    return out
+
+
+def _weights(tau_d: float, h: np.ndarray) -> np.ndarray:
+    if tau_d == 0:
+        return np.zeros(h.shape)
+    if np.isinf(tau_d):
+        return np.ones(h.shape)
+    return np.exp(-h / tau_d)
+
+
+def prequential_bridge(
+    z_imu,
+    z_cam: np.ndarray,
+    seen: np.ndarray,
+    *,
+    min_history: int = 30,
+    horizon: int = BRIDGE_HORIZON,
+):
+    """Causal outage bridge of one joint: ``z^I + φ_d^h ē``, chosen on the seen history.
+
+    Parameters
+    ----------
+    z_imu : ndarray, shape (T, 3), or sequence of them
+        IMU-chain positions, m; NaN rows = missing. Several: alternative bases (e.g. the raw
+        and the corrected chain, each value at t computed from data up to t), all scored.
+    z_cam : ndarray, shape (T, 3)
+        Camera positions, m (read only where ``seen``).
+    seen : ndarray of bool, shape (T,)
+        Camera available (and chain finite).
+    min_history : int
+        Seen samples needed before an onset to bridge it (else it is left out).
+    horizon : int
+        H, largest horizon of the score, samples.
+
+    Returns
+    -------
+    position : ndarray, shape (T, 3)
+        Bridged positions inside the bridged outages (from each onset to the next seen
+        sample), NaN elsewhere.
+    var : ndarray, shape (T, 3)
+        Per-axis predictive variance, m²: the chosen candidate's mean squared prediction error
+        at that horizon (beyond H: at H) over the last :data:`BRIDGE_VAR_WINDOW` samples.
+    choices : list of (int, int, float, float)
+        Per bridged onset ``(a, base, τ_s, τ_d)``: onset, index of the chosen base, time
+        constants in samples.
+
+    Notes
+    -----
+    Candidates: ``ē = EWMA_{τ_s}`` of ``e = z^V − z^I`` over the seen samples (held through
+    gaps), decayed with ``w_h = exp(−h / τ_d)`` (grids :data:`BRIDGE_SMOOTH_SAMPLES`,
+    :data:`BRIDGE_DECAY_SAMPLES`; ``τ_d = 0`` is the chain alone, ``∞`` holds the offset).
+    Score at onset a: the mean over the pairs ``(s, s + h)``, ``1 <= h <= H``, both seen and
+    ``s + h < a``, of ``|e_{s+h} − w_h ē_s|²``; each pair enters once it is complete, so the
+    choice at a uses samples before a only (causal). The camera's white noise adds the same
+    amount to every candidate's score and does not bias the choice.
+    """
+    bases = [np.asarray(z_imu, dtype=float)] if np.ndim(z_imu) == 2 else list(z_imu)
+    T = bases[0].shape[0]
+    for b in bases:
+        seen = seen & np.all(np.isfinite(b), axis=-1)
+    pos = np.full((T, 3), np.nan)
+    var = np.full((T, 3), np.nan)
+    onsets = np.flatnonzero(~seen[1:] & seen[:-1]) + 1
+    n_seen = np.cumsum(seen)
+    onsets = onsets[n_seen[onsets - 1] >= min_history]
+    if onsets.size == 0:
+        return pos, var, []
+    h_all = np.arange(1, horizon + 1)
+    errs = [np.where(seen[:, None], z_cam - b, np.nan) for b in bases]
+    smooth = [{ts: _ewma(e, seen, ts) for ts in BRIDGE_SMOOTH_SAMPLES} for e in errs]
+    # |e_{s+h} − w_h ē_s|² = |e_{s+h}|² − 2 w_h e_{s+h}·ē_s + w_h² |ē_s|²: the three terms per h
+    # once per (base, τ_s) and h, weighted for all decays at once
+    decays = [td for td in BRIDGE_DECAY_SAMPLES if td != 0]
+    W = np.array([_weights(td, h_all) for td in decays])  # (D, H)
+    cands, cum_sse, cum_n = [], [], []
+    for i, e in enumerate(errs):
+        e0 = np.where(np.isfinite(e), e, 0.0)
+        for ts in BRIDGE_SMOOTH_SAMPLES:
+            eb = smooth[i][ts]
+            eb0 = np.where(np.isfinite(eb), eb, 0.0)
+            okb = np.all(np.isfinite(eb), axis=-1)
+            a_sum = np.zeros(T)
+            sse = np.zeros((len(decays), T))
+            n = np.zeros(T)
+            for k, h in enumerate(h_all):
+                if h >= T:
+                    break
+                m = seen[h:] & okb[:-h]  # pair (s, s + h) complete at s + h
+                a_k = np.where(m, np.sum(e0[h:] ** 2, -1), 0.0)
+                b_k = np.where(m, np.sum(e0[h:] * eb0[:-h], -1), 0.0)
+                c_k = np.where(m, np.sum(eb0[:-h] ** 2, -1), 0.0)
+                a_sum[h:] += a_k
+                sse[:, h:] += a_k - 2.0 * W[:, k, None] * b_k + W[:, k, None] ** 2 * c_k
+                n[h:] += m
+            n = np.cumsum(n)
+            if ts == BRIDGE_SMOOTH_SAMPLES[0]:  # the chain alone (τ_d = 0) does not depend on τ_s
+                cands.append((i, ts, 0.0))
+                cum_sse.append(np.cumsum(a_sum))
+                cum_n.append(n)
+            for d, td in enumerate(decays):
+                cands.append((i, ts, td))
+                cum_sse.append(np.cumsum(sse[d]))
+                cum_n.append(n)
+    cum_sse, cum_n = np.array(cum_sse), np.array(cum_n)
+    choices = []
+    for a in onsets:
+        score = cum_sse[:, a - 1] / np.maximum(cum_n[:, a - 1], 1.0)
+        score[cum_n[:, a - 1] == 0] = np.inf
+        i, ts, td = cands[int(np.argmin(score))]
+        nxt = np.flatnonzero(seen[a:])
+        end = a + (int(nxt[0]) if nxt.size else T - a)
+        hh = np.arange(1, end - a + 1)
+        e, eb = errs[i], smooth[i][ts]
+        pos[a:end] = bases[i][a:end] + _weights(td, hh)[:, None] * eb[a - 1]
+        # predictive variance per horizon from the history of the chosen candidate
+        w = _weights(td, h_all)
+        mse = np.full((horizon, 3), np.nan)
+        lo = max(a - BRIDGE_VAR_WINDOW, 0)
+        for k, h in enumerate(h_all):
+            if h >= a - lo:
+                break
+            r = e[lo + h : a] - w[k] * eb[lo : a - h]
+            ok = np.all(np.isfinite(r), axis=-1)
+            if np.any(ok):
+                mse[k] = np.mean(r[ok] ** 2, axis=0)
+        mse = _fill_forward(mse)
+        var[a:end] = mse[np.minimum(hh, horizon) - 1]
+        choices.append((int(a), int(i), float(ts), float(td)))
+    return pos, var, choices
+
+
+def _fill_forward(m: np.ndarray) -> np.ndarray:
+    """Rows that are NaN take the last finite row (the first finite one before it)."""
+    ok = np.all(np.isfinite(m), axis=-1)
+    if not np.any(ok):
+        return m
+    idx = np.where(ok, np.arange(m.shape[0]), -1)
+    idx = np.maximum.accumulate(idx)
+    idx[idx < 0] = int(np.flatnonzero(ok)[0])
+    return m[idx]
