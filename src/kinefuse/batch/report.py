@@ -165,7 +165,7 @@ def write_study_report(out_dir: str | Path, study, results: Sequence[Mapping]) -
         )
 
     has_outage = any(
-        r["subset"] == "outage" and r["value"] is not None
+        r["subset"] == "outage" and r["metric"] == "n_samples" and (r["value"] or 0) > 0
         for res in results
         for r in res.get("rows") or ()
     )
