@@ -186,12 +186,11 @@ def _schedule(
         )
 
     live = {}
-    cold = not _kernels_cached()
     queue = list(pending)
-    if cold and queue:  # compile once in one worker; the others then load the cache
-        first = queue.pop(0)
-        live[submit(first)] = first.key
-        wait(list(live))
+    held: list = []
+    if len(queue) > 1 and not _kernels_cached():
+        # compile once in one worker; the others are submitted when it is done and load the cache
+        held, queue = queue[1:], queue[:1]
     for t in queue:
         live[submit(t)] = t.key
     failed = sum(1 for r in results.values() if r["status"] == "failed")
@@ -239,6 +238,10 @@ def _schedule(
                 failed += 1
             if on_event:
                 on_event("finished", key)
+        if held and pending[0].key not in live.values():
+            for t in held:
+                live[submit(t)] = t.key
+            held = []
         running = 0
         try:
             running = sum(len(v) for v in client.processing().values())
