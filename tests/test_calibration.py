@@ -129,8 +129,10 @@ def test_static_n_pose_recovers_mounting():
     rng = np.random.default_rng(1)
     imu = {}
     for s in LENGTHS:
-        # segment hangs straight down (segment axis -z), heading arbitrary, small sway noise
-        sway = Rotation.from_rotvec(0.01 * rng.standard_normal((T, 3)))
+        # segment hangs straight down (segment axis -z), heading arbitrary, slow postural sway
+        # of 0.005 rad (white jitter would not pass the still-window test, by design)
+        ph = rng.uniform(0, 2 * np.pi, 3)
+        sway = Rotation.from_rotvec(0.005 * np.sin(2 * np.pi * 0.3 * t[:, None] + ph))
         seg = Rotation.from_euler("z", rng.uniform(-180, 180), degrees=True) * sway
         imu[s] = ImuStream(t_s=t, q_world_from_sensor=(seg * mount[s]).as_quat(scalar_first=True))
     cal = calibrate(Recording(imu=imu), lower_body(lengths=LENGTHS), "static", window_s=1.0)

@@ -225,7 +225,11 @@ def test_neura_session(shared_data, tmp_path):
     summary = run_session(SESSIONS / "neura_walk.toml", tmp_path)
     ev = summary["evaluation"]
     assert ev.joints == ("knee_l", "knee_r", "ankle_l", "ankle_r")
-    assert ev.methods == ("EM-KF/FIR", "IMU chain")
+    tag = " [calibrated on reference, lengths from reference]"
+    assert ev.methods == ("EM-KF/FIR" + tag, "IMU chain" + tag)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["provenance"]["calibration"] == "reference"
+    assert metrics["provenance"]["labels"] == tag.strip()
     chain = ev.mean_rmse[1]
     # real Xsens chain from the Vicon hips: about 1-2 cm (regression bound, not tuned)
     assert np.all(chain < 0.04), chain
@@ -246,17 +250,28 @@ def test_utd_mhad_session(shared_data, tmp_path):
 
 def test_evaluate_recording_neura(shared_data):
     path = shared_data / "neura_sparse_sample" / "vicon" / "S02-Trial-Walk-1.csv"
-    ev = evaluate_recording(path, "imu-only")
-    assert ev.methods == ("IMU only",)
+    # the reference is evaluation-only: no lengths from it unless asked ...
+    with pytest.raises(InputError, match=r"no length for segment\(s\) \['thigh_l'"):
+        evaluate_recording(path, "imu-only")
+    # ... and body height gives no foot length (no ratio): the error names them
+    with pytest.raises(InputError, match=r"\['foot_l', 'foot_r'\] have no anthropometric ratio"):
+        evaluate_recording(path, "imu-only", body_height_m=1.75)
+    # calibrating on the reference must be asked for, and is labelled
+    ev = evaluate_recording(path, "imu-only", calibration="reference")
+    tag = " [calibrated on reference, lengths from reference]"
+    assert ev.methods == ("IMU only" + tag,)
     # every limb IMU of the recording: thighs, shanks and feet (toe points from Vicon)
     assert set(ev.joints) == {"knee_l", "knee_r", "ankle_l", "ankle_r", "foot_l", "foot_r"}
     legs = [ev.joints.index(j) for j in ("knee_l", "knee_r", "ankle_l", "ankle_r")]
     assert np.all(ev.mean_rmse[0, legs] < 0.04), ev.mean_rmse
     assert np.all(ev.mean_rmse < 0.1), ev.mean_rmse
-    res = runner.invoke(cli.app, ["evaluate", str(path), "--method", "paper-a", "--json", "-"])
+    res = runner.invoke(
+        cli.app,
+        ["evaluate", str(path), "--method", "paper-a", "--calibration", "reference", "--json", "-"],
+    )
     assert res.exit_code == 0, (res.output, _err(res))
     data = json.loads(res.output)
-    assert data["methods"][0] == "EM-KF/FIR"
+    assert data["methods"][0] == "EM-KF/FIR" + tag
 
 
 def test_evaluate_recording_camera_method_without_camera(shared_data):

@@ -485,7 +485,12 @@ def init_session(
 @_guarded
 def evaluate(
     recording: Annotated[
-        Path, typer.Argument(metavar="RECORDING", help="Recording with a reference (ground truth).")
+        Path,
+        typer.Argument(
+            metavar="RECORDING",
+            help="Recording with a reference (ground truth): a file or a dataset folder, "
+            "anything kinefuse.io.load reads.",
+        ),
     ],
     method: Annotated[
         str,
@@ -496,18 +501,81 @@ def evaluate(
             help="Method to evaluate (see `kinefuse init-session` for the names).",
         ),
     ],
+    fmt: Annotated[
+        str | None,
+        typer.Option(
+            "--format",
+            metavar="FORMAT",
+            help="Reader (a kinefuse.io.FORMATS name; default: detected).",
+        ),
+    ] = None,
+    calibration: Annotated[
+        str,
+        typer.Option(
+            "--calibration",
+            metavar="METHOD",
+            help="static (default, a still pose in the IMU data), functional, vision, or "
+            "reference (then every table is labelled 'calibrated on reference').",
+        ),
+    ] = "static",
+    root: Annotated[
+        str,
+        typer.Option(
+            "--root",
+            metavar="ROOT",
+            help="Where the chain starts: reference (default: the root joints as the "
+            "reference measures them), vision, fixed or pelvis.",
+        ),
+    ] = "reference",
+    align: Annotated[
+        str,
+        typer.Option(
+            "--align",
+            metavar="none|rigid",
+            help="rigid: Kabsch-align the estimates to the reference before scoring (labelled).",
+        ),
+    ] = "none",
+    body_height: Annotated[
+        float | None,
+        typer.Option(
+            "--body-height",
+            metavar="M",
+            help="Body height in m, for segment lengths from Winter (2009) ratios.",
+        ),
+    ] = None,
     quiet: _Quiet = False,
     json_file: _Json = None,
 ) -> None:
     """Run one method on a recording and print RMSE tables against its reference."""
-    from kinefuse.session import METHODS
+    from kinefuse.io import FORMATS
+    from kinefuse.session import CALIBRATIONS, METHODS, ROOTS
 
-    _existing_file(recording, "RECORDING")
+    if not recording.exists():
+        raise InputError(f"RECORDING {recording}: file not found (a file or a dataset folder)")
     if method not in METHODS:
         raise InputError(
             f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}"
         )
-    summary = _backend("evaluate")(recording, method)
+    if fmt is not None and fmt not in FORMATS:
+        raise InputError(
+            f"--format: unknown format {fmt!r}; expected one of {', '.join(sorted(FORMATS))}"
+        )
+    for opt, value, choices in (
+        ("--calibration", calibration, CALIBRATIONS),
+        ("--root", root, ROOTS),
+        ("--align", align, ("none", "rigid")),
+    ):
+        if value not in choices:
+            raise InputError(f"{opt}: expected one of {', '.join(choices)}, got {value!r}")
+    summary = _backend("evaluate")(
+        recording,
+        method,
+        format=fmt,
+        calibration=calibration,
+        root=root,
+        align=align,
+        body_height_m=body_height,
+    )
     _present(summary, quiet=quiet, json_file=json_file)
 
 

@@ -30,50 +30,66 @@ else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
 __all__ = [
+    "CALIBRATIONS",
     "CAMERA_METHODS",
     "METHODS",
+    "METHOD_INFO",
+    "ROOTS",
+    "CalibrationConfig",
     "CameraConfig",
     "ImuConfig",
     "MethodConfig",
     "ReferenceConfig",
-    "SESSION_KEYS",
     "SessionConfig",
     "SkeletonConfig",
     "load_session",
     "session_template",
 ]
 
-#: Processing methods a session can ask for.
-METHODS = (
-    "paper-a",
-    "elm-fir",
-    "elm-kf",
-    "imu-only",
-    "camera-only",
-    "kinefuse",
-    "offset-interp",
-    "offset-hold",
-    "camera-gapfill",
-)
-#: Keys each section of a session file accepts (``kinefuse batch`` checks a study's defaults
-#: against the same lists).
-SESSION_KEYS = {
-    "session": ("name", "out_dir"),
-    "imu": ("format", "path", "rate_hz", "segments", "reader"),
-    "skeleton": ("body_height_m", "lengths"),
-    "camera": ("format", "path", "availability_threshold", "reader"),
-    "reference": ("format", "path", "reader"),
-    "method": ("name", "parameters"),
+#: The one method registry: name -> (what it uses, what it does). ``kinefuse init-session``
+#: writes these lines into the template.
+METHOD_INFO = {
+    "paper-a": ("IMUs", "EM-KF/FIR integrated filter on the IMU chain (Sun et al. 2024)"),
+    "elm-fir": ("IMUs + camera", "ELM/FIR with IMM fusion of chain and camera (Xu et al. 2023)"),
+    "elm-kf": ("IMUs + camera", "the ELM/KF baseline of Xu et al. 2023"),
+    "imu-only": ("IMUs", "forward kinematics of the IMU chain, no filtering"),
+    "camera-only": ("camera", "the camera joints alone, gaps interpolated (a baseline)"),
+    "kinefuse": (
+        "IMUs + camera",
+        "kinefuse's chain + camera fusion with a learned chain-error model",
+    ),
+    "offset-interp": (
+        "IMUs + camera",
+        "baseline: IMU chain + camera-chain offset interpolated across outages (offline)",
+    ),
+    "offset-hold": (
+        "IMUs + camera",
+        "baseline: IMU chain + mean offset of the last 5 camera samples (causal)",
+    ),
+    "camera-gapfill": (
+        "camera",
+        "the camera, gaps up to 20 frames linearly interpolated (as Pose2Sim)",
+    ),
 }
+#: Processing methods a session can ask for.
+METHODS = tuple(METHOD_INFO)
 #: Methods that cannot run without a ``[camera]`` section.
-CAMERA_METHODS = (
-    "elm-fir",
-    "elm-kf",
-    "camera-only",
-    "offset-interp",
-    "offset-hold",
-    "camera-gapfill",
-)
+CAMERA_METHODS = tuple(m for m, (uses, _) in METHOD_INFO.items() if "camera" in uses)
+#: ``[calibration] method`` values: what calibrates the sensor-to-segment axes.
+CALIBRATIONS = {
+    "static": "a still pose (N-pose or T-pose) found in the IMU data; IMUs only",
+    "functional": "movement of adjacent segments (joint centres and axes); IMUs only",
+    "vision": "the camera joints in a window; needs [camera]",
+    "reference": "the reference joints in a window; needs [reference] (then labelled)",
+    "none": "no calibration: the configured sensor axes are used",
+}
+#: ``[skeleton] root`` values: where the chain starts.
+ROOTS = {
+    "fixed": "a position measured once (root_position_m, default the origin)",
+    "pelvis": "positions relative to the pelvis; hips from the pelvis IMU",
+    "vision": "the camera joints; needs [camera]",
+    "reference": "the reference joints; needs [reference]",
+}
 
 _PATH_HINT = "relative paths are resolved against the TOML's folder"
 
@@ -110,13 +126,37 @@ class SkeletonConfig:
     Attributes
     ----------
     body_height_m : float or None
-        Body height, m, for anthropometric segment lengths.
+        Body height, m, for anthropometric segment lengths (Winter 2009) and the hip width.
     lengths_m : dict of str -> float
         Measured segment lengths, m, by segment name (override the anthropometric ones).
+    root : str or None
+        :data:`ROOTS` key (None: the default, see :func:`kinefuse.pipelines.process_recording`).
+    root_position_m : tuple of float, dict of str -> tuple, or None
+        ``root = "fixed"``: the root joint's position (m), or one per chain start.
+    axes : dict of str -> str or tuple
+        Declared sensor axis along each segment (mounting), e.g. ``thigh_l = "+e1"``.
     """
 
     body_height_m: float | None
     lengths_m: dict[str, float] = field(default_factory=dict)
+    root: str | None = None
+    root_position_m: object = None
+    axes: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """``[calibration]`` (optional): how the sensor-to-segment axes are found.
+
+    Attributes
+    ----------
+    settings : dict
+        ``method`` (:data:`CALIBRATIONS`), ``window_s``, ``start_s``, ``pose`` (``"n"`` /
+        ``"t"``), ``facing`` ([x, y, z]), ``heading`` (``"auto"``, ``"none"``, ``"static"``),
+        ``lengths_from_data`` (bool), ``max_rate_rad_s``, ``max_acc_std_m_s2``, as given.
+    """
+
+    settings: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -144,14 +184,17 @@ class CameraConfig:
 
 @dataclass(frozen=True)
 class ReferenceConfig:
-    """``[reference]`` (optional): ground-truth joints (optical mocap) for evaluation.
+    """``[reference]`` (optional): ground-truth joints (optical mocap) for evaluation only.
 
+    ``align = "rigid"`` asks for a Kabsch rotation + translation of the estimates onto the
+    reference before scoring (labelled in every table); default ``"none"``.
     ``reader``: ``[reference.reader]``, keyword arguments of the format's reader (e.g.
     ``length_unit_m`` for a BVH file).
     """
 
     format: str
     path: Path
+    align: str = "none"
     reader: dict = field(default_factory=dict)
 
 
@@ -180,6 +223,7 @@ class SessionConfig:
     camera : CameraConfig or None
     reference : ReferenceConfig or None
     method : MethodConfig
+    calibration : CalibrationConfig
     """
 
     path: Path
@@ -190,6 +234,47 @@ class SessionConfig:
     camera: CameraConfig | None
     reference: ReferenceConfig | None
     method: MethodConfig
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+
+    def processing_parameters(self) -> dict:
+        """``[method.parameters]`` merged with ``[calibration]``, the root and the alignment.
+
+        Raises
+        ------
+        ConfigError
+            The same setting given in two places with different values.
+        """
+        params = dict(self.method.parameters)
+        c = dict(self.calibration.settings)
+        new = {
+            "calibration": c.get("method"),
+            "calibration_window_s": c.get("window_s"),
+            "calibration_start_s": c.get("start_s"),
+            "pose": c.get("pose"),
+            "facing": c.get("facing"),
+            "heading": c.get("heading"),
+            "measured_lengths": c.get("lengths_from_data"),
+            "max_rate_rad_s": c.get("max_rate_rad_s"),
+            "max_acc_std_m_s2": c.get("max_acc_std_m_s2"),
+            "root": self.skeleton.root,
+            "root_position_m": self.skeleton.root_position_m,
+            "axes": self.skeleton.axes or None,
+            "align_to_reference": (
+                None
+                if self.reference is None or self.reference.align == "none"
+                else self.reference.align
+            ),
+        }
+        for k, v in new.items():
+            if v is None:
+                continue
+            if k in params and params[k] != v:
+                raise ConfigError(
+                    f"{self.path.name}: {k} given twice ([method.parameters] {k} = "
+                    f"{params[k]!r} and {v!r}); keep one"
+                )
+            params[k] = v
+        return params
 
 
 # --------------------------------------------------------------------------------------------
@@ -375,17 +460,21 @@ def load_session(path: str | Path, *, document: Mapping | None = None) -> Sessio
         )
     p = p.resolve()
     c = _Ctx(p)
-    c.check_keys(doc, "top level", tuple(SESSION_KEYS))
+    c.check_keys(
+        doc,
+        "top level",
+        ("session", "imu", "skeleton", "calibration", "camera", "reference", "method"),
+    )
 
     s = c.table(doc, "session", required=True)
-    c.check_keys(s, "session", SESSION_KEYS["session"])
+    c.check_keys(s, "session", ("name", "out_dir"))
     name = c.string(s, "session", "name")
     out_raw = c.string(s, "session", "out_dir", required=False, default="results")
     out_dir = Path(out_raw).expanduser()
     out_dir = (out_dir if out_dir.is_absolute() else p.parent / out_dir).resolve()
 
     t = c.table(doc, "imu", required=True)
-    c.check_keys(t, "imu", SESSION_KEYS["imu"])
+    c.check_keys(t, "imu", ("format", "path", "rate_hz", "segments", "reader"))
     imu_path = c.file(t, "imu")
     seg = t.get("segments")
     if seg is None:
@@ -424,7 +513,7 @@ def load_session(path: str | Path, *, document: Mapping | None = None) -> Sessio
     )
 
     k = c.table(doc, "skeleton", required=True)
-    c.check_keys(k, "skeleton", SESSION_KEYS["skeleton"])
+    c.check_keys(k, "skeleton", ("body_height_m", "lengths", "root", "root_position_m", "axes"))
     height = c.number(k, "skeleton", "body_height_m")
     if height is not None and not (0.5 <= height <= 2.8):
         raise c.error(
@@ -458,19 +547,114 @@ def load_session(path: str | Path, *, document: Mapping | None = None) -> Sessio
                 "lengths are in metres",
             )
         lengths[seg_name] = val
-    if height is None and not lengths:
+    root = c.string(k, "skeleton", "root", required=False)
+    if root is not None and root not in ROOTS:
+        raise c.error(
+            "skeleton", "root", f"unknown root {root!r}", f"expected one of {', '.join(ROOTS)}"
+        )
+    root_pos = k.get("root_position_m")
+    if root_pos is not None:
+        if root not in (None, "fixed"):
+            raise c.error(
+                "skeleton", "root_position_m", f"only used with root = 'fixed', not {root!r}"
+            )
+        root = "fixed"
+        items = root_pos.items() if isinstance(root_pos, dict) else [(None, root_pos)]
+        for joint, v in items:
+            if (
+                not isinstance(v, list)
+                or len(v) != 3
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)
+            ):
+                raise c.error(
+                    "skeleton",
+                    "root_position_m" + (f".{joint}" if joint else ""),
+                    f"expected [x, y, z] in m, got {v!r}",
+                    "e.g. root_position_m = [0.0, 0.0, 1.4]",
+                )
+            if any(abs(x) > 100 for x in v):
+                raise c.error("skeleton", "root_position_m", f"{v} is not a position in metres")
+        root_pos = (
+            {j: tuple(map(float, v)) for j, v in root_pos.items()}
+            if isinstance(root_pos, dict)
+            else tuple(map(float, root_pos))
+        )
+    axes = k.get("axes", {})
+    if not isinstance(axes, dict):
+        raise c.error(
+            "skeleton.axes", None, "expected a table segment = axis", 'e.g. thigh_l = "+e1"'
+        )
+    for seg_name, a in axes.items():
+        if seg_name not in SEGMENTS:
+            raise c.error("skeleton.axes", repr(seg_name), "unknown segment")
+        ok = isinstance(a, str) or (
+            isinstance(a, list) and len(a) == 3 and all(isinstance(x, (int, float)) for x in a)
+        )
+        if not ok:
+            raise c.error(
+                "skeleton.axes",
+                seg_name,
+                f"expected an axis name or [x, y, z], got {a!r}",
+                'e.g. "+e1", "-e2"',
+            )
+    skeleton = SkeletonConfig(
+        body_height_m=height,
+        lengths_m=lengths,
+        root=root,
+        root_position_m=root_pos,
+        axes=dict(axes),
+    )
+
+    cal = c.table(doc, "calibration", required=False) or {}
+    c.check_keys(
+        cal,
+        "calibration",
+        (
+            "method",
+            "window_s",
+            "start_s",
+            "pose",
+            "facing",
+            "heading",
+            "lengths_from_data",
+            "max_rate_rad_s",
+            "max_acc_std_m_s2",
+        ),
+    )
+    settings = dict(cal)
+    if "method" in cal:
+        cm = c.string(cal, "calibration", "method")
+        if cm not in CALIBRATIONS:
+            raise c.error(
+                "calibration",
+                "method",
+                f"unknown calibration method {cm!r}",
+                f"expected one of {', '.join(CALIBRATIONS)}",
+            )
+    for key in ("window_s", "max_rate_rad_s", "max_acc_std_m_s2"):
+        c.number(cal, "calibration", key)
+    c.number(cal, "calibration", "start_s", positive=False)
+    for key, choices in (("pose", ("n", "t")), ("heading", ("auto", "none", "static"))):
+        if key in cal and cal[key] not in choices:
+            raise c.error(
+                "calibration", key, f"expected one of {', '.join(choices)}, got {cal[key]!r}"
+            )
+    if "lengths_from_data" in cal and not isinstance(cal["lengths_from_data"], bool):
+        raise c.error("calibration", "lengths_from_data", "expected true or false")
+    calibration = CalibrationConfig(settings=settings)
+    if height is None and not lengths and settings.get("method") != "functional":
         raise c.error(
             "skeleton",
             None,
-            "needs body_height_m or [skeleton.lengths]",
+            "needs body_height_m or [skeleton.lengths] (or [calibration] method = "
+            "'functional', which estimates lengths from movement)",
             "add e.g. body_height_m = 1.75",
         )
-    skeleton = SkeletonConfig(body_height_m=height, lengths_m=lengths)
 
     camera = None
     cam = c.table(doc, "camera", required=False)
     if cam is not None:
-        c.check_keys(cam, "camera", SESSION_KEYS["camera"])
+        c.check_keys(cam, "camera", ("format", "path", "availability_threshold", "reader"))
         camera = CameraConfig(
             format=c.string(cam, "camera", "format"),
             path=c.file(cam, "camera"),
@@ -483,15 +667,19 @@ def load_session(path: str | Path, *, document: Mapping | None = None) -> Sessio
     reference = None
     ref = c.table(doc, "reference", required=False)
     if ref is not None:
-        c.check_keys(ref, "reference", SESSION_KEYS["reference"])
+        c.check_keys(ref, "reference", ("format", "path", "align", "reader"))
+        align = c.string(ref, "reference", "align", required=False, default="none")
+        if align not in ("none", "rigid"):
+            raise c.error("reference", "align", f"expected 'none' or 'rigid', got {align!r}")
         reference = ReferenceConfig(
             format=c.string(ref, "reference", "format"),
             path=c.file(ref, "reference"),
+            align=align,
             reader=c.reader(ref, "reference"),
         )
 
     m = c.table(doc, "method", required=True)
-    c.check_keys(m, "method", SESSION_KEYS["method"])
+    c.check_keys(m, "method", ("name", "parameters"))
     mname = c.string(m, "method", "name")
     if mname not in METHODS:
         close = difflib.get_close_matches(mname, METHODS, n=1)
@@ -501,8 +689,21 @@ def load_session(path: str | Path, *, document: Mapping | None = None) -> Sessio
         raise c.error(
             "method",
             "name",
-            f"method {mname!r} needs a camera",
+            f"method {mname!r} needs a camera (it uses {METHOD_INFO[mname][0]})",
             "add a [camera] section or choose 'imu-only' / 'paper-a'",
+        )
+    cm = settings.get("method")
+    if cm == "vision" and camera is None:
+        raise c.error("calibration", "method", "'vision' needs a [camera] section")
+    if cm == "reference" and reference is None:
+        raise c.error("calibration", "method", "'reference' needs a [reference] section")
+    if root == "vision" and camera is None:
+        raise c.error("skeleton", "root", "'vision' needs a [camera] section")
+    if root == "reference" and reference is None:
+        raise c.error("skeleton", "root", "'reference' needs a [reference] section")
+    if mname in CAMERA_METHODS and root in ("fixed", "pelvis"):
+        raise c.error(
+            "skeleton", "root", f"method {mname!r} fuses with the camera; it needs root 'vision'"
         )
     params = m.get("parameters", {})
     if not isinstance(params, dict):
@@ -518,6 +719,7 @@ def load_session(path: str | Path, *, document: Mapping | None = None) -> Sessio
         camera=camera,
         reference=reference,
         method=method,
+        calibration=calibration,
     )
 
 
@@ -527,52 +729,63 @@ _TEMPLATE = """\
 # Relative paths are resolved against the folder of this file. Units are SI (m, s, Hz).
 
 [session]
-name = "{name}"                  # shown in reports
-out_dir = "results/{name}"       # output folder; kinefuse refuses to overwrite a report without --force
+name = "{name}"  # shown in reports
+out_dir = "results/{name}"  # output folder; kinefuse refuses to overwrite a report without --force
 
 [imu]
-format = "csv"                   # reader of the IMU file (see kinefuse.io for the formats)
-path = "data/imu.csv"            # the IMU recording
+format = "imu_csv"               # reader of the IMU file: one of {formats}
+path = "data/imu.csv"            # the IMU recording (a file, or a folder for ximu3 / neura / opensense)
 rate_hz = 100.0                  # only used when the file has no time stamps; delete otherwise
 
 [imu.segments]
 # canonical segment = sensor name as written in the file
-# segments: chest, pelvis, upper_arm_l/_r, forearm_l/_r, thigh_l/_r, shank_l/_r, foot_l/_r
+# segments: {segments}
 upper_arm_r = "IMU 1"
 forearm_r = "IMU 2"
 
 [skeleton]
-body_height_m = 1.75             # anthropometric segment lengths from the body height...
+body_height_m = 1.75             # lengths from body height (Winter 2009 ratios) where not measured
+# root: where the chain starts
+{roots}
+root = "fixed"
+root_position_m = [0.0, 0.0, 0.0]  # root = "fixed": the measured root joint (here the shoulder), m
 
-# [skeleton.lengths]             # ...or measured lengths in m (override the anthropometric ones)
+# [skeleton.lengths]             # measured (tape) lengths in m; they win over body height
 # upper_arm_r = 0.30
 # forearm_r = 0.26
 
-# Optional: a camera skeleton (Kinect, Azure Kinect, MediaPipe...). Needed by elm-fir, elm-kf,
-# camera-only and the baselines; used by kinefuse when present.
+# [skeleton.axes]                # optional: the sensor axis that runs along each segment
+# upper_arm_r = "+e1"            # (proximal -> distal); checked against the static pose
+
+[calibration]
+# method: what finds each sensor's axis on its segment
+{calibrations}
+# default: "vision" with a [camera], else "static"
+method = "static"
+pose = "n"                       # "n": arms hanging, "t": T-pose (static only)
+# window_s = 2.0                 # still window length, s; found automatically unless start_s is given
+# start_s = 0.0
+# heading = "auto"               # 6-D sensors (no magnetometer): "static" aligns their headings
+
+# Optional: a camera skeleton. Needed by {camera_methods}.
 # [camera]
-# format = "kinect-csv"
+# format = "kinect_v2"
 # path = "data/kinect.csv"
 # availability_threshold = 2     # tracker confidence below this = joint unavailable
 # [camera.reader]                # optional: the reader's own arguments (docs/formats.md),
 # time_column = "TimeSpan"       # e.g. an LSL-Kinect recorder CSV's time column, Unix ms
 # time_unit = "ms"               # ([imu.reader] and [reference.reader] work the same way)
 
-# Optional: ground truth (optical mocap) to evaluate against; enables the RMSE tables.
+# Optional: ground truth (optical mocap), used ONLY to evaluate (RMSE tables) unless you ask
+# otherwise (calibration method = "reference", root = "reference", align = "rigid"; then
+# every table says so).
 # [reference]
 # format = "c3d"
 # path = "data/reference.c3d"
+# align = "none"                 # "rigid": Kabsch-align the estimates to it before scoring
 
 [method]
-# paper-a     : EM-KF/FIR integrated filter, IMU only (Sun et al. 2024)
-# elm-fir     : ELM/FIR + camera, IMM fusion (Xu et al. 2023)
-# elm-kf      : the ELM/KF baseline of Xu et al. 2023
-# imu-only    : forward kinematics of the IMU chain, no filtering
-# camera-only : the camera skeleton alone
-# camera-gapfill : the camera, gaps up to 20 frames linearly interpolated (as Pose2Sim)
-# offset-interp  : baseline, IMU chain + camera-chain offset interpolated across outages (offline)
-# offset-hold    : baseline, IMU chain + mean offset of the last 5 camera samples (causal)
-# kinefuse    : kinefuse's recommended combination
+{methods}
 name = "paper-a"
 
 [method.parameters]
@@ -597,5 +810,23 @@ def session_template(name: str = "my-session", filename: str = "session.toml") -
     str
         TOML text; it loads with :func:`load_session` once ``[imu] path`` exists.
     """
+    from kinefuse.io import FORMATS
+
     safe = "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in name) or "session"
-    return _TEMPLATE.format(name=safe, filename=filename)
+
+    def listing(d: Mapping) -> str:
+        w = max(len(k) for k in d) + 2
+        return "\n".join(f"#   {k + ' ' * (w - len(k))}: {v}" for k, v in d.items())
+
+    methods = {"name": f"{'uses':<14} : what it does"}
+    methods.update({m: f"{uses:<14} : {what}" for m, (uses, what) in METHOD_INFO.items()})
+    return _TEMPLATE.format(
+        name=safe,
+        filename=filename,
+        formats=", ".join(sorted(FORMATS)),
+        segments=", ".join(SEGMENTS),
+        roots=listing(ROOTS),
+        calibrations=listing(CALIBRATIONS),
+        camera_methods=", ".join(CAMERA_METHODS),
+        methods=listing(methods).replace("#   ", "# ", -1),
+    )

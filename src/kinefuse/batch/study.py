@@ -53,9 +53,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from kinefuse.conventions import SEGMENTS
 from kinefuse.exceptions import ConfigError
-from kinefuse.session import METHODS, SESSION_KEYS, _Ctx, read_toml
+from kinefuse.session import METHODS, _Ctx, read_toml
 
 __all__ = ["Study", "Task", "load_study", "study_from_sessions"]
 
@@ -156,19 +155,41 @@ def _absolute_paths(doc: dict, base: Path) -> dict:
 
 
 def _check_sections(c: _Ctx, doc: Mapping, where: str, *, extra: tuple[str, ...] = ()) -> None:
-    """Refuse unknown session sections / keys in a study's defaults or overrides."""
-    allowed = tuple(k for k in SESSION_KEYS if k != "session") + extra
-    c.check_keys(doc, where, allowed)
-    for sec in doc:
-        if sec in extra:
-            continue
-        t = c.table(doc, sec, required=False)
-        if t is None:
-            continue
-        c.check_keys(t, f"{where}.{sec}", SESSION_KEYS[sec])
-        for sub in ("segments", "lengths"):
-            if isinstance(t.get(sub), Mapping):
-                c.check_keys(t[sub], f"{where}.{sec}.{sub}", SEGMENTS)
+    """Refuse unknown sections / keys in a study's defaults or overrides ("did you mean").
+
+    The keys are checked by :func:`kinefuse.session.load_session` itself, on a probe session
+    made of ``doc`` over a minimal valid one, so the allowed keys have one source of truth;
+    only its "unknown ..." errors are reported here (everything else is checked per recording).
+    """
+    from kinefuse.session import load_session
+
+    if "session" in doc:
+        raise c.error(where, "session", "not allowed here", "each recording names its own session")
+    body = {k: v for k, v in doc.items() if k not in extra}
+    stub = str(c.path)  # an existing file: load_session only checks that paths exist
+    probe = _merge(
+        {
+            "session": {"name": "probe"},
+            "imu": {"format": "csv", "path": stub, "segments": {"forearm_r": "x"}},
+            "skeleton": {"body_height_m": 1.75},
+            "method": {"name": "imu-only"},
+        },
+        body,
+    )
+    for sec in _PATH_SECTIONS:
+        if isinstance(probe.get(sec), dict):
+            probe[sec].setdefault("format", "csv")
+            probe[sec]["path"] = stub
+    if isinstance(probe.get("method"), dict):
+        probe["method"]["name"] = "imu-only"
+    try:
+        load_session(c.path, document=probe)
+    except ConfigError as exc:
+        msg = str(exc)
+        m = re.match(r"^[^:]*: \[([^\]]*)\](.*)$", msg)
+        if m and "unknown" in m.group(2):
+            section = where if m.group(1) == "top level" else f"{where}.{m.group(1)}"
+            raise ConfigError(f"{c.path.name}: [{section}]{m.group(2)}") from None
 
 
 def _methods(c: _Ctx, table: Mapping, section: str) -> tuple[str, ...] | None:

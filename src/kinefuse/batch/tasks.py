@@ -58,10 +58,11 @@ def one_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {msg}" if msg else type(exc).__name__
 
 
-def _calibrated_on(cfg) -> str:
-    """What the calibration used (the default rule of :func:`process_recording`)."""
-    default = "vision" if cfg.camera else ("reference" if cfg.reference else "static")
-    cal = cfg.method.parameters.get("calibration", default)
+def _calibrated_on(summary) -> str:
+    """What the calibration used, from the run's provenance (also in its metrics.json)."""
+    cal = (summary.get("provenance") or {}).get("calibration")
+    if not cal:
+        return ""
     return {"vision": "camera", "reference": "reference (mocap)"}.get(cal, str(cal))
 
 
@@ -162,7 +163,7 @@ def run_task(task: Task, out_dir: str, force: bool = False, study: str = "") -> 
             **base,
             "status": "done",
             "error": None,
-            "calibrated_on": _calibrated_on(cfg),
+            "calibrated_on": _calibrated_on(summary),
             "wall_s": wall,
             "rows": _rows(summary.get("evaluation"), wall),
             "outputs": sorted(p.name for p in tmp.iterdir()),

@@ -120,6 +120,8 @@ def write_report(
     notes: str | Sequence[str] | None = None,
     force: bool = False,
     dpi: int = 100,
+    sections: Sequence[str] = (),
+    extra_metrics: Mapping | None = None,
 ) -> Path:
     """Write a self-contained HTML report with figures and tables of an evaluation.
 
@@ -165,6 +167,11 @@ def write_report(
         Overwrite an existing ``report.html`` in ``out_dir``.
     dpi : int
         Resolution of the figures.
+    sections : sequence of str
+        Extra HTML fragments shown after the notes (e.g.
+        :func:`kinefuse.evaluation.angles.angle_section`).
+    extra_metrics : mapping, optional
+        Merged into ``metrics.json`` (e.g. ``provenance``: which data calibrated what).
 
     Returns
     -------
@@ -287,10 +294,14 @@ def write_report(
     doc = _html(
         evaluation, figures, title=title, notes=notes, t=t, axis_labels=axis_labels, paper=paper
     )
+    if sections:
+        anchor = '<section id="summary">'
+        doc = doc.replace(anchor, "".join(sections) + anchor, 1)
     tmp = report_path.with_name(REPORT_NAME + ".part")
     tmp.write_text(doc, encoding="utf-8")
     tmp.replace(report_path)
-    (out / "metrics.json").write_text(json.dumps(evaluation.to_dict(), indent=2), encoding="utf-8")
+    metrics = {**evaluation.to_dict(), **dict(extra_metrics or {})}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2), encoding="utf-8")
     return report_path
 
 

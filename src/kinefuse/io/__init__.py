@@ -22,6 +22,7 @@ _LAZY = {
     "read_c3d": "c3d",
     "read_trc": "trc",
     "write_trc": "trc",
+    "write_mot": "mot",
     "read_kinect_v2_csv": "kinect",
     "read_azure_kinect_json": "kinect",
     "read_mediapipe": "mediapipe",

@@ -242,6 +242,7 @@ def write_trc(
     masked: bool = True,
     rate_hz: float | None = None,
     header: Mapping[str, str] | None = None,
+    note: str | None = None,
 ) -> Path:
     """Write a joint stream as a TRC file (tab-separated, readable by OpenSim).
 
@@ -268,6 +269,9 @@ def write_trc(
         :func:`read_trc`): ``DataRate``, ``CameraRate``, ``OrigDataRate``,
         ``OrigDataStartFrame`` and ``OrigNumFrames`` are written as given (``NumFrames``,
         ``NumMarkers`` and ``Units`` always describe the data written).
+    note : str, optional
+        Free text appended to the first line after the file name (e.g. the root and frame of
+        the positions); readers, OpenSim's included, ignore it. No tabs or newlines.
 
     Returns
     -------
@@ -313,8 +317,10 @@ def write_trc(
         "OrigDataStartFrame": hdr.get("OrigDataStartFrame", "1"),
         "OrigNumFrames": hdr.get("OrigNumFrames", str(T)),
     }
+    if note is not None and ("\t" in note or "\n" in note):
+        raise InputError(f"TRC note must be one line without tabs, got {note!r}")
     out = [
-        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}" + (f"\t{note}" if note else ""),
         "\t".join(out_hdr),
         "\t".join(out_hdr.values()),
         "\t".join(["Frame#", "Time"] + [f"{j}\t\t" for j in stream.joints]).rstrip("\t"),

@@ -18,6 +18,12 @@ from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.io.recording import JointStream, Recording
 from kinefuse.kinematics.forward import as_rotation_matrices, forward_kinematics
 from kinefuse.kinematics.skeleton import Skeleton, _unit_axis, lengths_from_joints, window_mask
+from kinefuse.kinematics.still import (
+    MAX_ACC_STD_M_S2,
+    MAX_RATE_RAD_S,
+    StillWindow,
+    find_still_window,
+)
 from kinefuse.orientation.resample import slerp_resample
 
 __all__ = [
@@ -26,7 +32,11 @@ __all__ = [
     "chain_positions",
     "heading_rotation",
     "kabsch_rotation",
+    "segment_orientations",
 ]
+
+#: Angle (deg) beyond which a static-pose segment gets a warning naming it.
+POSE_WARN_DEG = 20.0
 
 _DOWN = np.array([0.0, 0.0, -1.0])
 _UP = np.array([0.0, 0.0, 1.0])
@@ -132,6 +142,18 @@ class Calibration:
         observed one (reference/vision) or ``d0`` (static), deg.
     align : str
         Alignment used: ``"none"``, ``"heading"`` or ``"rotation"``.
+    frames : dict of str -> ndarray, shape (3, 3)
+        Static only: ``R_sensor_from_segment`` of each segment, columns = the segment's ISB axes
+        (X anterior, Y superior, Z right) in the sensor frame; used for joint angles.
+    world_heading_deg : dict of str -> float
+        Static with ``heading="static"``: rotation about the vertical that this calibration
+        applies to each sensor's world frame, deg (``R_world_from_sensor <- R_z(ψ)
+        R_world_from_sensor``, in :func:`chain_positions` and :func:`segment_orientations`).
+    still : StillWindow or None
+        Static only: the window and how still it was.
+    pose_residual_deg : dict of str -> float
+        Static with ``mounting``: RMS angle between the declared sensor axis and the assumed
+        pose direction in the window, deg.
     """
 
     axes: Mapping[str, np.ndarray]
@@ -141,6 +163,16 @@ class Calibration:
     window_s: tuple[float, float] = (0.0, 0.0)
     residual_deg: Mapping[str, float] = field(default_factory=dict)
     align: str = "none"
+    frames: Mapping[str, np.ndarray] = field(default_factory=dict)
+    world_heading_deg: Mapping[str, float] = field(default_factory=dict)
+    still: StillWindow | None = None
+    pose_residual_deg: Mapping[str, float] = field(default_factory=dict)
+
+    def heading_matrix(self, segment: str) -> np.ndarray:
+        """``R_z(ψ)`` applied to ``segment``'s sensor world frame (identity if none), (3, 3)."""
+        psi = np.radians(self.world_heading_deg.get(segment, 0.0))
+        c, s = np.cos(psi), np.sin(psi)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
     def q_sensor_from_segment(self, segment: str, segment_axis="+e2") -> np.ndarray:
         """The shortest rotation taking ``segment_axis`` (segment frame) onto ``a_i`` (sensor frame).
@@ -191,30 +223,168 @@ def _stream(recording: Recording, source: str) -> JointStream:
     return st
 
 
-def _static_directions(skeleton: Skeleton, pose: str, facing, directions) -> dict[str, np.ndarray]:
+def _body_frame(facing) -> np.ndarray:
+    """World-from-body rotation of a subject facing ``facing``: columns X fwd, Y up, Z right."""
+    f = np.asarray(facing, dtype=float)
+    if f.shape != (3,) or not np.all(np.isfinite(f)):
+        raise InputError(f"expected facing with shape (3,), got {np.shape(facing)}")
+    f = f - f[2] * _UP
+    if np.linalg.norm(f) < 1e-9:
+        raise InputError(f"expected a horizontal facing direction, got {facing}")
+    f = f / np.linalg.norm(f)
+    return np.stack([f, _UP, np.cross(f, _UP)], axis=1)
+
+
+def _static_directions(
+    skeleton: Skeleton, segs: Sequence[str], pose: str, facing, directions
+) -> dict[str, np.ndarray]:
     out = {}
     if pose not in ("n", "t"):
         raise InputError(f"expected pose in ('n', 't') (arms hanging / T-pose), got {pose!r}")
-    if pose == "t":
-        f = np.asarray(facing, dtype=float)
-        if f.shape != (3,):
-            raise InputError(f"expected facing with shape (3,), got {f.shape}")
-        f = f - f[2] * _UP
-        if np.linalg.norm(f) < 1e-9:
-            raise InputError(f"expected a horizontal facing direction, got {facing}")
-        right = np.cross(f / np.linalg.norm(f), _UP)
-    for seg in skeleton.segments:
+    right = _body_frame(facing)[:, 2]
+    for seg in segs:
         d = _DOWN
         if pose == "t" and (seg.startswith("upper_arm") or seg.startswith("forearm")):
             d = right if seg.endswith("_r") else -right
         out[seg] = d
     for seg, d in dict(directions or {}).items():
-        skeleton.index(seg)
+        if seg != skeleton.root_segment:
+            skeleton.index(seg)
         v = np.asarray(d, dtype=float)
         if v.shape != (3,) or np.linalg.norm(v) < 1e-9:
             raise InputError(f"expected directions[{seg!r}] as a non-zero (3,) vector, got {v}")
         out[seg] = v / np.linalg.norm(v)
     return out
+
+
+def _static(
+    recording,
+    skeleton,
+    segs,
+    imus,
+    *,
+    window_s,
+    start_s,
+    pose,
+    facing,
+    directions,
+    heading,
+    mounting,
+    max_rate_rad_s,
+    max_acc_std_m_s2,
+) -> Calibration:
+    """Static-pose calibration (see :func:`calibrate`)."""
+    d0 = _static_directions(skeleton, segs, pose, facing, directions)
+    B = _body_frame(facing)
+    if start_s is None:
+        still = find_still_window(
+            imus,
+            window_s,
+            max_rate_rad_s=max_rate_rad_s,
+            max_acc_std_m_s2=max_acc_std_m_s2,
+        )
+        if not still.still:
+            raise InputError(
+                f"static calibration: no still window of {window_s:g} s in the recording "
+                f"(needs mean angular rate <= {max_rate_rad_s:g} rad/s and acceleration std <= "
+                f"{max_acc_std_m_s2:g} m/s² on every sensor); the stillest candidate is "
+                f"{still.describe()}. Record the subject holding the pose, give the window "
+                "(calibration start_s), or use functional calibration"
+            )
+    else:
+        t_any = next(iter(imus.values())).t_s
+        sel0 = window_mask(t_any, start_s, window_s)
+        t_w = t_any[sel0]
+        span = max(float(t_w[-1] - t_w[0]), 1e-6)
+        still = find_still_window(
+            {
+                s: _crop(st, float(start_s), float(start_s) + float(window_s))
+                for s, st in imus.items()
+            },
+            span,
+            max_rate_rad_s=max_rate_rad_s,
+            max_acc_std_m_s2=max_acc_std_m_s2,
+            step_s=span,
+        )
+        if not still.still:
+            warnings.warn(
+                f"static calibration: the given window is not still ({still.describe()}; "
+                f"thresholds {max_rate_rad_s:g} rad/s, {max_acc_std_m_s2:g} m/s²)",
+                NumericalWarning,
+                stacklevel=3,
+            )
+    R_win, R_mean = {}, {}
+    for s, st in imus.items():
+        sel = window_mask(st.t_s, still.start_s, still.end_s - still.start_s + 1e-6)
+        R = as_rotation_matrices(st.q_world_from_sensor[sel], f"IMU {s!r} orientation")
+        ok = np.all(np.isfinite(R), axis=(1, 2))
+        if not np.any(ok):
+            raise InputError(f"IMU {s!r}: no valid orientation sample in the calibration window")
+        R_win[s] = R[ok]
+        R_mean[s] = Rotation.from_matrix(R[ok]).mean().as_matrix()
+    heading_deg: dict[str, float] = {}
+    if heading == "static":
+        ref = segs[0]
+        for s in segs:
+            G = R_mean[ref] @ R_mean[s].T
+            psi = float(np.arctan2(G[1, 0] - G[0, 1], G[0, 0] + G[1, 1]))
+            heading_deg[s] = float(np.degrees(psi))
+            Hs = Rotation.from_rotvec([0.0, 0.0, psi]).as_matrix()
+            R_win[s] = np.einsum("ij,kjl->kil", Hs, R_win[s])
+            R_mean[s] = Hs @ R_mean[s]
+    axes, resid, frames, pose_res = {}, {}, {}, {}
+    mounting = dict(mounting or {})
+    for s in segs:
+        a = _normalize(np.einsum("kji,j->i", R_win[s], d0[s]), f"segment {s!r}")
+        axes[s] = a
+        resid[s] = float(np.sqrt(np.mean(_angles_deg(R_win[s] @ a, d0[s][None]) ** 2)))
+        turn = Rotation.align_vectors(d0[s][None], _DOWN[None])[0].as_matrix()
+        frames[s] = R_mean[s].T @ (turn @ B)
+        if s in mounting:
+            m = _unit_axis(mounting[s], f"mounting[{s!r}]")
+            pose_res[s] = float(np.sqrt(np.mean(_angles_deg(R_win[s] @ m, d0[s][None]) ** 2)))
+    bad = {s: v for s, v in resid.items() if v > POSE_WARN_DEG}
+    bad.update({s: v for s, v in pose_res.items() if v > POSE_WARN_DEG})
+    for s, v in bad.items():
+        warnings.warn(
+            f"static calibration: segment {s!r} is {v:.0f} deg from the assumed "
+            f"{'N' if pose == 'n' else 'T'}-pose direction {np.round(d0[s], 2).tolist()} in the "
+            f"window {still.start_s:.2f}-{still.end_s:.2f} s (threshold {POSE_WARN_DEG:g} deg): "
+            "was the subject in the pose, and is the sensor mounted as declared?",
+            NumericalWarning,
+            stacklevel=3,
+        )
+    return Calibration(
+        axes=axes,
+        method="static",
+        window_s=(still.start_s, still.end_s),
+        residual_deg=resid,
+        align="none",
+        frames=frames,
+        world_heading_deg=heading_deg,
+        still=still,
+        pose_residual_deg=pose_res,
+    )
+
+
+def _crop(st, t0: float, t1: float):
+    """The samples of an ImuStream in ``[t0, t1)`` (same stream type)."""
+    from dataclasses import replace
+
+    sel = (st.t_s >= t0 - 1e-9) & (st.t_s < t1 - 1e-9)
+    if np.count_nonzero(sel) < 2:
+        raise InputError(
+            f"IMU {st.name!r}: fewer than 2 samples in the calibration window {t0:.3f}-{t1:.3f} s"
+        )
+    return replace(
+        st,
+        t_s=st.t_s[sel],
+        **{
+            k: getattr(st, k)[sel]
+            for k in ("q_world_from_sensor", "acc_m_s2", "gyr_rad_s", "mag")
+            if getattr(st, k) is not None
+        },
+    )
 
 
 def _normalize(v: np.ndarray, where: str) -> np.ndarray:
@@ -320,6 +490,10 @@ def calibrate(
     directions: Mapping[str, object] | None = None,
     align: str = "auto",
     segments: Sequence[str] | None = None,
+    heading: str = "none",
+    mounting: Mapping[str, object] | None = None,
+    max_rate_rad_s: float = MAX_RATE_RAD_S,
+    max_acc_std_m_s2: float = MAX_ACC_STD_M_S2,
 ) -> Calibration:
     """Calibrate the segment axis ``a_i`` in each IMU frame (and the camera/reference alignment).
 
@@ -342,7 +516,11 @@ def calibrate(
         Window length, s (default 1 s; ``"functional"`` uses the whole recording unless
         ``start_s`` is given).
     start_s : float, optional
-        Window start, s (default: the first sample).
+        Window start, s. Default: ``"static"`` searches the earliest window in which every
+        sensor holds still (:func:`kinefuse.kinematics.find_still_window`: mean angular rate
+        <= ``max_rate_rad_s`` and acceleration standard deviation <= ``max_acc_std_m_s2``;
+        without a gyroscope the orientation change rate is used); the other methods use the
+        first sample.
     pose : {"n", "t"}
         Static pose: ``"n"`` = arms hanging, every segment points down ``d0 = [0, 0, −1]``;
         ``"t"`` = T-pose: arms point horizontally sideways, legs down.
@@ -357,7 +535,21 @@ def calibrate(
         ``"rotation"``: any rotation (camera frames). ``"auto"``: ``"none"`` when every used IMU
         stream's ``frame`` equals the joint stream's ``frame``, else ``"rotation"``.
     segments : sequence of str, optional
-        Calibrate only these skeleton segments (default: all).
+        Calibrate only these skeleton segments (default: all); ``skeleton.root_segment``
+        (e.g. ``"pelvis"``) may be included for static calibration.
+    heading : {"none", "static"}
+        Static only: ``"static"`` brings the sensors' world frames into one heading, assuming
+        every sensor faces the same way on the body in the still pose (the heading of each
+        sensor's mean orientation is rotated onto that of the first segment's). Use it for 6-D
+        orientations (no magnetometer), whose headings are arbitrary per sensor; ``"none"``
+        (default) keeps the frames (9-D / magnetometer-referenced data share north).
+    mounting : mapping, optional
+        Static only: the sensor axis declared to run along each segment (proximal -> distal),
+        e.g. ``{"thigh_l": "+e1"}``; its angle to the assumed pose direction is reported as
+        ``pose_residual_deg`` (a NumericalWarning names segments beyond 20 deg).
+    max_rate_rad_s, max_acc_std_m_s2 : float
+        Static only: stillness thresholds of the window search (and of the check of a given
+        window).
 
     Returns
     -------
@@ -366,7 +558,16 @@ def calibrate(
     Notes
     -----
     Static (SPEC §2.1): ``a_i = normalise(Σ_k R_i(k)ᵀ d0)`` over the window (one sample: paper's
-    ``a_i = R_i(k0)ᵀ d0``).
+    ``a_i = R_i(k0)ᵀ d0``). The full segment frame (ISB, Wu et al. 2002/2005: X anterior,
+    Y superior, Z right) is ``R_sensor_from_segment = R̄_iᵀ B_i`` with ``R̄_i`` the mean
+    orientation in the window and ``B_i`` the segment frame of the pose in the world: the body
+    frame ``[facing, up, facing × up]`` (N-pose), turned by the shortest rotation from down onto
+    ``d0`` for segments that do not hang (T-pose arms). ``residual_deg`` is the RMS angle of
+    ``R_i(k) a_i`` to ``d0`` in the window (how still the pose was held). A segment beyond 20 deg
+    (in ``residual_deg`` or ``pose_residual_deg``) raises a NumericalWarning naming it. No
+    still window (or a given window that is not still) raises an InputError naming the
+    stillest candidate and its motion level; a given window that is not still, a
+    NumericalWarning.
 
     Reference/vision: with ``u_i(k)`` the unit vector from the proximal to the distal joint in the
     stream's frame and ``R_c`` = ``R_world_from_camera``, minimise
@@ -406,32 +607,33 @@ def calibrate(
             window_s=None if start_s is None else window_s,
             segments=segments,
         )
+    if heading not in ("none", "static"):
+        raise InputError(f"expected heading in ('none', 'static'), got {heading!r}")
     if align not in ("auto", "none", "heading", "rotation"):
         raise InputError(
             f"expected align in ('auto', 'none', 'heading', 'rotation'), got {align!r}"
         )
     segs = list(skeleton.segments) if segments is None else list(segments)
     for s in segs:
-        skeleton.index(s)
+        if not (method == "static" and s == skeleton.root_segment):
+            skeleton.index(s)
     imus = {s: _imu_orientation(recording, s, "calibration") for s in segs}
 
     if method == "static":
-        d0 = _static_directions(skeleton, pose, facing, directions)
-        axes, resid, win = {}, {}, None
-        for s, st in imus.items():
-            sel = window_mask(st.t_s, start_s, window_s)
-            R = as_rotation_matrices(st.q_world_from_sensor[sel], f"IMU {s!r} orientation")
-            ok = np.all(np.isfinite(R), axis=(1, 2))
-            if not np.any(ok):
-                raise InputError(
-                    f"IMU {s!r}: no valid orientation sample in the calibration window"
-                )
-            a = _normalize(np.einsum("kji,j->i", R[ok], d0[s]), f"segment {s!r}")
-            axes[s] = a
-            resid[s] = float(np.sqrt(np.mean(_angles_deg(R[ok] @ a, d0[s][None]) ** 2)))
-            win = win or (float(st.t_s[sel][0]), float(st.t_s[sel][-1]))
-        return Calibration(
-            axes=axes, method="static", window_s=win, residual_deg=resid, align="none"
+        return _static(
+            recording,
+            skeleton,
+            segs,
+            imus,
+            window_s=window_s,
+            start_s=start_s,
+            pose=pose,
+            facing=facing,
+            directions=directions,
+            heading=heading,
+            mounting=mounting,
+            max_rate_rad_s=max_rate_rad_s,
+            max_acc_std_m_s2=max_acc_std_m_s2,
         )
 
     stream = _stream(recording, method)
@@ -593,8 +795,57 @@ def chain_positions(
         R = as_rotation_matrices(
             slerp_resample(st.t_s, st.q_world_from_sensor, t), f"IMU {s!r} orientation"
         )
+        if calibration is not None and s in calibration.world_heading_deg:
+            R = np.einsum("ij,kjl->kil", calibration.heading_matrix(s), R)
         ori[s] = R if Rc is None else np.einsum("ji,kjl->kil", Rc, R)  # camera_from_sensor = Rcᵀ R
     pos = forward_kinematics(skeleton, ori, roots)
     names = [j for j in skeleton.joints if j in pos] + [j for j in pos if j not in skeleton.joints]
     P = np.stack([pos[j] for j in names], axis=1)
     return JointStream(t_s=t, position_m=P, joints=tuple(names), frame=frame)
+
+
+def segment_orientations(
+    recording: Recording,
+    calibration: Calibration,
+    t_s,
+    segments: Sequence[str] | None = None,
+) -> dict[str, np.ndarray]:
+    """``R_world_from_segment`` (ISB segment frames) of calibrated segments on a timeline.
+
+    Parameters
+    ----------
+    recording : Recording
+        IMU orientations per segment.
+    calibration : Calibration
+        With ``frames`` (static calibration); its heading corrections are applied.
+    t_s : array_like, shape (T,)
+        Timeline, s (orientations SLERP-resampled to it).
+    segments : sequence of str, optional
+        Default: every segment of ``calibration.frames``.
+
+    Returns
+    -------
+    dict of str -> ndarray, shape (T, 3, 3)
+        ``R_z(ψ_i) R_world_from_sensor(t) R_sensor_from_segment``; NaN where the IMU has no
+        sample.
+    """
+    if not calibration.frames:
+        raise InputError(
+            f"{calibration.method!r} calibration gives segment axes only, not segment frames; "
+            "joint angles need a static (or functional) calibration"
+        )
+    t = np.asarray(t_s, dtype=float)
+    out = {}
+    for s in calibration.frames if segments is None else segments:
+        if s not in calibration.frames:
+            raise InputError(
+                f"segment {s!r} has no calibrated frame; calibrated: {sorted(calibration.frames)}"
+            )
+        st = _imu_orientation(recording, s, "segment orientation")
+        R = as_rotation_matrices(
+            slerp_resample(st.t_s, st.q_world_from_sensor, t), f"IMU {s!r} orientation"
+        )
+        out[s] = np.einsum(
+            "ij,kjl,lm->kim", calibration.heading_matrix(s), R, calibration.frames[s]
+        )
+    return out

@@ -4,7 +4,8 @@ SPEC §2.1 (paper A: shoulder root, upper arm, forearm) and §2.2 (paper B: ches
 shoulder and hip offsets, upper arms, forearms, thighs, shanks). Lengths come, in this order of
 preference, from measurement (``lengths=``), from reference or vision data
 (:meth:`Skeleton.with_lengths_from` / :func:`lengths_from_joints`), or from anthropometric
-ratios of body height (:data:`ANTHROPOMETRIC_RATIOS`, SPEC §2.2).
+ratios of body height (:data:`ANTHROPOMETRIC_RATIOS`, SPEC §2.2); :func:`segment_lengths`
+applies that order and says where each length came from.
 """
 
 from __future__ import annotations
@@ -24,10 +25,16 @@ __all__ = [
     "full_body",
     "lengths_from_joints",
     "lower_body",
+    "segment_lengths",
     "upper_limb",
 ]
 
-#: Segment lengths as fractions of body height H (Drillis-Contini via Winter; SPEC §2.2 [U]).
+#: Segment lengths as fractions of body height H: Winter, D. A. (2009), *Biomechanics and Motor
+#: Control of Human Movement*, 4th ed., Wiley, Fig. 4.1 (after Drillis & Contini 1966): upper
+#: arm 0.186 H, forearm 0.146 H, thigh 0.245 H (greater trochanter 0.530 H to knee 0.285 H),
+#: shank ("leg") 0.246 H (knee to ankle 0.039 H), shoulder width 0.259 H, hip width 0.191 H
+#: (SPEC §2.2 [U]). Population means; an individual's segments differ from them by several
+#: per cent, so measured lengths are preferred.
 ANTHROPOMETRIC_RATIOS = {
     "upper_arm": 0.186,
     "forearm": 0.146,
@@ -35,8 +42,8 @@ ANTHROPOMETRIC_RATIOS = {
     "shank": 0.246,
     "shoulder_width": 0.259,
     "hip_width": 0.191,
-    # Not in SPEC: vertical distance upper chest (suprasternal notch, ~0.818 H) to hip joint
-    # (greater trochanter, ~0.530 H), Drillis-Contini [U]; only used by full_body() without data.
+    # Not in SPEC: vertical distance shoulder (acromion, 0.818 H) to hip joint (greater
+    # trochanter, 0.530 H), Winter 2009 Fig. 4.1 [U]; only used by full_body() without data.
     "chest_to_hip": 0.288,
 }
 
@@ -382,6 +389,79 @@ def window_mask(t_s: np.ndarray, start_s: float | None, window_s: float | None) 
             f"[{t[0]:.3f}, {t[-1]:.3f}] s"
         )
     return sel
+
+
+def segment_lengths(
+    segments: Sequence[str],
+    *,
+    measured: Mapping[str, float] | None = None,
+    height_m: float | None = None,
+    functional: Mapping[str, float] | None = None,
+    derived: Mapping[str, tuple[float, str]] | None = None,
+) -> tuple[dict[str, float], dict[str, str]]:
+    """Length of each segment and where it came from, in kinefuse's order of preference.
+
+    Parameters
+    ----------
+    segments : sequence of str
+        Canonical segment names (``thigh_l``, ``forearm_r``...).
+    measured : mapping of str -> float, optional
+        Measured (tape) lengths, m; always win.
+    height_m : float, optional
+        Body height, m: :data:`ANTHROPOMETRIC_RATIOS` (Winter 2009) times the height.
+    functional : mapping of str -> float, optional
+        Lengths estimated from movement (functional calibration), m; used where neither a
+        measurement nor the height gives one.
+    derived : mapping of str -> (float, str), optional
+        Lengths the user asked to take from data (e.g. the reference), with their source text;
+        used after the measured ones and before the height.
+
+    Returns
+    -------
+    lengths : dict of str -> float
+        m.
+    sources : dict of str -> str
+        ``"measured"``, the ``derived`` source, ``"body height 1.75 m x 0.245 (Winter 2009)"``
+        or ``"functional calibration"``.
+
+    Raises
+    ------
+    ValueError (:class:`kinefuse.exceptions.InputError`)
+        A segment none of them gives a length for; the message names it and the fixes.
+    """
+    measured = dict(measured or {})
+    derived = dict(derived or {})
+    functional = dict(functional or {})
+    h = _height(height_m)
+    out, how = {}, {}
+    for seg in segments:
+        kind = seg.rsplit("_", 1)[0] if seg[-2:] in ("_l", "_r") else seg
+        if seg in measured:
+            out[seg], how[seg] = _length(measured[seg], f"measured length of {seg!r}"), "measured"
+        elif seg in derived:
+            v, src = derived[seg]
+            out[seg], how[seg] = _length(v, f"length of {seg!r} from {src}"), src
+        elif h is not None and kind in ANTHROPOMETRIC_RATIOS:
+            r = ANTHROPOMETRIC_RATIOS[kind]
+            out[seg], how[seg] = r * h, f"body height {h:g} m x {r:g} (Winter 2009)"
+        elif seg in functional:
+            out[seg], how[seg] = (
+                _length(functional[seg], f"functional length of {seg!r}"),
+                "functional calibration",
+            )
+    missing = [s for s in segments if s not in out]
+    if missing:
+        no_ratio = [s for s in missing if s.rsplit("_", 1)[0] not in ANTHROPOMETRIC_RATIOS]
+        hint = (
+            f"; {no_ratio} have no anthropometric ratio, so body height cannot give them"
+            if no_ratio and h is not None
+            else ""
+        )
+        raise InputError(
+            f"no length for segment(s) {missing}: measure them ([skeleton.lengths] in m), give "
+            f"body_height_m, or use functional calibration{hint}"
+        )
+    return out, how
 
 
 # ---------------------------------------------------------------------- presets

@@ -152,7 +152,11 @@ def run_neura_imu_only(data_dir, advance=lambda: None, notes=None) -> dict:
     # 2. the simplest IMU-only baseline: segments vertical on average over the walk
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        base = calibrate(rec, sk, "static", window_s=float(rec.imu["thigh_l"].t_s[-1]) + 1.0)
+        # the whole walk as the (given, not still: a warning) window of the static formula
+        t_all = rec.imu["thigh_l"].t_s
+        base = calibrate(
+            rec, sk, "static", start_s=float(t_all[0]), window_s=float(t_all[-1] - t_all[0]) + 1.0
+        )
     rows.append(
         _scores(rec, sk, base, hinge_f, "baseline: mean-vertical (IMU only), tape lengths", False)
     )

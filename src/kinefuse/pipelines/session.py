@@ -4,26 +4,40 @@
 (:func:`kinefuse.session.load_session`): it loads the IMU file and the optional camera and
 reference, maps sensors to segments, estimates missing orientations from raw data, builds the
 skeleton, calibrates, runs the method, writes the joint positions as CSV (with per-sample source,
-filter branch and standard deviation) and TRC (OpenSim), and, with a reference, the metrics and
-an HTML report. :func:`evaluate_recording` runs one method on any loadable recording that has a
+filter branch and standard deviation) and TRC (OpenSim), the joint angles as CSV and ``.mot``
+(where the calibration gives segment frames), an HTML report, and, with a reference in the
+output's frame, the metrics. :func:`evaluate_recording` runs one method on any loadable recording that has a
 reference and returns the per-joint tables. :func:`process_recording` is the shared core.
 
 Method parameters (``[method.parameters]`` of the session file; all optional)
 -----------------------------------------------------------------------------
 ``calibration``
-    ``"static"``, ``"reference"``, ``"vision"`` or ``"none"`` (default: ``"vision"`` with a
-    camera, else ``"reference"`` with a reference, else ``"static"``).
+    ``"static"``, ``"functional"``, ``"vision"``, ``"reference"`` or ``"none"`` (default:
+    ``"vision"`` with a camera, else ``"static"``; the reference only when asked). The session
+    file's ``[calibration] method`` sets it.
 ``calibration_window_s``, ``calibration_start_s``
-    Calibration window, s (default 2 s from the first sample).
-``pose``
-    Static calibration pose, ``"n"`` (arms hanging, default) or ``"t"``.
+    Calibration window, s (default 2 s; static calibration searches the earliest still window
+    unless the start is given). ``[calibration] window_s`` / ``start_s``.
+``pose``, ``facing``, ``heading``, ``max_rate_rad_s``, ``max_acc_std_m_s2``
+    Static calibration: ``"n"`` (default) or ``"t"``; the subject's facing in the IMU world
+    frame (default north); ``"auto"`` (default: align 6-D sensors' headings at the pose),
+    ``"none"`` or ``"static"``; the stillness thresholds
+    (:func:`kinefuse.kinematics.find_still_window`).
 ``align``
     Camera/reference frame alignment of the calibration: ``"auto"`` (default), ``"none"``,
     ``"heading"``, ``"rotation"``.
-``root``
-    Stream giving the positions of the chain roots (shoulders, hips, or the proximal joint of
-    any segment without a mapped parent): ``"camera"`` or ``"reference"`` (default: the camera if
-    there is one, else the reference).
+``root``, ``root_position_m``
+    Where the chain's root joints (shoulders, hips, or the proximal joint of any segment
+    without a mapped parent) are: ``"fixed"`` (``root_position_m`` [x, y, z] m, or one per
+    root joint; default the origin), ``"pelvis"`` (hips from the pelvis IMU, mid-hip origin),
+    ``"vision"`` (``"camera"``) or ``"reference"``. Default: the camera if there is one, else
+    ``"pelvis"`` for leg chains with a pelvis IMU, else ``"fixed"``. ``[skeleton] root``.
+``axes``
+    Declared sensor axis along each segment (``[skeleton.axes]``): the sensor axes without
+    calibration, the check of the static pose otherwise.
+``align_to_reference``
+    ``"none"`` (default) or ``"rigid"``: Kabsch-align the estimates to the reference before
+    scoring (labelled). ``[reference] align``.
 ``rate_hz``
     Output/filter rate, Hz (default 30 for ``paper-a`` and the camera methods, else the root
     stream's own timeline).
@@ -37,8 +51,10 @@ Method parameters (``[method.parameters]`` of the session file; all optional)
     Paper B settings (:class:`kinefuse.pipelines.VisionParams`) for ``elm-fir``, ``elm-kf``,
     ``imu-only`` / ``camera-only`` with a camera, and ``kinefuse``.
 ``measured_lengths``
-    Use the segment lengths measured in the calibration window (reference/vision calibration;
-    default true). Explicit ``[skeleton.lengths]`` always win; ``body_height_m`` fills the rest.
+    Use the segment lengths measured in the calibration window (``[calibration]
+    lengths_from_data``; default true for ``"vision"``, false otherwise: the reference gives
+    lengths only when asked). Explicit ``[skeleton.lengths]`` always win; ``body_height_m``
+    (Winter 2009 ratios) fills the rest.
 ``orientation_params``
     VQF parameters for sensors without an orientation (:func:`kinefuse.orientation.estimate`).
 ``strict_units``
@@ -52,7 +68,7 @@ import math
 import time
 import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +80,7 @@ from kinefuse.conventions import (
     SOURCE_NAMES,
 )
 from kinefuse.exceptions import ConfigError, InputError, UnitWarning
+from kinefuse.session import CAMERA_METHODS
 
 __all__ = [
     "FORMAT_ALIASES",
@@ -101,16 +118,14 @@ SEGMENT_JOINTS = {
 }
 
 _FILTERS = ("none", "kf", "fir", "em-kf", "em-kf-fir")
-_CALIBRATIONS = ("static", "reference", "vision", "none")
-_CAMERA_METHODS = (
-    "elm-fir",
-    "elm-kf",
-    "camera-only",
-    "kinefuse",
-    "offset-interp",
-    "offset-hold",
-    "camera-gapfill",
-)
+_CALIBRATIONS = ("static", "functional", "reference", "vision", "none")
+_CAMERA_METHODS = CAMERA_METHODS  # the one registry: kinefuse.session.METHOD_INFO
+#: Root kinds; "camera" is the old spelling of "vision".
+_ROOTS = ("fixed", "pelvis", "vision", "camera", "reference")
+_HEADINGS = ("auto", "none", "static")
+#: Plausible flexion of hinge joints, deg (1st-99th percentile check of the joint angles):
+#: knee -10 (hyperextension) to 150, elbow -10 to 160 (e.g. Soucie et al. 2011, Haemophilia 17).
+_HINGE_RANGE_DEG = {"knee": (-10.0, 150.0), "elbow": (-10.0, 160.0)}
 _PAPER_A_KEYS = ("q", "r", "horizon", "threshold1", "threshold2", "n_em_iter")
 _VISION_KEYS = (
     "q",
@@ -131,6 +146,13 @@ _VISION_KEYS = (
 )
 _GENERAL_KEYS = (
     "calibration",
+    "facing",
+    "heading",
+    "root_position_m",
+    "axes",
+    "align_to_reference",
+    "max_rate_rad_s",
+    "max_acc_std_m_s2",
     "calibration_window_s",
     "calibration_start_s",
     "pose",
@@ -191,6 +213,17 @@ class SessionOutput:
         Bones between output joints (report skeleton).
     notes : list of str
         What was done (calibration, lengths, alignments) and warnings.
+    root : str
+        Where the chain's root joints are (e.g. "pelvis (mid-hip) at [0, 0, 0] m ...").
+    provenance : dict
+        Which data calibrated what: calibration, heading, segment lengths and their sources,
+        root, alignment, labels (also written to ``metrics.json``).
+    angles : dict of str -> ndarray, shape (T, 3)
+        Joint angles, deg, ``[flexion, adduction, internal_rotation]`` (ISB), where the
+        calibration gives segment frames.
+    tag : str
+        Label suffix of scores that used the reference beyond evaluation (e.g.
+        ``" [calibrated on reference]"``); empty otherwise.
     baselines : dict of str -> ndarray, shape (T, J, 3)
         With a camera method: the simple baselines on the same chain and camera, by table
         label (``offset interp``, ``offset hold``, ``camera gap-fill``;
@@ -212,7 +245,30 @@ class SessionOutput:
     run_time_s: float = float("nan")
     edges: tuple[tuple[str, str], ...] = ()
     notes: list[str] = field(default_factory=list)
+    root: str = ""
+    provenance: dict = field(default_factory=dict)
+    angles: dict = field(default_factory=dict)
+    tag: str = ""
     baselines: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def trajectories(self) -> dict[str, np.ndarray]:
+        """Evaluated trajectories by their table label (tags such as "[calibrated on reference]")."""
+        est = {self.label + self.tag: self.position}
+        if self.method != "camera-only" and not np.array_equal(
+            self.position, self.chain, equal_nan=True
+        ):
+            est["IMU chain" + self.tag] = self.chain
+        if (
+            self.camera is not None
+            and self.method != "camera-only"
+            and self.reference is not None
+            and not np.array_equal(self.camera, self.reference, equal_nan=True)
+        ):
+            est["camera" + (" [aligned to reference]" if "aligned" in self.tag else "")] = (
+                self.camera
+            )
+        est.update({k + self.tag: v for k, v in self.baselines.items() if k != self.label})
+        return est
 
     def evaluation(self):
         """Metrics of the method, the unfiltered IMU chain and the camera vs the reference.
@@ -226,18 +282,7 @@ class SessionOutput:
 
         if self.reference is None:
             return None
-        est = {self.label: self.position}
-        if self.method != "camera-only" and not np.array_equal(
-            self.position, self.chain, equal_nan=True
-        ):
-            est["IMU chain"] = self.chain
-        if (
-            self.camera is not None
-            and self.method != "camera-only"
-            and not np.array_equal(self.camera, self.reference, equal_nan=True)
-        ):
-            est["camera"] = self.camera
-        est.update({k: v for k, v in self.baselines.items() if k != self.label})
+        est = self.trajectories()
         outage = None
         if self.camera is not None:
             outage = ~np.all(np.isfinite(self.camera), axis=-1)
@@ -245,7 +290,7 @@ class SessionOutput:
             est,
             self.reference,
             outage,
-            {self.label: self.run_time_s} if math.isfinite(self.run_time_s) else None,
+            {self.label + self.tag: self.run_time_s} if math.isfinite(self.run_time_s) else None,
             joints=self.joints,
         )
 
@@ -439,13 +484,17 @@ def _check_joints(stream, what: str, src: str) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def _ensure_orientations(recording, params: Mapping, notes: list[str]):
-    """Estimate ``q_world_from_sensor`` with VQF for every stream that has raw data only."""
+def _ensure_orientations(recording, params: Mapping, notes: list[str]) -> set[str]:
+    """Estimate ``q_world_from_sensor`` with VQF for every stream that has raw data only.
+
+    Returns the segments whose orientation is 6-D (no magnetometer: arbitrary heading).
+    """
     from dataclasses import replace
 
     from kinefuse.orientation import estimate
 
     vqf_params = params.get("orientation_params")
+    six_d: set[str] = set()
     for seg, st in list(recording.imu.items()):
         if st.q_world_from_sensor is not None:
             continue
@@ -469,6 +518,9 @@ def _ensure_orientations(recording, params: Mapping, notes: list[str]):
             f"{seg}: orientation estimated from raw data with VQF "
             f"({'9D, magnetometer' if mag is not None else '6D, arbitrary heading'})"
         )
+        if mag is None:
+            six_d.add(seg)
+    return six_d
 
 
 def build_chain(
@@ -534,33 +586,6 @@ def build_chain(
     return sk, tuple(roots)
 
 
-def _lengths(segs, cfg_lengths, height, measured, stream, notes) -> dict[str, float]:
-    from kinefuse.kinematics import ANTHROPOMETRIC_RATIOS, lengths_from_joints
-
-    out, how = {}, {}
-    for s in segs:
-        kind = s.rsplit("_", 1)[0]
-        if s in cfg_lengths:
-            out[s], how[s] = float(cfg_lengths[s]), "session"
-        elif s in measured:
-            out[s], how[s] = float(measured[s]), "measured in the calibration window"
-        elif height is not None and kind in ANTHROPOMETRIC_RATIOS:
-            out[s], how[s] = ANTHROPOMETRIC_RATIOS[kind] * height, "from body height"
-    rest = [s for s in segs if s not in out]
-    if rest and stream is not None:
-        got = lengths_from_joints(stream, [(s, *SEGMENT_JOINTS[s]) for s in rest], missing="skip")
-        for s, v in got.items():
-            out[s], how[s] = v, "median from the root stream"
-    rest = [s for s in segs if s not in out]
-    if rest:
-        raise ConfigError(
-            f"no length for segment(s) {rest}: add them to [skeleton.lengths] (m) or give "
-            "body_height_m"
-        )
-    notes.append("segment lengths (m): " + ", ".join(f"{s} {out[s]:.3f} ({how[s]})" for s in segs))
-    return out
-
-
 def _timeline(t_src: np.ndarray, rate_hz: float | None) -> np.ndarray:
     if rate_hz is None or t_src.size < 2:
         return t_src
@@ -609,20 +634,32 @@ def _check_params(params: Mapping, method: str) -> None:
         close = difflib.get_close_matches(unknown[0], sorted(allowed), n=1)
         hint = f"did you mean {close[0]!r}?" if close else f"allowed: {', '.join(sorted(allowed))}"
         raise ConfigError(f"[method.parameters] {unknown[0]}: unknown parameter ({hint})")
-    for key, choices in (("calibration", _CALIBRATIONS), ("filter", _FILTERS)):
+    for key, choices in (
+        ("calibration", _CALIBRATIONS),
+        ("filter", _FILTERS),
+        ("root", _ROOTS),
+        ("heading", _HEADINGS),
+        ("pose", ("n", "t")),
+        ("align_to_reference", ("none", "rigid")),
+    ):
         if key in params and params[key] not in choices:
             raise ConfigError(
                 f"[method.parameters] {key}: expected one of {', '.join(choices)}, got "
                 f"{params[key]!r}"
             )
-    if "root" in params and params["root"] not in ("camera", "reference"):
-        raise ConfigError(
-            f"[method.parameters] root: expected 'camera' or 'reference', got {params['root']!r}"
-        )
     if "rate_hz" in params:
         v = params["rate_hz"]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
             raise ConfigError(f"[method.parameters] rate_hz: expected a number > 0, got {v!r}")
+    for key in ("root_position_m", "facing"):
+        if key in params and not isinstance(params[key], Mapping):
+            v = np.asarray(params[key], dtype=object)
+            if v.shape != (3,) or not all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) for x in v
+            ):
+                raise ConfigError(
+                    f"[method.parameters] {key}: expected [x, y, z] in m, got {params[key]!r}"
+                )
 
 
 def _rigid_align(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, float]:
@@ -640,6 +677,123 @@ def _rigid_align(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, float]:
 # --------------------------------------------------------------------------------------------
 # the core
 # --------------------------------------------------------------------------------------------
+
+
+def _plan(recording, method: str, params: Mapping, segs: Sequence[str]) -> dict:
+    """Resolve calibration, root and alignment; refuse impossible combinations before any work."""
+    has_cam = recording.vision is not None
+    has_ref = recording.reference is not None
+    if method in _CAMERA_METHODS and not has_cam:
+        raise ConfigError(
+            f"method {method!r} needs a camera (it fuses the IMU chain with camera joints); add "
+            "a [camera] section, or use 'paper-a' / 'imu-only' for IMUs alone"
+        )
+    calib = params.get("calibration", "vision" if has_cam else "static")
+    if calib == "vision" and not has_cam:
+        raise ConfigError(
+            "calibration 'vision' needs a [camera]; use 'static' (a still pose) or 'functional'"
+        )
+    if calib == "reference" and not has_ref:
+        raise ConfigError("calibration 'reference' needs a [reference] section")
+    legs = any(s.startswith(("thigh_", "shank_", "foot_")) for s in segs)
+    starts = {
+        SEGMENT_JOINTS[s][0]
+        for s in segs
+        if SEGMENT_JOINTS[s][0] not in {SEGMENT_JOINTS[x][1] for x in segs}
+    }
+    hips = sorted(j for j in starts if j.startswith("hip_"))
+    if "root" in params:
+        root = "vision" if params["root"] == "camera" else params["root"]
+    elif has_cam:
+        root = "vision"
+    elif hips and "pelvis" in recording.imu:
+        root = "pelvis"
+    else:
+        root = "fixed"
+    if root == "vision" and not has_cam:
+        raise ConfigError("root 'vision' (camera joints) needs a [camera] section")
+    if root == "reference" and not has_ref:
+        raise ConfigError("root 'reference' needs a [reference] section")
+    if root in ("fixed", "pelvis") and method in _CAMERA_METHODS:
+        raise ConfigError(
+            f"method {method!r} fuses with camera joints in the camera frame; it needs root "
+            "'vision' (default with a camera), not {root!r}"
+        )
+    if root == "pelvis" and not (legs and hips):
+        raise ConfigError(
+            "root 'pelvis' places the hips from the pelvis IMU; it needs thigh segments (chains "
+            f"starting at the hips), got chains starting at {sorted(starts)}; use root 'fixed'"
+        )
+    if root in ("fixed", "pelvis") and hips and "pelvis" not in recording.imu:
+        if not (root == "fixed" and isinstance(params.get("root_position_m"), Mapping)):
+            raise ConfigError(
+                f"root {root!r}: the hips {hips} are placed from the pelvis IMU; map 'pelvis' in "
+                "[imu.segments], or give each hip in root_position_m = {hip_l = [...], ...}"
+            )
+    if root == "fixed" and isinstance(params.get("root_position_m"), Mapping):
+        lack = sorted(starts - set(params["root_position_m"]))
+        if lack:
+            raise ConfigError(f"root_position_m: no position for the chain start(s) {lack}")
+    align = params.get("align_to_reference", "none")
+    if align != "none" and not has_ref:
+        raise ConfigError("align_to_reference needs a [reference] section")
+    if calib == "functional":
+        from kinefuse.kinematics import calibrate
+
+        if "functional" not in (calibrate.__doc__ or ""):
+            raise ConfigError(
+                "calibration 'functional' is not available in this version; use 'static'"
+            )
+    return {"calibration": calib, "root": root, "hips": hips, "align": align}
+
+
+def _declared_axes(value, segs) -> dict[str, tuple]:
+    """``[skeleton.axes]``: segment -> sensor axis along it (names ``"+e1"``... or 3-vectors)."""
+    from kinefuse.kinematics import AXES
+
+    out = {}
+    for s, a in dict(value or {}).items():
+        if s not in SEGMENT_JOINTS and s != "pelvis":
+            raise ConfigError(f"[skeleton.axes] {s}: not a limb segment or 'pelvis'")
+        if isinstance(a, str):
+            if a not in AXES:
+                raise ConfigError(
+                    f"[skeleton.axes] {s}: unknown axis {a!r}; expected one of {sorted(AXES)}"
+                )
+            a = AXES[a]
+        v = np.asarray(a, dtype=float)
+        if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) < 1e-9:
+            raise ConfigError(f"[skeleton.axes] {s}: expected an axis name or [x, y, z], got {a!r}")
+        out[s] = tuple(v / np.linalg.norm(v))
+    return out
+
+
+def _hip_roots(recording, cal, t, origin, body_height_m, notes) -> dict[str, np.ndarray]:
+    """Hip joint centres from the pelvis IMU: origin (mid-hip) ± half the hip width along Z."""
+    from kinefuse.kinematics import ANTHROPOMETRIC_RATIOS, segment_orientations
+    from kinefuse.kinematics.forward import as_rotation_matrices
+    from kinefuse.orientation.resample import slerp_resample
+
+    if body_height_m is None:
+        raise ConfigError(
+            "the hips are placed from the pelvis IMU with the hip width 0.191 x body height "
+            "(Winter 2009); give [skeleton] body_height_m"
+        )
+    w = ANTHROPOMETRIC_RATIOS["hip_width"] * float(body_height_m)
+    if cal is not None and "pelvis" in cal.frames:
+        R = segment_orientations(recording, cal, t, ["pelvis"])["pelvis"]
+        how = "the pelvis frame of the static calibration (Z = right in the pose)"
+    else:
+        st = recording.imu["pelvis"]
+        R = as_rotation_matrices(slerp_resample(st.t_s, st.q_world_from_sensor, t))
+        R = R[..., [1, 2, 0]]  # right-front-up sensor: ISB X fwd = y, Y up = z, Z right = x
+        how = "the pelvis sensor frame taken as right-front-up (no calibrated pelvis frame)"
+    notes.append(
+        f"hips: pelvis origin (mid-hip) ± {w / 2:.3f} m along the pelvis right axis "
+        f"(hip width 0.191 x {float(body_height_m):g} m, Winter 2009), from {how}"
+    )
+    right = R[..., :, 2]
+    return {"hip_l": origin - 0.5 * w * right, "hip_r": origin + 0.5 * w * right}
 
 
 def process_recording(
@@ -664,7 +818,7 @@ def process_recording(
     lengths : mapping of str -> float, optional
         Measured segment lengths, m (win over everything else).
     body_height_m : float, optional
-        Body height for anthropometric lengths of the segments without one.
+        Body height for anthropometric lengths (Winter 2009) and the hip width.
 
     Returns
     -------
@@ -673,22 +827,23 @@ def process_recording(
     Raises
     ------
     ConfigError
-        Bad parameters, a method that needs a camera without one, no root stream, no limb
-        segment, a segment without a length.
+        Bad parameters, a method or calibration that needs a camera or reference without one,
+        a root that cannot be placed, no limb segment, a segment without a length: all before
+        any processing.
     InputError
-        Problems found in the data (no valid calibration sample, missing root joints...).
+        Problems found in the data (no still window, missing root joints...).
 
     Notes
     -----
     The IMU chain (SPEC §2.1) starts at the *root joints*, the proximal joints of segments
-    whose parent segment carries no IMU (e.g. the hips for thigh + shank, the elbow for a
-    forearm alone); their positions come from the camera (gaps linearly interpolated) or the
-    reference (:func:`kinefuse.kinematics.chain_positions`). Paper A measures the shoulder the
-    same way. Camera methods run paper B's per-joint pipeline
-    (:func:`kinefuse.pipelines.vision_assisted`) on this chain and the camera joints, or
-    :func:`kinefuse.pipelines.vision_assisted_from_recording` (chest-rooted, as in the paper)
-    when the chest and all eight limb segments carry IMUs and the camera has
-    ``spine_shoulder``.
+    whose parent segment carries no IMU (the hips for thigh + shank, the shoulder for the upper
+    arm). ``root`` says where they are: ``"fixed"`` (``root_position_m``, measured once, as
+    paper A's shoulder; default origin, i.e. positions relative to the root joint),
+    ``"pelvis"`` (hips from the pelvis IMU, positions relative to the mid-hip point),
+    ``"vision"`` (camera joints, gaps interpolated) or ``"reference"`` (only when asked: the
+    reference is evaluation-only by default). Nothing else is taken from a reference unless
+    asked (``calibration = "reference"``, ``measured_lengths = true``,
+    ``align_to_reference = "rigid"``); tables of scores that used it are labelled.
     """
     from kinefuse.session import METHODS
 
@@ -698,80 +853,218 @@ def process_recording(
     _check_params(params, method)
     notes: list[str] = []
     has_cam = recording.vision is not None
-    if method in _CAMERA_METHODS and not has_cam:
-        raise ConfigError(f"method {method!r} needs a camera; add a [camera] section")
-    _ensure_orientations(recording, params, notes)
-
     segs = [s for s in SEGMENT_JOINTS if s in recording.imu]
     if not segs:
         raise ConfigError(
             "no limb segment among the mapped sensors "
             f"{sorted(recording.imu)}; map at least one of {', '.join(SEGMENT_JOINTS)}"
         )
-    root_name = params.get("root", "camera" if has_cam else "reference")
-    root_stream = recording.vision if root_name == "camera" else recording.reference
-    if root_stream is None:
-        raise ConfigError(
-            "the chain needs root joint positions (shoulders, hips or elbows) from a [camera] "
-            "or a [reference]; the session has neither"
-            if not has_cam and recording.reference is None
-            else f"[method.parameters] root = {root_name!r}, but the session has no such stream"
-        )
+    plan = _plan(recording, method, params, segs)
+    calib, root_kind = plan["calibration"], plan["root"]
+    from kinefuse.kinematics import segment_lengths
 
-    calib = params.get(
-        "calibration",
-        "vision" if has_cam else ("reference" if recording.reference is not None else "static"),
-    )
+    measured = dict(lengths or {})
+    use_stream_lengths = bool(params.get("measured_lengths", calib == "vision"))
+    if calib not in ("vision", "reference", "functional") or not use_stream_lengths:
+        try:  # a missing length is refused before any work
+            segment_lengths(segs, measured=measured, height_m=body_height_m)
+        except InputError as exc:
+            if calib != "functional":
+                raise ConfigError(str(exc)) from None
+    six_d = _ensure_orientations(recording, params, notes)
+
+    root_stream = None
+    if root_kind == "vision":
+        root_stream = recording.vision
+    elif root_kind == "reference":
+        root_stream = recording.reference
     default_rate = 30.0 if method in ("paper-a", *_CAMERA_METHODS) else None
     rate = params.get("rate_hz", default_rate)
-    t = _timeline(root_stream.t_s, None if rate is None else float(rate))
+    if root_stream is not None:
+        t = _timeline(root_stream.t_s, None if rate is None else float(rate))
+    else:
+        t0 = max(float(recording.imu[s].t_s[0]) for s in segs)
+        t1 = min(float(recording.imu[s].t_s[-1]) for s in segs)
+        base = recording.imu[segs[0]].t_s
+        base = base[(base >= t0 - 1e-9) & (base <= t1 + 1e-9)]
+        t = _timeline(base, None if rate is None else float(rate))
 
-    # skeleton, calibration
+    # calibration
     from kinefuse.kinematics import calibrate, chain_positions
 
-    provisional = {s: 0.3 for s in segs}
-    sk, roots = build_chain(segs, provisional)
+    axes_decl = _declared_axes(params.get("axes"), segs)
+    cal_segs = list(segs) + (["pelvis"] if root_kind == "pelvis" else [])
+    sk, roots = build_chain(segs, dict.fromkeys(segs, 0.3), axes_decl)
+    if root_kind == "pelvis":
+        sk = replace(sk, root_segment="pelvis")
     cal = None
-    measured: dict[str, float] = {}
+    provenance: dict = {"calibration": calib, "root": root_kind}
     if calib != "none":
         window = float(params.get("calibration_window_s", 2.0))
         start = params.get("calibration_start_s")
         kw = {"window_s": window, "start_s": None if start is None else float(start)}
         if calib == "static":
-            kw["pose"] = params.get("pose", "n")
-        else:
+            heading = params.get("heading", "auto")
+            if heading == "auto":
+                heading = "static" if six_d else "none"
+            kw.update(
+                pose=params.get("pose", "n"),
+                facing=tuple(params.get("facing", (0.0, 1.0, 0.0))),
+                heading=heading,
+                mounting={s: a for s, a in axes_decl.items() if s in cal_segs},
+                segments=cal_segs,
+            )
+            for k in ("max_rate_rad_s", "max_acc_std_m_s2"):
+                if k in params:
+                    kw[k] = float(params[k])
+        elif calib in ("vision", "reference"):
             kw["align"] = params.get("align", "auto")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             cal = calibrate(recording, sk, calib, **kw)
         notes += [f"calibration: {w.message}" for w in caught]
+        if calib == "functional" and getattr(cal, "heading", "shared") == "estimated":
+            from kinefuse.kinematics.functional import align_headings
+
+            recording = align_headings(recording, cal)
+            notes.append(
+                "heading: each sensor's world frame turned into its chain's first sensor's, "
+                "from the joint constraints of the functional calibration (deg): "
+                + ", ".join(f"{s} {v:.1f}" for s, v in cal.heading_deg.items())
+            )
+            provenance["heading"] = "joint constraints (functional)"
         res = ", ".join(f"{s} {v:.1f}" for s, v in cal.residual_deg.items())
-        notes.append(
-            f"calibration {calib!r} over {cal.window_s[0]:.2f}-{cal.window_s[1]:.2f} s, "
+        what = {
+            "static": "still pose, IMU data only",
+            "functional": "movement, IMU data only",
+            "vision": "camera joints",
+            "reference": "REFERENCE joints (evaluation data used for calibration, as asked)",
+        }[calib]
+        line = (
+            f"calibration {calib!r} ({what}) over {cal.window_s[0]:.2f}-{cal.window_s[1]:.2f} s, "
             f"alignment {cal.align!r}; RMS residual (deg): {res}"
         )
-        if params.get("measured_lengths", True):
-            measured = dict(cal.lengths_m)
-    seg_lengths = _lengths(segs, lengths or {}, body_height_m, measured, root_stream, notes)
-    sk, roots = build_chain(segs, seg_lengths)
+        if cal.still is not None:
+            line += f"; stillness {cal.still.describe()}"
+        if cal.pose_residual_deg:
+            line += "; declared sensor axis vs the pose (deg): " + ", ".join(
+                f"{s} {v:.1f}" for s, v in cal.pose_residual_deg.items()
+            )
+        notes.append(line)
+        provenance["calibration_window_s"] = list(cal.window_s)
+        if calib == "static":
+            f = [float(x) for x in params.get("facing", (0.0, 1.0, 0.0))]
+            notes.append(
+                f"segment frames: anterior axis = the facing direction {f} (world frame) in the "
+                "still pose, as declared ([calibration] facing; default north); flexion axes "
+                "follow from it"
+            )
+            provenance["facing"] = f
+            if cal.world_heading_deg:
+                notes.append(
+                    "heading: 6-D orientations (arbitrary heading per sensor) brought into the "
+                    f"heading of {cal_segs[0]} from the static pose, assuming all sensors face "
+                    "the same way on the body; applied (deg): "
+                    + ", ".join(f"{s} {v:.1f}" for s, v in cal.world_heading_deg.items())
+                )
+                provenance["heading"] = "static pose"
+            else:
+                notes.append(
+                    "heading: orientations kept as estimated (shared, magnetometer-referenced "
+                    "north)"
+                    if not six_d
+                    else "heading: not aligned (heading = 'none')"
+                )
+                provenance["heading"] = "none"
+    else:
+        notes.append("calibration: none; the segment axes are the configured sensor axes")
+    derived = {}
+    if (
+        use_stream_lengths
+        and cal is not None
+        and cal.lengths_m
+        and calib in ("vision", "reference")
+    ):
+        src = "camera" if calib == "vision" else "REFERENCE"
+        derived = {s: (v, f"{src} (calibration window)") for s, v in cal.lengths_m.items()}
+    functional = dict(cal.lengths_m) if cal is not None and calib == "functional" else {}
+    if root_kind == "vision" and use_stream_lengths:
+        from kinefuse.kinematics import lengths_from_joints
+
+        got = lengths_from_joints(
+            recording.vision, [(s, *SEGMENT_JOINTS[s]) for s in segs], missing="skip"
+        )
+        for s, v in got.items():
+            derived.setdefault(s, (v, "camera (median)"))
+    try:
+        seg_lengths, how = segment_lengths(
+            segs,
+            measured=measured,
+            height_m=body_height_m,
+            functional=functional,
+            derived=derived,
+        )
+    except InputError as exc:
+        raise ConfigError(str(exc)) from None
+    notes.append(
+        "segment lengths (m): " + ", ".join(f"{s} {seg_lengths[s]:.3f} ({how[s]})" for s in segs)
+    )
+    provenance["segment_lengths"] = {
+        s: {"m": round(seg_lengths[s], 6), "source": how[s]} for s in segs
+    }
+    sk, roots = build_chain(segs, seg_lengths, axes_decl)
     if cal is not None:
         sk = cal.apply(sk, lengths=False)
-    lack = [j for j in roots if j not in root_stream.joints]
-    if lack:
-        raise InputError(
-            f"the chain starts at {list(roots)}, but the {root_name} stream lacks {lack} "
-            f"(it has {list(root_stream.joints)})"
-        )
-    root_pos = {j: _at(root_stream, j, t, fill=True) for j in roots}
-    source = "vision" if root_name == "camera" else "reference"
+
+    # roots
+    if root_stream is not None:
+        root_name = "camera" if root_kind == "vision" else "reference"
+        lack = [j for j in roots if j not in root_stream.joints]
+        if lack:
+            raise InputError(
+                f"the chain starts at {list(roots)}, but the {root_name} stream lacks {lack} "
+                f"(it has {list(root_stream.joints)})"
+            )
+        root_pos = {j: _at(root_stream, j, t, fill=True) for j in roots}
+        frame = root_stream.frame
+        root_desc = f"{', '.join(roots)} from the {root_name}"
+    else:
+        rp = params.get("root_position_m", (0.0, 0.0, 0.0))
+        if isinstance(rp, Mapping):
+            root_pos = {j: np.tile(np.asarray(rp[j], dtype=float), (t.size, 1)) for j in roots}
+            root_desc = "fixed " + ", ".join(f"{j} at {list(rp[j])} m" for j in roots)
+        else:
+            origin = np.tile(np.asarray(rp, dtype=float), (t.size, 1))
+            if plan["hips"]:
+                root_pos = _hip_roots(recording, cal, t, origin, body_height_m, notes)
+                root_pos.update({j: origin for j in roots if j not in root_pos})
+                root_desc = (
+                    f"pelvis (mid-hip) at {list(map(float, rp))} m, hips from the pelvis IMU"
+                )
+            else:
+                root_pos = {j: origin for j in roots}
+                root_desc = f"fixed {', '.join(roots)} at {list(map(float, rp))} m"
+        frame = "ENU"
+        if cal is not None and cal.world_heading_deg:
+            frame += f" (heading of the {cal_segs[0]} sensor)"
+        zero = not isinstance(rp, Mapping) and not np.any(np.asarray(rp, dtype=float))
+        if zero:
+            frame += (
+                ", relative to the pelvis (mid-hip)"
+                if plan["hips"]
+                else f", relative to {roots[0]}"
+            )
+    provenance["root_position"] = root_desc
+    source = "vision" if root_kind == "vision" else "reference"
     chain_st = chain_positions(recording, sk, cal, root=root_pos, source=source, t_s=t)
-    frame = root_stream.frame
     joints = tuple(s for s in sk.distal)
     chain = np.stack([chain_st.position(j, masked=False) for j in joints], axis=1)
     notes.append(
-        f"IMU chain from {', '.join(roots)} ({root_name}{', gaps interpolated' if root_name == 'camera' else ''})"
-        f" through {', '.join(sk.segments)}; {t.size} samples at "
-        f"{1.0 / float(np.median(np.diff(t))) if t.size > 1 else float('nan'):.1f} Hz"
+        f"IMU chain from {root_desc}"
+        f"{' (gaps interpolated)' if root_kind == 'vision' else ''} through "
+        f"{', '.join(sk.segments)}; {t.size} samples at "
+        f"{1.0 / float(np.median(np.diff(t))) if t.size > 1 else float('nan'):.1f} Hz; "
+        f"frame: {frame}"
     )
 
     T, J = t.size, len(joints)
@@ -785,7 +1078,7 @@ def process_recording(
             ],
             axis=1,
         )
-        if cal is not None and cal.R_world_from_camera is not None and root_name != "camera":
+        if cal is not None and cal.R_world_from_camera is not None and root_kind != "vision":
             camera = camera @ np.asarray(cal.R_world_from_camera).T
     reference = None
     if recording.reference is not None:
@@ -813,7 +1106,28 @@ def process_recording(
         reference=reference,
         edges=tuple((p, d) for p, d in zip(sk.proximal, sk.distal, strict=True) if p in joints),
         notes=notes,
+        root=root_desc,
+        provenance=provenance,
     )
+    if cal is not None and cal.frames:
+        from kinefuse.kinematics import joint_angles, segment_orientations
+
+        out.angles = joint_angles(segment_orientations(recording, cal, t))
+        if out.angles:
+            notes.append(
+                "joint angles (deg, ISB: Wu et al. 2002/2005, Grood & Suntay 1983; zero in the "
+                f"calibration pose): {', '.join(out.angles)}"
+            )
+        for j, a in out.angles.items():
+            lo, hi = _HINGE_RANGE_DEG.get(j.rsplit("_", 1)[0], (-np.inf, np.inf))
+            f = a[:, 0][np.isfinite(a[:, 0])]
+            if f.size and (np.percentile(f, 1) < lo or np.percentile(f, 99) > hi):
+                notes.append(
+                    f"warning: {j} flexion spans {f.min():.0f} to {f.max():.0f} deg, beyond the "
+                    f"anatomical {lo:.0f} to {hi:.0f} deg: the facing direction or the pose is "
+                    "probably wrong (with 6-D orientations a still pose cannot tell the facing: "
+                    "declare [calibration] facing, or use functional calibration)"
+                )
     dt = float(np.median(np.diff(t))) if T > 1 else 1.0 / 30.0
     t0 = time.perf_counter()
     flt = params.get("filter", "em-kf-fir" if method == "paper-a" else "none")
@@ -828,20 +1142,41 @@ def process_recording(
     out.run_time_s = time.perf_counter() - t0
     if method in _CAMERA_METHODS and out.camera is not None:
         out.baselines = _baselines(out.chain, out.camera, dt, out.joints)
-    if (
-        reference is not None
-        and recording.reference.frame != frame
-        and out.frame != "ENU chest-relative"
-    ):
-        for name in ("position", "chain", "camera"):
-            arr = getattr(out, name)
-            if arr is not None and np.any(np.isfinite(arr)):
-                setattr(out, name, _rigid_align(arr, reference)[0])
-        notes.append(
-            f"the output frame ({frame}) differs from the reference frame "
-            f"({recording.reference.frame}); estimates were rigidly aligned (Kabsch rotation + "
-            "translation over all samples) before evaluation"
-        )
+    tags = []
+    if calib == "reference":
+        tags.append("calibrated on reference")
+    if any("REFERENCE" in v["source"] for v in provenance["segment_lengths"].values()):
+        tags.append("lengths from reference")
+    if out.reference is not None and out.frame != "ENU chest-relative":
+        ref_frame = recording.reference.frame
+        if plan["align"] == "rigid":
+            for name in ("position", "chain", "camera"):
+                arr = getattr(out, name)
+                if arr is not None and np.any(np.isfinite(arr)):
+                    setattr(out, name, _rigid_align(arr, reference)[0])
+            out.baselines = {
+                k: _rigid_align(v, reference)[0] if np.any(np.isfinite(v)) else v
+                for k, v in out.baselines.items()
+            }
+            tags.append("aligned to reference")
+            notes.append(
+                "estimates rigidly aligned to the reference (Kabsch rotation + translation over "
+                "all samples, as asked: align_to_reference = 'rigid') before evaluation"
+            )
+            provenance["alignment"] = "rigid (Kabsch) to the reference, as asked"
+        elif ref_frame != out.frame:
+            notes.append(
+                f"no scores: the output frame ({out.frame}) is not the reference frame "
+                f"({ref_frame}); positions in different frames are not comparable. Set "
+                "align_to_reference = 'rigid' for scores after a rigid alignment (labelled), or "
+                "root = 'reference' to start the chain at the reference joints"
+            )
+            out.reference = None
+            provenance["alignment"] = "none (frames differ: not scored)"
+        else:
+            provenance["alignment"] = "none"
+    out.tag = f" [{', '.join(tags)}]" if tags else ""
+    provenance["labels"] = out.tag.strip() or "IMU/camera data only"
     return out
 
 
@@ -984,6 +1319,8 @@ def _outputs(out_dir: Path, stem: str) -> dict[str, Path]:
     return {
         "csv": out_dir / f"{stem}_joints.csv",
         "trc": out_dir / f"{stem}_joints.trc",
+        "angles_csv": out_dir / f"{stem}_angles.csv",
+        "mot": out_dir / f"{stem}_angles.mot",
         "report": out_dir / REPORT_NAME,
     }
 
@@ -1040,7 +1377,7 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
                 )
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"output folder {out_dir} exists and is not a folder")
-    params = dict(cfg.method.parameters)
+    params = cfg.processing_parameters()
     strict = params.get("strict_units", True)
     recording, notes = load_streams(cfg, strict_units=bool(strict))
     try:
@@ -1070,12 +1407,27 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
         metadata={
             "session": cfg.name,
             "method": cfg.method.name,
+            "root": out.root,
             "source_codes": ", ".join(f"{k}={v}" for k, v in SOURCE_NAMES.items()),
             "mode_codes": ", ".join(f"{k}={v}" for k, v in MODE_NAMES.items()),
         },
     )
-    trc = write_trc(targets["trc"], stream, force=force)
-    summary: dict = {"outputs": [csv, trc], "notes": out.notes}
+    trc = write_trc(
+        targets["trc"], stream, force=force, note=f"root: {out.root}; frame: {out.frame}"
+    )
+    summary: dict = {"outputs": [csv, trc], "notes": out.notes, "provenance": out.provenance}
+    if out.angles:
+        summary["outputs"] += _write_angles(out, targets, cfg, force)
+        summary["angles_deg"] = {
+            j: {
+                "flexion_min": float(np.nanmin(a[:, 0])),
+                "flexion_max": float(np.nanmax(a[:, 0])),
+            }
+            for j, a in out.angles.items()
+        }
+    from kinefuse.evaluation.angles import angle_section, write_angle_report
+
+    title = f"kinefuse: {cfg.name} ({cfg.method.name})"
     ev = out.evaluation()
     if ev is not None:
         from kinefuse.evaluation import write_report
@@ -1084,42 +1436,110 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
         summary["report"] = write_report(
             out_dir,
             ev,
-            {m: _trajectory(out, m) for m in ev.methods},
+            out.trajectories(),
             out.reference,
             out.t_s,
             modes={ev.methods[0]: out.mode} if np.any(out.mode >= 0) else None,
             sources={ev.methods[0]: out.source},
             skeleton_edges=out.edges or None,
-            title=f"kinefuse: {cfg.name} ({cfg.method.name})",
+            title=title,
             notes=out.notes,
+            force=force,
+            sections=[angle_section(out.t_s, out.angles, out_dir / "figures")],
+            extra_metrics={"provenance": out.provenance},
+        )
+    else:
+        summary["report"] = write_angle_report(
+            out_dir,
+            out.t_s,
+            out.angles,
+            title=title,
+            notes=out.notes,
+            provenance=out.provenance,
             force=force,
         )
     return summary
 
 
-def _trajectory(out: SessionOutput, label: str) -> np.ndarray:
-    if label == out.label:
-        return out.position
-    if label == "camera":
-        return out.camera
-    if label in out.baselines:
-        return out.baselines[label]
-    return out.chain
+def _write_angles(out: SessionOutput, targets: Mapping[str, Path], cfg, force: bool) -> list:
+    """Joint angles next to the positions: CSV (``t_s`` + one column per angle) and ``.mot``."""
+    from kinefuse.io._common import write_text_safely
+    from kinefuse.io.mot import write_mot
+    from kinefuse.kinematics import JOINT_ANGLE_COMPONENTS
+
+    cols = {
+        f"{j}_{c}_deg": a[:, k]
+        for j, a in out.angles.items()
+        for k, c in enumerate(JOINT_ANGLE_COMPONENTS)
+    }
+    head = [
+        "# kinefuse joint angles (deg), ISB conventions (Wu et al. 2002/2005, Grood & Suntay 1983)",
+        f"# session: {cfg.name}",
+        f"# method: {cfg.method.name}",
+        f"# calibration: {out.provenance.get('calibration')}",
+        f"# root: {out.root}",
+        f"# frame: {out.frame}",
+        "t_s," + ",".join(cols),
+    ]
+    rows = [
+        ",".join(
+            [repr(float(t))] + [f"{v[i]:.4f}" if np.isfinite(v[i]) else "" for v in cols.values()]
+        )
+        for i, t in enumerate(out.t_s)
+    ]
+    csv = write_text_safely(targets["angles_csv"], "\n".join(head + rows) + "\n", force=force)
+    mot = write_mot(
+        targets["mot"],
+        out.t_s,
+        {k[: -len("_deg")]: v for k, v in cols.items()},
+        name=f"{cfg.name} joint angles",
+        metadata={
+            "convention": "ISB (Wu 2002/2005), flexion first",
+            "calibration": str(out.provenance.get("calibration")),
+            "root": out.root,
+            "frame": out.frame,
+        },
+        force=force,
+    )
+    return [csv, mot]
 
 
-def evaluate_recording(path, method: str, parameters: Mapping | None = None):
+def evaluate_recording(
+    path,
+    method: str,
+    parameters: Mapping | None = None,
+    *,
+    format: str | None = None,
+    calibration: str | None = None,
+    root: str | None = None,
+    align: str | None = None,
+    body_height_m: float | None = None,
+):
     """Back-end of ``kinefuse evaluate``: one method on a recording with a reference.
 
     Parameters
     ----------
     path : str or Path
-        Any recording :func:`kinefuse.io.load` reads (format detected), with a reference (or
-        a camera, which then serves as the reference, as in paper A).
+        Anything :func:`kinefuse.io.load` reads (a file or a dataset folder), with a reference
+        (or a camera, which then serves as the reference, as in paper A).
     method : str
         A :data:`kinefuse.session.METHODS` name.
     parameters : mapping, optional
-        As ``[method.parameters]``; defaults: every IMU on a limb segment, lengths measured
-        from the reference, calibration against the reference (or camera).
+        As ``[method.parameters]``; ``calibration``, ``root`` and ``align`` below override it.
+    format : str, optional
+        A :data:`kinefuse.io.FORMATS` key (default: detected).
+    calibration : str, optional
+        ``"static"`` (default: a still pose in the IMU data), ``"functional"``, ``"vision"``
+        or ``"reference"`` (then axes *and* segment lengths come from the reference, and every
+        table says "[calibrated on reference, lengths from reference]").
+    root : str, optional
+        Where the chain starts (default ``"reference"``: the root joints, e.g. the hips, are
+        taken as measured by the reference, as paper A measures the shoulder; this is said in
+        the notes, not a calibration).
+    align : {"none", "rigid"}, optional
+        ``"rigid"``: Kabsch-align the estimates to the reference before scoring (labelled).
+    body_height_m : float, optional
+        Body height for anthropometric segment lengths (Winter 2009).
 
     Returns
     -------
@@ -1129,13 +1549,24 @@ def evaluate_recording(path, method: str, parameters: Mapping | None = None):
     Raises
     ------
     InputError
-        Unreadable file, no reference, no limb IMU.
+        Unreadable file, no reference, no limb IMU, a method that needs a camera without one,
+        no still window for static calibration.
     """
     from dataclasses import replace
 
-    from kinefuse.io import load
+    from kinefuse.exceptions import FormatError
+    from kinefuse.io import FORMATS, load
 
-    rec = load(path)
+    if format is not None and format not in FORMATS:
+        raise InputError(
+            f"--format: unknown format {format!r}; expected one of {', '.join(sorted(FORMATS))}"
+        )
+    try:
+        rec = load(path, format=format)
+    except FileNotFoundError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    except FormatError:
+        raise
     imu = {k: v for k, v in rec.imu.items() if k in SEGMENTS}
     if not imu:
         raise InputError(f"{path}: no IMU on a canonical segment (found {sorted(rec.imu)})")
@@ -1145,18 +1576,29 @@ def evaluate_recording(path, method: str, parameters: Mapping | None = None):
             raise InputError(f"{path}: the recording has no reference to evaluate against")
         if method in _CAMERA_METHODS:
             raise InputError(
-                f"{path}: no reference besides the camera, so camera method {method!r} cannot "
-                "be evaluated; try 'imu-only' or 'paper-a'"
+                f"{path}: method {method!r} needs a camera, and this recording's only joint "
+                "stream is used as the reference; try 'imu-only' or 'paper-a'"
             )
         rec = replace(rec, reference=rec.vision)
     rec = replace(rec, imu=imu)
     if method not in _CAMERA_METHODS:
-        params.setdefault("root", "reference")
-        params.setdefault("calibration", "reference")
-        if rec.vision is not None and method not in _CAMERA_METHODS:
+        if rec.vision is not None:
             rec = replace(rec, vision=None)
+        params["root"] = root or params.get("root", "reference")
+    elif root is not None:
+        params["root"] = root
+    if calibration is not None:
+        params["calibration"] = calibration
+    params.setdefault("calibration", "vision" if rec.vision is not None else "static")
+    if params["calibration"] == "reference":
+        params.setdefault("measured_lengths", True)
+    if align is not None:
+        params["align_to_reference"] = align
     try:
-        out = process_recording(rec, method, params)
+        out = process_recording(rec, method, params, body_height_m=body_height_m)
     except ConfigError as exc:
         raise InputError(f"{path}: {exc}") from None
-    return out.evaluation()
+    ev = out.evaluation()
+    if ev is None:
+        raise InputError(f"{path}: nothing to score: {out.notes[-1]}")
+    return ev
