@@ -98,7 +98,7 @@ _BACKENDS = {
     "replay": ("kinefuse.streaming", "replay_recording"),
 }
 
-EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only")
+EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only", "realism")
 
 
 class BackendUnavailable(RuntimeError):
@@ -585,8 +585,9 @@ def experiment(
     name: Annotated[
         str,
         typer.Argument(
-            metavar="paper-a|paper-b|neura-imu-only",
-            help="Which experiment: a paper's, or the Neura walk from its IMUs alone.",
+            metavar="paper-a|paper-b|neura-imu-only|realism",
+            help="Which experiment: a paper's, the Neura walk from its IMUs alone, or 'realism' "
+            "(virtual vs real sensors).",
         ),
     ],
     data: Annotated[
@@ -789,6 +790,11 @@ def _stream_table(summary: Mapping):
     rows.append(("missing streams", ", ".join(missing) if missing else "none"))
     if summary.get("out"):
         rows.append(("written", str(summary["out"])))
+    if summary.get("view_url"):
+        v = summary.get("view") or {}
+        rows.append(
+            ("live view", f"{summary['view_url']} ({v.get('sent', 0)} frames sent to viewers)")
+        )
     caption = "stopped by Ctrl-C (pending frames flushed)" if summary.get("interrupted") else None
     return _kv_table("kinefuse stream", rows, caption)
 
@@ -887,6 +893,19 @@ def stream(
     no_status: Annotated[
         bool, typer.Option("--no-status", help="No live status table on stderr.")
     ] = False,
+    view: Annotated[
+        bool,
+        typer.Option(
+            "--view",
+            help="Serve a live 3-D view (skeleton, source per joint, latency) on "
+            "http://127.0.0.1:PORT/ (loopback only; the address is printed). Viewers never "
+            "slow the stream down.",
+        ),
+    ] = False,
+    view_port: Annotated[
+        int,
+        typer.Option("--view-port", metavar="PORT", help="Port of --view (0 = any free port)."),
+    ] = 0,
     quiet: _Quiet = False,
     json_file: _Json = None,
 ) -> None:
@@ -904,6 +923,8 @@ def stream(
         _positive(value, option)
     if record_inputs and out is None:
         raise InputError("--record-inputs needs --out FILE (the inputs are stored in FILE.npz)")
+    if not 0 <= view_port <= 65535:
+        raise InputError(f"--view-port must be in [0, 65535], got {view_port}")
     cfg = _stream_session(session, resolve_timeout)
     if out is not None:
         _out_files(out, force)
@@ -914,6 +935,7 @@ def stream(
     summary = _backend("stream")(
         cfg, duration, out, not (no_status or quiet), idle_timeout_s=idle_timeout,
         wait_for_reader_s=wait_for_reader, record_inputs=record_inputs,
+        **({"view_port": view_port} if view else {}),
     )  # fmt: skip
     _finish(summary, _stream_table, quiet=quiet, json_file=json_file)
 

@@ -404,6 +404,33 @@ def demo_recording(seed: int = DEMO_SEED):
     return virtual_recording(demo_motion(), seed=seed)
 
 
+def whole_body(recording, scenario: ScenarioResult):
+    """Every reference joint at the camera times, in the scenario's chest-relative frame.
+
+    Returns
+    -------
+    (names, positions, edges)
+        Joint names (K,), positions (T, K, 3) in m relative to the true ``spine_shoulder``
+        and the bones along the canonical tree: the ``body`` of
+        :func:`kinefuse.evaluation.write_report`.
+    """
+    from kinefuse.sim.camera import bone_edges
+
+    ref = recording.reference
+    t = scenario.t_s
+    names = tuple(ref.joints)
+    pos = np.stack(
+        [
+            np.stack([np.interp(t, ref.t_s, ref.position(j)[:, k]) for k in range(3)], -1)
+            for j in names
+        ],
+        axis=1,
+    )
+    if scenario.offset is not None:
+        pos = pos - scenario.offset[:, None]
+    return names, pos, bone_edges(names)
+
+
 def demo_tables(scenario: ScenarioResult) -> tuple[object, list]:
     """The evaluation of paper B's methods and the paper-style comparison tables.
 
@@ -522,6 +549,8 @@ def run_demo(out_dir, force: bool = False, quiet: bool = False) -> dict:
             sources=scenario.sources,
             source_names=SOURCE_NAMES,
             skeleton_edges=SKELETON_EDGES,
+            body=whole_body(recording, scenario),
+            viewer_methods=[m for m in ("ELM/FIR", "kinefuse") if m in ev_all.methods],
             axis_labels=("X", "Y", "Z"),
             paper=None,
             title="kinefuse demo: CMU swordplay, virtual IMUs and Kinect",
