@@ -1697,8 +1697,8 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
 
     Parameters
     ----------
-    path : str or Path
-        Session TOML (:func:`kinefuse.session.load_session`).
+    path : str or Path or SessionConfig
+        Session TOML (:func:`kinefuse.session.load_session`), or an already validated one.
     out_dir : str or Path, optional
         Output folder (default the session's ``out_dir``); created if needed.
     force : bool
@@ -1737,9 +1737,9 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
     user's umask gives.
     """
     from kinefuse.io.output_folder import OutputFolder
-    from kinefuse.session import load_session
+    from kinefuse.session import SessionConfig, load_session
 
-    cfg = load_session(path)
+    cfg = path if isinstance(path, SessionConfig) else load_session(path)
     out_dir = Path(cfg.out_dir if out_dir is None else out_dir)
     targets = _outputs(out_dir, _stem(cfg))
     stage = OutputFolder(
