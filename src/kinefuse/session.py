@@ -278,6 +278,12 @@ class SessionConfig:
             params[k] = v
         return params
 
+    @property
+    def inputs(self) -> tuple[Path, ...]:
+        """The session file and every file or folder it reads (never written over)."""
+        streams = (self.imu, self.camera, self.reference)
+        return (self.path, *(Path(st.path) for st in streams if st is not None))
+
 
 # --------------------------------------------------------------------------------------------
 # validation helpers
@@ -430,13 +436,17 @@ def read_toml(path: str | Path, *, missing: str = "file not found") -> dict:
         raise ConfigError(f"{p.name}: not a UTF-8 text file") from None
 
 
-def load_session(path: str | Path) -> SessionConfig:
+def load_session(path: str | Path, *, document: Mapping | None = None) -> SessionConfig:
     """Read and validate a session TOML file.
 
     Parameters
     ----------
     path : str or Path
         The session file.
+    document : mapping, optional
+        The parsed TOML to validate instead of reading ``path`` (``kinefuse batch`` merges a
+        study's defaults into it); ``path`` still names the file in messages and is the base of
+        relative paths.
 
     Returns
     -------
@@ -451,9 +461,11 @@ def load_session(path: str | Path) -> SessionConfig:
         and key, and says how to fix it.
     """
     p = Path(path).expanduser()
-    doc = read_toml(
-        p, missing=f"session file not found (create one with `kinefuse init-session {p}`)"
-    )
+    doc = document
+    if doc is None:
+        doc = read_toml(
+            p, missing=f"session file not found (create one with `kinefuse init-session {p}`)"
+        )
     p = p.resolve()
     c = _Ctx(p)
     c.check_keys(
