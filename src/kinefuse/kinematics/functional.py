@@ -150,7 +150,7 @@ class FunctionalCalibration(Calibration):
         root segment's when it has an IMU), accumulated over the joints, deg (empty with
         ``constraint="norm"``).
     heading : str
-        ``"shared"`` (frames taken as one; the estimates only reported) or ``"estimated"``
+        ``"shared"`` (frames taken as one; the estimates only reported) or ``"estimate"``
         (:func:`align_headings` should be applied before using the orientations together).
     hinge_prior : tuple of str
         Hinge joints whose centre was not observable along the axis, so that the adjacent

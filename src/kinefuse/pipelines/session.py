@@ -1292,7 +1292,7 @@ def process_recording(
                 f"{', '.join(cal.declared)}: the declared sensor axis ([skeleton.axes]) is its "
                 "axis and its length comes from the session"
             )
-        if calib == "functional" and getattr(cal, "heading", "shared") == "estimated":
+        if calib == "functional" and getattr(cal, "heading", "shared") == "estimate":
             from kinefuse.kinematics.functional import align_headings
 
             recording = align_headings(recording, cal)
