@@ -4,10 +4,15 @@
 PATH) is missing it tries ``apt-get install -y chromium`` (only as root with apt available,
 bounded in time) and otherwise skips the calling test with the reason. The browser never uses
 the network: the pages are local files and the flags switch off every background service.
+
+``browser()`` drives the same system Chromium through Playwright (the [test] extra; Playwright's
+own browser download is never used) for pages that must be clicked: console errors and page
+errors are collected and any request off this machine is aborted and recorded.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -158,3 +163,89 @@ def screenshot(
             f"Chromium wrote no screenshot (exit {r.returncode}); stderr tail: {r.stderr[-800:]}"
         )
     return png_path
+
+
+# WebGL in headless Chromium without a GPU: SwiftShader (software), enabled explicitly
+_PLAYWRIGHT_ARGS = [
+    "--no-sandbox",
+    "--disable-quic",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--disable-extensions",
+    "--disable-default-apps",
+    "--no-first-run",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+]
+
+
+def _local(url: str) -> bool:
+    return url.startswith(("file:", "data:", "blob:", "about:")) or url.startswith(
+        ("http://127.0.0.1:", "http://127.0.0.1/")
+    )
+
+
+@contextlib.contextmanager
+def browser(*, width: int = 1280, height: int = 900, extra_args=()):
+    """A Playwright browser context on the system Chromium (no browser download).
+
+    Yields ``(context, log)``: new pages opened with ``context.new_page()`` record console
+    errors and uncaught page errors in ``log["errors"]``; every request that is not to a
+    local file or to 127.0.0.1 is aborted and recorded in ``log["blocked"]``. Skips the
+    calling test when Playwright or Chromium is missing. ``extra_args``: more Chromium flags.
+    """
+    path = ensure_chromium()
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:  # the [test] extra installs it
+        pytest.skip("the Python package playwright is not installed (pip install -e '.[test]')")
+    log: dict[str, list] = {"errors": [], "blocked": []}
+
+    def watch(page):
+        page.on(
+            "console",
+            lambda m: (
+                log["errors"].append(f"console {m.type}: {m.text}") if m.type == "error" else None
+            ),
+        )
+        page.on("pageerror", lambda e: log["errors"].append(f"page error: {e}"))
+
+    def route(r):
+        if _local(r.request.url):
+            r.continue_()
+        else:
+            log["blocked"].append(r.request.url)
+            r.abort()
+
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(
+            executable_path=path, args=[*_PLAYWRIGHT_ARGS, *extra_args], headless=True
+        )
+        try:
+            ctx = b.new_context(viewport={"width": width, "height": height})
+            ctx.on("page", watch)
+            ctx.route("**/*", route)
+            yield ctx, log
+        finally:
+            b.close()
+
+
+def canvas_stats(png_bytes: bytes) -> dict:
+    """Pixel statistics of a screenshot: ``non_white`` fraction and ``colors`` (distinct RGB)."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    img = np.asarray(Image.open(io.BytesIO(png_bytes)).convert("RGB")).reshape(-1, 3)
+    non_white = float(np.mean(np.any(img < 245, axis=1)))
+    return {"non_white": non_white, "colors": len(np.unique(img, axis=0)), "pixels": img}
+
+
+def color_fraction(pixels, hex_color: str, tol: int = 40) -> float:
+    """Fraction of ``pixels`` (N, 3) within ``tol`` (per channel) of ``hex_color``."""
+    import numpy as np
+
+    c = np.array([int(hex_color[i : i + 2], 16) for i in (1, 3, 5)])
+    return float(np.mean(np.all(np.abs(pixels.astype(int) - c) <= tol, axis=1)))

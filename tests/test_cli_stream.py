@@ -252,6 +252,7 @@ def test_cli_stream_accepts_offline_session(lsl_env, tmp_path):
         (["stream", "s.toml", "--out", "existing"], ["existing.npz already exists", "--force"]),
         (["stream", "s.toml", "--record-inputs"], ["--record-inputs needs --out"]),
         (["stream", "s.toml", "--idle-timeout", "0"], ["--idle-timeout", "> 0"]),
+        (["stream", "s.toml", "--view", "--view-port", "70000"], ["--view-port", "[0, 65535]"]),
     ],
 )
 def test_cli_stream_replay_bad_input_exits_2_before_lsl(args, needles, tmp_path, monkeypatch):
@@ -275,7 +276,7 @@ def test_cli_stream_replay_bad_input_exits_2_before_lsl(args, needles, tmp_path,
                     "--wait-for-consumers", "--quiet", "--json", "_imu_", "_camera", "MoCap"]),
         ("stream", ["--duration", "--idle-timeout", "--resolve-timeout", "--out", "--force",
                     "--record-inputs", "--wait-for-reader", "--no-status", "--quiet", "--json",
-                    "_fused"]),
+                    "_fused", "--view", "--view-port", "127.0.0.1"]),
     ],
 )  # fmt: skip
 def test_cli_stream_replay_help(command, options):
@@ -283,3 +284,102 @@ def test_cli_stream_replay_help(command, options):
     assert result.exit_code == 0, result.output
     for option in options:
         assert option in result.output, option
+
+
+def _view_url(log_dir, proc, timeout_s: float) -> str | None:
+    """The live view's address from the stream's stderr (None if it ends or times out)."""
+    import re
+
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end and proc.poll() is None:
+        m = re.search(
+            r"live view at (http://127\.0\.0\.1:\d+/)",
+            (log_dir / "stream.err").read_text(encoding="utf-8"),
+        )
+        if m:
+            return m.group(1)
+        time.sleep(0.2)
+    return None
+
+
+def test_cli_stream_view_in_chromium(lsl_env, tmp_path):
+    """`kinefuse stream --view` during a loopback replay: two pages in headless Chromium
+    receive and draw frames, one is closed mid-stream, and the stream loses, repeats or
+    forces no sample meanwhile."""
+    from _chromium import browser, canvas_stats, color_fraction
+
+    env, prefix = lsl_env["env"], lsl_env["prefix"]
+    session = tmp_path / "live.toml"
+    session.write_text(
+        f'[stream]\nname_prefix = "{prefix}"\nmax_latency_s = 1.0\nstale_after_s = 1.0\n'
+        "resolve_timeout_s = 30\n",
+        encoding="utf-8",
+    )
+    out, summary_json, replay_json = tmp_path / "live", tmp_path / "s.json", tmp_path / "r.json"
+    replay_args = [*KINEFUSE, "replay", "demo", "--loop", "--duration", "20", "--rate", "2",
+                   "--prefix", prefix, "--wait-for-consumers", "60", "--json", str(replay_json)]  # fmt: skip
+    stream_args = [*KINEFUSE, "stream", str(session), "--idle-timeout", "2", "--out", str(out),
+                   "--record-inputs", "--no-status", "--view", "--json", str(summary_json)]  # fmt: skip
+    procs = {}
+    seen = {}
+    try:
+        procs["replay"] = _start(replay_args, env, tmp_path, "replay")
+        procs["stream"] = _start(stream_args, env, tmp_path, "stream")
+        url = _view_url(tmp_path, procs["stream"], CHILD_TIMEOUT_S)
+        if url is None:
+            _skip_if_no_lsl_stream(tmp_path)
+            pytest.fail("no live view address:\n" + _text(tmp_path, "stream"))
+        assert url.startswith("http://127.0.0.1:")
+        with browser() as (ctx, log):
+            first, second = ctx.new_page(), ctx.new_page()
+            t0 = time.monotonic()
+            first.goto(url)
+            first.wait_for_function("window.kfViewer && kfViewer.frames > 0", timeout=5_000)
+            seen["first_frame_s"] = time.monotonic() - t0
+            second.goto(url)
+            second.wait_for_function("kfViewer.frames > 0", timeout=5_000)
+            first.wait_for_function("kfViewer.framesDrawn > 5", timeout=5_000)
+            shot = first.locator("#kf-viewer").screenshot(path=tmp_path / "live_view.png")
+            seen["first"] = first.evaluate("kfViewer.frames")
+            seen["sources"] = first.locator("#kf-joint-sources td").all_inner_texts()
+            seen["latency"] = first.locator("#kf-latency").inner_text()
+            first.close()  # one viewer leaves mid-stream
+            n2 = second.evaluate("kfViewer.frames")
+            second.wait_for_function(f"kfViewer.frames > {n2 + 10}", timeout=10_000)
+            seen["second"] = second.evaluate("kfViewer.frames")
+            canvas2 = second.locator("#kf-viewer canvas").screenshot()
+        print(f"\nlive view screenshot: {tmp_path / 'live_view.png'}; first frame after "
+              f"{seen['first_frame_s']:.2f} s; frames seen {seen['first']} / {seen['second']}")  # fmt: skip
+        for name in ("stream", "replay"):
+            procs[name].wait(CHILD_TIMEOUT_S)
+    finally:
+        for p in procs.values():
+            _stop(p)
+    for name, p in procs.items():
+        assert p.returncode == 0, f"{name} exited {p.returncode}:\n" + _text(tmp_path, name)
+    assert log["errors"] == [] and log["blocked"] == []
+    for png in (shot, canvas2):  # the skeleton's bones (not only the floor grid) are drawn
+        stats = canvas_stats(png)
+        assert stats["non_white"] > 0.02 and color_fraction(stats["pixels"], "#332288") > 2e-4
+    joints_sources = seen["sources"][1::2]
+    assert joints_sources and all(s != "–" for s in joints_sources), seen["sources"]
+    assert seen["latency"].endswith("ms)"), seen["latency"]
+
+    rep = json.loads(replay_json.read_text(encoding="utf-8"))
+    res = json.loads(summary_json.read_text(encoding="utf-8"))
+    rec = np.load(out.with_suffix(".npz"))
+    c = res["counters"]
+    assert c["late"] == c["duplicate"] == c["forced_frames"] == 0, c
+    assert res["outputs"] == res["frames"] == len(rec["frame_t"]) and not res["missing"]
+    segments = [str(s) for s in rec["segments"]]
+    for seg in segments:  # every pushed sample was accepted while the pages were open
+        assert len(rec[f"imu_{seg}_t"]) == rep["samples"][f"{prefix}_imu_{seg}"], seg
+    assert len(rec["camera_t"]) == rep["samples"][f"{prefix}_camera"]
+    assert res["view"]["published"] == res["outputs"]
+    assert res["view_url"] == url
+
+
+def _skip_if_no_lsl_stream(log_dir) -> None:
+    err = (log_dir / "stream.err").read_text(encoding="utf-8")
+    if "Lab Streaming Layer is not available" in err:
+        pytest.skip("pylsl cannot load liblsl: " + err.strip()[-300:])

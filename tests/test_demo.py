@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
+from _chromium import browser, canvas_stats, color_fraction
 from kinefuse.conventions import PAPER_B_JOINTS, SOURCE_CAMERA, SOURCE_FUSED
 from kinefuse.pipelines.demo import (
     PAPER_A_LABELS,
@@ -15,9 +18,15 @@ from kinefuse.pipelines.demo import (
 )
 
 
-def test_run_demo_writes_report(tmp_path):
-    out = tmp_path / "demo"
-    summary = run_demo(out, force=False, quiet=True)
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """One `run_demo` for this module (it takes about a minute on a loaded machine)."""
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    return out, run_demo(out, force=False, quiet=True)
+
+
+def test_run_demo_writes_report(demo):
+    out, summary = demo
     report = summary["report"]
     assert report == out / "report.html" and report.stat().st_size > 10_000
     assert (out / "metrics.json").is_file() and any((out / "figures").glob("*.png"))
@@ -57,10 +66,11 @@ def test_scenario_small_configuration():
     # fused ELM/KF is within a few cm of the truth where the camera sees the joints
     k = ev.methods.index("ELM/KF")
     assert np.all(ev.mean_rmse[k] < 0.15), ev.mean_rmse[k]
-    # paper A's KF on the (accurate) virtual chain: elbows within 5 cm
+    # paper A's KF on the virtual chain (VQF orientation, soft tissue, calibrated against a
+    # camera with Kinect-like tracking error, as real chains are): elbows within 8 cm
     kf = ev.methods.index("KF")
     for j in ("elbow_l", "elbow_r"):
-        assert ev.mean_rmse[kf, ev.joints.index(j)] < 0.05
+        assert ev.mean_rmse[kf, ev.joints.index(j)] < 0.08
 
 
 def test_demo_recording_is_seeded():
@@ -89,3 +99,46 @@ def test_demo_through_cli_prints_paper_tables(tmp_path):
     ):
         assert needle in res.output, needle
     assert (tmp_path / "d" / "report.html").is_file()
+
+
+def test_demo_report_viewer_in_chromium(demo, tmp_path):
+    """The demo report in headless Chromium: no console error, no request off the machine,
+    the viewer draws, play advances the time, unticking a method hides its skeleton; the size
+    and the time to a ready viewer are printed (benchmarks, not asserts)."""
+    _, summary = demo
+    report = summary["report"]
+    size = report.stat().st_size
+    assert size <= 5_000_000, size
+    with browser(height=1000) as (ctx, log):
+        page = ctx.new_page()
+        t0 = time.perf_counter()
+        page.goto(report.as_uri())
+        page.wait_for_function("window.kfViewer && window.kfViewer.ready", timeout=30_000)
+        ready_s = time.perf_counter() - t0
+        page.locator("#viewer").scroll_into_view_if_needed()
+        page.locator("#viewer").screenshot(path=tmp_path / "demo_viewer.png")
+        names = page.evaluate("kfViewer.series.map(s => s.name)")
+        method = "ELM/FIR"
+        for name in names:  # only the method under test
+            if name != method:
+                page.uncheck(f'.kf-toggle[data-series="{name}"]')
+        page.check(f'.kf-toggle[data-series="{method}"]')
+        color = page.evaluate(f"kfViewer.series.filter(s => s.name === '{method}')[0].color")
+        canvas = page.locator("#kf-viewer canvas")
+        shown = canvas.screenshot(path=tmp_path / "demo_viewer_method.png")
+        page.uncheck(f'.kf-toggle[data-series="{method}"]')
+        hidden = canvas.screenshot()
+        t_a = page.evaluate("kfViewer.time_s")
+        page.click("#kf-play")
+        page.wait_for_function(f"kfViewer.time_s > {t_a} + 0.5", timeout=15_000)
+        page.click("#kf-play")
+    print(
+        f"\ndemo report {size / 1e6:.2f} MB, viewer ready {ready_s:.2f} s after navigation; "
+        f"screenshots {tmp_path / 'demo_viewer.png'}, {tmp_path / 'demo_viewer_method.png'}"
+    )
+    assert log["errors"] == [] and log["blocked"] == []
+    assert {"reference", "camera", "whole body (reference)", method} <= set(names)
+    on, off = canvas_stats(shown), canvas_stats(hidden)
+    assert on["non_white"] > 0.01
+    assert color_fraction(on["pixels"], color) > 5e-4
+    assert color_fraction(off["pixels"], color) < 0.1 * color_fraction(on["pixels"], color)

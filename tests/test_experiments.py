@@ -28,7 +28,10 @@ def test_paper_a_quick_packaged_clip(tmp_path, monkeypatch):
         assert abs(sum(v["branch_fractions"].values()) - 1.0) < 1e-9
     timing = out["results"]["time_per_step_ms"]
     for label in ("KF", "FIR", "EM-KF/FIR"):
-        assert 0 < timing[label]["elbow"]["batch_ms"] < 33.3
+        # no timing assert (speed lives in benchmarks/ and `kinefuse bench`): a positive
+        # measured time per step, whatever the machine
+        assert np.isfinite(timing[label]["elbow"]["batch_ms"])
+        assert timing[label]["elbow"]["batch_ms"] > 0
     titles = [t.title for t in out["tables"]]
     assert any("Table 4" in t for t in titles) and any("Table 6" in t for t in titles)
 

@@ -168,8 +168,20 @@ def test_missing_sensor_and_raw_data_are_named(rng):
     with pytest.raises(InputError, match="distal joint 'knee_l'"):
         functional_calibration(no_shank, _thigh_skeleton(), segments=["thigh_l"])
     no_foot = rec
-    with pytest.raises(InputError, match="'foot_l'"):
+    with pytest.raises(
+        InputError, match=r"'foot_l'.*\[skeleton.axes\] shank_l.*\[skeleton.lengths\]"
+    ):
         functional_calibration(no_foot, _thigh_skeleton(), segments=["thigh_l", "shank_l"])
+    # without a foot IMU the declared sensor axis (and the session's length) stand in
+    cal = functional_calibration(
+        no_foot,
+        _thigh_skeleton(),
+        segments=["thigh_l", "shank_l"],
+        declared_axes={"shank_l": [0.0, 0.0, -2.0]},
+    )
+    np.testing.assert_allclose(cal.axes["shank_l"], [0.0, 0.0, -1.0])
+    assert cal.declared == ("shank_l",) and "shank_l" not in cal.lengths_m
+    assert "thigh_l" in cal.lengths_m
     bare = dict(rec.imu)
     bare["thigh_l"] = ImuStream(
         t_s=rec.imu["thigh_l"].t_s, q_world_from_sensor=rec.imu["thigh_l"].q_world_from_sensor
@@ -255,7 +267,9 @@ def test_neura_imu_only_experiment_through_cli(shared_data, tmp_path):
     assert np.mean([ref[j] for j in joints]) == pytest.approx(0.0399, abs=5e-4)
     # fixed expected values of the IMU-only chain (regression, not a target)
     assert np.mean([func[j] for j in joints]) == pytest.approx(0.0551, abs=5e-4)
-    assert func["flexion_r_deg"] == pytest.approx(3.35, abs=0.05)
+    # joint_angles (Grood & Suntay: flexion axis made perpendicular to the thigh axis); 3.35 with
+    # the raw axis before the one knee-flexion computation
+    assert func["flexion_r_deg"] == pytest.approx(3.23, abs=0.05)
     from kinefuse.pipelines.experiments import run_experiment
 
     with pytest.raises(InputError, match="no neura_sparse_sample folder"):
@@ -281,23 +295,30 @@ def test_docs_example_runs(shared_data):
 
     from kinefuse.conventions import __file__ as _conv
 
-    doc = (Path(_conv).resolve().parents[2] / "docs" / "calibration_functional.md").read_text()
-    code = re.search(r"```python\n(.*?)```", doc, re.S).group(1)
+    doc = (Path(_conv).resolve().parents[2] / "docs" / "calibration.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", doc, re.S)
+    code = next(b for b in blocks if 'calibrate(rec, sk, "functional")' in b)
     code = code.replace('"../shared/data', f'"{shared_data}')
     ns: dict = {}
-    exec(compile(code, "calibration_functional.md", "exec"), ns)
+    exec(compile(code, "calibration.md", "exec"), ns)
     assert ns["est"].position("ankle_r").shape == (955, 3)
 
 
 def test_cmu_virtual_walk_tuning_set(shared_data):
-    """The tuning set of the defaults (docs): CMU 02_01 walk, virtual IMUs with sensor errors."""
+    """The tuning set of the defaults (docs): CMU 02_01 walk, virtual IMUs with sensor errors.
+
+    Rigidly mounted sensors (``soft_tissue_scale=0``): the functional method assumes the sensor
+    moves with the bone; with the simulator's default soft-tissue artefact the same walk gives
+    axis errors up to 7° and length errors up to 5 cm (thigh_r), a known limitation.
+    """
     from kinefuse.io.cmu import load_motion_asf_amc
-    from kinefuse.sim import virtual_recording
+    from kinefuse.sim import ImuConfig, virtual_recording
 
     root = shared_data / "cmu_mocap" / "asfamc" / "02"
     motion = load_motion_asf_amc(root / "02_01.amc", root / "02.asf")
     segs = ("pelvis", "thigh_l", "thigh_r", "shank_l", "shank_r", "foot_l", "foot_r")
-    rec = virtual_recording(motion, camera=None, segments=segs, seed=1)
+    imu = ImuConfig(soft_tissue_scale=0.0)
+    rec = virtual_recording(motion, imu=imu, camera=None, segments=segs, seed=1)
     cal = calibrate(rec, lower_body(height_m=1.7), "functional")
     truth = rec.metadata["imu_truth"]
     for s, a in cal.axes.items():
@@ -308,17 +329,37 @@ def test_cmu_virtual_walk_tuning_set(shared_data):
     assert cal.hinge_prior == ("knee_l", "knee_r")  # CMU knees are 1-DoF hinges
 
 
+def test_functional_frames_give_knee_angles_on_the_neura_walk(shared_data):
+    # follow-up of issue 10: functional calibration fills the segment frames (long axes from the
+    # joint centres, flexion axes from the movement), so joint_angles works without a still pose
+    from kinefuse.io import load
+    from kinefuse.kinematics import joint_angles, segment_orientations
+    from kinefuse.pipelines.neura_imu_only import TAPE_LENGTHS_M, _reference_flexion
+
+    rec = load(shared_data / "neura_sparse_sample", format="neura")
+    fc = calibrate(rec, lower_body(lengths=TAPE_LENGTHS_M), "functional")
+    assert {"thigh_l", "thigh_r", "shank_l", "shank_r"} <= set(fc.frames)
+    ang = joint_angles(segment_orientations(rec, fc, rec.imu["thigh_l"].t_s))
+    for s in "lr":
+        f = ang[f"knee_{s}"][:, 0]
+        lo, hi = np.percentile(f, [1, 99])
+        assert -10.0 <= lo and 45.0 <= hi <= 150.0  # walking: about 0..65 deg
+        # evaluation only (Vicon not used above): measured 5.2 (l) and 3.4 (r) deg RMSE
+        d = f - _reference_flexion(rec, s)
+        assert np.sqrt(np.mean(d**2)) < 8.0
+
+
 def test_knee_flexion_closed_form(rng):
-    from kinefuse.pipelines.neura_imu_only import knee_flexion_deg
+    from kinefuse.pipelines.neura_imu_only import _knee_flexion_deg as knee_flexion_deg
 
     theta = np.radians(5.0 + 60.0 * rng.random(200))
     Rt = Rotation.random(200, random_state=1)
     Rs = Rt * Rotation.from_rotvec(np.outer(theta, [1.0, 0.0, 0.0]))
     down = np.array([0.0, 0.0, -1.0])
-    f = knee_flexion_deg(Rt.as_matrix(), Rs.as_matrix(), down, down, [1.0, 0.0, 0.0])
+    f = knee_flexion_deg(Rt.as_matrix(), Rs.as_matrix(), down, down, [1.0, 0.0, 0.0], "l")
     np.testing.assert_allclose(f, np.degrees(theta), atol=1e-9)
     # the flexion-axis sign does not matter (the walk's mean flexion is made positive)
-    f2 = knee_flexion_deg(Rt.as_matrix(), Rs.as_matrix(), down, down, [-1.0, 0.0, 0.0])
+    f2 = knee_flexion_deg(Rt.as_matrix(), Rs.as_matrix(), down, down, [-1.0, 0.0, 0.0], "l")
     np.testing.assert_allclose(f2, f, atol=1e-9)
 
 

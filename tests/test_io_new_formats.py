@@ -165,6 +165,42 @@ def test_write_opensense_sto_read_back_by_opensim(tp, tmp_path):
 
 
 @needs_opensim
+@pytest.mark.parametrize("in_degrees", [True, False])
+def test_write_mot_read_back_by_opensim(tmp_path, rng, in_degrees):
+    # issue 13: write -> OpenSim read -> compare for .mot (kinefuse's joint angles)
+    from kinefuse.io import write_mot
+
+    t = 0.5 + np.arange(40) / 120.0
+    cols = {
+        "elbow_r_flexion_deg": 150.0 * rng.random(40) - 10.0,
+        "elbow_r_adduction_deg": rng.normal(0.0, 5.0, 40),
+        "knee_l_internal_rotation_deg": rng.normal(0.0, 1e-3, 40),
+    }
+    cols["elbow_r_adduction_deg"][7] = np.nan  # a missing sample
+    kw = {"in_degrees": in_degrees, "rate_hz": 120.0, "metadata": {"root": "shoulder_r"}}
+    out = write_mot(tmp_path / "angles.mot", t, cols, **kw)
+    keep = np.arange(40) != 7  # the NaN row is left out: OpenSim's Storage stops at a NaN
+    table = opensim.TimeSeriesTable(str(out))
+    assert list(table.getColumnLabels()) == list(cols)
+    np.testing.assert_allclose(np.asarray(table.getIndependentColumn()), t[keep], atol=1e-9)
+    matrix = table.getMatrix()
+    values = np.array(matrix.to_numpy(), copy=True)
+    np.testing.assert_allclose(values, np.column_stack(list(cols.values()))[keep], atol=1e-6)
+    assert table.getTableMetaDataAsString("DataRate") == "120.000000"  # header rate kept
+    assert table.getTableMetaDataAsString("inDegrees") == ("yes" if in_degrees else "no")
+    assert table.getTableMetaDataAsString("root") == "shoulder_r"
+    # OpenSim's Storage (what its tools load a .mot with) reads every row, honours inDegrees
+    storage = opensim.Storage(str(out))
+    assert storage.isInDegrees() == in_degrees and storage.getSize() == 39
+    # NaN kept on request: TimeSeriesTable reads it as NaN
+    kept = write_mot(tmp_path / "nan.mot", t, cols, missing="nan", **kw)
+    table = opensim.TimeSeriesTable(str(kept))  # kept alive while its matrix is copied (SWIG)
+    matrix = table.getMatrix()
+    values = np.array(matrix.to_numpy(), copy=True)
+    assert values.shape == (40, 3) and np.isnan(values[7, 1])
+
+
+@needs_opensim
 def test_write_opensense_sto_synthetic_rate_and_missing(tmp_path, rng):
     t = np.arange(50) / 60.0
     q = Rotation.random(50, random_state=7).as_quat(scalar_first=True)

@@ -96,3 +96,23 @@ def test_linear_gaussian_model_bad_shapes():
         LinearGaussianModel(F=np.eye(2), H=np.ones((1, 2)), Q=np.eye(3), R=np.eye(1))
     with pytest.raises(ValueError, match=r"expected Q positive semi-definite"):
         LinearGaussianModel(F=np.eye(2), H=np.ones((1, 2)), Q=-np.eye(2), R=np.eye(1))
+
+
+# issue 12 case 10: text is not a number (float("1") used to accept q="1")
+@pytest.mark.parametrize(
+    "kw",
+    [
+        {"q": "1"},
+        {"q": b"1"},
+        {"q": True},
+        {"r": "1"},
+        {"r": np.array(["0.1"])},
+        {"dt_s": "0.1"},
+    ],
+)
+def test_constant_velocity_refuses_text_and_bools(kw):
+    from kinefuse.exceptions import InputError
+
+    args = {"dt_s": 0.1, "q": 0.1, "r": 0.01, **kw}
+    with pytest.raises(InputError, match="expected"):
+        constant_velocity(**args)

@@ -41,6 +41,36 @@ def test_ci_runs_exactly_the_readme_test_command():
     assert out == _block_after("<!-- ci:test -->")
 
 
+@pytest.mark.parametrize("passes", [True, False], ids=["tests-pass", "tests-fail"])
+def test_ci_prints_verdict_and_duration_even_when_a_test_fails(tmp_path, passes):
+    # issue 12: with `set -e` a failing pytest used to end .ci/run before its summary line
+    import os
+    import shutil
+    import sys
+
+    (tmp_path / ".ci").mkdir()
+    shutil.copy(REPO_ROOT / ".ci" / "run", tmp_path / ".ci" / "run")
+    (tmp_path / "test_one.py").write_text(f"def test_one():\n    assert {passes}\n")
+    cmd = f"{sys.executable} -m pytest -q -p no:cacheprovider test_one.py"
+    (tmp_path / "README.md").write_text(f"<!-- ci:test -->\n```bash\n{cmd}\n```\n")
+    # a stand-in `chromium` on PATH: the script's browser install step is not under test here
+    fake_bin = tmp_path / "bin"
+    fake_bin.mkdir()
+    (fake_bin / "chromium").write_text("#!/bin/sh\nexit 0\n")
+    (fake_bin / "chromium").chmod(0o755)
+    env = {**os.environ, "PATH": f"{fake_bin}{os.pathsep}{os.environ['PATH']}"}
+    res = subprocess.run(
+        ["bash", str(tmp_path / ".ci" / "run")],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=env,
+    )
+    verdict = "PASSED" if passes else "FAILED"
+    assert re.search(rf"^ci: {verdict}.* in \d+ s$", res.stdout, flags=re.M), res.stdout
+    assert (res.returncode == 0) == passes
+
+
 @pytest.mark.parametrize(
     "code", re.findall(r"```python\n(.*?)```", README, flags=re.S), ids=lambda c: c.splitlines()[0]
 )

@@ -9,7 +9,14 @@ import re
 import numpy as np
 import pytest
 
-from _chromium import count_loaded_images, ensure_chromium, screenshot
+from _chromium import (
+    browser,
+    canvas_stats,
+    color_fraction,
+    count_loaded_images,
+    ensure_chromium,
+    screenshot,
+)
 from kinefuse.conventions import MODE_FIR, MODE_KF, MODE_PREDICT, SOURCE_BRIDGED, SOURCE_FUSED
 from kinefuse.evaluation import plots
 from kinefuse.evaluation.metrics import evaluate
@@ -93,8 +100,11 @@ def test_report_files(report):
 
 def test_report_is_self_contained(report):
     html = report.read_text(encoding="utf-8")
-    assert "http://" not in html and "https://" not in html and "<script" not in html.lower()
-    assert "<link" not in html.lower()
+    # the only URL is an XML namespace name inside three.js (an identifier, never fetched;
+    # the browser test below blocks and records any request)
+    assert set(re.findall(r"https?://[^\s\"'<>)]+", html)) == {"http://www.w3.org/1999/xhtml"}
+    assert "<link" not in html.lower() and not re.search(r"<script[^>]*\bsrc=", html, re.I)
+    assert len(re.findall(r"<script", html)) == 3  # viewer data, three.js + viewer, start
     srcs = re.findall(r'<img [^>]*src="([^"]+)"', html)
     assert len(srcs) == 10
     for src in srcs:
@@ -164,3 +174,97 @@ def test_report_renders_in_chromium_with_every_figure(report, tmp_path):
     assert n_loaded == n_images
     shot = screenshot(browser, report, tmp_path / "report.png", height=1600)
     assert shot.stat().st_size > 20_000  # a rendered page, not a blank one
+
+
+def test_report_tables_drop_empty_rows_and_no_viewer_no_script(case, tmp_path):
+    est = dict(case["est"])
+    est["arm only"] = case["est"]["KF"].copy()
+    est["arm only"][:, 2] = np.nan  # no estimate at the wrist
+    ev = evaluate(est, case["ref"], case["outage"], joints=JOINTS)
+    path = write_report(tmp_path, ev, est, case["ref"], case["t"], interactive=False, dpi=40)
+    html = path.read_text(encoding="utf-8")
+    assert "<script" not in html and "http" not in html  # interactive=False: static as before
+    assert "Not applicable at wrist_r: arm only (no estimate there)." in html
+    # no row of dashes with N = 0 for the wrist
+    wrist = html[html.index('id="joint-wrist_r"') :]
+    wrist = wrist[: wrist.index("</section>")]
+    assert "<td>arm only</td>" not in wrist and ">0</td>" not in wrist
+    # shoulder and elbow have no outage: said once instead of an empty outage table
+    elbow = html[html.index('id="joint-elbow_r"') :]
+    assert "No camera outage at this joint." in elbow[: elbow.index("</section>")]
+
+
+def test_palette_and_line_styles():
+    few = plots.method_linestyles(list("abcdef"))
+    assert set(few.values()) == {"-"}
+    many = plots.method_linestyles(list("abcdefgh"))
+    assert len({str(v) for v in many.values()}) == 4
+    colors = plots.method_colors(list("abcdefghi"))
+    assert len(set(colors.values())) == 9 and set(colors.values()) <= set(plots.TOL_MUTED)
+    fig = plots.trajectory_figure(
+        np.arange(5.0),
+        np.zeros((5, 3)),
+        {"drawn": np.ones((5, 3)), "absent": np.full((5, 3), np.nan)},
+        measurement=np.full((5, 3), np.nan),
+    )
+    labels = [t.get_text() for leg in fig.legends for t in leg.get_texts()]
+    assert labels == ["reference", "drawn"]  # no "absent" method, no camera that is all NaN
+
+
+def test_report_viewer_in_chromium(case, report, tmp_path):
+    """The viewer draws, plays and hides a method's skeleton when its box is unticked."""
+    with browser() as (ctx, log):
+        page = ctx.new_page()
+        page.goto(report.as_uri())
+        page.wait_for_function("window.kfViewer && window.kfViewer.ready", timeout=15_000)
+        canvas = page.locator("#kf-viewer canvas")
+        canvas.scroll_into_view_if_needed()
+        for name in ("reference", "KF"):  # only FIR shown
+            page.uncheck(f'.kf-toggle[data-series="{name}"]')
+        page.check('.kf-toggle[data-series="FIR"]')
+        page.evaluate(  # the time slider to a sample where FIR has an estimate (not warm-up)
+            "() => { const s = document.getElementById('kf-time'); s.value = 120;"
+            " s.dispatchEvent(new Event('input')); }"
+        )
+        color = page.evaluate("kfViewer.series.filter(s => s.name === 'FIR')[0].color")
+        shown = canvas.screenshot(path=tmp_path / "viewer_fir.png")
+        page.uncheck('.kf-toggle[data-series="FIR"]')
+        hidden = canvas.screenshot(path=tmp_path / "viewer_none.png")
+        t0 = page.evaluate("kfViewer.time_s")
+        page.click("#kf-play")
+        page.wait_for_function(f"kfViewer.time_s > {t0} + 0.5", timeout=15_000)
+        page.click("#kf-play")
+        err_rows = page.locator(".kf-err-table tr").count()
+    print(f"\nviewer screenshots: {tmp_path / 'viewer_fir.png'} {tmp_path / 'viewer_none.png'}")
+    assert log["errors"] == [] and log["blocked"] == []
+    on, off = canvas_stats(shown), canvas_stats(hidden)
+    assert on["non_white"] > 0.01  # grid and skeleton drawn
+    assert color_fraction(on["pixels"], color) > 5e-4
+    assert color_fraction(off["pixels"], color) < 0.1 * color_fraction(on["pixels"], color)
+    assert err_rows == 1 + len(JOINTS)
+
+
+def test_viewer_quantization_and_thinning():
+    from kinefuse.evaluation import viewer
+
+    p = np.array([[[0.0, 1.2344, -0.0006], [np.nan, 2.0, 3.0]]])  # (1, 2, 3)
+    origin = np.array([0.0, 1.0, 0.0])
+    q = np.frombuffer(base64.b64decode(viewer.quantize(p, origin, 0.001)), dtype="<i2")
+    assert q.tolist() == [0, 234, -1, -32768, 1000, 3000]  # round((p - origin) / 1 mm); NaN
+    assert viewer.quantization_scale([p], origin) == 0.001
+    far = np.array([[100.0, 0.0, 0.0]])
+    assert viewer.quantization_scale([far], np.zeros(3)) == pytest.approx(100.0 / 32767)
+    t = np.arange(6000) / 100.0  # 60 s at 100 Hz
+    assert viewer.downsample_stride(t, 30, max_rate_hz=30, max_bytes=10**9) == 4  # <= 30 Hz
+    k = viewer.downsample_stride(t, 3000, max_rate_hz=30, max_bytes=1_000_000)
+    assert 6000 / k * 3000 * 2 * 4 / 3 <= 1_000_000 < 6000 / (k - 1) * 3000 * 2 * 4 / 3
+
+
+def test_report_without_webgl_says_so_and_keeps_the_figures(report):
+    with browser(extra_args=["--disable-webgl", "--disable-3d-apis"]) as (ctx, log):
+        page = ctx.new_page()
+        page.goto(report.as_uri())
+        page.wait_for_selector(".kf-no-webgl", timeout=15_000)
+        loaded = page.evaluate("Array.from(document.images).filter(i => i.naturalWidth > 0).length")
+    assert loaded == 10
+    assert not [e for e in log["errors"] if e.startswith("page error")]  # no uncaught error

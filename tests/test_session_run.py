@@ -91,8 +91,9 @@ def test_synthetic_session_writes_csv_trc_report(synthetic_files, tmp_path):
     p = _good(synthetic_files)
     out = tmp_path / "out"
     summary = run_session(p, out)
-    csv, trc = summary["outputs"]
+    csv, trc, sto = summary["outputs"]
     assert csv.name == "synthetic_joints.csv" and trc.name == "synthetic_joints.trc"
+    assert sto.name == "synthetic_orientations.sto"  # calibrated sensor orientations, OpenSense
     rec = read_joint_csv(csv)
     assert rec.vision.joints == ("elbow_r", "wrist_r")
     extra = rec.metadata["extra_columns"]
@@ -103,8 +104,9 @@ def test_synthetic_session_writes_csv_trc_report(synthetic_files, tmp_path):
     np.testing.assert_allclose(tr.reference.position_m, rec.vision.position_m, atol=2e-6)
     ev = summary["evaluation"]
     assert ev.methods[:2] == ("EM-KF/FIR", "IMU chain")
-    # the IMU chain of virtual sensors (camera shoulder) is within a few cm of the truth
-    assert np.all(ev.mean_rmse[1] < 0.03), ev.mean_rmse
+    # the IMU chain of virtual sensors (camera shoulder) is within a few cm of the truth (VQF
+    # orientation, soft tissue, calibrated against a Kinect-like camera: real chains are ~5 cm off)
+    assert np.all(ev.mean_rmse[1] < 0.06), ev.mean_rmse
     assert summary["report"].is_file()
     # never overwrite without force; nothing written in that case
     before = csv.stat().st_mtime_ns

@@ -242,8 +242,10 @@ def test_engine_equals_offline_causal_on_virtual_clip(rec, method):
     src = np.stack([o.source for o in outs])
     np.testing.assert_array_equal(src, off["source"])
     np.testing.assert_array_equal(np.isnan(pos), np.isnan(off["position_m"]))
-    np.testing.assert_allclose(pos, off["position_m"], atol=TOL, rtol=0)
-    np.testing.assert_allclose(cov, off["cov_m2"], atol=TOL, rtol=0)
+    # the trained ELM bridge (a least-squares solve) amplifies the rounding of the two paths'
+    # summation orders to ~1e-9 m on this clip (realistic virtual sensors): 1e-8 m = 10 nm
+    np.testing.assert_allclose(pos, off["position_m"], atol=10 * TOL, rtol=0)
+    np.testing.assert_allclose(cov, off["cov_m2"], atol=10 * TOL, rtol=0)
     # the clip exercises the camera path, the IMU fallback and a trained bridge
     assert {SOURCE_FUSED, SOURCE_BRIDGED, SOURCE_IMU} <= set(np.unique(src).tolist())
     # and the processor's step equals the batch pipeline on the engine's own inputs

@@ -303,3 +303,30 @@ def test_initial_mean_given(model, rng):
     _, r = f.filter(z, state)
     assert np.all(np.isfinite(r.mean))  # predicts from the given mean through the leading NaNs
     _ = f.filter(np.full((30, 3), np.nan), state)  # all-NaN is fine with an initialised state
+
+
+# issue 12 case 10: a mistyped horizon is refused at the boundary (it used to end in a
+# MemoryError of 134 GiB, or run for minutes on 300 samples)
+@pytest.mark.parametrize("horizon", [10**6, 10**9, 2001])
+def test_horizon_too_long_is_refused_before_any_work(model, horizon):
+    from kinefuse.exceptions import InputError
+    from kinefuse.filters.integrated import IntegratedFilter
+
+    with pytest.raises(InputError, match=rf"expected horizon <= 2000 samples.*got {horizon}"):
+        UFIRFilter(model, horizon=horizon)
+    with pytest.raises(InputError, match="expected horizon <= 2000"):
+        IntegratedFilter(model, horizon=horizon)
+
+
+def test_horizon_longer_than_series_warns(model):
+    z = np.zeros((30, 3))
+    with pytest.warns(UserWarning, match="longer than the series"):
+        _, r = UFIRFilter(model, horizon=40).filter(z)
+    assert not np.any(r.fir_ready)
+
+
+def test_state_memory_checked_against_the_machine(model):
+    from kinefuse.exceptions import InputError
+
+    with pytest.raises(InputError, match="GiB"):
+        UFIRFilter(model, horizon=2000).init((10**6, 10**3))

@@ -113,7 +113,7 @@ def test_bad_input(arm):
 
 
 def test_from_recording_on_virtual_cmu():
-    sim = pytest.importorskip("kinefuse.sim")
+    import kinefuse.sim as sim
     from kinefuse.data import demo_motion
     from kinefuse.pipelines import upper_limb_from_recording
 

@@ -344,7 +344,7 @@ def test_vision_params_defaults():
 
 # ------------------------------------------------------------------------------ recordings
 def test_from_recording_on_virtual_cmu():
-    sim = pytest.importorskip("kinefuse.sim")
+    import kinefuse.sim as sim
     from kinefuse.data import demo_motion
     from kinefuse.pipelines import vision_assisted_from_recording
 
@@ -354,10 +354,12 @@ def test_from_recording_on_virtual_cmu():
     T = rec.vision.t_s.size
     assert r.position.shape == (T, 8, 3) and out.reference.shape == (T, 8, 3)
     assert r.joints[0] == "elbow_l"
-    np.testing.assert_allclose(out.R_world_from_camera, np.eye(3), atol=0.05)  # camera frame ENU
+    # camera frame ENU; estimated from VQF 9D orientations and a Kinect-like camera: a few degrees
+    np.testing.assert_allclose(out.R_world_from_camera, np.eye(3), atol=0.1)
     err = np.linalg.norm(r.position - out.reference, axis=-1)
     fused = r.source == SOURCE_FUSED
-    assert np.sqrt(np.mean(err[fused] ** 2)) < 0.06
+    # the virtual Kinect's tracking error alone is 3 cm per axis (kinefuse.sim.camera)
+    assert np.sqrt(np.mean(err[fused] ** 2)) < 0.10
     assert set(np.unique(r.source)) <= {SOURCE_FUSED, SOURCE_BRIDGED, SOURCE_IMU}
     raw = np.linalg.norm(out.z_imu - out.reference, axis=-1)
-    assert np.sqrt(np.mean(raw**2)) < 0.05  # IMU chain from calibrated-by-construction sensors
+    assert np.sqrt(np.mean(raw**2)) < 0.07  # IMU chain: VQF orientation, soft tissue, mounting

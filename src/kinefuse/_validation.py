@@ -36,7 +36,9 @@ def as_float_array(
 
 
 def positive_finite(value, name: str) -> float:
-    """Return ``value`` as a float, requiring it to be finite and > 0."""
+    """Return ``value`` as a float, requiring it to be finite and > 0 (text is refused)."""
+    if isinstance(value, (str, bytes, bool, np.bool_)):
+        raise InputError(f"expected {name} as a positive number, got {value!r}")
     try:
         out = float(value)
     except (TypeError, ValueError):

@@ -1,6 +1,6 @@
 """The ``kinefuse`` command-line tool (also ``python -m kinefuse``), thin over the pipelines.
 
-Commands: ``demo``, ``run``, ``init-session``, ``evaluate``, ``experiment``, ``bench``,
+Commands: ``demo``, ``run``, ``init-session``, ``evaluate``, ``experiment``, ``batch``, ``bench``,
 ``stream``, ``replay``; ``kinefuse COMMAND --help`` documents each.
 
 Exit codes
@@ -42,6 +42,7 @@ and ``"passed"`` (False -> exit 1). ``--json FILE`` writes the summary as JSON (
 """
 
 import contextlib
+import dataclasses
 import functools
 import importlib
 import json
@@ -97,7 +98,7 @@ _BACKENDS = {
     "replay": ("kinefuse.streaming", "replay_recording"),
 }
 
-EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only")
+EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only", "realism")
 
 
 class BackendUnavailable(RuntimeError):
@@ -247,14 +248,24 @@ def _jsonable(obj: Any) -> Any:
     return str(obj)
 
 
-def _write_json(path: Path, data: Any) -> None:
+def _check_json(path: Path | None, force: bool = False, protect=()) -> None:
+    """``--json FILE`` before any work: never an input, never overwritten without --force."""
+    if path is None or str(path) == "-":
+        return
+    from kinefuse.io.output_folder import check_writable_file
+
+    check_writable_file(path, force=force, protect=protect, what="--json")
+
+
+def _write_json(path: Path, data: Any, force: bool = False) -> None:
     text = json.dumps(_jsonable(data), indent=2)
     if str(path) == "-":
         sys.stdout.write(text + "\n")
         return
-    if not path.parent.is_dir():
-        raise InputError(f"--json {path}: folder {path.parent} does not exist")
-    path.write_text(text + "\n", encoding="utf-8")
+    from kinefuse.io._common import write_text_safely
+
+    _check_json(path, force)
+    write_text_safely(path, text + "\n", force=force)
 
 
 def _check_report_free(out_dir: Path, force: bool) -> None:
@@ -281,15 +292,18 @@ def _fresh_dir(stem: str) -> Path:
     return candidate
 
 
-def _present(summary: Any, *, quiet: bool, json_file: Path | None) -> None:
+def _present(summary: Any, *, quiet: bool, json_file: Path | None, force: bool = False) -> None:
     """Print the tables of a back-end summary, write ``--json``; exit 1 if a target was missed."""
     if json_file is not None:
-        _write_json(json_file, summary if summary is not None else {})
+        _write_json(json_file, summary if summary is not None else {}, force)
         quiet = quiet or str(json_file) == "-"
     evaluation = None
     report = None
     extra_tables = []
     passed = None
+    if isinstance(summary, Mapping) and summary.get("warnings"):
+        for w in summary["warnings"]:  # shown even with --quiet: the user must see them
+            _stderr().print(Text(f"kinefuse: warning: {_one_line(w)}", style="yellow"))
     if hasattr(summary, "to_dict") and hasattr(summary, "methods"):
         evaluation = summary
     elif isinstance(summary, Path):
@@ -351,7 +365,13 @@ _Json = Annotated[
     ),
 ]
 _Force = Annotated[
-    bool, typer.Option("--force", "-f", help="Overwrite an existing report in the output folder.")
+    bool,
+    typer.Option(
+        "--force", "-f", help="Replace earlier results in the output folder and the --json file."
+    ),
+]
+_JsonForce = Annotated[
+    bool, typer.Option("--force", "-f", help="Overwrite an existing --json file.")
 ]
 
 
@@ -404,6 +424,7 @@ def demo(
     """Run the demo on built-in data and write an HTML report (report.html) to DIR."""
     out_dir = _fresh_dir("kinefuse-demo") if out is None else out
     _check_report_free(out_dir, force)
+    _check_json(json_file, force)
     from kinefuse import _compile
 
     # A first run on this machine: interpreting the kernels on the demo's few hundred samples
@@ -414,7 +435,7 @@ def demo(
             "results; `kinefuse run/experiment/bench` compile them once).[/yellow]"
         )
     summary = _backend("demo")(out_dir, force, quiet)
-    _present(summary, quiet=quiet, json_file=json_file)
+    _present(summary, quiet=quiet, json_file=json_file, force=force)
 
 
 @app.command(epilog=_EPILOG)
@@ -440,8 +461,13 @@ def run(
     cfg = load_session(session)
     out_dir = cfg.out_dir if out is None else out
     _check_report_free(out_dir, force)
-    summary = _backend("run")(cfg.path, out_dir, force)
-    _present(summary, quiet=quiet, json_file=json_file)
+    backend = _backend("run")
+    results = importlib.import_module(backend.__module__).output_paths(cfg, out_dir)
+    _check_json(json_file, force, (*cfg.inputs, *results))  # never an input nor a result
+    # the back-end checks every earlier result and writability before any processing
+    with progress(f"Processing {cfg.name}", quiet=quiet):
+        summary = backend(cfg.path, out_dir, force)
+    _present(summary, quiet=quiet, json_file=json_file, force=force)
 
 
 @app.command("init-session", epilog=_EPILOG)
@@ -544,6 +570,7 @@ def evaluate(
     ] = None,
     quiet: _Quiet = False,
     json_file: _Json = None,
+    force: _JsonForce = False,
 ) -> None:
     """Run one method on a recording and print RMSE tables against its reference."""
     from kinefuse.io import FORMATS
@@ -551,6 +578,7 @@ def evaluate(
 
     if not recording.exists():
         raise InputError(f"RECORDING {recording}: file not found (a file or a dataset folder)")
+    _check_json(json_file, force, (recording,))
     if method not in METHODS:
         raise InputError(
             f"--method: unknown method {method!r}; expected one of {', '.join(METHODS)}"
@@ -575,7 +603,7 @@ def evaluate(
         align=align,
         body_height_m=body_height,
     )
-    _present(summary, quiet=quiet, json_file=json_file)
+    _present(summary, quiet=quiet, json_file=json_file, force=force)
 
 
 @app.command(epilog=_EPILOG)
@@ -584,8 +612,9 @@ def experiment(
     name: Annotated[
         str,
         typer.Argument(
-            metavar="paper-a|paper-b|neura-imu-only",
-            help="Which experiment: a paper's, or the Neura walk from its IMUs alone.",
+            metavar="paper-a|paper-b|neura-imu-only|realism",
+            help="Which experiment: a paper's, the Neura walk from its IMUs alone, or 'realism' "
+            "(virtual vs real sensors).",
         ),
     ],
     data: Annotated[
@@ -609,6 +638,7 @@ def experiment(
     ] = "report",
     quiet: _Quiet = False,
     json_file: _Json = None,
+    force: _JsonForce = False,
 ) -> None:
     """Reproduce a paper's experiment and compare with the paper's tables."""
     if name not in EXPERIMENTS:
@@ -617,8 +647,90 @@ def experiment(
         raise InputError(f"--data {data}: folder not found")
     if data_set not in ("report", "tuning"):
         raise InputError(f"--set: expected 'report' or 'tuning', got {data_set!r}")
+    _check_json(json_file, force, () if data is None else (data,))
     summary = _backend("experiment")(name, data, quick=quick or None, quiet=quiet, split=data_set)
-    _present(summary, quiet=quiet, json_file=json_file)
+    _present(summary, quiet=quiet, json_file=json_file, force=force)
+
+
+@app.command(epilog=_EPILOG)
+@_guarded
+def batch(
+    study: Annotated[
+        str,
+        typer.Argument(
+            metavar="STUDY",
+            help="Study TOML, or a folder / glob of session files (quote the glob).",
+        ),
+    ],
+    method: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--method", "-m", metavar="NAME", help="Folder/glob: methods to run (repeat)."
+        ),
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option("--out", "-o", metavar="DIR", help="Output folder.")
+    ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option("--workers", "-w", min=1, help="LocalCluster workers (default: cores)."),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            "--scheduler",
+            metavar="tcp://HOST:PORT",
+            envvar="DASK_SCHEDULER_ADDRESS",
+            help="An existing Dask scheduler instead of a LocalCluster.",
+        ),
+    ] = None,
+    dashboard: Annotated[
+        bool, typer.Option("--dashboard", help="Serve the Dask dashboard on 127.0.0.1.")
+    ] = False,
+    compare: Annotated[
+        str | None,
+        typer.Option(
+            "--compare-workers", metavar="N,M", help="Time the whole study with N, then M workers."
+        ),
+    ] = None,
+    force: Annotated[bool, typer.Option("--force", "-f", help="Redo finished recordings.")] = False,
+    quiet: _Quiet = False,
+    json_file: _Json = None,
+) -> None:
+    """Run a whole study (recordings x methods) on Dask: one table, per-recording outputs, a report."""
+    from kinefuse import batch as kb
+
+    if kb.missing_packages():
+        raise BackendUnavailable(
+            f"`kinefuse batch` needs {', '.join(kb.missing_packages())}: "
+            "pip install 'kinefuse[batch]'"
+        )
+    from kinefuse.batch.runner import compare_table, summary_tables
+
+    if Path(study).suffix == ".toml" and Path(study).is_file():
+        if method:
+            raise InputError(
+                "--method: only for a folder or glob; a study file has [study] methods"
+            )
+        st = kb.load_study(study)
+        if out is not None:
+            st = dataclasses.replace(st, out_dir=out.resolve())
+    else:
+        st = kb.study_from_sessions(study, method, out)
+    if compare:
+        try:
+            counts = [int(n) for n in compare.split(",")]
+        except ValueError:
+            raise InputError(f"--compare-workers: expected e.g. 1,2, got {compare!r}") from None
+        runs = kb.compare_workers(st, counts, quiet=quiet)
+        _present({"tables": [compare_table(runs)], "runs": runs}, quiet=quiet, json_file=json_file)
+        return
+    s = kb.run_study(st, force=force, workers=workers, scheduler=scheduler, dashboard=dashboard,
+                     quiet=quiet)  # fmt: skip
+    s["tables"] = summary_tables(s)
+    if s["failed"]:
+        s["passed"], s["reason"] = False, f"{len(s['failed'])} of {len(st.tasks)} tasks failed"
+    _present(s, quiet=quiet, json_file=json_file)
 
 
 @app.command(epilog=_EPILOG)
@@ -629,10 +741,12 @@ def bench(
     ] = False,
     quiet: _Quiet = False,
     json_file: _Json = None,
+    force: _JsonForce = False,
 ) -> None:
     """Measure per-step latency and batch throughput of the filters, next to peer libraries."""
+    _check_json(json_file, force)
     summary = _backend("bench")(quick)
-    _present(summary, quiet=quiet, json_file=json_file)
+    _present(summary, quiet=quiet, json_file=json_file, force=force)
 
 
 @app.command("warm-up", epilog=_EPILOG)
@@ -717,6 +831,11 @@ def _stream_table(summary: Mapping):
     rows.append(("missing streams", ", ".join(missing) if missing else "none"))
     if summary.get("out"):
         rows.append(("written", str(summary["out"])))
+    if summary.get("view_url"):
+        v = summary.get("view") or {}
+        rows.append(
+            ("live view", f"{summary['view_url']} ({v.get('sent', 0)} frames sent to viewers)")
+        )
     caption = "stopped by Ctrl-C (pending frames flushed)" if summary.get("interrupted") else None
     return _kv_table("kinefuse stream", rows, caption)
 
@@ -740,9 +859,11 @@ def _replay_table(summary: Mapping, rate: float):
     return t
 
 
-def _finish(summary: Any, table_of: Callable, *, quiet: bool, json_file: Path | None) -> None:
+def _finish(
+    summary: Any, table_of: Callable, *, quiet: bool, json_file: Path | None, force: bool = False
+) -> None:
     """Write ``--json`` and print ``table_of(summary)`` (unless quiet or JSON goes to stdout)."""
-    _present(summary, quiet=True, json_file=json_file)
+    _present(summary, quiet=True, json_file=json_file, force=force)
     if not quiet and str(json_file) != "-" and isinstance(summary, Mapping):
         _stdout().print(table_of(summary))
 
@@ -815,6 +936,19 @@ def stream(
     no_status: Annotated[
         bool, typer.Option("--no-status", help="No live status table on stderr.")
     ] = False,
+    view: Annotated[
+        bool,
+        typer.Option(
+            "--view",
+            help="Serve a live 3-D view (skeleton, source per joint, latency) on "
+            "http://127.0.0.1:PORT/ (loopback only; the address is printed). Viewers never "
+            "slow the stream down.",
+        ),
+    ] = False,
+    view_port: Annotated[
+        int,
+        typer.Option("--view-port", metavar="PORT", help="Port of --view (0 = any free port)."),
+    ] = 0,
     quiet: _Quiet = False,
     json_file: _Json = None,
 ) -> None:
@@ -832,18 +966,20 @@ def stream(
         _positive(value, option)
     if record_inputs and out is None:
         raise InputError("--record-inputs needs --out FILE (the inputs are stored in FILE.npz)")
+    if not 0 <= view_port <= 65535:
+        raise InputError(f"--view-port must be in [0, 65535], got {view_port}")
     cfg = _stream_session(session, resolve_timeout)
     if out is not None:
         _out_files(out, force)
-    if json_file is not None and str(json_file) != "-" and not json_file.parent.is_dir():
-        raise InputError(f"--json {json_file}: folder {json_file.parent} does not exist")
+    _check_json(json_file, force, (session,))
     if quiet:
         logging.getLogger("kinefuse.streaming").setLevel(logging.ERROR)
     summary = _backend("stream")(
         cfg, duration, out, not (no_status or quiet), idle_timeout_s=idle_timeout,
         wait_for_reader_s=wait_for_reader, record_inputs=record_inputs,
+        **({"view_port": view_port} if view else {}),
     )  # fmt: skip
-    _finish(summary, _stream_table, quiet=quiet, json_file=json_file)
+    _finish(summary, _stream_table, quiet=quiet, json_file=json_file, force=force)
 
 
 @app.command(epilog=_EPILOG)
@@ -891,6 +1027,7 @@ def replay(
     ] = None,
     quiet: _Quiet = False,
     json_file: _Json = None,
+    force: _JsonForce = False,
 ) -> None:
     """Publish a recording as live LSL streams, at its real rate or --rate times faster.
 
@@ -911,8 +1048,7 @@ def replay(
             f"RECORDING {recording}: file not found (give a file or folder kinefuse.io.load "
             "reads, or `demo`)"
         )
-    if json_file is not None and str(json_file) != "-" and not json_file.parent.is_dir():
-        raise InputError(f"--json {json_file}: folder {json_file.parent} does not exist")
+    _check_json(json_file, force, () if recording == "demo" else (Path(recording),))
     source = recording if recording == "demo" else Path(recording)
     if not quiet:
         _stderr().print(
@@ -922,7 +1058,9 @@ def replay(
         source, rate, prefix, loop, duration, include_raw=not no_raw,
         wait_for_consumers_s=wait_for_consumers, quiet=quiet,
     )  # fmt: skip
-    _finish(summary, lambda s: _replay_table(s, rate), quiet=quiet, json_file=json_file)
+    _finish(
+        summary, lambda s: _replay_table(s, rate), quiet=quiet, json_file=json_file, force=force
+    )
 
 
 def main() -> None:

@@ -87,10 +87,21 @@ MODE_KF, MODE_EM, MODE_FIR, MODE_PREDICT = 0, 1, 2, 3
 MODE_NAMES = {MODE_KF: "KF", MODE_EM: "EM-KF", MODE_FIR: "FIR", MODE_PREDICT: "predict"}
 
 #: Integer codes of the per-sample source of a fused joint position (paper B pipelines).
-SOURCE_FUSED, SOURCE_BRIDGED, SOURCE_IMU, SOURCE_CAMERA = 0, 1, 2, 3
+#: ``SOURCE_PREDICTED``: an output sample no input backs (a stream ended early, a gap):
+#: the filter's prediction, never marked available (``kinefuse run``, issue 12).
+SOURCE_FUSED, SOURCE_BRIDGED, SOURCE_IMU, SOURCE_CAMERA, SOURCE_PREDICTED = 0, 1, 2, 3, 4
 SOURCE_NAMES = {
     SOURCE_FUSED: "camera-fused",
     SOURCE_BRIDGED: "bridged",
     SOURCE_IMU: "imu-only",
     SOURCE_CAMERA: "camera-only",
+    SOURCE_PREDICTED: "predicted",
+}
+#: What each source code is: measured by one stream, fused, bridged or predicted.
+SOURCE_KINDS = {
+    SOURCE_FUSED: "fused",
+    SOURCE_BRIDGED: "bridged",
+    SOURCE_IMU: "measured",
+    SOURCE_CAMERA: "measured",
+    SOURCE_PREDICTED: "predicted",
 }

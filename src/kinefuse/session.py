@@ -153,7 +153,8 @@ class CalibrationConfig:
     settings : dict
         ``method`` (:data:`CALIBRATIONS`), ``window_s``, ``start_s``, ``pose`` (``"n"`` /
         ``"t"``), ``facing`` ([x, y, z]), ``heading`` (``"auto"``, ``"none"``, ``"static"``),
-        ``lengths_from_data`` (bool), ``max_rate_rad_s``, ``max_acc_std_m_s2``, as given.
+        ``flexion_axes`` (``"auto"``, ``"movement"``, ``"pose"``), ``lengths_from_data``
+        (bool), ``max_rate_rad_s``, ``max_acc_std_m_s2``, as given.
     """
 
     settings: dict = field(default_factory=dict)
@@ -253,6 +254,7 @@ class SessionConfig:
             "pose": c.get("pose"),
             "facing": c.get("facing"),
             "heading": c.get("heading"),
+            "flexion_axes": c.get("flexion_axes"),
             "measured_lengths": c.get("lengths_from_data"),
             "max_rate_rad_s": c.get("max_rate_rad_s"),
             "max_acc_std_m_s2": c.get("max_acc_std_m_s2"),
@@ -275,6 +277,12 @@ class SessionConfig:
                 )
             params[k] = v
         return params
+
+    @property
+    def inputs(self) -> tuple[Path, ...]:
+        """The session file and every file or folder it reads (never written over)."""
+        streams = (self.imu, self.camera, self.reference)
+        return (self.path, *(Path(st.path) for st in streams if st is not None))
 
 
 # --------------------------------------------------------------------------------------------
@@ -428,13 +436,17 @@ def read_toml(path: str | Path, *, missing: str = "file not found") -> dict:
         raise ConfigError(f"{p.name}: not a UTF-8 text file") from None
 
 
-def load_session(path: str | Path) -> SessionConfig:
+def load_session(path: str | Path, *, document: Mapping | None = None) -> SessionConfig:
     """Read and validate a session TOML file.
 
     Parameters
     ----------
     path : str or Path
         The session file.
+    document : mapping, optional
+        The parsed TOML to validate instead of reading ``path`` (``kinefuse batch`` merges a
+        study's defaults into it); ``path`` still names the file in messages and is the base of
+        relative paths.
 
     Returns
     -------
@@ -449,9 +461,11 @@ def load_session(path: str | Path) -> SessionConfig:
         and key, and says how to fix it.
     """
     p = Path(path).expanduser()
-    doc = read_toml(
-        p, missing=f"session file not found (create one with `kinefuse init-session {p}`)"
-    )
+    doc = document
+    if doc is None:
+        doc = read_toml(
+            p, missing=f"session file not found (create one with `kinefuse init-session {p}`)"
+        )
     p = p.resolve()
     c = _Ctx(p)
     c.check_keys(
@@ -610,6 +624,7 @@ def load_session(path: str | Path) -> SessionConfig:
             "pose",
             "facing",
             "heading",
+            "flexion_axes",
             "lengths_from_data",
             "max_rate_rad_s",
             "max_acc_std_m_s2",
@@ -628,7 +643,11 @@ def load_session(path: str | Path) -> SessionConfig:
     for key in ("window_s", "max_rate_rad_s", "max_acc_std_m_s2"):
         c.number(cal, "calibration", key)
     c.number(cal, "calibration", "start_s", positive=False)
-    for key, choices in (("pose", ("n", "t")), ("heading", ("auto", "none", "static"))):
+    for key, choices in (
+        ("pose", ("n", "t")),
+        ("heading", ("auto", "none", "static")),
+        ("flexion_axes", ("auto", "movement", "pose")),
+    ):
         if key in cal and cal[key] not in choices:
             raise c.error(
                 "calibration", key, f"expected one of {', '.join(choices)}, got {cal[key]!r}"
@@ -760,6 +779,7 @@ pose = "n"                       # "n": arms hanging, "t": T-pose (static only)
 # window_s = 2.0                 # still window length, s; found automatically unless start_s is given
 # start_s = 0.0
 # heading = "auto"               # 6-D sensors (no magnetometer): "static" aligns their headings
+# flexion_axes = "auto"          # elbow/knee flexion axes: "movement" (6-D default) or "pose"
 
 # Optional: a camera skeleton. Needed by {camera_methods}.
 # [camera]

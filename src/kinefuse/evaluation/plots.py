@@ -4,8 +4,11 @@ Every function returns a :class:`matplotlib.figure.Figure` built without ``pyplo
 with the Agg canvas, so nothing ever opens a window and no global pyplot state is touched
 (safe in tests, servers and threads). :func:`figure_to_png` turns a figure into PNG bytes.
 
-Conventions: the reference is drawn black, camera outages are shaded orange, each method keeps
-one colour across all figures (:func:`method_colors`).
+Conventions: the reference is drawn black, camera outages are shaded grey, each method keeps
+one colour (and, with more than six methods, one line style) across all figures
+(:func:`method_colors`, :func:`method_linestyles`). The palettes are colour-blind safe: Paul
+Tol's "muted" qualitative scheme for methods (Tol 2021, https://personal.sron.nl/~pault/) and
+Okabe & Ito (2008) for per-sample codes (filter branch, data source).
 """
 
 from __future__ import annotations
@@ -21,8 +24,10 @@ from matplotlib.patches import Patch
 
 __all__ = [
     "cdf_figure",
+    "code_colors",
     "figure_to_png",
     "method_colors",
+    "method_linestyles",
     "outage_runs",
     "rmse_bar_figure",
     "skeleton_figure",
@@ -30,25 +35,50 @@ __all__ = [
     "trajectory_figure",
 ]
 
-_PALETTE = (
-    "#1f77b4",
-    "#d62728",
-    "#2ca02c",
-    "#9467bd",
-    "#8c564b",
-    "#e377c2",
-    "#17becf",
-    "#bcbd22",
-    "#7f7f7f",
-    "#ff7f0e",
+#: Paul Tol's "muted" qualitative palette (colour-blind safe), one colour per method.
+TOL_MUTED = (
+    "#332288",
+    "#CC6677",
+    "#117733",
+    "#88CCEE",
+    "#882255",
+    "#999933",
+    "#44AA99",
+    "#AA4499",
+    "#DDCC77",
 )
+#: Okabe & Ito (2008) colours (black left out), one per code of a timeline / joint source.
+OKABE_ITO = ("#0072B2", "#E69F00", "#CC79A7", "#009E73", "#D55E00", "#56B4E9", "#F0E442")
+_LINESTYLES = ("-", (0, (5, 2)), (0, (1, 1.2)), (0, (6, 2, 1.5, 2)))
+_HATCHES = ("", "//", "..", "xx")
 _REF_COLOR = "black"
-_OUTAGE_COLOR = "#ffb347"
+_OUTAGE_COLOR = "#9aa3b0"  # grey: outages never look like a method or a code
+_BODY_COLOR = "#c3c8d1"
 
 
 def method_colors(methods: Sequence[str]) -> dict[str, str]:
-    """One stable colour per method (in the given order)."""
-    return {m: _PALETTE[i % len(_PALETTE)] for i, m in enumerate(methods)}
+    """One stable colour per method (in the given order), from :data:`TOL_MUTED`."""
+    return {m: TOL_MUTED[i % len(TOL_MUTED)] for i, m in enumerate(methods)}
+
+
+def method_linestyles(methods: Sequence[str]) -> dict[str, object]:
+    """One line style per method: solid for up to six methods, else four styles in turn.
+
+    With more methods than colours tell apart at a glance, neighbours in the palette also
+    differ in dash pattern (method i gets style ``i % 4``).
+    """
+    if len(methods) <= 6:
+        return {m: "-" for m in methods}
+    return {m: _LINESTYLES[i % len(_LINESTYLES)] for i, m in enumerate(methods)}
+
+
+def code_colors(codes) -> dict[int, str]:
+    """Colour per integer code (sorted order -> :data:`OKABE_ITO`), as in the 3-D viewer."""
+    return {int(c): OKABE_ITO[i % len(OKABE_ITO)] for i, c in enumerate(sorted(codes))}
+
+
+def _drawn(arr) -> bool:
+    return bool(np.any(np.isfinite(np.asarray(arr, dtype=float))))
 
 
 def _figure(width_in: float, height_in: float) -> Figure:
@@ -57,11 +87,26 @@ def _figure(width_in: float, height_in: float) -> Figure:
     return fig
 
 
-def figure_to_png(fig: Figure, path: str | Path | None = None, *, dpi: int = 110) -> bytes:
-    """Render ``fig`` to PNG bytes (and write them to ``path`` if given)."""
+def figure_to_png(
+    fig: Figure, path: str | Path | None = None, *, dpi: int = 110, palette: bool = True
+) -> bytes:
+    """Render ``fig`` to PNG bytes (and write them to ``path`` if given).
+
+    With ``palette`` the image is stored with an adaptive 256-colour palette (Pillow, no
+    dithering): plots have few distinct colours, and the file is about a third of the RGBA
+    one with no visible difference.
+    """
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, metadata={"Software": "kinefuse"})
     data = buf.getvalue()
+    if palette:
+        from PIL import Image
+
+        img = Image.open(io.BytesIO(data)).convert("RGB")
+        img = img.quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+        out = io.BytesIO()
+        img.save(out, format="PNG", optimize=True)
+        data = out.getvalue()
     if path is not None:
         Path(path).write_bytes(data)
     return data
@@ -104,6 +149,7 @@ def trajectory_figure(
     axis_labels: Sequence[str] = ("East", "North", "Up"),
     colors: Mapping[str, str] | None = None,
     dotted: Sequence[str] = (),
+    linestyles: Mapping[str, object] | None = None,
 ) -> Figure:
     """Positions of one joint per axis (reference, each method) and the error over time.
 
@@ -125,15 +171,23 @@ def trajectory_figure(
     colors : mapping method -> colour, optional
     dotted : sequence of str
         Methods drawn as small dots instead of lines (raw, noisy inputs).
+    linestyles : mapping method -> matplotlib line style, optional
+        Default :func:`method_linestyles`.
 
     Returns
     -------
     Figure
-        Four stacked panels: one per axis and the Euclidean error of each method.
+        Four stacked panels: one per axis and the Euclidean error of each method. Methods
+        without any estimate at this joint are neither drawn nor in the legend; the legend
+        lists exactly what is drawn.
     """
     t = np.asarray(t_s, dtype=float)
     ref = np.asarray(reference, dtype=float)
     colors = dict(colors or method_colors(list(estimates)))
+    styles = dict(linestyles or method_linestyles(list(estimates)))
+    estimates = {m: e for m, e in estimates.items() if _drawn(e)}
+    if measurement is not None and not _drawn(measurement):
+        measurement = None
     fig = _figure(10, 8.2)
     axs = fig.subplots(4, 1, sharex=True, gridspec_kw={"height_ratios": [1, 1, 1, 0.9]})
     for a, ax in enumerate(axs[:3]):
@@ -143,9 +197,10 @@ def trajectory_figure(
                 t,
                 np.asarray(measurement)[:, a],
                 ".",
-                color="0.6",
-                ms=2,
-                label="input" if a == 0 else None,
+                color="0.35",
+                ms=2.2,
+                zorder=5,  # on top: the "camera only" method runs right under these dots
+                label="camera (input)" if a == 0 else None,
             )
         ax.plot(
             t, ref[:, a], color=_REF_COLOR, lw=1.6, zorder=3, label="reference" if a == 0 else None
@@ -154,7 +209,7 @@ def trajectory_figure(
             style = (
                 {"ls": "none", "marker": ".", "ms": 2.5}
                 if m in dotted
-                else {"lw": 1.1, "alpha": 0.9}
+                else {"lw": 1.1, "alpha": 0.9, "ls": styles.get(m, "-")}
             )
             ax.plot(
                 t, np.asarray(est)[:, a], color=colors.get(m), label=m if a == 0 else None, **style
@@ -165,7 +220,11 @@ def trajectory_figure(
     _shade(ax, t, outage)
     for m, est in estimates.items():
         err = np.linalg.norm(np.asarray(est) - ref, axis=-1)
-        style = {"ls": "none", "marker": ".", "ms": 2.5} if m in dotted else {"lw": 1.0}
+        style = (
+            {"ls": "none", "marker": ".", "ms": 2.5}
+            if m in dotted
+            else {"lw": 1.0, "ls": styles.get(m, "-")}
+        )
         ax.plot(t, err, color=colors.get(m), **style)
     ax.set_ylabel("error (m)")
     ax.set_xlabel("time (s)")
@@ -179,6 +238,7 @@ def trajectory_figure(
         ncols=min(len(labels), 6),
         frameon=False,
         markerscale=3,
+        handlelength=3,
     )
     axs[0].set_title(
         f"{joint}: position per axis and Euclidean error" if joint else "Position per axis",
@@ -194,6 +254,7 @@ def cdf_figure(
     p: float = 0.9,
     joint: str = "",
     colors: Mapping[str, str] | None = None,
+    linestyles: Mapping[str, object] | None = None,
 ) -> Figure:
     """Empirical CDFs of the Euclidean position error, all samples and (optionally) outages only.
 
@@ -213,6 +274,7 @@ def cdf_figure(
     Figure
     """
     colors = dict(colors or method_colors(list(cdfs)))
+    styles = dict(linestyles or method_linestyles(list(cdfs)))
     panels = [("all samples", cdfs)]
     if outage_cdfs is not None and any(x.size for x, _ in outage_cdfs.values()):
         panels.append(("inside camera outages", outage_cdfs))
@@ -229,6 +291,7 @@ def cdf_figure(
                 drawstyle="steps-post",
                 color=colors.get(m),
                 lw=1.4,
+                ls=styles.get(m, "-"),
                 label=f"{m}  ({x[k]:.3f} m at {p:g})",
             )
             ax.plot([x[k]], [prob[k]], "o", color=colors.get(m), ms=4)
@@ -238,7 +301,7 @@ def cdf_figure(
         ax.set_xlabel("position error (m)")
         ax.set_title(name)
         ax.grid(alpha=0.3)
-        ax.legend(loc="lower right", fontsize="small")
+        ax.legend(loc="lower right", fontsize="small", handlelength=3)
     axs[0].set_ylabel("CDF")
     fig.suptitle(f"{joint}: error CDF" if joint else "Error CDF")
     return fig
@@ -274,7 +337,7 @@ def timeline_figure(
     t = np.asarray(t_s, dtype=float)
     dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
     code_list = sorted(names)
-    cmap = {c: _PALETTE[(i + 2) % len(_PALETTE)] for i, c in enumerate(code_list)}
+    cmap = code_colors(code_list)
     rows = []  # (label, kind, data)
     for j, joint in enumerate(joints):
         if outage is not None:
@@ -320,6 +383,8 @@ def skeleton_figure(
     *,
     t_s=None,
     colors: Mapping[str, str] | None = None,
+    linestyles: Mapping[str, object] | None = None,
+    body=None,
 ) -> Figure:
     """3-D skeleton snapshots (reference and each method) at a few sample indices.
 
@@ -335,63 +400,107 @@ def skeleton_figure(
     t_s : array_like, shape (T,), optional
         For panel titles.
     colors : mapping method -> colour, optional
+    linestyles : mapping method -> line style, optional
+    body : (names, positions (T, K, 3), edges), optional
+        Whole-body context (e.g. every joint of the reference) drawn light grey; the
+        evaluated limbs are attached to it (a bone from a body joint to an evaluated joint
+        is drawn for the reference and each method).
 
     Returns
     -------
     Figure
+        One panel per instant (two rows when there are more than three), the axes equal
+        and fitted to the whole body, a legend of exactly the series drawn.
     """
     from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the 3-D projection)
 
     ref = np.asarray(reference, dtype=float)
     colors = dict(colors or method_colors(list(estimates)))
+    styles = dict(linestyles or method_linestyles(list(estimates)))
     index = {n: i for i, n in enumerate(joints)}
     bones = [(index[a], index[b]) for a, b in edges if a in index and b in index]
+    b_names, b_pos, b_bones, attach = (), None, [], []
+    if body is not None:
+        b_names, b_pos, b_edges = body
+        b_pos = np.asarray(b_pos, dtype=float)
+        bi = {n: i for i, n in enumerate(b_names)}
+        b_bones = [
+            (bi[a], bi[b])
+            for a, b in b_edges
+            if a in bi and b in bi and not (a in index and b in index)
+        ]
+        # bones from a context joint (not evaluated) to an evaluated joint: drawn per series
+        attach = [
+            (bi[a], index[b]) for a, b in b_edges if a in bi and a not in index and b in index
+        ]
+        attach += [
+            (bi[b], index[a]) for a, b in b_edges if b in bi and b not in index and a in index
+        ]
     instants = list(instants)
-    fig = _figure(4.2 * max(len(instants), 1), 4.6)
+    n = max(len(instants), 1)
+    ncols = n if n <= 3 else (n + 1) // 2
+    nrows = 1 if n <= 3 else 2
+    fig = _figure(5.0 * ncols, 5.2 * nrows + 0.8)
     pts = [ref[k] for k in instants] + [
         np.asarray(e)[k] for e in estimates.values() for k in instants
     ]
+    if b_pos is not None:
+        pts += [b_pos[k] for k in instants]
     allp = np.concatenate([p[np.all(np.isfinite(p), axis=-1)] for p in pts] or [np.zeros((1, 3))])
     if allp.size == 0:
         allp = np.zeros((1, 3))
     center = 0.5 * (allp.min(0) + allp.max(0))
-    half = max(float((allp.max(0) - allp.min(0)).max()) / 2, 0.05) * 1.1
-    series = [("reference", ref, _REF_COLOR, 2.2)] + [
-        (m, np.asarray(e), colors.get(m), 1.3) for m, e in estimates.items()
+    half = max(float((allp.max(0) - allp.min(0)).max()) / 2, 0.05) * 1.05
+    series = [("reference", ref, _REF_COLOR, 2.4, "-")] + [
+        (m, np.asarray(e), colors.get(m), 1.5, styles.get(m, "-"))
+        for m, e in estimates.items()
+        if _drawn(e)
     ]
-    for n, k in enumerate(instants):
-        ax = fig.add_subplot(1, max(len(instants), 1), n + 1, projection="3d")
-        for name, arr, col, lw in series:
+    for p_i, k in enumerate(instants):
+        ax = fig.add_subplot(nrows, ncols, p_i + 1, projection="3d")
+        if b_pos is not None:
+            q = b_pos[k]
+            for a, b in b_bones:
+                ax.plot(*zip(q[a], q[b], strict=True), color=_BODY_COLOR, lw=3.0, solid_capstyle="round",
+                        label="whole body (reference)" if (p_i == 0 and (a, b) == b_bones[0]) else None)  # fmt: skip
+        for name, arr, col, lw, ls in series:
             p = arr[k]
             for a, b in bones:
-                ax.plot(*zip(p[a], p[b], strict=True), color=col, lw=lw)
-            ax.scatter(
-                *p.T,
-                color=col,
-                s=14 if name == "reference" else 8,
-                label=name if n == 0 else None,
-                depthshade=False,
-            )
+                ax.plot(*zip(p[a], p[b], strict=True), color=col, lw=lw, ls=ls)
+            if b_pos is not None:
+                for a, b in attach:
+                    ax.plot(*zip(b_pos[k, a], p[b], strict=True), color=col, lw=lw, ls=ls)
+            ax.scatter(*p.T, color=col, s=16 if name == "reference" else 9, depthshade=False)
+            if p_i == 0:
+                ax.plot([], [], color=col, lw=lw, ls=ls, marker="o", ms=3, label=name)
         ax.set_xlim(center[0] - half, center[0] + half)
         ax.set_ylim(center[1] - half, center[1] + half)
         ax.set_zlim(center[2] - half, center[2] + half)
         ax.set_box_aspect((1, 1, 1))
-        ax.set_xlabel("E (m)", fontsize="small")
-        ax.set_ylabel("N (m)", fontsize="small")
-        ax.set_zlabel("U (m)", fontsize="small")
+        ax.view_init(elev=12, azim=-60)
+        ax.set_xlabel("x (m)", fontsize="small")
+        ax.set_ylabel("y (m)", fontsize="small")
+        ax.set_zlabel("z, up (m)", fontsize="small")
         ax.tick_params(labelsize="x-small")
         ax.set_title(f"t = {float(np.asarray(t_s)[k]):.2f} s" if t_s is not None else f"sample {k}")
     handles, labels = fig.axes[0].get_legend_handles_labels() if fig.axes else ([], [])
     fig.legend(
-        handles, labels, loc="outside lower center", ncols=min(len(labels), 6), frameon=False
-    )
-    fig.suptitle("Skeleton snapshots")
+        handles, labels, loc="outside lower center", ncols=min(len(labels), 5), frameon=False,
+        handlelength=3,
+    )  # fmt: skip
+    fig.suptitle("Skeleton snapshots", fontweight="bold")
     return fig
 
 
 def rmse_bar_figure(result, *, colors: Mapping[str, str] | None = None) -> Figure:
-    """Grouped bars of the papers' mean RMSE per joint and method (overall and in outages)."""
+    """Grouped bars of the papers' mean RMSE per joint and method (overall and in outages).
+
+    A method with no estimate at a joint gets no bar there (not a zero bar); with more than
+    six methods the bars are also hatched (one pattern per line style of
+    :func:`method_linestyles`).
+    """
     colors = dict(colors or method_colors(result.methods))
+    many = len(result.methods) > 6
     panels = [("all samples", result.mean_rmse)]
     if result.has_outages:
         panels.append(("inside camera outages", result.mean_rmse_outage))
@@ -404,15 +513,18 @@ def rmse_bar_figure(result, *, colors: Mapping[str, str] | None = None) -> Figur
         for m, method in enumerate(result.methods):
             ax.bar(
                 x + (m - (M - 1) / 2) * width,
-                np.nan_to_num(data[m], nan=0.0),
+                data[m],  # NaN: no bar
                 width,
                 color=colors.get(method),
+                hatch=_HATCHES[m % len(_HATCHES)] if many else None,
+                edgecolor="white" if many else None,
+                lw=0,
                 label=method,
             )
         ax.set_xticks(x, result.joints, rotation=30 if J > 4 else 0)
         ax.set_title(name)
         ax.grid(axis="y", alpha=0.3)
     axs[0].set_ylabel("mean RMSE (m)")
-    axs[-1].legend(fontsize="small")
+    axs[-1].legend(fontsize="small", ncols=2 if M > 6 else 1)
     fig.suptitle("Mean RMSE per joint (mean of per-axis RMSEs)")
     return fig

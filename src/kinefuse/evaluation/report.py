@@ -1,8 +1,10 @@
 """A self-contained HTML report of an evaluation (figures embedded, no external resources).
 
-:func:`write_report` writes ``out_dir/report.html`` (inline CSS, figures as base64 PNG, no
-scripts, no URLs), the same figures as PNG files in ``out_dir/figures/`` and the metrics as
-``out_dir/metrics.json``. It refuses to overwrite an existing report unless ``force=True``.
+:func:`write_report` writes ``out_dir/report.html`` (inline CSS, figures as base64 PNG, the
+interactive 3-D viewer of :mod:`kinefuse.evaluation.viewer` with its vendored three.js inlined;
+nothing is loaded from a network), the same figures as PNG files in ``out_dir/figures/`` and
+the metrics as ``out_dir/metrics.json``. It refuses to overwrite an existing report unless
+``force=True``.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.conventions import MODE_NAMES, SOURCE_NAMES
-from kinefuse.evaluation import plots, tables
+from kinefuse.evaluation import plots, tables, viewer
 from kinefuse.evaluation.metrics import EvaluationResult
 from kinefuse.exceptions import InputError
 
@@ -120,6 +122,9 @@ def write_report(
     notes: str | Sequence[str] | None = None,
     force: bool = False,
     dpi: int = 100,
+    body=None,
+    viewer_methods: Sequence[str] | None = None,
+    interactive: bool = True,
     sections: Sequence[str] = (),
     extra_metrics: Mapping | None = None,
 ) -> Path:
@@ -167,6 +172,15 @@ def write_report(
         Overwrite an existing ``report.html`` in ``out_dir``.
     dpi : int
         Resolution of the figures.
+    body : (names, positions, edges), optional
+        A whole-body context skeleton in the same frame: joint names (K,), positions
+        (T, K, 3) in m and bones as name pairs; drawn light grey under the evaluated joints
+        in the snapshots and the viewer (e.g. every joint of the reference).
+    viewer_methods : sequence of str, optional
+        Methods ticked when the viewer opens (default: the first); all can be toggled.
+    interactive : bool
+        Include the interactive 3-D viewer (about 0.6 MB of inlined three.js plus the
+        positions, thinned to at most 30 Hz and 1.5 MB).
     sections : sequence of str
         Extra HTML fragments shown after the notes (e.g.
         :func:`kinefuse.evaluation.angles.angle_section`).
@@ -221,10 +235,27 @@ def write_report(
     meas = None if measurement is None else _as_positions(measurement, "measurement", ref.shape)
     mode_codes = _codes(modes, "modes", (T, J))
     source_codes = _codes(sources, "sources", (T, J))
+    if body is not None:
+        try:
+            b_names, b_pos, b_edges = body
+        except (TypeError, ValueError):
+            raise InputError("expected body as (names, positions (T, K, 3), edges)") from None
+        b_names = [str(n) for n in b_names]
+        body = (
+            b_names,
+            _as_positions(b_pos, "body positions", (T, len(b_names), 3)),
+            list(b_edges),
+        )
+    unknown = [m for m in viewer_methods or () if m not in evaluation.methods]
+    if unknown:
+        raise InputError(
+            f"viewer_methods {unknown} are not evaluated methods {list(evaluation.methods)}"
+        )
 
     fig_dir = out / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
     colors = plots.method_colors(evaluation.methods)
+    styles = plots.method_linestyles(evaluation.methods)
     figures: dict[str, str] = {}  # key -> base64
 
     def emit(key: str, fig) -> None:
@@ -246,6 +277,7 @@ def write_report(
                 axis_labels=axis_labels,
                 colors=colors,
                 dotted=dotted,
+                linestyles=styles,
             ),
         )
         cdfs = {m: evaluation.cdf(m, joint) for m in evaluation.methods}
@@ -257,7 +289,12 @@ def write_report(
         emit(
             f"cdf_{slug}",
             plots.cdf_figure(
-                cdfs, outage_cdfs=out_cdfs, p=evaluation.p, joint=joint, colors=colors
+                cdfs,
+                outage_cdfs=out_cdfs,
+                p=evaluation.p,
+                joint=joint,
+                colors=colors,
+                linestyles=styles,
             ),
         )
     if mode_codes:
@@ -287,12 +324,45 @@ def write_report(
             emit(
                 "skeleton",
                 plots.skeleton_figure(
-                    ref, traj, joints, skeleton_edges, instants, t_s=t, colors=colors
+                    ref,
+                    traj,
+                    joints,
+                    skeleton_edges,
+                    instants,
+                    t_s=t,
+                    colors=colors,
+                    linestyles=styles,
+                    body=body,
                 ),
             )
+    viewer_html = None
+    if interactive and T:
+        viewer_html = viewer.report_viewer_html(
+            t,
+            joints,
+            reference=ref,
+            estimates=traj,
+            colors=colors,
+            edges=skeleton_edges,
+            dashed=[m for m, ls in styles.items() if ls != "-"],
+            sources=source_codes,
+            camera=meas,
+            body=body,
+            shown=None
+            if viewer_methods is None
+            else ["whole body (reference)", "reference", "camera", *viewer_methods],
+            source_names=source_names,
+        )
 
     doc = _html(
-        evaluation, figures, title=title, notes=notes, t=t, axis_labels=axis_labels, paper=paper
+        evaluation,
+        figures,
+        title=title,
+        notes=notes,
+        t=t,
+        axis_labels=axis_labels,
+        paper=paper,
+        viewer_html=viewer_html,
     )
     if sections:
         anchor = '<section id="summary">'
@@ -315,7 +385,9 @@ def _img(figures: Mapping[str, str], key: str, alt: str, caption: str) -> str:
     )
 
 
-def _html(ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper) -> str:
+def _html(
+    ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper, viewer_html=None
+) -> str:
     from kinefuse import __version__
 
     e = html.escape
@@ -332,12 +404,15 @@ def _html(ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper)
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
-        f"<title>{e(title)}</title><style>{_CSS}</style></head><body>",
+        f"<title>{e(title)}</title><style>{_CSS}{viewer.VIEWER_CSS if viewer_html else ''}</style>"
+        "</head><body>",
         f'<header><h1>{e(title)}</h1><div class="meta">{meta}</div></header>',
     ]
-    nav = ['<a href="#summary">Summary</a>'] + [
-        f'<a href="#joint-{_slug(j)}">{e(j)}</a>' for j in ev.joints
-    ]
+    nav = (
+        ['<a href="#summary">Summary</a>']
+        + (['<a href="#viewer">3-D viewer</a>'] if viewer_html else [])
+        + [f'<a href="#joint-{_slug(j)}">{e(j)}</a>' for j in ev.joints]
+    )
     if "timeline_modes" in figures or "timeline_sources" in figures:
         nav.append('<a href="#timelines">Timelines</a>')
     if "skeleton" in figures:
@@ -348,7 +423,11 @@ def _html(ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper)
         parts.append(f'<section><h2>Notes</h2><div class="notes">{e(text)}</div></section>')
 
     summary = tables.joint_method_table(
-        ev, axis_labels=axis_labels, paper=paper, title="RMSE per joint and method (m)"
+        ev,
+        axis_labels=axis_labels,
+        paper=paper,
+        title="RMSE per joint and method (m)",
+        drop_empty=True,
     )
     parts.append('<section id="summary"><h2>Summary</h2>')
     parts.append(tables.to_html(summary))
@@ -369,6 +448,8 @@ def _html(ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper)
             "reference was missing (NaN); see metrics.json for the counts.</p>"
         )
     parts.append("</section>")
+    if viewer_html:
+        parts.append(viewer_html)
 
     for joint in ev.joints:
         slug = _slug(joint)
@@ -382,10 +463,12 @@ def _html(ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper)
                     digits=4,
                     include_counts=True,
                     title="All samples",
+                    drop_empty=True,
                 )
             )
         )
-        if ev.has_outages:
+        j_out = ev.has_outages and bool(np.any(ev.outage_mask[:, ev.joints.index(joint)]))
+        if j_out:
             parts.append(
                 tables.to_html(
                     tables.method_table(
@@ -396,9 +479,12 @@ def _html(ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper)
                         digits=4,
                         include_counts=True,
                         title="Inside camera outages",
+                        drop_empty=True,
                     )
                 )
             )
+        elif ev.has_outages:
+            parts.append('<p class="note">No camera outage at this joint.</p>')
         parts.append("</div>")
         parts.append(
             _img(
@@ -444,7 +530,8 @@ def _html(ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper)
                 figures,
                 "skeleton",
                 "3-D skeleton snapshots",
-                "Reference (black) and estimates at a few instants.",
+                "Reference (black), estimates (legend) and, when given, the whole body (grey) at a "
+                "few instants; the 3-D viewer above plays the whole recording.",
             )
         )
         parts.append("</section>")

@@ -151,6 +151,7 @@ def method_table(
     digits: int = 3,
     include_counts: bool = False,
     title: str | None = None,
+    drop_empty: bool = False,
 ) -> ResultTable:
     """Paper A layout (Tables 4-5): method rows x per-axis RMSE and their mean, one joint.
 
@@ -174,6 +175,9 @@ def method_table(
         Add a column "N" with the number of samples used (methods with missing samples are
         evaluated on fewer samples).
     title : str, optional
+    drop_empty : bool
+        Leave out the methods with no sample here (e.g. an arm-only method at a leg joint);
+        one footnote names them as not applicable.
 
     Returns
     -------
@@ -187,8 +191,12 @@ def method_table(
         headers.append("N")
     pad = (None,) * (len(headers) - 4)
     rows = []
+    empty = []
     for method in result.methods:
         r = result.row(method, joint, outage=outage)
+        if drop_empty and r["n_samples"] == 0:
+            empty.append(method)
+            continue
         vals = [r[a] for a in result.axes] + [r["mean"]]
         pv = _paper_values(paper, method, 4)
         if paper is not None and paper_mode == "column":
@@ -208,6 +216,8 @@ def method_table(
                 )
     where = "inside camera outages" if outage else "all samples"
     notes = ["Mean = arithmetic mean of the three per-axis RMSEs (as in the papers)."]
+    if empty:
+        notes.append(_not_applicable(empty, f"at {joint}" + (" inside outages" if outage else "")))
     return ResultTable(
         title=title or f"RMSE at {joint}, {where}",
         label_headers=("Method",),
@@ -216,6 +226,10 @@ def method_table(
         digits=digits,
         notes=tuple(notes),
     )
+
+
+def _not_applicable(methods: Sequence[str], where: str) -> str:
+    return f"Not applicable {where}: {', '.join(methods)} (no estimate there)."
 
 
 def joint_method_table(
@@ -230,6 +244,7 @@ def joint_method_table(
     digits: int = 4,
     title: str | None = None,
     notes: Sequence[str] = (),
+    drop_empty: bool = False,
 ) -> ResultTable:
     """Paper B layout (Tables 3-5 in one): joint x method rows, per-axis RMSE, mean, CDF 0.9.
 
@@ -254,6 +269,9 @@ def joint_method_table(
     title : str, optional
     notes : sequence of str
         Extra footnotes, after the column definitions (e.g. what the reference is).
+    drop_empty : bool
+        Leave out the joint-method rows with no sample (a footnote names them once as not
+        applicable).
 
     Returns
     -------
@@ -261,6 +279,7 @@ def joint_method_table(
     """
     _check_mode(paper_mode)
     joints = tuple(result.joints if joints is None else joints)
+    empty: dict[str, list[str]] = {}
     if include_outage is None:
         include_outage = result.has_outages
     pct = f"{result.p:g}"
@@ -277,6 +296,9 @@ def joint_method_table(
         jp = paper.get(joint) if paper is not None else None
         for method in result.methods:
             r = result.row(method, joint)
+            if drop_empty and r["n_samples"] == 0:
+                empty.setdefault(method, []).append(joint)
+                continue
             vals = [r[a] for a in result.axes] + [r["mean"]]
             if include_cdf:
                 vals.append(r["error_at_p"])
@@ -317,6 +339,11 @@ def joint_method_table(
             "in view = only samples outside camera outages (the camera sees the joint); "
             "out = only samples inside camera outages."
         )
+    by_joints: dict[tuple[str, ...], list[str]] = {}
+    for method, js in empty.items():
+        by_joints.setdefault(tuple(js), []).append(method)
+    for js, methods in by_joints.items():
+        foot.append(_not_applicable(methods, "at " + ", ".join(js)))
     return ResultTable(
         title=title or "RMSE per joint and method (m)",
         label_headers=("Joint", "Method"),

@@ -27,6 +27,7 @@ __all__ = [
     "Table",
     "canonical_joint",
     "canonical_segment",
+    "current_umask",
     "check_time",
     "check_units",
     "make_metadata",
@@ -103,9 +104,12 @@ class Table:
         i = self.index(name)
         raw = [r[i] for r in self.rows]
         try:
-            return np.array(raw, dtype=np.float64)
+            out = np.array(raw, dtype=np.float64)
         except ValueError:
-            pass
+            out = None
+        if out is not None:
+            self._check_no_inf(out, raw, name)
+            return out
         out = np.empty(len(raw), dtype=np.float64)
         for k, v in enumerate(raw):
             s = v.strip()
@@ -128,7 +132,21 @@ class Table:
                     line=int(self.lines[k]),
                     field=name,
                 ) from None
+        self._check_no_inf(out, raw, name)
         return out
+
+    def _check_no_inf(self, out: np.ndarray, raw: list[str], name: str) -> None:
+        """Infinite values are never data (NaN, an empty field, is missing): issue 12."""
+        bad = np.flatnonzero(np.isinf(out))
+        if bad.size:
+            k = int(bad[0])
+            raise FormatError(
+                self.path,
+                f"expected a finite number, found {raw[k].strip()!r} ({bad.size} infinite "
+                "value(s) in this column); leave the field empty for a missing sample",
+                line=int(self.lines[k]),
+                field=name,
+            )
 
     def comment_dict(self) -> dict[str, str]:
         """``key: value`` pairs found in the comment lines (keys lower-cased)."""
@@ -652,6 +670,20 @@ def check_units(recording, *, where: str = "", stacklevel: int = 3) -> list[str]
 # --------------------------------------------------------------------------------------------
 # writing
 # --------------------------------------------------------------------------------------------
+def current_umask() -> int:
+    """The process umask (read without changing it where /proc allows, else set and restore)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def write_text_safely(path, text: str, *, force: bool = False, protect: Iterable = ()) -> Path:
     """Write ``text`` to ``path`` atomically; refuse to overwrite unless ``force``.
 
@@ -686,6 +718,8 @@ def write_text_safely(path, text: str, *, force: bool = False, protect: Iterable
         raise FileExistsError(f"{path}: is a directory")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        # mkstemp creates 0600; the file gets the mode open() would give it (issue 12)
+        os.fchmod(fd, 0o666 & ~current_umask())
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as fh:
             fh.write(text)
         os.replace(tmp, path)

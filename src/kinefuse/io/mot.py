@@ -7,6 +7,7 @@ The layout (OpenSim documentation, "Motion (.mot) files"; the same Storage forma
     nRows=<T>
     nColumns=<1 + C>
     inDegrees=yes
+    DataRate=<Hz>          (optional)
     <key>=<value>          (optional, kinefuse writes e.g. root=, frame=, convention=)
     endheader
     time<TAB><col 1><TAB>...
@@ -38,6 +39,8 @@ def write_mot(
     metadata: Mapping[str, str] | None = None,
     force: bool = False,
     decimals: int = 6,
+    rate_hz: float | None = None,
+    missing: str = "drop",
 ) -> Path:
     """Write named time series (joint angles) as an OpenSim ``.mot`` file.
 
@@ -48,8 +51,8 @@ def write_mot(
     t_s : array_like, shape (T,)
         Time, s, strictly increasing.
     columns : mapping of str -> array_like, shape (T,)
-        Column name -> values (deg if ``in_degrees``, else rad). NaN is written as ``nan``,
-        which OpenSim reads as not-a-number.
+        Column name -> values (deg if ``in_degrees``, else rad); NaN = missing (see
+        ``missing``).
     name : str, optional
         First header line (default: the file stem).
     in_degrees : bool
@@ -59,7 +62,17 @@ def write_mot(
     force : bool
         Replace an existing file.
     decimals : int
-        Digits after the decimal point.
+        Digits after the decimal point of the values (time: at least 9, so that a time step is
+        kept to 1 ns whatever the rate).
+    rate_hz : float, optional
+        Header ``DataRate=`` (Hz) as the data states it (e.g. the recording's nominal rate); not
+        recomputed from the time steps. Default: no ``DataRate`` line.
+    missing : {"drop", "nan"}
+        Rows with a NaN: ``"drop"`` (default) leaves them out and says how many in the header
+        (``rows_omitted=``): OpenSim's ``Storage``, which its tools and GUI load ``.mot`` files
+        with, stops reading at the first NaN row (OpenSim 4.5/4.6), so a NaN would silently
+        truncate the motion; the time column keeps the gaps. ``"nan"`` writes them as ``NaN``
+        (read by ``TimeSeriesTable``, not by ``Storage``).
 
     Returns
     -------
@@ -91,13 +104,32 @@ def write_mot(
                 f"write_mot: expected column {c!r} with shape (T,) = {t.shape}, got {v.shape}"
             )
         data.append(v)
-    head = [name or path.stem, "version=1", f"nRows={t.size}", f"nColumns={1 + len(names)}"]
+    if missing not in ("drop", "nan"):
+        raise InputError(f"write_mot: expected missing in ('drop', 'nan'), got {missing!r}")
+    M = np.column_stack([t, *data]) if data else t[:, None]
+    keep = np.all(np.isfinite(M), axis=1) if missing == "drop" else np.ones(t.size, dtype=bool)
+    M = M[keep]
+    head = [name or path.stem, "version=1", f"nRows={M.shape[0]}", f"nColumns={1 + len(names)}"]
     head.append(f"inDegrees={'yes' if in_degrees else 'no'}")
+    if rate_hz is not None:
+        if not (np.isfinite(rate_hz) and rate_hz > 0):
+            raise InputError(f"write_mot: expected rate_hz > 0, got {rate_hz!r}")
+        head.append(f"DataRate={float(rate_hz):.6f}")
+    if not np.all(keep):
+        head.append(
+            f"rows_omitted={int(np.sum(~keep))} (a NaN value; OpenSim's Storage stops at one)"
+        )
     for k, v in (metadata or {}).items():
         if "=" in k or "\n" in k or "\n" in str(v) or not k:
             raise InputError(f"write_mot: metadata {k!r}={v!r} must be one key=value line")
         head.append(f"{k}={v}")
     head += ["endheader", "\t".join(["time", *names])]
-    M = np.column_stack([t, *data]) if data else t[:, None]
-    body = ["\t".join(f"{x:.{decimals}f}" if np.isfinite(x) else "nan" for x in row) for row in M]
+    dt = max(int(decimals), 9)
+    body = [
+        "\t".join(
+            f"{x:.{dt if k == 0 else decimals}f}" if np.isfinite(x) else "NaN"
+            for k, x in enumerate(row)
+        )
+        for row in M
+    ]
     return write_text_safely(path, "\n".join(head + body) + "\n", force=force)

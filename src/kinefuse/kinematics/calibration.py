@@ -143,8 +143,9 @@ class Calibration:
     align : str
         Alignment used: ``"none"``, ``"heading"`` or ``"rotation"``.
     frames : dict of str -> ndarray, shape (3, 3)
-        Static only: ``R_sensor_from_segment`` of each segment, columns = the segment's ISB axes
-        (X anterior, Y superior, Z right) in the sensor frame; used for joint angles.
+        Static and functional: ``R_sensor_from_segment`` of each segment, columns = the
+        segment's ISB axes (X anterior, Y superior, Z right) in the sensor frame; used for joint
+        angles (functional: only segments next to an elbow or knee).
     world_heading_deg : dict of str -> float
         Static with ``heading="static"``: rotation about the vertical that this calibration
         applies to each sensor's world frame, deg (``R_world_from_sensor <- R_z(ψ)
@@ -154,6 +155,10 @@ class Calibration:
     pose_residual_deg : dict of str -> float
         Static with ``mounting``: RMS angle between the declared sensor axis and the assumed
         pose direction in the window, deg.
+    hinge_residual_rad_s : dict of str -> float
+        Hinge joints whose segment frames come from the measured flexion axis
+        (:func:`kinefuse.kinematics.hinge.hinge_frames`): RMS residual of the joint's
+        angular-rate constraint, rad/s (0 for an ideal joint).
     """
 
     axes: Mapping[str, np.ndarray]
@@ -167,6 +172,7 @@ class Calibration:
     world_heading_deg: Mapping[str, float] = field(default_factory=dict)
     still: StillWindow | None = None
     pose_residual_deg: Mapping[str, float] = field(default_factory=dict)
+    hinge_residual_rad_s: Mapping[str, float] = field(default_factory=dict)
 
     def heading_matrix(self, segment: str) -> np.ndarray:
         """``R_z(ψ)`` applied to ``segment``'s sensor world frame (identity if none), (3, 3)."""
@@ -494,6 +500,7 @@ def calibrate(
     mounting: Mapping[str, object] | None = None,
     max_rate_rad_s: float = MAX_RATE_RAD_S,
     max_acc_std_m_s2: float = MAX_ACC_STD_M_S2,
+    flexion_axes: str = "auto",
 ) -> Calibration:
     """Calibrate the segment axis ``a_i`` in each IMU frame (and the camera/reference alignment).
 
@@ -544,12 +551,22 @@ def calibrate(
         orientations (no magnetometer), whose headings are arbitrary per sensor; ``"none"``
         (default) keeps the frames (9-D / magnetometer-referenced data share north).
     mounting : mapping, optional
-        Static only: the sensor axis declared to run along each segment (proximal -> distal),
-        e.g. ``{"thigh_l": "+e1"}``; its angle to the assumed pose direction is reported as
-        ``pose_residual_deg`` (a NumericalWarning names segments beyond 20 deg).
+        The sensor axis declared to run along each segment (proximal -> distal), e.g.
+        ``{"thigh_l": "+e1"}``. Static: its angle to the assumed pose direction is reported as
+        ``pose_residual_deg`` (a NumericalWarning names segments beyond 20 deg). Functional: the
+        axis of a last segment without a sensor beyond it (``declared_axes``).
     max_rate_rad_s, max_acc_std_m_s2 : float
         Static only: stillness thresholds of the window search (and of the check of a given
         window).
+    flexion_axes : {"auto", "movement", "pose"}
+        Static only: where the segment frames of hinge joints (elbows, knees) get their flexion
+        axis. ``"pose"``: from the declared ``facing`` (Notes). ``"movement"``: from the
+        recording's relative rotation about the hinge, the pose giving only the long axis, and,
+        with ``heading="static"``, the distal sensor's heading refined from the hinge
+        (:func:`kinefuse.kinematics.hinge.hinge_frames`); the flexion sign is fixed by anatomy
+        (the larger excursion from the pose is flexion). ``"auto"`` (default): ``"movement"``
+        when ``heading="static"`` (6-D orientations: the facing is not measured), else
+        ``"pose"``.
 
     Returns
     -------
@@ -606,9 +623,14 @@ def calibrate(
             start_s=start_s,
             window_s=None if start_s is None else window_s,
             segments=segments,
+            declared_axes=mounting,
         )
     if heading not in ("none", "static"):
         raise InputError(f"expected heading in ('none', 'static'), got {heading!r}")
+    if flexion_axes not in ("auto", "movement", "pose"):
+        raise InputError(
+            f"expected flexion_axes in ('auto', 'movement', 'pose'), got {flexion_axes!r}"
+        )
     if align not in ("auto", "none", "heading", "rotation"):
         raise InputError(
             f"expected align in ('auto', 'none', 'heading', 'rotation'), got {align!r}"
@@ -620,7 +642,7 @@ def calibrate(
     imus = {s: _imu_orientation(recording, s, "calibration") for s in segs}
 
     if method == "static":
-        return _static(
+        cal = _static(
             recording,
             skeleton,
             segs,
@@ -635,6 +657,13 @@ def calibrate(
             max_rate_rad_s=max_rate_rad_s,
             max_acc_std_m_s2=max_acc_std_m_s2,
         )
+        if flexion_axes == "auto":
+            flexion_axes = "movement" if heading == "static" else "pose"
+        if flexion_axes == "movement":
+            from kinefuse.kinematics.hinge import hinge_frames
+
+            cal = hinge_frames(recording, cal, refine_heading=heading == "static")
+        return cal
 
     stream = _stream(recording, method)
     sel = window_mask(stream.t_s, start_s, window_s)

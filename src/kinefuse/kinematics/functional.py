@@ -36,7 +36,7 @@ from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.io.recording import ImuStream, Recording
 from kinefuse.kinematics.calibration import Calibration, _imu_orientation
 from kinefuse.kinematics.forward import as_rotation_matrices
-from kinefuse.kinematics.skeleton import Skeleton, window_mask
+from kinefuse.kinematics.skeleton import Skeleton, _unit_axis, window_mask
 from kinefuse.orientation.resample import slerp_resample
 
 __all__ = [
@@ -150,13 +150,16 @@ class FunctionalCalibration(Calibration):
         root segment's when it has an IMU), accumulated over the joints, deg (empty with
         ``constraint="norm"``).
     heading : str
-        ``"shared"`` (frames taken as one; the estimates only reported) or ``"estimated"``
+        ``"shared"`` (frames taken as one; the estimates only reported) or ``"estimate"``
         (:func:`align_headings` should be applied before using the orientations together).
     hinge_prior : tuple of str
         Hinge joints whose centre was not observable along the axis, so that the adjacent
         segment axes were made perpendicular to the hinge axis.
     cutoff_hz : float
         Low-pass cut-off used, Hz.
+    declared : tuple of str
+        Segments without a sensor beyond their distal joint whose axis is the declared sensor
+        axis (``declared_axes``; no functional length).
     """
 
     joints: Mapping[str, JointFit] = field(default_factory=dict)
@@ -165,6 +168,7 @@ class FunctionalCalibration(Calibration):
     heading: str = "shared"
     hinge_prior: tuple[str, ...] = ()
     cutoff_hz: float = CUTOFF_HZ
+    declared: tuple[str, ...] = ()
 
 
 # ---------------------------------------------------------------------- signals
@@ -392,6 +396,7 @@ def functional_calibration(
     constraint: str = "vector",
     cutoff_hz: float = CUTOFF_HZ,
     min_excitation_s2: float = MIN_EXCITATION_S2,
+    declared_axes: Mapping[str, object] | None = None,
 ) -> FunctionalCalibration:
     """Segment axes (and lengths) in each sensor frame from movement, by joint-centre estimation.
 
@@ -438,6 +443,11 @@ def functional_calibration(
         gyro.
     min_excitation_s2 : float
         Least excitation per joint, s⁻² (default :data:`MIN_EXCITATION_S2`).
+    declared_axes : mapping of str -> axis, optional
+        Sensor axis declared along a segment (``"-e1"`` or a 3-vector, proximal -> distal),
+        used for a last segment whose distal joint has no sensor beyond it (a forearm without a
+        hand IMU, a shank without a foot IMU): its axis is then the declared one and its length
+        must come from the session (tape measure); listed in ``declared``.
 
     Returns
     -------
@@ -445,7 +455,11 @@ def functional_calibration(
         ``axes`` and ``lengths_m`` (estimated, m) per segment with both joint centres located,
         ``method="functional"``, ``window_s``, and the report data (``joints``,
         ``excitation_s2``, ``heading_deg``, ``heading``, ``hinge_prior``). ``residual_deg`` is
-        empty (there is no observed direction to compare with).
+        empty (there is no observed direction to compare with). ``frames`` (for
+        :func:`~kinefuse.kinematics.joint_angles`) of the segments next to an elbow or knee:
+        long axis = the calibrated axis, flexion axis from the movement
+        (:func:`kinefuse.kinematics.hinge.hinge_frames`; zero flexion = the long axes aligned,
+        sign by anatomy); a hinge that hardly moved gets no frames (a NumericalWarning).
 
     Notes
     -----
@@ -533,6 +547,9 @@ def functional_calibration(
         skeleton.index(s)
     beyond = dict(DISTAL_SEGMENTS if distal_segments is None else distal_segments)
     hinges = set(HINGE_JOINTS if hinge_joints is None else hinge_joints)
+    declared = {
+        seg: _unit_axis(a, f"declared_axes[{seg!r}]") for seg, a in (declared_axes or {}).items()
+    }
 
     # the two sensors of each joint the segments need
     pairs: dict[str, tuple[str | None, str]] = {}
@@ -564,12 +581,16 @@ def functional_calibration(
             pairs[dist] = (s, children[0])
         elif not children and beyond.get(dist) in recording.imu:
             pairs[dist] = (s, beyond[dist])
+        elif not children and s in declared:
+            continue  # the declared sensor axis and the session's length stand in
         else:
             want = children[0] if children else beyond.get(dist)
             raise InputError(
                 f"segment {s!r}: locating its distal joint {dist!r} needs an IMU on the next segment"
                 + (f" ({want!r})" if want else " (pass distal_segments={joint: segment})")
-                + f"; the recording has {sorted(recording.imu)}"
+                + f"; the recording has {sorted(recording.imu)}. Without it, declare the "
+                f'sensor axis along {s!r} ([skeleton.axes] {s} = "-e1" or similar; '
+                f"declared_axes=) and its measured length ([skeleton.lengths] {s})"
             )
     used = sorted({x for pr in pairs.values() for x in pr if x is not None})
     streams = {s: _imu_orientation(recording, s, "functional calibration") for s in used}
@@ -611,6 +632,9 @@ def functional_calibration(
     axes, lengths, prior = {}, {}, set()
     for s in segs:
         i = skeleton.index(s)
+        if skeleton.distal[i] not in fits:  # no sensor beyond: the declared axis
+            axes[s] = declared[s]
+            continue
         d = r_in(s, skeleton.distal[i]) - r_in(s, skeleton.proximal[i])
         for jn in (skeleton.proximal[i], skeleton.distal[i]):
             f = fits[jn]
@@ -650,7 +674,7 @@ def functional_calibration(
                 head[b] = head[a] + fits[joint].heading_deg
     if constraint == "norm":
         head = {}  # the orientation-free form estimates no heading
-    return FunctionalCalibration(
+    cal = FunctionalCalibration(
         axes=axes,
         lengths_m=lengths,
         method="functional",
@@ -663,7 +687,14 @@ def functional_calibration(
         heading=heading,
         hinge_prior=tuple(sorted(prior)),
         cutoff_hz=float(cutoff_hz),
+        declared=tuple(s for s in segs if s not in lengths),
     )
+    # segment frames of elbows and knees for joint angles: long axes from the joint centres,
+    # flexion axes from the movement (kinefuse.kinematics.hinge), orientations in one heading
+    from kinefuse.kinematics.hinge import hinge_frames
+
+    same = recording if heading == "shared" else align_headings(recording, cal)
+    return hinge_frames(same, cal, start_s=start_s, window_s=window_s)
 
 
 def align_headings(recording: Recording, calibration: FunctionalCalibration) -> Recording:

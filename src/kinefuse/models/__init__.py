@@ -137,6 +137,12 @@ def constant_velocity(dt_s: float, q, r, n_axes: int = 3) -> LinearGaussianModel
     dt = positive_finite(dt_s, "dt_s")
     if isinstance(n_axes, bool) or n_axes not in (2, 3):
         raise InputError(f"expected n_axes 2 or 3, got {n_axes!r}")
+    if isinstance(q, (str, bytes, bool, np.bool_)):  # float("1") would accept text
+        raise InputError(f"expected q as a number >= 0, got {q!r} ({type(q).__name__})")
+    if isinstance(r, (str, bytes, bool, np.bool_)) or (
+        isinstance(r, np.ndarray) and r.dtype.kind not in "iuf"
+    ):
+        raise InputError(f"expected r as a number or an (n, n) matrix, got {r!r}")
     try:
         q = float(q)
     except (TypeError, ValueError):

@@ -404,6 +404,33 @@ def demo_recording(seed: int = DEMO_SEED):
     return virtual_recording(demo_motion(), seed=seed)
 
 
+def whole_body(recording, scenario: ScenarioResult):
+    """Every reference joint at the camera times, in the scenario's chest-relative frame.
+
+    Returns
+    -------
+    (names, positions, edges)
+        Joint names (K,), positions (T, K, 3) in m relative to the true ``spine_shoulder``
+        and the bones along the canonical tree: the ``body`` of
+        :func:`kinefuse.evaluation.write_report`.
+    """
+    from kinefuse.sim.camera import bone_edges
+
+    ref = recording.reference
+    t = scenario.t_s
+    names = tuple(ref.joints)
+    pos = np.stack(
+        [
+            np.stack([np.interp(t, ref.t_s, ref.position(j)[:, k]) for k in range(3)], -1)
+            for j in names
+        ],
+        axis=1,
+    )
+    if scenario.offset is not None:
+        pos = pos - scenario.offset[:, None]
+    return names, pos, bone_edges(names)
+
+
 def demo_tables(scenario: ScenarioResult) -> tuple[object, list]:
     """The evaluation of paper B's methods and the paper-style comparison tables.
 
@@ -464,7 +491,7 @@ def run_demo(out_dir, force: bool = False, quiet: bool = False) -> dict:
     out_dir : str or Path
         Output folder (created); gets ``report.html``, ``figures/`` and ``metrics.json``.
     force : bool
-        Overwrite an existing report.
+        Replace earlier results (``report.html``, ``metrics.json``, ``figures/``).
     quiet : bool
         No progress bar.
 
@@ -478,16 +505,35 @@ def run_demo(out_dir, force: bool = False, quiet: bool = False) -> dict:
     Raises
     ------
     FileExistsError
-        ``out_dir/report.html`` exists and ``force`` is False.
+        An earlier result exists and ``force`` is False (nothing is written).
+    InputError
+        ``out_dir`` is a file or not writable (checked before any work).
+
+    Notes
+    -----
+    The results are staged and moved into ``out_dir`` when complete
+    (:class:`kinefuse.io.output_folder.OutputFolder`): an interrupted demo leaves the
+    previous results untouched.
     """
-    from kinefuse.evaluation.report import REPORT_NAME, write_report
+    from kinefuse.evaluation.report import REPORT_NAME
+    from kinefuse.io.output_folder import OutputFolder
 
     out_dir = Path(out_dir)
-    if (out_dir / REPORT_NAME).exists() and not force:
-        raise FileExistsError(
-            f"{out_dir / REPORT_NAME} already exists; pass --force to overwrite it, or choose "
-            "another --out folder"
-        )
+    # every earlier result needs force; the new set is staged and moved in when complete
+    stage = OutputFolder(out_dir, (REPORT_NAME, "metrics.json", "figures"), force=force)
+    try:
+        summary = _run_demo(stage.path, quiet)
+        stage.commit()
+    except BaseException:
+        stage.discard()
+        raise
+    summary["report"] = out_dir / REPORT_NAME
+    return summary
+
+
+def _run_demo(out_dir: Path, quiet: bool) -> dict:
+    from kinefuse.evaluation.report import write_report
+
     t0 = time.perf_counter()
     with progress("Demo", total=4, quiet=quiet) as advance:
         recording = demo_recording()
@@ -522,11 +568,12 @@ def run_demo(out_dir, force: bool = False, quiet: bool = False) -> dict:
             sources=scenario.sources,
             source_names=SOURCE_NAMES,
             skeleton_edges=SKELETON_EDGES,
+            body=whole_body(recording, scenario),
+            viewer_methods=[m for m in ("ELM/FIR", "kinefuse") if m in ev_all.methods],
             axis_labels=("X", "Y", "Z"),
             paper=None,
             title="kinefuse demo: CMU swordplay, virtual IMUs and Kinect",
             notes=notes,
-            force=force,
         )
         advance()
     notes.append(f"Wall time {time.perf_counter() - t0:.1f} s.")

@@ -12,7 +12,7 @@ lengths, hinge axes) and the simplest IMU-only baseline (segments vertical on av
 walk: the static formula over the whole recording).
 
 The Neura walk is evaluation only: no default of the functional calibration was chosen from it
-(see ``docs/calibration_functional.md``).
+(see ``docs/calibration.md``, functional calibration).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import InputError
 
-__all__ = ["TAPE_LENGTHS_M", "knee_flexion_deg", "run_neura_imu_only"]
+__all__ = ["TAPE_LENGTHS_M", "run_neura_imu_only"]
 
 #: Thigh and shank lengths of S02 (``neura_sparse_sample/SOURCE.md``), taken as tape measures, m.
 TAPE_LENGTHS_M = {"thigh_l": 0.417, "thigh_r": 0.395, "shank_l": 0.389, "shank_r": 0.409}
@@ -37,38 +37,29 @@ def _mats(q) -> np.ndarray:
     return Rotation.from_quat(np.asarray(q, dtype=float), scalar_first=True).as_matrix()
 
 
-def knee_flexion_deg(R_thigh, R_shank, a_thigh, a_shank, hinge_thigh) -> np.ndarray:
-    """Knee flexion from sensor orientations and calibrated axes, deg, flexion positive.
+def _knee_flexion_deg(R_thigh, R_shank, a_thigh, a_shank, hinge_thigh, side: str) -> np.ndarray:
+    """Knee flexion (:func:`kinefuse.kinematics.joint_angles`) with a given flexion axis, deg.
 
-    Parameters
-    ----------
-    R_thigh, R_shank : ndarray, shape (T, 3, 3)
-        ``world_from_sensor`` of the thigh and shank IMUs.
-    a_thigh, a_shank : array_like, shape (3,)
-        Segment axes (proximal -> distal) in each sensor frame.
-    hinge_thigh : array_like, shape (3,)
-        Knee flexion axis in the thigh sensor frame.
-
-    Returns
-    -------
-    ndarray, shape (T,)
-        Signed angle from the thigh axis to the shank axis about the flexion axis, both axes
-        projected on the plane normal to it (the sagittal plane); the sign makes the walk's mean
-        flexion positive (the knee flexes, it does not hyperextend by tens of degrees).
-
-    Notes
-    -----
-    A minimal hinge angle (Seel et al. 2014's flexion/extension angle) for the Neura evaluation;
-    :func:`kinefuse.kinematics.joint_angles` (ISB, Grood & Suntay) is the general form.
+    The segment frames are built from the calibrated long axes and ``hinge_thigh`` (the flexion
+    axis in the thigh sensor frame, carried into the shank sensor by the mean relative
+    rotation: only the shank's long axis enters the flexion angle). The Grood & Suntay flexion
+    equals the angle between the two long axes projected on the plane normal to the flexion
+    axis (Seel et al. 2014's flexion/extension angle). The sign makes the walk's mean flexion
+    positive (the knee flexes, it does not hyperextend by tens of degrees): the flexion axes
+    given here come without an anatomical sign.
     """
-    n = np.einsum("kij,j->ki", R_thigh, np.asarray(hinge_thigh, dtype=float))
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    u = np.einsum("kij,j->ki", R_thigh, np.asarray(a_thigh, dtype=float))
-    v = np.einsum("kij,j->ki", R_shank, np.asarray(a_shank, dtype=float))
-    u = u - n * np.sum(u * n, axis=1, keepdims=True)
-    v = v - n * np.sum(v * n, axis=1, keepdims=True)
-    ang = np.degrees(np.arctan2(np.sum(np.cross(u, v) * n, axis=1), np.sum(u * v, axis=1)))
-    return -ang if np.nanmean(ang) < 0 else ang
+    from kinefuse.kinematics import joint_angles
+    from kinefuse.kinematics.hinge import segment_frame
+
+    h = np.asarray(hinge_thigh, dtype=float)
+    h_shank = np.einsum("kji,kjl,l->i", R_shank, R_thigh, h)
+    th, sh, knee = f"thigh_{side}", f"shank_{side}", f"knee_{side}"
+    ori = {
+        th: R_thigh @ segment_frame(a_thigh, h),
+        sh: R_shank @ segment_frame(a_shank, h_shank),
+    }
+    f = joint_angles(ori, [knee])[knee][:, 0]
+    return -f if np.nanmean(f) < 0 else f
 
 
 def _reference_flexion(rec, side: str) -> np.ndarray:
@@ -100,8 +91,8 @@ def _scores(rec, sk, cal, hinge: dict, tag: str, use_lengths: bool) -> dict:
     for side in ("l", "r"):
         Rt = _mats(rec.imu[f"thigh_{side}"].q_world_from_sensor)
         Rs = _mats(rec.imu[f"shank_{side}"].q_world_from_sensor)
-        f = knee_flexion_deg(
-            Rt, Rs, cal.axes[f"thigh_{side}"], cal.axes[f"shank_{side}"], hinge[side]
+        f = _knee_flexion_deg(
+            Rt, Rs, cal.axes[f"thigh_{side}"], cal.axes[f"shank_{side}"], hinge[side], side
         )
         d = f - _reference_flexion(rec, side)
         out[f"flexion_{side}_deg"] = float(np.sqrt(np.mean(d**2)))

@@ -23,6 +23,10 @@ Method parameters (``[method.parameters]`` of the session file; all optional)
     frame (default north); ``"auto"`` (default: align 6-D sensors' headings at the pose),
     ``"none"`` or ``"static"``; the stillness thresholds
     (:func:`kinefuse.kinematics.find_still_window`).
+``flexion_axes``
+    Static calibration: the flexion axes of elbows and knees from the movement (``"movement"``,
+    :func:`kinefuse.kinematics.hinge.hinge_frames`) or from ``facing`` (``"pose"``); ``"auto"``
+    (default): from the movement when the headings are aligned at the pose (6-D sensors).
 ``align``
     Camera/reference frame alignment of the calibration: ``"auto"`` (default), ``"none"``,
     ``"heading"``, ``"rotation"``.
@@ -57,6 +61,10 @@ Method parameters (``[method.parameters]`` of the session file; all optional)
     (Winter 2009 ratios) fills the rest.
 ``orientation_params``
     VQF parameters for sensors without an orientation (:func:`kinefuse.orientation.estimate`).
+``estimate_orientation``
+    ``"auto"`` (default: estimate sensor orientations from acc + gyr with VQF only when no
+    mapped sensor has one in the file), ``true`` (for every sensor without one) or ``false``
+    (never); an estimate is always reported as a warning.
 ``strict_units``
     Default true: magnitudes that look like wrong units (acc in g, gyro in deg/s, positions in
     mm; :func:`kinefuse.io.check_units`) are an error instead of a warning.
@@ -76,8 +84,11 @@ import numpy as np
 from kinefuse.conventions import (
     MODE_NAMES,
     SEGMENTS,
+    SOURCE_BRIDGED,
     SOURCE_IMU,
+    SOURCE_KINDS,
     SOURCE_NAMES,
+    SOURCE_PREDICTED,
 )
 from kinefuse.exceptions import ConfigError, InputError, UnitWarning
 from kinefuse.session import CAMERA_METHODS
@@ -148,6 +159,7 @@ _GENERAL_KEYS = (
     "calibration",
     "facing",
     "heading",
+    "flexion_axes",
     "root_position_m",
     "axes",
     "align_to_reference",
@@ -164,6 +176,7 @@ _GENERAL_KEYS = (
     "orientation_params",
     "strict_units",
     "causal",
+    "estimate_orientation",
 )
 _METHOD_LABELS = {
     "paper-a": "EM-KF/FIR",
@@ -221,6 +234,10 @@ class SessionOutput:
     angles : dict of str -> ndarray, shape (T, 3)
         Joint angles, deg, ``[flexion, adduction, internal_rotation]`` (ISB), where the
         calibration gives segment frames.
+    sensor_orientations : dict of str -> ndarray, shape (T, 4)
+        Calibrated sensor orientations per segment, ``q_world_from_sensor`` (wxyz) on ``t_s``
+        with the calibration's heading corrections applied (one world frame for all sensors),
+        for OpenSense IK.
     tag : str
         Label suffix of scores that used the reference beyond evaluation (e.g.
         ``" [calibrated on reference]"``); empty otherwise.
@@ -228,6 +245,14 @@ class SessionOutput:
         With a camera method: the simple baselines on the same chain and camera, by table
         label (``offset interp``, ``offset hold``, ``camera gap-fill``;
         :func:`kinefuse.pipelines.vision_assisted`), m, same frame.
+    available : ndarray of bool, shape (T, J) or None
+        The sample is backed by the inputs the method needs (see :func:`apply_coverage`);
+        False where a stream did not cover it, even if the filter predicted a position.
+    coverage : dict of str -> ndarray of bool
+        Per input stream whether it covered each output sample: ``"imu <segment>"`` (T,),
+        ``"imu"``, ``"root"``, ``"camera"``, ``"reference"`` (T, J) per output joint.
+    warnings : list of str
+        Short coverage and other problems the user must see (also in ``notes``).
     """
 
     t_s: np.ndarray
@@ -248,12 +273,19 @@ class SessionOutput:
     root: str = ""
     provenance: dict = field(default_factory=dict)
     angles: dict = field(default_factory=dict)
+    sensor_orientations: dict = field(default_factory=dict)
     tag: str = ""
     baselines: dict[str, np.ndarray] = field(default_factory=dict)
+    available: np.ndarray | None = None
+    coverage: dict = field(default_factory=dict)
+    warnings: list = field(default_factory=list)
 
     def trajectories(self) -> dict[str, np.ndarray]:
         """Evaluated trajectories by their table label (tags such as "[calibrated on reference]")."""
-        est = {self.label + self.tag: self.position}
+        position = self.position
+        if self.available is not None:  # predictions no input backs are not scored (issue 12)
+            position = np.where(self.available[..., None], position, np.nan)
+        est = {self.label + self.tag: position}
         if self.method != "camera-only" and not np.array_equal(
             self.position, self.chain, equal_nan=True
         ):
@@ -340,6 +372,7 @@ def _load(
             raise ConfigError(f"{source}: [{section}] path: {exc}") from None
         except InputError as exc:
             raise ConfigError(f"{source}: [{section}]: {exc}") from None
+    _check_no_inf(rec, path, section, source)
     msgs = []
     for w in caught:
         if issubclass(w.category, UnitWarning) and strict_units:
@@ -351,6 +384,46 @@ def _load(
         if not issubclass(w.category, DeprecationWarning):
             msgs.append(f"{section}: {w.message}")
     return rec, msgs
+
+
+_IMU_COLUMNS = {
+    "q_world_from_sensor": ("qw", "qx", "qy", "qz"),
+    "acc_m_s2": ("acc_x", "acc_y", "acc_z"),
+    "gyr_rad_s": ("gyr_x", "gyr_y", "gyr_z"),
+    "mag": ("mag_x", "mag_y", "mag_z"),
+}
+
+
+def _check_no_inf(rec, path: Path, section: str, source: str) -> None:
+    """Inf is never data: an error naming file, stream, column and sample (issue 12).
+
+    Readers of text tables already name the file line; this catches every other reader.
+    """
+
+    def fail(what: str, column: str, t_s: np.ndarray, k: int, n: int) -> None:
+        raise ConfigError(
+            f"{source}: [{section}] path: {Path(path).name}: {what}, column {column}: infinite "
+            f"value at sample {k} (t = {t_s[k]:.3f} s; {n} infinite in all); kinefuse does not "
+            "replace it: fix the file (an empty field or NaN marks a missing sample)"
+        )
+
+    for key, st in (rec.imu or {}).items():
+        for attr, cols in _IMU_COLUMNS.items():
+            a = getattr(st, attr)
+            if a is None:
+                continue
+            bad = np.isinf(a)
+            if np.any(bad):
+                k, c = (int(i[0]) for i in np.nonzero(bad))
+                fail(f"sensor {st.name or key!r}", cols[c], st.t_s, k, int(bad.sum()))
+    for role in ("vision", "reference"):
+        stream = getattr(rec, role, None)
+        if stream is None:
+            continue
+        bad = np.isinf(stream.position_m)
+        if np.any(bad):
+            k, j, c = (int(i[0]) for i in np.nonzero(bad))
+            fail(f"{role} joint {stream.joints[j]!r}", "xyz"[c], stream.t_s, k, int(bad.sum()))
 
 
 def load_streams(cfg, *, strict_units: bool = True):
@@ -472,6 +545,12 @@ def _check_stream(st, seg: str, sensor: str, src: str) -> None:
         raise ConfigError(
             f"{src}: [imu.segments] {seg}: sensor {sensor!r} has no valid sample (all NaN)"
         )
+    if np.sum(ok) < 2:
+        k = int(np.flatnonzero(ok)[0])
+        raise ConfigError(
+            f"{src}: [imu.segments] {seg}: sensor {sensor!r} has a single valid sample (t = "
+            f"{st.t_s[k]:.3f} s); an IMU stream needs a sample rate (at least 2 samples)"
+        )
 
 
 def _check_joints(stream, what: str, src: str) -> None:
@@ -484,8 +563,15 @@ def _check_joints(stream, what: str, src: str) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def _ensure_orientations(recording, params: Mapping, notes: list[str]) -> set[str]:
-    """Estimate ``q_world_from_sensor`` with VQF for every stream that has raw data only.
+def _ensure_orientations(
+    recording, params: Mapping, notes: list[str], warnings_out: list[str]
+) -> set[str]:
+    """Estimate ``q_world_from_sensor`` with VQF for the streams that have raw data only.
+
+    The policy is ``estimate_orientation`` of ``[method.parameters]``: ``"auto"`` (default)
+    estimates only when no mapped sensor has an orientation (a raw-only recording), ``true``
+    for every sensor without one, ``false`` never. The substitution is always reported (a
+    warning in the run summary and the report), never silent.
 
     Returns the segments whose orientation is 6-D (no magnetometer: arbitrary heading).
     """
@@ -494,6 +580,26 @@ def _ensure_orientations(recording, params: Mapping, notes: list[str]) -> set[st
     from kinefuse.orientation import estimate
 
     vqf_params = params.get("orientation_params")
+    policy = params.get("estimate_orientation", "auto")
+    if policy not in ("auto", True, False):
+        raise ConfigError(
+            f"[method.parameters] estimate_orientation: expected true, false or 'auto', got "
+            f"{policy!r}"
+        )
+    lacking = [seg for seg, st in recording.imu.items() if st.q_world_from_sensor is None]
+    having = [seg for seg in recording.imu if seg not in lacking]
+    if lacking and (policy is False or (policy == "auto" and having)):
+        why = (
+            f"while {', '.join(having)} {'has' if len(having) == 1 else 'have'} one"
+            if having
+            else "and estimate_orientation = false"
+        )
+        raise InputError(
+            f"no orientation for {', '.join(lacking)} in the IMU file (quaternion columns "
+            f"missing or all empty) {why}; kinefuse does not substitute an estimate silently: "
+            "set estimate_orientation = true in [method.parameters] to estimate it from acc + "
+            "gyr with VQF, or fix the file"
+        )
     six_d: set[str] = set()
     for seg, st in list(recording.imu.items()):
         if st.q_world_from_sensor is not None:
@@ -520,6 +626,14 @@ def _ensure_orientations(recording, params: Mapping, notes: list[str]) -> set[st
         )
         if mag is None:
             six_d.add(seg)
+    if lacking:
+        msg = (
+            f"the IMU file has no orientation for {', '.join(lacking)}: estimated from acc + "
+            "gyr with VQF (policy estimate_orientation = "
+            f"{'true' if policy is True else 'auto: no sensor has one'})"
+        )
+        notes.append(f"WARNING: {msg}")
+        warnings_out.append(msg)
     return six_d
 
 
@@ -639,6 +753,7 @@ def _check_params(params: Mapping, method: str) -> None:
         ("filter", _FILTERS),
         ("root", _ROOTS),
         ("heading", _HEADINGS),
+        ("flexion_axes", ("auto", "movement", "pose")),
         ("pose", ("n", "t")),
         ("align_to_reference", ("none", "rigid")),
     ):
@@ -672,6 +787,247 @@ def _rigid_align(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, float]:
     R = kabsch_rotation(P[ok] - cp, Q[ok] - cq)
     out = (est - cp) @ R.T + cq
     return out, float(np.sqrt(np.nanmean(np.sum((out - ref) ** 2, axis=-1))))
+
+
+# --------------------------------------------------------------------------------------------
+# coverage: which input backs each output sample (issue 12)
+# --------------------------------------------------------------------------------------------
+
+#: Longest interval between two IMU orientation samples interpolated across, s (SLERP); a
+#: stream sampled more sparsely covers only its own sample times.
+IMU_MAX_GAP_S = 0.25
+#: Longest gap of the root stream (camera or reference root joints) bridged by linear
+#: interpolation, s; beyond it, or outside the stream, the chain has no root.
+ROOT_MAX_GAP_S = 1.0
+#: A joint whose available fraction is below this gets a coverage warning.
+COVERAGE_WARN_FRACTION = 0.95
+
+
+def _valid_span(t: np.ndarray, ok: np.ndarray) -> tuple[float, float] | None:
+    idx = np.flatnonzero(ok)
+    return None if idx.size == 0 else (float(t[idx[0]]), float(t[idx[-1]]))
+
+
+def _imu_span(st) -> tuple[float, float] | None:
+    return _valid_span(st.t_s, np.all(np.isfinite(st.q_world_from_sensor), axis=1))
+
+
+def _stream_span(stream) -> tuple[float, float] | None:
+    return _valid_span(stream.t_s, np.any(stream.available, axis=1))
+
+
+def _check_overlap(recording, root_stream, root_name: str) -> None:
+    """Streams that never overlap in time are an error naming the spans (not a calibration one)."""
+    spans = {seg: _imu_span(st) for seg, st in recording.imu.items()}
+    common = (max(a for a, _ in spans.values()), min(b for _, b in spans.values()))
+    if common[0] > common[1]:
+        listed = ", ".join(f"{seg} {a:.2f}-{b:.2f} s" for seg, (a, b) in spans.items())
+        raise InputError(
+            f"the IMU streams do not overlap in time ({listed}): no instant has every mapped "
+            "sensor; check the files' clocks or map sensors of one recording"
+        )
+    root = _stream_span(root_stream)
+    if root is None or root[0] > common[1] or root[1] < common[0]:
+        where = "no valid sample" if root is None else f"{root[0]:.2f}-{root[1]:.2f} s"
+        raise InputError(
+            f"the IMU streams ({common[0]:.2f}-{common[1]:.2f} s) and the {root_name} "
+            f"({where}) do not overlap in time; check the clocks (time offset) of the files"
+        )
+
+
+def _extend_to_imu(t: np.ndarray, recording) -> np.ndarray:
+    """The root timeline extended (same step) over the span the IMUs cover; never cut."""
+    if t.size < 2:
+        return t
+    spans = [sp for sp in (_imu_span(st) for st in recording.imu.values()) if sp is not None]
+    a, b = min(sp[0] for sp in spans), max(sp[1] for sp in spans)
+    dt = float(np.median(np.diff(t)))
+    n_before = int(np.floor((t[0] - a) / dt + 1e-9)) if a < t[0] - 0.5 * dt else 0
+    n_after = int(np.floor((b - t[-1]) / dt + 1e-9)) if b > t[-1] + 0.5 * dt else 0
+    if not (n_before or n_after):
+        return t
+    before = t[0] - dt * np.arange(n_before, 0, -1)
+    after = t[-1] + dt * np.arange(1, n_after + 1)
+    return np.concatenate([before, t, after])
+
+
+def _covered(t_src, p, t: np.ndarray, max_gap_s: float | None = None) -> np.ndarray:
+    from kinefuse.io import resample_positions
+
+    return resample_positions(t_src, p, t, max_gap_s=max_gap_s)[1]
+
+
+def _input_coverage(recording, sk, root_stream, t: np.ndarray, joints):
+    """Per-sample coverage of the chain's inputs on ``t``.
+
+    Returns
+    -------
+    coverage : dict
+        ``"imu <segment>"`` (T,) per IMU; ``"imu"`` (T, J): every IMU of the joint's chain;
+        ``"root"`` (T, J): the root stream has the chain's root joint there (usual sampling).
+    root_ok : ndarray of bool, shape (T, J)
+        The root is usable: data, or a gap of at most :data:`ROOT_MAX_GAP_S` interpolated
+        across (never extrapolated).
+    """
+    cov: dict[str, np.ndarray] = {}
+    extra = [s for s in (sk.root_segment,) if s and s in recording.imu and root_stream is None]
+    for seg in (*sk.segments, *extra):
+        st = recording.imu[seg]
+        q = st.q_world_from_sensor
+        step = float(np.median(np.diff(st.t_s))) if st.t_s.size > 1 else 0.0
+        gap = min(1.5 * step, IMU_MAX_GAP_S) if step > 0 else IMU_MAX_GAP_S
+        cov[f"imu {seg}"] = _covered(st.t_s, q, t, gap) if st.t_s.size > 1 else np.isin(t, st.t_s)
+    seg_of = dict(zip(sk.distal, sk.segments, strict=True))
+    parent = {
+        s: (sk.segments[p] if p >= 0 else None)
+        for s, p in zip(sk.segments, sk.parents, strict=True)
+    }
+    T = t.size
+    imu = np.ones((T, len(joints)), bool)
+    root = np.ones((T, len(joints)), bool)
+    root_ok = np.ones((T, len(joints)), bool)
+    step = 0.0
+    if root_stream is not None and root_stream.t_s.size > 1:
+        step = float(np.median(np.diff(root_stream.t_s)))
+    for j, joint in enumerate(joints):
+        s = seg_of[joint]
+        while s is not None:
+            imu[:, j] &= cov[f"imu {s}"]
+            top, s = s, parent[s]
+        r = sk.proximal[sk.segments.index(top)]
+        if root_stream is None:  # fixed root, or hips from the pelvis IMU (its coverage)
+            for seg in extra:
+                root[:, j] &= cov[f"imu {seg}"]
+            root_ok[:, j] = root[:, j]
+        elif r in root_stream.joints:
+            p = root_stream.position(r)
+            root[:, j] = _covered(root_stream.t_s, p, t)
+            root_ok[:, j] = _covered(root_stream.t_s, p, t, max(ROOT_MAX_GAP_S, 1.5 * step))
+    cov["imu"], cov["root"] = imu, root
+    return cov, root_ok
+
+
+def apply_coverage(
+    out: SessionOutput,
+    coverage: Mapping,
+    root_ok: np.ndarray,
+    joints,
+    method: str,
+    root_name: str = "root",
+) -> None:
+    """Set ``available``, ``coverage`` and the predicted source code of ``out`` in place.
+
+    A sample is *available* when its position is finite and the inputs of the method back
+    it: the IMUs of the joint's chain and the chain's root (``paper-a``, ``imu-only``), that
+    or the camera (the camera methods), the camera (``camera-only``). Elsewhere the source is
+    :data:`~kinefuse.conventions.SOURCE_PREDICTED` and ``available`` is False, whatever the
+    filter predicted. An IMU-chain sample whose root was interpolated across a gap of the
+    root stream is ``SOURCE_BRIDGED``. Warnings are added for joints below
+    :data:`COVERAGE_WARN_FRACTION`.
+    """
+    cols = [list(joints).index(j) for j in out.joints]
+    T, J = out.position.shape[:2]
+    cov = {k: (v if v.ndim == 1 else v[:, cols]) for k, v in coverage.items()}
+    chain_ok = cov["imu"] & root_ok[:, cols]
+    finite = np.all(np.isfinite(out.position), axis=-1)
+    cam = np.zeros((T, J), bool) if out.camera is None else np.all(np.isfinite(out.camera), -1)
+    if out.camera is not None:
+        cov["camera"] = cam
+    if out.reference is not None:
+        cov["reference"] = np.all(np.isfinite(out.reference), axis=-1)
+    if method == "camera-only":
+        backed = cam
+    elif method in _CAMERA_METHODS:
+        backed = chain_ok | cam
+    else:
+        backed = chain_ok
+    out.available = finite & backed
+    out.source = np.where(finite & ~backed, SOURCE_PREDICTED, out.source).astype(np.int64)
+    root_gap = out.available & chain_ok & ~cov["root"] & (out.source == SOURCE_IMU)
+    out.source[root_gap] = SOURCE_BRIDGED  # root interpolated across a gap of its stream
+    out.coverage = cov
+    span = f"{out.t_s[0]:.2f}-{out.t_s[-1]:.2f} s" if T else "no samples"
+    for j, joint in enumerate(out.joints):
+        frac = float(np.mean(out.available[:, j])) if T else 0.0
+        if frac >= COVERAGE_WARN_FRACTION:
+            continue
+        label = {"root": f"the chain's root ({root_name})"}
+        short = [
+            k.split(" ", 1)[1] + " IMU" if k.startswith("imu ") else label.get(k, k)
+            for k, v in cov.items()
+            if k != "reference" and k != "imu" and np.mean(v if v.ndim == 1 else v[:, j]) < 0.999
+        ]
+        why = f"; not covered by: {', '.join(short)}" if short else ""
+        msg = (
+            f"{joint}: only {frac:.0%} of the {T} output samples ({span}) are backed by the "
+            f"inputs{why}; the rest is predicted (source 'predicted', available = 0)"
+        )
+        out.warnings.append(msg)
+        out.notes.append(f"WARNING: {msg}")
+    n_pred = int(np.sum(finite & ~backed))
+    if n_pred and out.reference is not None:
+        out.notes.append(
+            f"metrics: the {n_pred} predicted joint samples (no input backs them) are excluded; "
+            "every method is scored on the samples it outputs as available"
+        )
+    for joint, row in coverage_counts(out).items():
+        kinds = ", ".join(f"{row[k]} {k}" for k in ("measured", "fused", "bridged", "predicted"))
+        streams = ", ".join(f"{k[:-8]} {v}" for k, v in row.items() if k.endswith(" covered"))
+        out.notes.append(
+            f"coverage {joint}: {row['available']} of {row['samples']} samples available "
+            f"({kinds}); covered by {streams}"
+        )
+    if out.reference is not None and T:
+        frac = float(np.mean(np.any(cov["reference"], axis=1)))
+        if frac < COVERAGE_WARN_FRACTION:
+            msg = (
+                f"the reference covers only {frac:.0%} of the {T} output samples ({span}); "
+                "the metrics are computed on that part only"
+            )
+            out.warnings.append(msg)
+            out.notes.append(f"WARNING: {msg}")
+
+
+def coverage_counts(out: SessionOutput) -> dict:
+    """Per joint: samples, available, each source kind and each stream's covered samples."""
+    kinds = ("measured", "fused", "bridged", "predicted")
+    res = {}
+    for j, joint in enumerate(out.joints):
+        src = out.source[:, j]
+        row = {"samples": int(src.size), "available": int(np.sum(out.available[:, j]))}
+        for kind in kinds:
+            codes = [c for c, k in SOURCE_KINDS.items() if k == kind]
+            row[kind] = int(np.sum(np.isin(src, codes)))
+        row["none"] = int(np.sum(src < 0))
+        for name, v in out.coverage.items():
+            if name != "imu" and not name.startswith("imu "):
+                row[f"{name} covered"] = int(np.sum(v[:, j]))
+        row["imu covered"] = int(np.sum(out.coverage["imu"][:, j]))
+        res[joint] = row
+    return res
+
+
+def coverage_table(out: SessionOutput):
+    """:func:`coverage_counts` as a :class:`~kinefuse.evaluation.tables.ResultTable`."""
+    from kinefuse.evaluation.tables import ResultTable, TableRow
+
+    counts = coverage_counts(out)
+    headers = tuple(next(iter(counts.values())))
+    return ResultTable(
+        title="Coverage per joint (output samples)",
+        label_headers=("Joint",),
+        value_headers=headers,
+        rows=tuple(
+            TableRow((joint,), tuple(float(row[h]) for h in headers))
+            for joint, row in counts.items()
+        ),
+        digits=0,
+        notes=(
+            "available = backed by the inputs the method needs; measured = one stream (IMU "
+            "chain or camera), fused = camera-fused, bridged = outage bridged by the learned "
+            "model, predicted = no input (the filter's prediction, never available).",
+        ),
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -853,6 +1209,7 @@ def process_recording(
     _check_params(params, method)
     notes: list[str] = []
     has_cam = recording.vision is not None
+    run_warnings: list[str] = []
     segs = [s for s in SEGMENT_JOINTS if s in recording.imu]
     if not segs:
         raise ConfigError(
@@ -871,7 +1228,7 @@ def process_recording(
         except InputError as exc:
             if calib != "functional":
                 raise ConfigError(str(exc)) from None
-    six_d = _ensure_orientations(recording, params, notes)
+    six_d = _ensure_orientations(recording, params, notes, run_warnings)
 
     root_stream = None
     if root_kind == "vision":
@@ -882,6 +1239,8 @@ def process_recording(
     rate = params.get("rate_hz", default_rate)
     if root_stream is not None:
         t = _timeline(root_stream.t_s, None if rate is None else float(rate))
+        _check_overlap(recording, root_stream, "camera" if root_kind == "vision" else root_kind)
+        t = _extend_to_imu(t, recording)
     else:
         t0 = max(float(recording.imu[s].t_s[0]) for s in segs)
         t1 = min(float(recording.imu[s].t_s[-1]) for s in segs)
@@ -891,6 +1250,7 @@ def process_recording(
 
     # calibration
     from kinefuse.kinematics import calibrate, chain_positions
+    from kinefuse.kinematics.angles import JOINTS
 
     axes_decl = _declared_axes(params.get("axes"), segs)
     cal_segs = list(segs) + (["pelvis"] if root_kind == "pelvis" else [])
@@ -911,6 +1271,7 @@ def process_recording(
                 pose=params.get("pose", "n"),
                 facing=tuple(params.get("facing", (0.0, 1.0, 0.0))),
                 heading=heading,
+                flexion_axes=params.get("flexion_axes", "auto"),
                 mounting={s: a for s, a in axes_decl.items() if s in cal_segs},
                 segments=cal_segs,
             )
@@ -919,11 +1280,19 @@ def process_recording(
                     kw[k] = float(params[k])
         elif calib in ("vision", "reference"):
             kw["align"] = params.get("align", "auto")
+        elif calib == "functional":
+            kw["mounting"] = {s: a for s, a in axes_decl.items() if s in cal_segs}
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             cal = calibrate(recording, sk, calib, **kw)
         notes += [f"calibration: {w.message}" for w in caught]
-        if calib == "functional" and getattr(cal, "heading", "shared") == "estimated":
+        if calib == "functional" and cal.declared:
+            notes.append(
+                "calibration: no sensor beyond the distal joint of "
+                f"{', '.join(cal.declared)}: the declared sensor axis ([skeleton.axes]) is its "
+                "axis and its length comes from the session"
+            )
+        if calib == "functional" and getattr(cal, "heading", "shared") == "estimate":
             from kinefuse.kinematics.functional import align_headings
 
             recording = align_headings(recording, cal)
@@ -954,12 +1323,26 @@ def process_recording(
         provenance["calibration_window_s"] = list(cal.window_s)
         if calib == "static":
             f = [float(x) for x in params.get("facing", (0.0, 1.0, 0.0))]
-            notes.append(
-                f"segment frames: anterior axis = the facing direction {f} (world frame) in the "
-                "still pose, as declared ([calibration] facing; default north); flexion axes "
-                "follow from it"
-            )
-            provenance["facing"] = f
+            hinged = sorted(cal.hinge_residual_rad_s)
+            moved = {s for j in hinged for s in JOINTS[j][:2]}
+            rest = [s for s in cal.frames if s not in moved]
+            if hinged:
+                notes.append(
+                    "segment frames: long axes from the still pose; flexion axes of "
+                    f"{', '.join(hinged)} from the movement (the two sensors' relative rotation, "
+                    "Laidig et al. 2017's elbow model; RMS residual rad/s: "
+                    + ", ".join(f"{j} {cal.hinge_residual_rad_s[j]:.2f}" for j in hinged)
+                    + "), sign by anatomy (the larger excursion from the pose is flexion); the "
+                    "facing is not used for them"
+                )
+                provenance["flexion_axes"] = {j: "movement" for j in hinged}
+            if rest:
+                notes.append(
+                    f"segment frames of {', '.join(rest)}: anterior axis = the facing direction "
+                    f"{f} (world frame) in the still pose, as declared ([calibration] facing; "
+                    "default north); flexion axes follow from it"
+                )
+                provenance["facing"] = f
             if cal.world_heading_deg:
                 notes.append(
                     "heading: 6-D orientations (arbitrary heading per sensor) brought into the "
@@ -1017,8 +1400,8 @@ def process_recording(
         sk = cal.apply(sk, lengths=False)
 
     # roots
+    root_name = {"vision": "camera", "reference": "reference"}.get(root_kind, root_kind)
     if root_stream is not None:
-        root_name = "camera" if root_kind == "vision" else "reference"
         lack = [j for j in roots if j not in root_stream.joints]
         if lack:
             raise InputError(
@@ -1059,6 +1442,8 @@ def process_recording(
     chain_st = chain_positions(recording, sk, cal, root=root_pos, source=source, t_s=t)
     joints = tuple(s for s in sk.distal)
     chain = np.stack([chain_st.position(j, masked=False) for j in joints], axis=1)
+    coverage, root_ok = _input_coverage(recording, sk, root_stream, t, joints)
+    chain[~(coverage["imu"] & root_ok)] = np.nan  # no chain without its inputs
     notes.append(
         f"IMU chain from {root_desc}"
         f"{' (gaps interpolated)' if root_kind == 'vision' else ''} through "
@@ -1106,9 +1491,28 @@ def process_recording(
         reference=reference,
         edges=tuple((p, d) for p, d in zip(sk.proximal, sk.distal, strict=True) if p in joints),
         notes=notes,
+        warnings=run_warnings,
         root=root_desc,
         provenance=provenance,
     )
+    if cal is not None:
+        from scipy.spatial.transform import Rotation
+
+        from kinefuse.orientation.resample import slerp_resample
+
+        for s in cal.axes:
+            st = recording.imu.get(s)
+            if st is None or st.q_world_from_sensor is None:
+                continue
+            q = slerp_resample(st.t_s, st.q_world_from_sensor, t)
+            ok = np.all(np.isfinite(q), axis=1)
+            qw = np.full(q.shape, np.nan)
+            if np.any(ok):
+                H = Rotation.from_matrix(cal.heading_matrix(s))
+                qw[ok] = (H * Rotation.from_quat(q[ok], scalar_first=True)).as_quat(
+                    scalar_first=True
+                )
+            out.sensor_orientations[s] = qw
     if cal is not None and cal.frames:
         from kinefuse.kinematics import joint_angles, segment_orientations
 
@@ -1125,8 +1529,8 @@ def process_recording(
                 notes.append(
                     f"warning: {j} flexion spans {f.min():.0f} to {f.max():.0f} deg, beyond the "
                     f"anatomical {lo:.0f} to {hi:.0f} deg: the facing direction or the pose is "
-                    "probably wrong (with 6-D orientations a still pose cannot tell the facing: "
-                    "declare [calibration] facing, or use functional calibration)"
+                    "probably wrong (the facing, the pose, or too little flexion to fit its axis: "
+                    "see the calibration notes; [calibration] flexion_axes, facing)"
                 )
     dt = float(np.median(np.diff(t))) if T > 1 else 1.0 / 30.0
     t0 = time.perf_counter()
@@ -1140,6 +1544,7 @@ def process_recording(
     else:
         _vision(out, recording, chain, camera, dt, method, params, cal)
     out.run_time_s = time.perf_counter() - t0
+    apply_coverage(out, coverage, root_ok, joints, method, root_name)
     if method in _CAMERA_METHODS and out.camera is not None:
         out.baselines = _baselines(out.chain, out.camera, dt, out.joints)
     tags = []
@@ -1195,7 +1600,9 @@ def _paper_a_filter(out: SessionOutput, chain, dt, flt: str, params: Mapping) ->
     try:
         # compile outside the timed run (numba compiles on the first call)
         z0 = chain[:, 0][np.all(np.isfinite(chain[:, 0]), axis=1)][:30]
-        upper_limb(z0, None, dt, method, q=q[0], r=r[0], **kw)
+        with warnings.catch_warnings():  # e.g. "horizon longer than the series": warm-up only
+            warnings.simplefilter("ignore")
+            upper_limb(z0, None, dt, method, q=q[0], r=r[0], **kw)
         t0 = time.perf_counter()
         for j, name in enumerate(out.joints):
             res = upper_limb(chain[:, j], None, dt, method, q=q[j], r=r[j], joints=(name,), **kw)
@@ -1314,6 +1721,7 @@ def _baselines(chain, camera, dt, joints) -> dict[str, np.ndarray]:
 
 
 def _outputs(out_dir: Path, stem: str) -> dict[str, Path]:
+    """Every result ``kinefuse run`` may write into ``out_dir`` (all replaced as one set)."""
     from kinefuse.evaluation.report import REPORT_NAME
 
     return {
@@ -1321,8 +1729,21 @@ def _outputs(out_dir: Path, stem: str) -> dict[str, Path]:
         "trc": out_dir / f"{stem}_joints.trc",
         "angles_csv": out_dir / f"{stem}_angles.csv",
         "mot": out_dir / f"{stem}_angles.mot",
+        "orientations_sto": out_dir / f"{stem}_orientations.sto",
         "report": out_dir / REPORT_NAME,
+        "metrics": out_dir / "metrics.json",
+        "provenance": out_dir / "provenance.json",
+        "figures": out_dir / "figures",
     }
+
+
+def output_paths(cfg, out_dir=None) -> tuple[Path, ...]:
+    """Every path :func:`run_session` may write for ``cfg`` (``--json`` may be none of them)."""
+    return tuple(_outputs(Path(cfg.out_dir if out_dir is None else out_dir), _stem(cfg)).values())
+
+
+def _stem(cfg) -> str:
+    return "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in cfg.name) or "session"
 
 
 def run_session(path, out_dir=None, force: bool = False) -> dict:
@@ -1330,12 +1751,12 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
 
     Parameters
     ----------
-    path : str or Path
-        Session TOML (:func:`kinefuse.session.load_session`).
+    path : str or Path or SessionConfig
+        Session TOML (:func:`kinefuse.session.load_session`), or an already validated one.
     out_dir : str or Path, optional
         Output folder (default the session's ``out_dir``); created if needed.
     force : bool
-        Overwrite existing outputs.
+        Replace the results of an earlier run in ``out_dir``.
 
     Returns
     -------
@@ -1349,34 +1770,58 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
         Invalid session, unknown format, unreadable file, unknown sensor, wrong units, no
         valid samples, a method that needs a camera without one.
     InputError
-        Data that cannot be processed (the message says what and where).
+        Data that cannot be processed (the message says what and where); an output folder
+        that is a file, not writable, or whose outputs would overwrite an input (checked
+        before any processing).
     FileExistsError
-        An output exists and ``force`` is False (nothing is written).
+        Any earlier result (joints CSV/TRC, ``report.html``, ``metrics.json``, ``figures/``)
+        exists and ``force`` is False (checked before any processing; nothing is written).
 
     Notes
     -----
     Outputs in ``out_dir``: ``<name>_joints.csv`` (kinefuse joint CSV: ``t_s``, per joint
     ``_x/_y/_z`` in m, ``_available``, ``_source`` (:data:`kinefuse.conventions.SOURCE_NAMES`),
     ``_mode`` (:data:`kinefuse.conventions.MODE_NAMES`, -1 without a filter), ``_std_m_x/y/z``
-    (m)); ``<name>_joints.trc`` (OpenSim, m); with a reference ``report.html``, ``figures/``,
-    ``metrics.json``.
-    """
-    from kinefuse.io import JointStream, write_joint_csv, write_trc
-    from kinefuse.session import load_session
+    (m)); ``<name>_joints.trc`` (OpenSim, m); with a calibration ``<name>_orientations.sto``
+    (OpenSense orientation table of the calibrated sensor orientations, input of OpenSense IK);
+    with a reference ``report.html``, ``figures/``, ``metrics.json``.
 
-    cfg = load_session(path)
+    The results are written atomically (:class:`kinefuse.io.output_folder.OutputFolder`):
+    staged in a hidden temporary folder and moved into ``out_dir`` only when complete, so an
+    interrupted or failed run leaves the previous results untouched. Files get the mode the
+    user's umask gives.
+    """
+    from kinefuse.io.output_folder import OutputFolder
+    from kinefuse.session import SessionConfig, load_session
+
+    cfg = path if isinstance(path, SessionConfig) else load_session(path)
     out_dir = Path(cfg.out_dir if out_dir is None else out_dir)
-    stem = "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in cfg.name) or "session"
-    targets = _outputs(out_dir, stem)
-    if not force:
-        for p in targets.values():
-            if p.exists():
-                raise FileExistsError(
-                    f"{p} already exists; pass --force to overwrite it, or choose another --out "
-                    "folder"
-                )
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"output folder {out_dir} exists and is not a folder")
+    targets = _outputs(out_dir, _stem(cfg))
+    stage = OutputFolder(
+        out_dir,
+        [p.name for p in targets.values()],
+        force=force,
+        protect=cfg.inputs,
+        what="output folder",
+    )
+    try:
+        summary = _run_and_write(cfg, stage.path)
+        stage.commit()
+    except BaseException:
+        stage.discard()
+        raise
+    final = {p: out_dir / p.name for p in summary["outputs"]}
+    summary["outputs"] = [final[p] for p in summary["outputs"]]
+    if summary.get("report") is not None:
+        summary["report"] = out_dir / summary["report"].name
+    return summary
+
+
+def _run_and_write(cfg, folder: Path) -> dict:
+    """Process the session and write every result into ``folder`` (the staging folder)."""
+    from kinefuse.io import JointStream, write_joint_csv, write_trc
+
+    targets = _outputs(folder, _stem(cfg))
     params = cfg.processing_parameters()
     strict = params.get("strict_units", True)
     recording, notes = load_streams(cfg, strict_units=bool(strict))
@@ -1391,33 +1836,59 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
     except ConfigError as exc:
         raise ConfigError(f"{cfg.path.name}: {exc}") from None
     out.notes[:0] = notes
-    out_dir.mkdir(parents=True, exist_ok=True)
     stream = JointStream(
         t_s=out.t_s,
         position_m=out.position,
-        available=np.all(np.isfinite(out.position), axis=-1),
+        available=out.available,
         joints=out.joints,
         frame=out.frame,
     )
+    extra = {"source": out.source, "mode": out.mode, "std_m": out.std_m}
+    for name, v in out.coverage.items():  # "imu thigh_r" (T,) -> imu_thigh_r_covered
+        extra[f"{name.replace(' ', '_')}_covered"] = v.astype(np.int8)
     csv = write_joint_csv(
         targets["csv"],
         stream,
-        {"source": out.source, "mode": out.mode, "std_m": out.std_m},
-        force=force,
+        extra,
         metadata={
             "session": cfg.name,
             "method": cfg.method.name,
             "root": out.root,
-            "source_codes": ", ".join(f"{k}={v}" for k, v in SOURCE_NAMES.items()),
+            "source_codes": ", ".join(
+                f"{k}={v} ({SOURCE_KINDS[k]})" for k, v in SOURCE_NAMES.items()
+            ),
             "mode_codes": ", ".join(f"{k}={v}" for k, v in MODE_NAMES.items()),
+            "available": "1 where the inputs the method needs cover the sample (else the "
+            "position, if any, is a prediction)",
+            "covered": "<stream>_covered: 1 where that input stream has data at the sample",
         },
     )
-    trc = write_trc(
-        targets["trc"], stream, force=force, note=f"root: {out.root}; frame: {out.frame}"
-    )
-    summary: dict = {"outputs": [csv, trc], "notes": out.notes, "provenance": out.provenance}
+    trc = write_trc(targets["trc"], stream, note=f"root: {out.root}; frame: {out.frame}")
+    summary: dict = {
+        "outputs": [csv, trc],
+        "notes": out.notes,
+        "provenance": out.provenance,
+        "coverage": coverage_counts(out),
+        "warnings": list(out.warnings),
+        "tables": [coverage_table(out)],
+    }
+    if out.sensor_orientations:
+        from kinefuse.io import ImuStream
+        from kinefuse.io.opensim import write_opensense_sto
+
+        imus = {
+            s: ImuStream(t_s=out.t_s, q_world_from_sensor=q, name=s)
+            for s, q in out.sensor_orientations.items()
+        }
+        sto = write_opensense_sto(targets["orientations_sto"], imus)
+        summary["outputs"].append(sto)
+        out.notes.append(
+            f"OpenSense: {sto.name} holds the calibrated sensor orientations (heading corrections "
+            f"applied, frame {out.frame}) for OpenSense IK; for a z-up world set "
+            "sensor_to_opensim_rotations = -1.5707963 0 0 in the IMU IK setup"
+        )
     if out.angles:
-        summary["outputs"] += _write_angles(out, targets, cfg, force)
+        summary["outputs"] += _write_angles(out, targets, cfg, False)
         summary["angles_deg"] = {
             j: {
                 "flexion_min": float(np.nanmin(a[:, 0])),
@@ -1434,7 +1905,7 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
 
         summary["evaluation"] = ev
         summary["report"] = write_report(
-            out_dir,
+            folder,
             ev,
             out.trajectories(),
             out.reference,
@@ -1444,19 +1915,17 @@ def run_session(path, out_dir=None, force: bool = False) -> dict:
             skeleton_edges=out.edges or None,
             title=title,
             notes=out.notes,
-            force=force,
-            sections=[angle_section(out.t_s, out.angles, out_dir / "figures")],
+            sections=[angle_section(out.t_s, out.angles, folder / "figures")],
             extra_metrics={"provenance": out.provenance},
         )
     else:
         summary["report"] = write_angle_report(
-            out_dir,
+            folder,
             out.t_s,
             out.angles,
             title=title,
             notes=out.notes,
             provenance=out.provenance,
-            force=force,
         )
     return summary
 

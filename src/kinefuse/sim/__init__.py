@@ -3,8 +3,11 @@
 :func:`virtual_recording` turns a :class:`~kinefuse.io.motion.Motion` (e.g. a CMU mocap trial,
 :func:`kinefuse.io.cmu.load_motion_asf_amc`) into a :class:`~kinefuse.io.recording.Recording`
 with IMU streams, a camera skeleton stream and the truth, so that pipelines can be evaluated
-against exact ground truth. Error models and defaults: :mod:`kinefuse.sim.imu` (ICM-20948) and
-:mod:`kinefuse.sim.camera` (fitted to UTD-MHAD Kinect).
+against exact ground truth. Error models and defaults: :mod:`kinefuse.sim.imu` (ICM-20948 raw
+gyro/accelerometer/magnetometer, soft-tissue artefact, mounting error, indoor magnetic
+disturbances; orientation from VQF run on the raw signals) and :mod:`kinefuse.sim.camera` (fitted
+to UTD-MHAD Kinect). ``kinefuse experiment realism`` prints how close the virtual sensors come to
+real ones.
 """
 
 from __future__ import annotations
@@ -18,16 +21,26 @@ from kinefuse.exceptions import InputError
 from kinefuse.io.motion import Motion
 from kinefuse.io.recording import ImuStream, Recording
 from kinefuse.sim.camera import CameraConfig, camera_pose, reference_at, simulate_camera
-from kinefuse.sim.imu import ImuConfig, simulate_imu, time_grid
+from kinefuse.sim.imu import (
+    ORIENTATIONS,
+    STA_AMPLITUDE,
+    ImuConfig,
+    simulate_imu,
+    simulate_imu_from_pose,
+    time_grid,
+)
 
 __all__ = [
+    "ORIENTATIONS",
     "PAPER_B_SEGMENTS",
+    "STA_AMPLITUDE",
     "CameraConfig",
     "ImuConfig",
     "camera_pose",
     "reference_at",
     "simulate_camera",
     "simulate_imu",
+    "simulate_imu_from_pose",
     "time_grid",
     "virtual_recording",
 ]
@@ -81,15 +94,17 @@ def virtual_recording(
     Returns
     -------
     Recording
-        ``imu``: one :class:`ImuStream` per segment (acc m/s², gyr rad/s, AHRS
-        ``q_world_from_sensor``, sensor frame) at ``imu.rate_hz``.
+        ``imu``: one :class:`ImuStream` per segment (acc m/s², gyr rad/s, mag µT, sensor
+        frame; ``q_world_from_sensor`` from VQF on those signals, or as ``imu.orientation``
+        says) at ``imu.rate_hz``.
         ``vision``: the camera :class:`JointStream` (frame ``camera.frame``) or None.
         ``reference``: true joint positions at the **camera timestamps** (ENU; the pipelines
         evaluate at the camera rate).
         ``reference_orientation``: true ``q_world_from_segment`` per IMU segment at the IMU rate.
         ``metadata``: ``reference_imu_rate`` (truth JointStream at the IMU timestamps),
         ``imu_truth`` (per segment: true sensor orientation, mounting ``q_segment_from_sensor``,
-        noise-free acc/gyr, biases, sensitivity matrices), ``camera_truth`` (masks, bone
+        soft-tissue artefact, noise-free acc/gyr/mag, biases, sensitivity matrices, magnetic
+        disturbance episodes), ``camera_truth`` (masks, bone
         scales), ``R_world_from_camera``, ``camera_position_m``, ``segment_length_m``,
         ``segment_joints``, the configurations, ``seed`` and the motion's source.
     """

@@ -313,6 +313,7 @@ def run_stream(
     record: bool = False,
     record_inputs: bool = False,
     return_engine: bool = False,
+    view_port: int | None = None,
 ) -> dict:
     """Run the online engine on LSL inputs and publish the fused joints.
 
@@ -358,6 +359,11 @@ def run_stream(
         on the local LSL clock after clock correction, as the engine saw them.
     return_engine : bool
         Put the :class:`Engine` in the summary (key ``"engine"``).
+    view_port : int, optional
+        Serve the live view (:class:`~kinefuse.streaming.liveview.LiveView`) on
+        ``http://127.0.0.1:view_port/`` (0 = a free port) while the stream runs; its address
+        is printed on stderr when it is up and is in the summary (``view_url``, with
+        ``view`` counts). The page never slows the stream down.
 
     Returns
     -------
@@ -487,11 +493,16 @@ def run_stream(
                 except lost_errors:
                     pass
 
+    view = None
+    if view_port is not None:
+        view, on_output, show_view = _live_view(cfg, view_port, on_output, inputs, outlet)
     live = show = None
     if status:
         from rich.console import Console
 
         live, show = _status_printer(Console(stderr=True), cfg)
+    if view is not None:
+        show = show_view(show)
     try:
         res = run_loop(engine, inputs, outlet, clock=pylsl.local_clock, duration_s=duration_s,
                        idle_timeout_s=idle_timeout_s, stop_event=stop_event, on_output=on_output,
@@ -499,6 +510,8 @@ def run_stream(
     finally:
         if live is not None:
             live.stop()
+        if view is not None:
+            view.close()
     lat = res["latency_s"]
     summary = {
         "outputs": res["outputs"],
@@ -517,6 +530,9 @@ def run_stream(
         "output_stream": cfg.output_stream_name,
         "interrupted": res["interrupted"],
     }
+    if view is not None:
+        summary["view_url"] = view.url
+        summary["view"] = {"published": view.published, "sent": view.sent}
     if out is not None:
         p = Path(out)
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -535,6 +551,40 @@ def run_stream(
     if return_engine:
         summary["engine"] = engine
     return summary
+
+
+def _live_view(cfg: StreamConfig, port: int, on_output, inputs, outlet):
+    """Start the live view; return it, the output hook publishing to it and a status wrapper."""
+    import sys
+
+    from kinefuse.sim.camera import bone_edges
+    from kinefuse.streaming.liveview import LiveView
+
+    try:
+        view = LiveView(cfg.joints, bone_edges(cfg.joints), port=port,
+                        title=f"kinefuse stream -> {cfg.output_stream_name}",
+                        source_names=_SOURCE_SHORT)  # fmt: skip
+    except OSError as exc:
+        for inp in inputs:
+            inp.close()
+        outlet.close()
+        raise InputError(f"--view: {exc}") from None
+    print(f"kinefuse stream: live view at {view.url}", file=sys.stderr, flush=True)
+    recent: list = [None]  # run_loop's latency deque, handed over by the status callback
+
+    def publish(o):
+        on_output(o)
+        view.publish(o, recent[0])
+
+    def wrap(show):
+        def status(engine, latencies):
+            recent[0] = latencies
+            if show is not None:
+                show(engine, latencies)
+
+        return status
+
+    return view, publish, wrap
 
 
 def _no_imu(cfg: StreamConfig, segments) -> str:

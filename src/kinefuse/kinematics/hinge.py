@@ -1,0 +1,253 @@
+"""Segment frames of hinge joints (elbows, knees) from movement, not from an assumed facing.
+
+A static pose gives each segment's long axis in its sensor frame (the vertical), but not the
+direction the subject faced: with 6-D orientations (no magnetometer) every sensor's heading is
+arbitrary, so an anterior axis taken from a declared facing is a guess, and a wrong guess puts
+the flexion axis anywhere in the horizontal plane. For elbows and knees the flexion axis can be
+measured instead, from the two adjacent sensors' orientations alone (no hand or foot sensor):
+the relative angular velocity of a flexion (axis ``j1`` fixed in the proximal segment) /
+pronation (the distal long axis ``j2``) joint lies in ``span(j1, j2)`` (Laidig, Müller & Seel
+2017 for the elbow; a pure hinge such as the knee is the special case without pronation).
+Each segment frame then is
+
+- ``Y`` (superior) = minus the calibrated segment axis (proximal -> distal), from the pose,
+- ``Z`` (right, the ISB flexion axis) = the flexion axis, made perpendicular to ``Y``: in the
+  proximal segment the fitted ``j1``; in the distal one ``j1`` carried into the distal sensor in
+  the pose (so that the pose is zero flexion, adduction and rotation),
+- ``X`` (anterior) = ``Y × Z``.
+
+Sign rule (anatomy): the axis's sign is not observable from the motion; a hinge's range is
+mostly flexion (elbow 0...150°, knee 0...140°, hyperextension a few degrees), so the sign is
+the one for which the larger excursion from the pose (99th vs minus the 1st percentile) is
+flexion, i.e. flexion is positive when the distal segment moves towards the proximal one's
+anterior side.
+
+Heading: where the sensors' headings are not shared (6-D), the distal sensor's heading relative
+to the proximal one is a third unknown of the same fit, held by a weak prior
+(:data:`HEADING_PRIOR`) at the static pose's estimate where the motion leaves it free (a
+hinge flexed with the proximal segment still does not determine it).
+
+Assumptions and failure modes: the pose has both segments along the vertical with the elbow or
+knee extended (its flexion becomes the zero; an N-pose held with the elbow bent 10° reads full
+extension as −10°); the joint flexes enough during the recording (RMS flexion rate at least
+:data:`MIN_HINGE_RATE_RAD_S`, else a warning and the pose frames); a slowly drifting relative
+heading (6-D fusion over minutes) is taken as constant.
+
+References
+----------
+D. Laidig, P. Müller, T. Seel, "Automatic anatomical calibration for IMU-based elbow angle
+measurement in disturbed magnetic fields", Current Directions in Biomedical Engineering
+3(2):167-170, 2017.
+T. Seel, J. Raisch, T. Schauer, "IMU-based joint angle measurement for gait analysis", Sensors
+14(4):6891-6909, 2014.
+G. Wu et al., ISB recommendations, J. Biomech. 35 (2002), 38 (2005): segment frames.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from kinefuse.exceptions import NumericalWarning
+from kinefuse.io.recording import Recording
+from kinefuse.kinematics.angles import JOINTS, joint_angles
+from kinefuse.kinematics.calibration import Calibration, _imu_orientation
+
+__all__ = ["HEADING_PRIOR", "HINGES", "MIN_HINGE_RATE_RAD_S", "hinge_frames", "segment_frame"]
+
+#: Joints treated as hinges for their segment frames.
+HINGES = tuple(j for j in JOINTS if j.startswith(("elbow", "knee")))
+
+#: Least RMS relative angular rate about the hinge axis, rad/s: below it the axis is not
+#: determined by the data (a limb held still) and the pose frames are kept with a warning.
+MIN_HINGE_RATE_RAD_S = 0.2
+
+#: Weight of the prior holding the distal heading at the pose's (see :func:`hinge_frames`).
+HEADING_PRIOR = 0.01
+
+
+def segment_frame(axis, hinge) -> np.ndarray:
+    """ISB segment frame from a long axis and a flexion axis, both in the sensor frame.
+
+    Parameters
+    ----------
+    axis : array_like, shape (3,)
+        Segment axis, proximal -> distal.
+    hinge : array_like, shape (3,)
+        Flexion axis (not parallel to ``axis``).
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        ``R_sensor_from_segment``: columns ``X = Y × Z``, ``Y = −axis``, ``Z`` = ``hinge`` made
+        perpendicular to ``Y`` (unit vectors).
+    """
+    axis = np.asarray(axis, dtype=float)
+    hinge = np.asarray(hinge, dtype=float)
+    y = -axis / np.linalg.norm(axis)
+    z = hinge - np.dot(hinge, y) * y
+    z = z / np.linalg.norm(z)
+    return np.stack([np.cross(y, z), y, z], axis=1)
+
+
+def _rz(psi: float) -> np.ndarray:
+    c, s = np.cos(psi), np.sin(psi)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _world_rate(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """World-frame angular velocity of orientations ``R`` (K, 3, 3) on times ``t``, rad/s."""
+    dR = np.einsum("kij,klj->kil", R[1:], R[:-1])  # R(k+1) R(k)ᵀ
+    rv = Rotation.from_matrix(dR).as_rotvec() / np.diff(t)[:, None]
+    w = np.empty((R.shape[0], 3))
+    w[:-1] = rv
+    w[-1] = rv[-1]
+    return w
+
+
+def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool):
+    """Flexion axis in A's frame and the distal heading change, from the 2-DoF elbow model.
+
+    The relative angular velocity of a flexion (axis ``j1`` fixed in A) / pronation (axis
+    ``j2`` = B's long axis) joint lies in ``span(R_A j1, R_B j2)``, so its component along their
+    unit normal vanishes (Laidig, Müller & Seel 2017; for a pure hinge too). Least squares over
+    ``j1`` (azimuth and elevation about A's long axis) and, if ``refine_heading``, the heading
+    ``ψ`` applied to B's world frame; the best of four starting azimuths. Returns ``(j1, ψ,
+    RMS residual rad/s)``.
+    """
+    a1 = -axis_a / np.linalg.norm(axis_a)
+    a2 = -axis_b / np.linalg.norm(axis_b)
+    e1 = np.cross(a1, [1.0, 0.0, 0.0] if abs(a1[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(a1, e1)
+
+    def j1_of(x):  # azimuth about the proximal long axis, elevation from its normal plane
+        return np.cos(x[1]) * (np.cos(x[0]) * e1 + np.sin(x[0]) * e2) + np.sin(x[1]) * a1
+
+    # weak prior keeping the heading at the pose's where the motion leaves it free (a hinge
+    # moved about its axis only): 1 rad costs a 1 % RMS relative-rate misfit per sample
+    w_prior = HEADING_PRIOR * np.sqrt(RA.shape[0]) * float(np.sqrt(np.mean((wB - wA) ** 2)))
+
+    def res(x):
+        H = _rz(x[2] if refine_heading else 0.0)
+        n = np.cross(RA @ j1_of(x), (H @ RB) @ a2)
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
+        r = np.einsum("ki,ki->k", wB @ H.T - wA, n)
+        return np.append(r, w_prior * x[2])
+
+    best = None
+    for th0 in np.radians([0.0, 45.0, 90.0, 135.0]):
+        sol = least_squares(res, [th0, 0.0, 0.0], x_scale=[1.0, 1.0, 0.1])
+        if best is None or sol.cost < best.cost:
+            best = sol
+    dpsi = float(best.x[2]) if refine_heading else 0.0
+    return j1_of(best.x), dpsi, float(np.sqrt(np.mean(best.fun[:-1] ** 2)))
+
+
+def hinge_frames(
+    recording: Recording,
+    calibration: Calibration,
+    *,
+    joints: Sequence[str] | None = None,
+    refine_heading: bool = False,
+    start_s: float | None = None,
+    window_s: float | None = None,
+) -> Calibration:
+    """``calibration`` with the frames of hinge segments built from the measured flexion axis.
+
+    Parameters
+    ----------
+    recording : Recording
+        IMU orientations (and angular rates) of both segments of each hinge.
+    calibration : Calibration
+        With ``axes`` of both segments (static or functional); its heading corrections
+        (``world_heading_deg``) are applied to the orientations first.
+    joints : sequence of str, optional
+        Hinges (:data:`HINGES`) to use; default every hinge whose two segments are calibrated.
+    refine_heading : bool
+        Also estimate the distal sensor's heading relative to the proximal one from the joint
+        (for 6-D orientations; keep False when the headings are shared, e.g. magnetometer).
+    start_s, window_s : float, optional
+        Samples used (default: the whole recording).
+
+    Returns
+    -------
+    Calibration
+        Same type, ``frames`` of the hinge segments replaced (columns X anterior, Y superior, Z
+        right in the sensor frame), ``world_heading_deg`` updated if ``refine_heading``.
+        ``hinge_residual_rad_s`` per joint: RMS residual of the rate constraint, rad/s.
+
+    Warns
+    -----
+    NumericalWarning
+        A hinge that hardly moved (RMS relative rate about the axis below
+        :data:`MIN_HINGE_RATE_RAD_S`): its segments keep the frames they had.
+    """
+    from kinefuse.kinematics.forward import as_rotation_matrices
+    from kinefuse.kinematics.skeleton import window_mask
+    from kinefuse.orientation.resample import slerp_resample
+
+    axes = calibration.axes
+    if joints is None:
+        joints = [j for j in HINGES if JOINTS[j][0] in axes and JOINTS[j][1] in axes]
+    frames = dict(calibration.frames)
+    heading = dict(calibration.world_heading_deg)
+    resid = dict(getattr(calibration, "hinge_residual_rad_s", {}) or {})
+    for j in joints:
+        prox, dist, _ = JOINTS[j]
+        sa = _imu_orientation(recording, prox, f"hinge axis of {j}")
+        sb = _imu_orientation(recording, dist, f"hinge axis of {j}")
+        t = sa.t_s[window_mask(sa.t_s, start_s, window_s)]
+        RA = calibration.heading_matrix(prox) @ as_rotation_matrices(
+            slerp_resample(sa.t_s, sa.q_world_from_sensor, t), f"IMU {prox!r} orientation"
+        )
+        RB0 = calibration.heading_matrix(dist) @ as_rotation_matrices(
+            slerp_resample(sb.t_s, sb.q_world_from_sensor, t), f"IMU {dist!r} orientation"
+        )
+        ok = np.all(np.isfinite(RA), axis=(1, 2)) & np.all(np.isfinite(RB0), axis=(1, 2))
+        RA, RB0 = RA[ok], RB0[ok]
+        psi0 = np.radians(heading.get(dist, 0.0))
+        # relative angular velocity from the orientations (finite differences), world frame
+        tk = t[ok]
+        wA, wB0 = _world_rate(RA, tk), _world_rate(RB0, tk)
+        jA, dpsi, rms = _fit_flexion_axis(RA, RB0, wA, wB0, axes[prox], axes[dist], refine_heading)
+        psi = psi0 + dpsi
+        RBp = _rz(psi - psi0) @ RB0
+        # the distal frame's Z: the flexion axis carried into the distal sensor in the pose
+        # (static: the calibration window; else the whole recording)
+        w0 = (tk >= calibration.window_s[0]) & (tk <= calibration.window_s[1])
+        if calibration.still is None or not np.any(w0):
+            w0 = np.ones(tk.shape, dtype=bool)
+        jB = np.einsum("kji,kjl,l->i", RBp[w0], RA[w0], jA)
+        jB /= np.linalg.norm(jB)
+        RB = RBp
+        Fa, Fb = segment_frame(axes[prox], jA), segment_frame(axes[dist], jB)
+        fl = joint_angles({prox: RA @ Fa, dist: RB @ Fb}, [j])[j][:, 0]
+        rate = float(
+            np.sqrt(np.mean(np.gradient(np.radians(np.unwrap(fl, period=360.0)), t[ok]) ** 2))
+        )
+        if not np.isfinite(rate) or rate < MIN_HINGE_RATE_RAD_S:
+            warnings.warn(
+                f"hinge frames: {j} hardly moved (RMS flexion rate {rate:.2f} rad/s < "
+                f"{MIN_HINGE_RATE_RAD_S:g}); its flexion axis is not determined by the data, the "
+                f"frames of {prox!r} and {dist!r} are kept as calibrated",
+                NumericalWarning,
+                stacklevel=2,
+            )
+            continue
+        resid[j] = rms
+        # sign by anatomy: the larger excursion from the pose is flexion
+        lo, hi = np.nanpercentile(fl, [1.0, 99.0])
+        if -lo > hi:
+            Fa, Fb = segment_frame(axes[prox], -jA), segment_frame(axes[dist], -jB)
+        frames[prox], frames[dist] = Fa, Fb
+        if refine_heading:
+            heading[dist] = float((np.degrees(psi) + 180.0) % 360.0 - 180.0)
+    return replace(
+        calibration, frames=frames, world_heading_deg=heading, hinge_residual_rad_s=resid
+    )

@@ -1,0 +1,343 @@
+"""`kinefuse batch`: a study of real UTD-MHAD wrist sessions on a 2-worker LocalCluster.
+
+The study numbers are checked against `kinefuse run`'s back-end run on each session in this
+process (the single-session path, not the batch code); one broken session is a failed row; a
+worker killed while it runs a task leaves a complete, correct table; a rerun skips finished
+work; --force redoes it. Every server binds 127.0.0.1.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import textwrap
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from kinefuse import batch as kb
+from kinefuse import cli
+from kinefuse.exceptions import ConfigError
+
+runner = CliRunner()
+SESSION = Path(__file__).parent / "data" / "sessions" / "utd_mhad_a9_s1_t1.toml"
+#: Eight small wrist trials (actions 1-21 carry the IMU on the right wrist).
+TRIALS = [(a, s, 1) for a in (1, 5, 9, 12) for s in (1, 2)]
+
+
+def _err(result) -> str:
+    try:
+        return result.stderr
+    except ValueError:
+        return result.output
+
+
+def _session_text(inertial: Path, skeleton: Path, name: str) -> str:
+    text = SESSION.read_text(encoding="utf-8")
+    text = text.replace('name = "utd-mhad-a9-s1-t1"', f'name = "{name}"')
+    text = text.replace('name = "paper-a"', 'name = "imu-only"')
+    for old, new in (("Inertial/a9_s1_t1_inertial.mat", inertial), ("Skeleton/a9_s1_t1_skeleton.mat", skeleton)):  # fmt: skip
+        text = text.replace(f'"../../../../shared/data/utd_mhad/{old}"', f'"{new}"')
+    return text
+
+
+@pytest.fixture(scope="module")
+def sessions(shared_data, tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("study")
+    utd = shared_data / "utd_mhad"
+    for a, s, t in TRIALS:
+        stem = f"a{a}_s{s}_t{t}"
+        (d / f"utd_{stem}.toml").write_text(
+            _session_text(
+                utd / "Inertial" / f"{stem}_inertial.mat",
+                utd / "Skeleton" / f"{stem}_skeleton.mat",
+                f"utd-{stem}",
+            ),
+            encoding="utf-8",
+        )
+    # broken: a truncated inertial file (the reader fails on the worker)
+    bad = d / "truncated_inertial.mat"
+    bad.write_bytes((utd / "Inertial" / "a3_s1_t1_inertial.mat").read_bytes()[:300])
+    (d / "zz_broken.toml").write_text(
+        _session_text(bad, utd / "Skeleton" / "a3_s1_t1_skeleton.mat", "broken"),
+        encoding="utf-8",
+    )
+    return d
+
+
+def _numba_threads() -> int:
+    import numba
+
+    return numba.config.NUMBA_NUM_THREADS
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client
+
+    from kinefuse.batch.runner import start_local_cluster
+
+    cluster = start_local_cluster(2)
+    c = Client(cluster)
+    assert all(a.startswith("tcp://127.0.0.1:") for a in (cluster.scheduler_address, *c.nthreads()))
+    assert set(c.run(_numba_threads).values()) == {1}  # numba single-threaded in each worker
+    yield c
+    c.close()
+    cluster.close()
+
+
+@pytest.fixture(scope="module")
+def serial(sessions, tmp_path_factory) -> dict:
+    """metrics.json of `kinefuse run`'s back-end on every good session, in this process."""
+    from kinefuse.pipelines.session import run_session
+
+    out = tmp_path_factory.mktemp("serial")
+    res = {}
+    for a, s, t in TRIALS:
+        stem = f"a{a}_s{s}_t{t}"
+        run_session(sessions / f"utd_{stem}.toml", out / stem)
+        res[f"utd-{stem}"] = json.loads((out / stem / "metrics.json").read_text())
+    return res
+
+
+def _rows(table: dict) -> list[dict]:
+    return [dict(zip(table, vals, strict=True)) for vals in zip(*table.values(), strict=True)]
+
+
+def _value(rows, recording, estimate, metric, subset="all"):
+    hits = [
+        r["value"]
+        for r in rows
+        if r["recording"] == recording
+        and r["estimate"] == estimate
+        and r["metric"] == metric
+        and r["subset"] == subset
+    ]
+    assert len(hits) == 1, (recording, estimate, metric, hits)
+    return hits[0]
+
+
+def _check_against_serial(rows, serial):
+    for rec, m in serial.items():
+        for est in m["methods"]:
+            o = m["results"][est]["wrist_r"]["overall"]
+            for ax in m["axes"]:
+                assert _value(rows, rec, est, f"rmse_{ax}") == pytest.approx(o[ax], rel=1e-9)
+            assert _value(rows, rec, est, "rmse_3d") == pytest.approx(o["rmse_3d"], rel=1e-9)
+            assert _value(rows, rec, est, "error_cdf_0.9") == pytest.approx(
+                o["error_at_p"], rel=1e-9
+            )
+            assert _value(rows, rec, est, "n_samples") == o["n_samples"]
+
+
+@pytest.fixture(scope="module")
+def first_run(sessions, client, tmp_path_factory):
+    """The study, with one worker process killed (SIGKILL) while it runs a task."""
+    out = tmp_path_factory.mktemp("batch") / "out"
+    study = kb.study_from_sessions(sessions, out_dir=out)
+    killed = []
+
+    def on_event(kind, payload):
+        if kind != "finished" or killed:
+            return
+        busy = [w for w, keys in client.processing().items() if keys]
+        if busy:
+            pid = client.run(os.getpid, workers=busy[:1])[busy[0]]
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+
+    summary = kb.run_study(study, client=client, quiet=True, on_event=on_event)
+    return study, summary, killed
+
+
+def test_study_matches_single_session_runs_despite_a_killed_worker(first_run, serial):
+    from kinefuse.batch.table import read_table
+
+    study, summary, killed = first_run
+    assert killed, "no worker was busy to be killed"
+    assert summary["counts"] == {"done": 8, "skipped": 0, "failed": 1, "total": 9}
+    ((key, error),) = summary["failed"]
+    assert key == "broken/imu-only" and "truncated_inertial.mat" in error and "\n" not in error
+    parquet, csv = summary["table"]
+    rows = _rows(read_table(parquet))
+    assert {r["recording"] for r in rows} == {*serial, "broken"}
+    _check_against_serial(rows, serial)
+    bad = [r for r in rows if r["recording"] == "broken"]
+    assert len(bad) == 1 and bad[0]["status"] == "failed" and bad[0]["error"] == error
+    assert all(r["calibrated_on"] == "camera" for r in rows if r["status"] == "done")
+    # CSV holds the same rows
+    import pyarrow.csv as pacsv
+
+    assert pacsv.read_csv(str(csv)).num_rows == len(rows)
+    # per recording: kinefuse run's outputs, published once, no temporaries left
+    rec_root = study.out_dir / "recordings"
+    assert not list(rec_root.glob("*/.tmp-*"))
+    for rec in serial:
+        files = {p.name for p in (rec_root / rec / "imu-only").iterdir()}
+        assert {f"{rec}_joints.csv", f"{rec}_joints.trc", "report.html", "metrics.json"} <= files
+    assert not (rec_root / "broken" / "imu-only").exists()
+
+
+def test_rerun_skips_finished_and_force_redoes_despite_a_restart(first_run, serial, client):
+    from kinefuse.batch.table import read_table
+
+    study, _, _ = first_run
+    marker = study.out_dir / "recordings" / "utd-a1_s1_t1" / "imu-only" / "result.json"
+    before = marker.stat().st_mtime_ns
+    again = kb.run_study(study, client=client, quiet=True, report=False)
+    assert again["counts"] == {"done": 0, "skipped": 8, "failed": 1, "total": 9}
+    assert marker.stat().st_mtime_ns == before
+    _check_against_serial(_rows(read_table(again["table"][0])), serial)
+    # --force on one recording, the cluster restarted meanwhile: redone, same numbers
+    pick = ("utd-a1_s1_t1",)
+    two = replace(study, tasks=tuple(t for t in study.tasks if t.recording in pick))
+    events = []
+
+    def restart_once(kind, payload):  # the cluster loses the submitted tasks: resubmitted
+        events.append(kind)
+        if kind == "poll" and events.count("poll") == 1:
+            client.restart()
+
+    forced = kb.run_study(
+        two, client=client, force=True, quiet=True, report=False, on_event=restart_once
+    )
+    assert "resubmitted" in events
+    assert forced["counts"] == {"done": 1, "skipped": 0, "failed": 0, "total": 1}
+    assert marker.stat().st_mtime_ns != before
+    rows = _rows(read_table(forced["table"][0]))
+    _check_against_serial(rows, {k: serial[k] for k in pick})
+
+
+def test_study_report_lists_failures_and_renders(first_run, tmp_path):
+    from _chromium import _run, count_loaded_images, ensure_chromium
+
+    _, summary, _ = first_run
+    html = summary["report"].read_text(encoding="utf-8")
+    assert "truncated_inertial.mat" in html and "Calibrated on: camera" in html
+    assert "Inside camera outages" not in html  # UTD-MHAD has none (SOURCE.md)
+    assert html.count("<img ") == 2  # 3-D RMSE and CDF 0.9 box plots (no outages in the data)
+    browser = ensure_chromium()
+    assert count_loaded_images(browser, summary["report"]) == (2, 2)
+    r = _run(
+        browser, ["--dump-dom", "--enable-logging=stderr", "--v=0"], summary["report"].as_uri()
+    )
+    assert "CONSOLE" not in r.stderr and "Uncaught" not in r.stderr, r.stderr[-800:]
+
+
+def test_cli_rerun_on_a_glob_starts_no_cluster(first_run, sessions, monkeypatch):
+    study, _, _ = first_run
+    import kinefuse.batch.runner as runner_mod
+
+    def no_cluster(*a, **k):
+        raise AssertionError("a rerun with nothing to do must not start a cluster")
+
+    monkeypatch.setattr(runner_mod, "_client", no_cluster)
+    res = runner.invoke(
+        cli.app, ["batch", str(sessions / "utd_*.toml"), "--out", str(study.out_dir), "--quiet"]
+    )
+    assert res.exit_code == 0, (res.output, _err(res))
+
+
+def test_cli_without_the_batch_extra_says_what_to_install(monkeypatch, sessions):
+    monkeypatch.setattr(kb, "missing_packages", lambda: ["distributed"])
+    res = runner.invoke(cli.app, ["batch", str(sessions)])
+    assert res.exit_code == 1
+    assert "pip install 'kinefuse[batch]'" in _err(res)
+
+
+# ------------------------------------------------------------------------------------------
+# study files (no cluster)
+# ------------------------------------------------------------------------------------------
+
+STUDY = """\
+    [study]
+    name = "utd"
+    methods = ["imu-only", "kinefuse"]
+    [defaults]
+    skeleton = {{ body_height_m = 1.75 }}
+    method = {{ parameters = {{ calibration = "vision", calibration_window_s = 10.0 }} }}
+    [[recordings]]
+    files = "{utd}/Inertial/a[19]_s1_t1_inertial.mat"
+    pattern = 'a(?P<a>\\d+)_s(?P<s>\\d+)_t(?P<t>\\d+)_inertial'
+    [recordings.session]
+    session = {{ name = "a{{a}}-s{{s}}-t{{t}}" }}
+    imu = {{ format = "utd_mhad", path = "{{path}}", segments = {{ forearm_r = "utd_mhad_inertial" }} }}
+    camera = {{ format = "utd_mhad", path = "{{dir}}/../Skeleton/a{{a}}_s{{s}}_t{{t}}_skeleton.mat" }}
+    reference = {{ format = "utd_mhad", path = "{{dir}}/../Skeleton/a{{a}}_s{{s}}_t{{t}}_skeleton.mat" }}
+    [overrides."a9-*"]
+    methods = ["imu-only"]
+    method = {{ parameters = {{ calibration_window_s = 5.0 }} }}
+    {extra}
+"""
+
+
+def _study(tmp_path, shared_data, extra="") -> Path:
+    p = tmp_path / "study.toml"
+    text = STUDY.format(utd=shared_data / "utd_mhad", extra=extra)
+    p.write_text(textwrap.dedent(text), encoding="utf-8")
+    return p
+
+
+def test_study_file_templates_defaults_overrides(tmp_path, shared_data):
+    st = kb.load_study(_study(tmp_path, shared_data))
+    assert [t.key for t in st.tasks] == [
+        "a1-s1-t1/imu-only",
+        "a1-s1-t1/kinefuse",
+        "a9-s1-t1/imu-only",
+    ]
+    assert all(t.error is None for t in st.tasks)
+    assert st.out_dir == (tmp_path / "results" / "utd").resolve()
+    a1, _, a9 = st.tasks
+    assert a1.document["method"]["parameters"]["calibration_window_s"] == 10.0
+    assert a9.document["method"]["parameters"] == {
+        "calibration": "vision",
+        "calibration_window_s": 5.0,
+    }
+    assert a9.document["camera"]["path"].endswith("Skeleton/a9_s1_t1_skeleton.mat")
+
+
+@pytest.mark.parametrize(
+    ("extra", "match"),
+    [
+        (
+            '[overrides."x"]\nskeletn = { body_height_m = 1.8 }',
+            r"\[overrides.'x'\] skeletn: unknown key \(did you mean 'skeleton'\?\)",
+        ),
+        ("[study2]\n", r"\[top level\] study2: unknown key \(did you mean 'study'\?\)"),
+        (
+            "[defaults.imu]\nrate_hzz = 50",
+            r"\[defaults.imu\] rate_hzz: unknown key \(did you mean 'rate_hz'\?\)",
+        ),
+    ],
+)
+def test_study_file_unknown_keys(tmp_path, shared_data, extra, match):
+    with pytest.raises(ConfigError, match=match):
+        kb.load_study(_study(tmp_path, shared_data, extra))
+
+
+def test_study_file_bad_glob_placeholder_and_session(tmp_path, shared_data):
+    p = _study(tmp_path, shared_data)
+    text = p.read_text()
+    p.write_text(text.replace("a[19]_s1", "a99_s1"))
+    with pytest.raises(ConfigError, match="matches no file"):
+        kb.load_study(p)
+    p.write_text(text.replace("{dir}/../Skeleton", "{dri}/../Skeleton"))
+    with pytest.raises(
+        ConfigError, match=r"unknown placeholder \{dri\} \(did you mean \{dir\}\?\)"
+    ):
+        kb.load_study(p)
+    # a bad session is a failed task, not a failed study
+    p.write_text(text.replace("body_height_m = 1.75", "body_height_m = 175"))
+    st = kb.load_study(p)
+    assert all("not a plausible body height" in t.error for t in st.tasks)
+
+
+def test_example_study_lists_the_utd_mhad_wrist_trials(shared_data):
+    root = Path(__file__).resolve().parents[1]
+    st = kb.load_study(root / "examples" / "studies" / "utd_mhad_wrist.toml")
+    assert len(st.recordings) == 503  # actions 1-21 x subjects 1-6 x 4 trials, 1 never released
+    assert st.methods == ("imu-only", "elm-fir", "kinefuse") and len(st.tasks) == 3 * 503
+    assert all(t.error is None for t in st.tasks)

@@ -1,0 +1,124 @@
+"""The live view's server on its own (no LSL): loopback only, fan-out of the newest frame,
+a stalled or departed viewer never holds the publisher up."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import urllib.request
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from kinefuse.streaming.liveview import HOST, LiveView
+
+
+def _frame(i: int):
+    pos = np.full((2, 3), 0.01 * i)
+    pos[1, 2] = np.nan  # a missing coordinate travels as null
+    return SimpleNamespace(index=i, t_s=i / 30, position_m=pos, source=np.array([0, -1]))
+
+
+class _Events:
+    """A server-sent events client (raw socket) reading ``data:`` messages on a thread."""
+
+    def __init__(self, port: int):
+        self.sock = socket.create_connection((HOST, port), timeout=10)
+        self.sock.sendall(b"GET /events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        self.fp = self.sock.makefile("rb")
+        status = self.fp.readline()
+        assert status.split()[1] == b"200", status
+        headers = {}
+        while (line := self.fp.readline().strip()) != b"":
+            k, v = line.split(b":", 1)
+            headers[k.strip().lower()] = v.strip()
+        assert headers[b"content-type"] == b"text/event-stream"
+        self.messages: list[dict] = []
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+
+    def _read(self):
+        try:
+            for line in self.fp:
+                if line.startswith(b"data: "):
+                    self.messages.append(json.loads(line[6:]))
+        except (OSError, ValueError):
+            pass
+
+    def wait_for(self, index: int, timeout: float = 10.0) -> bool:
+        pause = threading.Event()
+        for _ in range(int(timeout / 0.05)):
+            if self.messages and self.messages[-1]["index"] >= index:
+                return True
+            pause.wait(0.05)
+        return False
+
+    def close(self):
+        self.sock.shutdown(socket.SHUT_RDWR)
+        self.sock.close()
+
+
+def _status(view) -> dict:
+    with urllib.request.urlopen(view.url + "status", timeout=5) as r:
+        return json.loads(r.read())
+
+
+def test_liveview_serves_loopback_only_and_fans_out_the_newest_frame():
+    view = LiveView(["a", "b"], [("a", "b"), ("a", "unknown")], port=0)
+    try:
+        host, port = view._server.server_address[:2]
+        assert host == "127.0.0.1" and view.url == f"http://127.0.0.1:{port}/"
+        with urllib.request.urlopen(view.url, timeout=5) as r:
+            page = r.read().decode("utf-8")
+        assert "kinefuseLive(" in page and '"edges": [[0, 1]]' in page
+        assert "<script src" not in page
+        with pytest.raises(urllib.error.HTTPError):
+            urllib.request.urlopen(view.url + "nothing", timeout=5)
+
+        # a viewer that connects and never reads: the publisher must not wait for it
+        stalled = socket.create_connection((HOST, port), timeout=5)
+        stalled.sendall(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")
+        first, second = _Events(port), _Events(port)
+        done = threading.Event()
+
+        def publish_many(a, b):
+            for i in range(a, b):
+                view.publish(_frame(i), [0.001, 0.002])
+            done.set()
+
+        threading.Thread(target=publish_many, args=(0, 3000), daemon=True).start()
+        assert done.wait(30), "publish blocked"
+        assert first.wait_for(2999) and second.wait_for(2999)  # the newest frame arrives
+        m = first.messages[-1]
+        assert m["pos"][5] is None and m["src"] == [0, -1] and m["latency_ms"] == 2.0
+        assert m["latency_p50_ms"] == pytest.approx(1.5)
+        indices = [x["index"] for x in first.messages]
+        assert indices == sorted(set(indices))  # newest-first fan-out: never repeated, in order
+        assert _status(view)["viewers"] == 3
+
+        first.close()  # one viewer leaves; the other keeps receiving
+        done.clear()
+        threading.Thread(target=publish_many, args=(3000, 3100), daemon=True).start()
+        assert done.wait(30) and second.wait_for(3099)
+        for _ in range(100):
+            if _status(view)["viewers"] == 2:
+                break
+            threading.Event().wait(0.05)
+        assert _status(view)["viewers"] == 2
+        assert view.published == 3100
+        stalled.close()
+        second.close()
+    finally:
+        view.close()
+
+
+def test_liveview_port_taken_names_it():
+    view = LiveView(["a"], [], port=0)
+    try:
+        port = view._server.server_address[1]
+        with pytest.raises(OSError, match=f"127.0.0.1:{port}"):
+            LiveView(["a"], [], port=port)
+    finally:
+        view.close()

@@ -1,0 +1,48 @@
+"""`kinefuse experiment realism`: virtual sensors next to real ones (quick configuration)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from kinefuse.exceptions import InputError
+from kinefuse.pipelines.experiments import EXPERIMENTS, run_experiment
+from kinefuse.pipelines.realism import REPORT, TOLERANCE, TUNING, orientation_error_deg
+
+
+def test_orientation_error_matches_scipy_angle():
+    a = Rotation.random(50, random_state=1)
+    b = Rotation.random(50, random_state=2)
+    qa, qb = a.as_quat(scalar_first=True), b.as_quat(scalar_first=True)
+    qb[3] = np.nan
+    qa[5] *= -1.0  # q and -q are the same rotation
+    e = orientation_error_deg(qa, qb)
+    ref = np.degrees((a * b.inv()).magnitude())
+    assert np.isnan(e[3])
+    np.testing.assert_allclose(np.delete(e, 3), np.delete(ref, 3), atol=1e-6)
+
+
+def test_tuning_and_report_sets_are_disjoint():
+    for key in TUNING:
+        assert not set(TUNING[key]) & set(REPORT[key]), key
+
+
+def test_realism_quick_runs_all_three_measures(shared_data):
+    assert "realism" in EXPERIMENTS
+    out = run_experiment("realism", shared_data, quick=True, quiet=True)
+    rows = out["results"]["rows"]
+    measures = {r["measure"][:5] for r in rows}
+    assert measures == {"(i) B", "(ii) ", "(iii)"}
+    assert {r["set"] for r in rows} == {"tuning", "report"}
+    for r in rows:
+        assert np.isfinite(r["real"]) and r["real"] > 0 and r["virtual"] > 0, r
+        assert r["within_tolerance"] == (abs(r["virtual"] / r["real"] - 1) <= TOLERANCE)
+    (table,) = out["tables"]
+    assert table.value_headers[:2] == ("Real", "Virtual")
+    assert any("QUICK" in n for n in out["notes"])
+
+
+def test_realism_needs_the_data(tmp_path):
+    with pytest.raises(InputError, match="broad"):
+        run_experiment("realism", tmp_path, quick=True, quiet=True)
