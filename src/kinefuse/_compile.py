@@ -50,6 +50,7 @@ _interpret = False
 KERNEL_MODULES = (
     "kinefuse.filters._kernels",
     "kinefuse.filters._kernels_axis",
+    "kinefuse.filters._kernels_blocks",
     "kinefuse.filters._kernels_em",
     "kinefuse.filters._kernels_imm",
     "kinefuse.filters._kernels_ufir",
