@@ -708,7 +708,7 @@ def format_report(results: dict) -> str:
             f"(interpreter included: {sp['process_total_s']:.3f} s)"
         )
     lines.append("")
-    lines.append("Targets (single core; ratios to filterpy from this run)")
+    lines.append("Targets (single core); ratios to filterpy from this run")
     for t in results["targets"]:
         status = "met" if t["met"] else "NOT met"
         lines.append(
