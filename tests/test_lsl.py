@@ -233,8 +233,17 @@ def test_inlet_reattaches_to_recreated_stream(lsl_env):
 
 
 def test_sigint_flushes_and_closes(lsl_env):
+    # A child inherits an ignored or blocked SIGINT from its parent (Python then keeps it
+    # ignored), which would make this test depend on what earlier tests did to the pytest
+    # process: the child states its disposition and restores Python's default Ctrl-C.
     code = _code("""
-    import threading
+    import faulthandler, signal, threading
+    status = open("/proc/self/status").read().splitlines()
+    print("SIGNALS:", signal.getsignal(signal.SIGINT),
+          [l for l in status if l.startswith(("SigBlk", "SigIgn"))], file=sys.stderr, flush=True)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     from kinefuse.streaming import run_replay, run_stream, StreamConfig
     from kinefuse.streaming.replay import demo_recording
     prefix = os.environ["KINEFUSE_TEST_PREFIX"]
@@ -273,7 +282,14 @@ def test_sigint_flushes_and_closes(lsl_env):
         assert lines and lines[-1].startswith("READY"), "".join(lines) + proc.stderr.read()
         time.sleep(1.0)
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=30)
+        try:
+            out, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGUSR1)  # the child's stacks, for the failure message
+            time.sleep(1.0)
+            proc.kill()
+            out, err = proc.communicate(timeout=10)
+            pytest.fail(f"no exit 30 s after SIGINT; child's stderr:\n{err[-6000:]}")
     finally:
         if proc.poll() is None:
             proc.kill()
