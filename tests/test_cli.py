@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from conftest import cli_stderr
 from kinefuse import cli
 from kinefuse.exceptions import ConfigError
-from kinefuse.session import METHODS, load_session, session_template
+from kinefuse.session_file import METHODS, load_session, session_template
 
 COMMANDS = ("demo", "run", "init-session", "evaluate", "experiment", "bench", "stream", "replay")
 

@@ -26,7 +26,7 @@ from kinefuse.kinematics import (
     segment_orientations,
     upper_limb,
 )
-from kinefuse.session import METHODS
+from kinefuse.session_file import METHODS
 
 SESSIONS = Path(__file__).parent / "data" / "sessions"
 runner = CliRunner()
@@ -442,7 +442,7 @@ def test_reference_is_evaluation_only_unless_asked(shared_data, tmp_path):
 
 # ------------------------------------------------------------------ template, evaluate
 def test_template_comments_are_true(tmp_path):
-    from kinefuse.session import CALIBRATIONS, CAMERA_METHODS, METHODS, ROOTS
+    from kinefuse.session_file import CALIBRATIONS, CAMERA_METHODS, METHODS, ROOTS
 
     p = tmp_path / "session.toml"
     assert runner.invoke(cli.app, ["init-session", str(p)]).exit_code == 0
@@ -500,7 +500,8 @@ def test_every_method_and_input_runs_or_is_refused_before_work(
     """The contract of the method registry: a combination is refused with one line saying what
     it needs before any file is read, or it proceeds to reading the files."""
     from kinefuse.pipelines import session as ps
-    from kinefuse.session import CAMERA_METHODS, METHOD_INFO
+    from kinefuse import methods
+    from kinefuse.session_file import CAMERA_METHODS
 
     for f in ("imu.csv", "camera.csv", "truth.csv"):
         (tmp_path / f).write_text("x\n")
@@ -532,7 +533,7 @@ def test_every_method_and_input_runs_or_is_refused_before_work(
         res = runner.invoke(cli.app, ["run", str(p), "--out", str(tmp_path / "out")])
         assert res.exit_code == 2, (res.output, _err(res))
         line = [ln for ln in _err(res).splitlines() if ln.strip()]
-        assert len(line) == 1 and f"needs a camera (it uses {METHOD_INFO[method][0]})" in line[0]
+        assert len(line) == 1 and f"needs a camera (it uses {methods.get(method).uses})" in line[0]
     else:
         with pytest.raises(_WorkStarted):
             ps.run_session(p, tmp_path / "out")

@@ -191,7 +191,7 @@ def _toml(table: dict) -> str:
 @_SETTINGS
 @given(table=session_tables())
 def test_random_session_tables_give_input_error_only(scratch, table):
-    from kinefuse.session import load_session
+    from kinefuse.session_file import load_session
 
     (scratch / "imu.csv").write_text("# kinefuse-imu-csv 1\nt_s,sensor,qw,qx,qy,qz\n")
     path = scratch / "session.toml"
@@ -205,7 +205,7 @@ def test_random_session_tables_give_input_error_only(scratch, table):
 @_SETTINGS
 @given(text=st.text(max_size=300))
 def test_random_session_text_gives_input_error_only(scratch, text):
-    from kinefuse.session import load_session
+    from kinefuse.session_file import load_session
 
     path = scratch / "session.toml"
     path.write_text(text, encoding="utf-8")

@@ -456,7 +456,7 @@ def run(
     json_file: _Json = None,
 ) -> None:
     """Process a recording described by a session file; write the results and a report."""
-    from kinefuse.session import load_session
+    from kinefuse.session_file import load_session
 
     cfg = load_session(session)
     out_dir = cfg.out_dir if out is None else out
@@ -484,7 +484,7 @@ def init_session(
     ] = False,
 ) -> None:
     """Write a commented session-file template to PATH (default: session.toml)."""
-    from kinefuse.session import session_template
+    from kinefuse.session_file import session_template
 
     if path.exists() and not force:
         raise FileExistsError(
@@ -574,7 +574,7 @@ def evaluate(
 ) -> None:
     """Run one method on a recording and print RMSE tables against its reference."""
     from kinefuse.io import FORMATS
-    from kinefuse.session import CALIBRATIONS, METHODS, ROOTS
+    from kinefuse.session_file import CALIBRATIONS, METHODS, ROOTS
 
     if not recording.exists():
         raise InputError(f"RECORDING {recording}: file not found (a file or a dataset folder)")
@@ -771,7 +771,7 @@ def _stream_session(path: Path, resolve_timeout_s: float | None):
     """The StreamConfig of SESSION.toml: a ``[stream]`` table -> streaming loader, else offline."""
     import dataclasses
 
-    from kinefuse.session import load_session, read_toml
+    from kinefuse.session_file import load_session, read_toml
     from kinefuse.streaming.config import load_stream_config, stream_config_from_session
 
     p = path.expanduser()

@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from kinefuse.exceptions import ConfigError
-from kinefuse.session import METHODS, _Ctx, read_toml
+from kinefuse.session_file import METHODS, _Ctx, read_toml
 
 __all__ = ["Study", "Task", "load_study", "study_from_sessions"]
 
@@ -161,7 +161,7 @@ def _check_sections(c: _Ctx, doc: Mapping, where: str, *, extra: tuple[str, ...]
     made of ``doc`` over a minimal valid one, so the allowed keys have one source of truth;
     only its "unknown ..." errors are reported here (everything else is checked per recording).
     """
-    from kinefuse.session import load_session
+    from kinefuse.session_file import load_session
 
     if "session" in doc:
         raise c.error(where, "session", "not allowed here", "each recording names its own session")
@@ -271,7 +271,7 @@ def _task_list(
     c: _Ctx | None,
 ) -> tuple[Task, ...]:
     """Merge defaults and overrides into each recording; one Task per recording x method."""
-    from kinefuse.session import load_session
+    from kinefuse.session_file import load_session
 
     tasks: list[Task] = []
     seen: dict[str, Path] = {}

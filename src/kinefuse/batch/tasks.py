@@ -151,7 +151,7 @@ def run_task(task: Task, out_dir: str, force: bool = False, study: str = "") -> 
     if task.error is not None:
         return {**base, "status": "failed", "error": " ".join(task.error.split()), "rows": []}
     from kinefuse.pipelines.session import run_session
-    from kinefuse.session import load_session
+    from kinefuse.session_file import load_session
 
     tmp = final.with_name(f"{_TMP_PREFIX}{final.name}-{uuid.uuid4().hex[:8]}")
     t0 = time.perf_counter()

@@ -91,7 +91,7 @@ from kinefuse.conventions import (
     SOURCE_PREDICTED,
 )
 from kinefuse.exceptions import ConfigError, InputError, UnitWarning
-from kinefuse.session import CAMERA_METHODS
+from kinefuse.session_file import CAMERA_METHODS
 
 __all__ = [
     "FORMAT_ALIASES",

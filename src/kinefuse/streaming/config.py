@@ -429,7 +429,7 @@ def load_stream_config(path: str | Path) -> StreamConfig:
         Missing file, invalid TOML, unknown key or invalid value (names the key).
     """
     p = Path(path).expanduser()
-    from kinefuse.session import read_toml
+    from kinefuse.session_file import read_toml
 
     doc = read_toml(p, missing="stream session file not found")
     st = dict(doc.get("stream") or {})
