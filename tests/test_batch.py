@@ -92,7 +92,7 @@ def client():
 @pytest.fixture(scope="module")
 def serial(sessions, tmp_path_factory) -> dict:
     """metrics.json of `kinefuse run`'s back-end on every good session, in this process."""
-    from kinefuse.pipelines.session import run_session
+    from kinefuse.pipelines.run import run_session
 
     out = tmp_path_factory.mktemp("serial")
     res = {}

@@ -398,7 +398,7 @@ def test_bad_input_refused_with_one_line(shared_data, tmp_path, monkeypatch, cas
         skel = 'root = "pelvis"\n    [skeleton.lengths]\n    thigh_l = 0.40'
     if case == "camera method":
         method = "kinefuse"
-        from kinefuse.pipelines import session as ps
+        from kinefuse.pipelines.run import write as ps
 
         def _no_work(*a, **k):
             raise AssertionError("work started before the refusal")
@@ -432,7 +432,7 @@ def test_reference_is_evaluation_only_unless_asked(shared_data, tmp_path):
         + f'path = "{shared_data}/neura_sparse_sample/vicon/S02-Trial-Walk-1.csv"\n'
     )
     p = _session(tmp_path, body)
-    from kinefuse.pipelines.session import run_session
+    from kinefuse.pipelines.run import run_session
 
     with pytest.raises(InputError, match="no still window"):
         run_session(p, tmp_path / "out")
@@ -499,8 +499,8 @@ def test_every_method_and_input_runs_or_is_refused_before_work(
 ):
     """The contract of the method registry: a combination is refused with one line saying what
     it needs before any file is read, or it proceeds to reading the files."""
-    from kinefuse.pipelines import session as ps
     from kinefuse import methods
+    from kinefuse.pipelines.run import write as ps
     from kinefuse.session_file import CAMERA_METHODS
 
     for f in ("imu.csv", "camera.csv", "truth.csv"):
@@ -541,7 +541,7 @@ def test_every_method_and_input_runs_or_is_refused_before_work(
 
 def test_fixed_root_positions_closed_form():
     """Paper A's chain from a fixed, measured shoulder: positions in closed form."""
-    from kinefuse.pipelines.session import process_recording
+    from kinefuse.pipelines.run import process_recording
 
     T = 300
     flex = np.where(np.arange(T) < 100, 0.0, np.minimum(np.linspace(-50, 130, T), 90.0))

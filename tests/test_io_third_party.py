@@ -672,7 +672,7 @@ def test_ximu3_sibling_csv_is_detected(shared_data):
 def test_session_reader_options_reach_the_reader(tp, shared_data, tmp_path):
     """Defect 12 via a session: [camera.reader] names the time column and the confidence map."""
     from kinefuse.exceptions import ConfigError
-    from kinefuse.pipelines.session import load_streams
+    from kinefuse.pipelines.run import load_streams
     from kinefuse.session_file import load_session
 
     cam = tp / "kinect_v2" / "lslkinect_MoCap.csv"

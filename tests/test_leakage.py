@@ -95,7 +95,7 @@ def test_paper_b_neura_ignores_hidden_camera(shared_data):
 
 
 def test_evaluate_core_ignores_hidden_camera(packaged_motion):
-    from kinefuse.pipelines.session import process_recording
+    from kinefuse.pipelines.run import process_recording
 
     rec = X._cmu_recording(packaged_motion, 1)
     a = process_recording(rec, "kinefuse", {})

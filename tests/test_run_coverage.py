@@ -16,7 +16,7 @@ from kinefuse import cli
 from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_PREDICTED
 from kinefuse.exceptions import ConfigError, InputError
 from kinefuse.io import read_imu_csv, read_joint_csv, read_trc, write_imu_csv, write_joint_csv
-from kinefuse.pipelines.session import run_session
+from kinefuse.pipelines.run import run_session
 
 synthetic_files = _base.synthetic_files  # the module-scoped fixture of the synthetic session
 

@@ -17,8 +17,8 @@ import test_session_run as _base
 from kinefuse import cli
 from kinefuse.exceptions import InputError
 from kinefuse.io import read_joint_csv
-from kinefuse.pipelines import session as session_mod
-from kinefuse.pipelines.session import run_session
+from kinefuse.pipelines.run import run_session
+from kinefuse.pipelines.run import write as session_mod  # run_session reads load_streams here
 
 _err, _good, runner = _base._err, _base._good, _base.runner
 synthetic_files = _base.synthetic_files  # the module-scoped fixture of the synthetic session

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from kinefuse import cli
 from kinefuse.exceptions import ConfigError, InputError
 from kinefuse.io import read_joint_csv, read_trc, write_imu_csv, write_joint_csv
-from kinefuse.pipelines.session import build_chain, evaluate_recording, run_session
+from kinefuse.pipelines.run import build_chain, evaluate_recording, run_session
 
 SESSIONS = Path(__file__).parent / "data" / "sessions"
 runner = CliRunner()

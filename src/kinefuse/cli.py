@@ -90,8 +90,8 @@ _PASS_THROUGH = (typer.Exit, typer.Abort, _CLICK_EXCEPTION)
 
 _BACKENDS = {
     "demo": ("kinefuse.pipelines.demo", "run_demo"),
-    "run": ("kinefuse.pipelines.session", "run_session"),
-    "evaluate": ("kinefuse.pipelines.session", "evaluate_recording"),
+    "run": ("kinefuse.pipelines.run", "run_session"),
+    "evaluate": ("kinefuse.pipelines.run", "evaluate_recording"),
     "experiment": ("kinefuse.pipelines.experiments", "run_experiment"),
     "bench": ("kinefuse.evaluation.bench", "run_bench"),
     "stream": ("kinefuse.streaming", "run_stream"),

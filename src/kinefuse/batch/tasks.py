@@ -150,7 +150,7 @@ def run_task(task: Task, out_dir: str, force: bool = False, study: str = "") -> 
         return read_result(out_dir, task)
     if task.error is not None:
         return {**base, "status": "failed", "error": " ".join(task.error.split()), "rows": []}
-    from kinefuse.pipelines.session import run_session
+    from kinefuse.pipelines.run import run_session
     from kinefuse.session_file import load_session
 
     tmp = final.with_name(f"{_TMP_PREFIX}{final.name}-{uuid.uuid4().hex[:8]}")

@@ -463,7 +463,7 @@ def hwm_mb():
 
 
 from kinefuse.evaluation.bench import pipeline_recording
-from kinefuse.pipelines.session import process_recording
+from kinefuse.pipelines.run import process_recording
 method, path = sys.argv[1], sys.argv[2]
 process_recording(pipeline_recording(5.0, seed=1), method)  # load the kernels (cached)
 rss0 = hwm_mb()

@@ -293,7 +293,7 @@ def _utd_wrist_chain(rec, hidden: tuple[float, float] | None = None):
     """
     from dataclasses import replace
 
-    from kinefuse.pipelines.session import process_recording
+    from kinefuse.pipelines.run import process_recording
 
     v = rec.vision
     cam = v
@@ -758,7 +758,7 @@ def _neura_inputs(data_dir: Path):
 def _neura_scenario(rec, joints, methods) -> dict:
     """Paper B's methods on the Neura walk (:func:`_neura_inputs`)."""
     from kinefuse.pipelines import VisionParams
-    from kinefuse.pipelines.session import process_recording
+    from kinefuse.pipelines.run import process_recording
 
     cam, ref = rec.vision, rec.reference
     with warnings.catch_warnings():

@@ -186,7 +186,7 @@ def leg_chain_error_mm(rec, seed: int) -> float:
     first 3 s (``process_recording(..., "imu-only", calibration="vision")``); positions relative
     to the hip midpoint (camera for the chain, reference for the truth), as in ``paper-b``.
     """
-    from kinefuse.pipelines.session import process_recording
+    from kinefuse.pipelines.run import process_recording
 
     ref = rec.reference
     cam = _camera_from(ref, np.random.default_rng([seed, 3]), ("hip_l", "hip_r", *_LEG_JOINTS))
@@ -248,7 +248,7 @@ def wrist_chain_figures(rec) -> tuple[float, float, float]:
     ``rec`` holds a ``forearm_r`` IMU and a camera with the elbow and wrist; the chain starts at
     the camera elbow and is calibrated against the camera over the whole recording.
     """
-    from kinefuse.pipelines.session import process_recording
+    from kinefuse.pipelines.run import process_recording
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

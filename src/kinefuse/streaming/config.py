@@ -20,7 +20,9 @@ Stream sessions
 engine's timing parameters); :func:`load_stream_config` reads it from a TOML file with a
 ``[stream]`` section (plus optional ``[skeleton]`` and ``[method]`` as in offline sessions), and
 :func:`stream_config_from_session` derives it from an offline
-:class:`~kinefuse.session.SessionConfig`.
+:class:`~kinefuse.session_file.SessionConfig`. The processor a session's method streams with is
+its online form in the registry :mod:`kinefuse.methods`; a method without one is refused (or,
+where the registry names a substitute, run with a warning that the config's ``notes`` keep).
 """
 
 from __future__ import annotations
@@ -39,8 +41,10 @@ from importlib.resources import files
 from pathlib import Path
 from string import Template
 
+from kinefuse import methods
 from kinefuse.conventions import PAPER_B_JOINTS
 from kinefuse.exceptions import ConfigError, InputError
+from kinefuse.session_file import read_toml
 
 __all__ = [
     "LSL_CONFIG_ENV",
@@ -69,8 +73,9 @@ LOCAL_SETTINGS = {
     ("multicast", "MachineAddresses"): "{127.0.0.1}",
 }
 
-#: Processor names accepted by :class:`StreamConfig` (see :mod:`kinefuse.streaming.engine`).
-PROCESSORS = ("kf-fusion", "paper-a", "elm-fir", "elm-kf")
+#: Processor names accepted by :class:`StreamConfig` (see :mod:`kinefuse.streaming.engine`):
+#: :data:`kinefuse.methods.PROCESSORS`.
+PROCESSORS = tuple(methods.PROCESSORS)
 
 _WE_SET_ENV = {"value": None}
 
@@ -315,8 +320,8 @@ class StreamConfig:
         Name of the fused outlet (None = prefix rule).
     joints : tuple of str
         Output joints (default the eight of paper B).
-    processor : {"kf-fusion", "paper-a"}
-        Per-frame processor (:mod:`kinefuse.streaming.engine`).
+    processor : str
+        Per-frame processor, one of :data:`PROCESSORS` (:mod:`kinefuse.streaming.engine`).
     lag : int
         Fixed-lag smoother lag, frames (output delayed by ``lag`` frames; 0 = filtered).
     body_height_m : float
@@ -340,6 +345,9 @@ class StreamConfig:
         ``"lsl"``: liblsl post-processing ``proc_clocksync | proc_dejitter | proc_monotonize``.
     q, r_imu, r_camera : float
         Process noise (m/s)² per frame and measurement variances (m²) of the processors.
+    notes : tuple of str
+        What was substituted when the config was derived (e.g. the processor streaming runs
+        for a method without an online form); not a ``[stream]`` key.
     """
 
     name_prefix: str = "kinefuse"
@@ -360,6 +368,7 @@ class StreamConfig:
     q: float = 0.05
     r_imu: float = 4e-4
     r_camera: float = 9e-4
+    notes: tuple[str, ...] = ()
 
     def __post_init__(self):
         if not isinstance(self.name_prefix, str) or not self.name_prefix:
@@ -391,6 +400,7 @@ class StreamConfig:
         object.__setattr__(self, "joints", tuple(self.joints))
         object.__setattr__(self, "imu_streams", dict(self.imu_streams))
         object.__setattr__(self, "lengths_m", dict(self.lengths_m))
+        object.__setattr__(self, "notes", tuple(self.notes))
 
     def imu_stream_name(self, segment: str) -> str:
         """LSL name of the IMU stream of ``segment``."""
@@ -410,8 +420,53 @@ class StreamConfig:
 
 
 _STREAM_KEYS = tuple(
-    f for f in StreamConfig.__dataclass_fields__ if f not in ("body_height_m", "lengths_m")
+    f
+    for f in StreamConfig.__dataclass_fields__
+    if f not in ("body_height_m", "lengths_m", "notes")
 )
+
+
+def online_processor(method: str, source: str = "session") -> tuple[str, str | None]:
+    """The streaming processor of a :mod:`kinefuse.methods` method.
+
+    Parameters
+    ----------
+    method : str
+        A registered method name.
+    source : str
+        Named in messages (the session file).
+
+    Returns
+    -------
+    processor : str
+        Its online form, or the registry's substitute.
+    note : str or None
+        Without an online form: what is run instead (also issued as a UserWarning).
+
+    Raises
+    ------
+    ConfigError
+        Unknown method, or a method with neither an online form nor a substitute.
+    """
+    try:
+        spec = methods.get(method)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: [method] name: {exc}") from None
+    if spec.online is not None:
+        return spec.online, None
+    online = methods.names(form="online")
+    if spec.online_substitute is None:
+        raise ConfigError(
+            f"{source}: [method] name = {method!r} has no online form (it exists as "
+            f"{', '.join(spec.forms)}); kinefuse stream runs {', '.join(online)}: choose one of "
+            f"them, or process the recording offline with `kinefuse run`"
+        )
+    note = (
+        f"method {method!r} has no online form; streaming runs the {spec.online_substitute!r} "
+        f"processor instead ({methods.PROCESSORS[spec.online_substitute]})"
+    )
+    warnings.warn(f"{source}: {note}", UserWarning, stacklevel=3)
+    return spec.online_substitute, note
 
 
 def load_stream_config(path: str | Path) -> StreamConfig:
@@ -419,18 +474,18 @@ def load_stream_config(path: str | Path) -> StreamConfig:
 
     The file has a ``[stream]`` table whose keys are :class:`StreamConfig` fields
     (``imu_streams`` as a sub-table ``[stream.imu_streams]`` segment = name), and optionally
-    ``[skeleton] body_height_m`` / ``[skeleton.lengths]`` and ``[method] name`` (``"paper-a"``
-    selects that processor). Other tables (``[session]``, ``[imu]``...) are ignored, so one
+    ``[skeleton] body_height_m`` / ``[skeleton.lengths]`` and ``[method] name`` (without a
+    ``[stream] processor``, the method's online form selects it: :func:`online_processor`).
+    Other tables (``[session]``, ``[imu]``...) are ignored, so one
     file can serve offline and online runs.
 
     Raises
     ------
     ConfigError
-        Missing file, invalid TOML, unknown key or invalid value (names the key).
+        Missing file, invalid TOML, unknown key or invalid value (names the key), a method
+        without an online form (and no ``[stream] processor``).
     """
     p = Path(path).expanduser()
-    from kinefuse.session_file import read_toml
-
     doc = read_toml(p, missing="stream session file not found")
     st = dict(doc.get("stream") or {})
     unknown = sorted(set(st) - set(_STREAM_KEYS))
@@ -447,8 +502,9 @@ def load_stream_config(path: str | Path) -> StreamConfig:
     if "lengths" in sk:
         kw["lengths_m"] = dict(sk["lengths"])
     method = (doc.get("method") or {}).get("name")
-    if method == "paper-a" and "processor" not in kw:
-        kw["processor"] = "paper-a"
+    if method is not None and "processor" not in kw:
+        kw["processor"], note = online_processor(method, p.name)
+        kw["notes"] = () if note is None else (note,)
     try:
         return StreamConfig(**kw)
     except ConfigError as exc:
@@ -458,22 +514,24 @@ def load_stream_config(path: str | Path) -> StreamConfig:
 
 
 def stream_config_from_session(session, **overrides) -> StreamConfig:
-    """A :class:`StreamConfig` from an offline :class:`~kinefuse.session.SessionConfig`.
+    """A :class:`StreamConfig` from an offline :class:`~kinefuse.session_file.SessionConfig`.
 
-    Uses the session name as the stream prefix, its skeleton (height, lengths) and its method
-    (``paper-a`` / ``imu-only`` -> the paper-A processor, ``elm-fir`` / ``elm-kf`` -> the online
-    paper-B processor, otherwise the KF fusion baseline).
+    Uses the session name as the stream prefix, its skeleton (height, lengths) and its
+    method's online form (:func:`online_processor`: ``paper-a`` -> the paper-A processor,
+    ``elm-fir`` / ``elm-kf`` -> the online paper-B processor; ``imu-only`` -> the paper-A
+    processor with a warning kept in ``notes``; a method without an online form is refused).
+
+    Raises
+    ------
+    ConfigError
+        The session's method has no online form and no substitute.
     """
-    method = session.method.name
-    if method in ("paper-a", "imu-only"):
-        processor = "paper-a"
-    elif method in ("elm-fir", "elm-kf"):
-        processor = method
-    else:
-        processor = "kf-fusion"
+    source = Path(getattr(session, "path", "session")).name
+    processor, note = online_processor(session.method.name, source)
     kw = {
         "name_prefix": re.sub(r"[^A-Za-z0-9_.\-]", "_", session.name) or "kinefuse",
         "processor": processor,
+        "notes": () if note is None else (note,),
         "lengths_m": dict(session.skeleton.lengths_m),
     }
     if session.skeleton.body_height_m is not None:

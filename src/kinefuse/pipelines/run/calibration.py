@@ -1,0 +1,198 @@
+"""The calibration step of :func:`kinefuse.pipelines.run.process_recording` and what it gives.
+
+:func:`calibrate_session` runs :func:`kinefuse.kinematics.calibrate` as the session asks
+(static pose, functional movement, camera or reference joints) and says in the notes and the
+provenance what calibrated what; the calibrated sensor orientations and the joint angles
+(where the calibration gives segment frames) are derived from it.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from kinefuse.kinematics import calibrate, joint_angles, segment_orientations
+from kinefuse.kinematics.angles import JOINTS
+from kinefuse.kinematics.functional import align_headings
+from kinefuse.orientation.resample import slerp_resample
+
+__all__ = ["calibrate_session"]
+
+#: Plausible flexion of hinge joints, deg (1st-99th percentile check of the joint angles):
+#: knee -10 (hyperextension) to 150, elbow -10 to 160 (e.g. Soucie et al. 2011, Haemophilia 17).
+_HINGE_RANGE_DEG = {"knee": (-10.0, 150.0), "elbow": (-10.0, 160.0)}
+
+_WHAT = {
+    "static": "still pose, IMU data only",
+    "functional": "movement, IMU data only",
+    "vision": "camera joints",
+    "reference": "REFERENCE joints (evaluation data used for calibration, as asked)",
+}
+
+
+def _calibration_kwargs(params: Mapping, calib: str, six_d, axes_decl, cal_segs) -> dict:
+    """Keyword arguments of :func:`kinefuse.kinematics.calibrate` for ``calib``."""
+    window = float(params.get("calibration_window_s", 2.0))
+    start = params.get("calibration_start_s")
+    kw = {"window_s": window, "start_s": None if start is None else float(start)}
+    if calib == "static":
+        heading = params.get("heading", "auto")
+        if heading == "auto":
+            heading = "static" if six_d else "none"
+        kw.update(
+            pose=params.get("pose", "n"),
+            facing=tuple(params.get("facing", (0.0, 1.0, 0.0))),
+            heading=heading,
+            flexion_axes=params.get("flexion_axes", "auto"),
+            mounting={s: a for s, a in axes_decl.items() if s in cal_segs},
+            segments=cal_segs,
+        )
+        for k in ("max_rate_rad_s", "max_acc_std_m_s2"):
+            if k in params:
+                kw[k] = float(params[k])
+    elif calib in ("vision", "reference"):
+        kw["align"] = params.get("align", "auto")
+    elif calib == "functional":
+        kw["mounting"] = {s: a for s, a in axes_decl.items() if s in cal_segs}
+    return kw
+
+
+def calibrate_session(
+    recording,
+    skeleton,
+    params: Mapping,
+    calib: str,
+    six_d,
+    axes_decl: Mapping,
+    cal_segs: Sequence[str],
+    notes: list[str],
+    provenance: dict,
+):
+    """Calibrate the chain as ``calib`` says; notes and provenance are appended to in place.
+
+    Returns
+    -------
+    recording : Recording
+        ``recording``, or a copy with the sensors' headings aligned (functional calibration).
+    cal : Calibration or None
+        None for ``calib = "none"``.
+    """
+    if calib == "none":
+        notes.append("calibration: none; the segment axes are the configured sensor axes")
+        return recording, None
+    kw = _calibration_kwargs(params, calib, six_d, axes_decl, cal_segs)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cal = calibrate(recording, skeleton, calib, **kw)
+    notes += [f"calibration: {w.message}" for w in caught]
+    if calib == "functional" and cal.declared:
+        notes.append(
+            "calibration: no sensor beyond the distal joint of "
+            f"{', '.join(cal.declared)}: the declared sensor axis ([skeleton.axes]) is its "
+            "axis and its length comes from the session"
+        )
+    if calib == "functional" and getattr(cal, "heading", "shared") == "estimate":
+        recording = align_headings(recording, cal)
+        notes.append(
+            "heading: each sensor's world frame turned into its chain's first sensor's, "
+            "from the joint constraints of the functional calibration (deg): "
+            + ", ".join(f"{s} {v:.1f}" for s, v in cal.heading_deg.items())
+        )
+        provenance["heading"] = "joint constraints (functional)"
+    res = ", ".join(f"{s} {v:.1f}" for s, v in cal.residual_deg.items())
+    line = (
+        f"calibration {calib!r} ({_WHAT[calib]}) over {cal.window_s[0]:.2f}-"
+        f"{cal.window_s[1]:.2f} s, alignment {cal.align!r}; RMS residual (deg): {res}"
+    )
+    if cal.still is not None:
+        line += f"; stillness {cal.still.describe()}"
+    if cal.pose_residual_deg:
+        line += "; declared sensor axis vs the pose (deg): " + ", ".join(
+            f"{s} {v:.1f}" for s, v in cal.pose_residual_deg.items()
+        )
+    notes.append(line)
+    provenance["calibration_window_s"] = list(cal.window_s)
+    if calib == "static":
+        _static_notes(cal, params, six_d, cal_segs, notes, provenance)
+    return recording, cal
+
+
+def _static_notes(cal, params: Mapping, six_d, cal_segs, notes: list[str], provenance: dict):
+    """What a static calibration took from the pose, the movement and the declared facing."""
+    f = [float(x) for x in params.get("facing", (0.0, 1.0, 0.0))]
+    hinged = sorted(cal.hinge_residual_rad_s)
+    moved = {s for j in hinged for s in JOINTS[j][:2]}
+    rest = [s for s in cal.frames if s not in moved]
+    if hinged:
+        notes.append(
+            "segment frames: long axes from the still pose; flexion axes of "
+            f"{', '.join(hinged)} from the movement (the two sensors' relative rotation, "
+            "Laidig et al. 2017's elbow model; RMS residual rad/s: "
+            + ", ".join(f"{j} {cal.hinge_residual_rad_s[j]:.2f}" for j in hinged)
+            + "), sign by anatomy (the larger excursion from the pose is flexion); the "
+            "facing is not used for them"
+        )
+        provenance["flexion_axes"] = {j: "movement" for j in hinged}
+    if rest:
+        notes.append(
+            f"segment frames of {', '.join(rest)}: anterior axis = the facing direction "
+            f"{f} (world frame) in the still pose, as declared ([calibration] facing; "
+            "default north); flexion axes follow from it"
+        )
+        provenance["facing"] = f
+    if cal.world_heading_deg:
+        notes.append(
+            "heading: 6-D orientations (arbitrary heading per sensor) brought into the "
+            f"heading of {cal_segs[0]} from the static pose, assuming all sensors face "
+            "the same way on the body; applied (deg): "
+            + ", ".join(f"{s} {v:.1f}" for s, v in cal.world_heading_deg.items())
+        )
+        provenance["heading"] = "static pose"
+    else:
+        notes.append(
+            "heading: orientations kept as estimated (shared, magnetometer-referenced north)"
+            if not six_d
+            else "heading: not aligned (heading = 'none')"
+        )
+        provenance["heading"] = "none"
+
+
+def _sensor_orientations(recording, cal, t: np.ndarray) -> dict[str, np.ndarray]:
+    """Calibrated ``q_world_from_sensor`` per segment on ``t``, heading corrections applied."""
+    out = {}
+    for s in cal.axes:
+        st = recording.imu.get(s)
+        if st is None or st.q_world_from_sensor is None:
+            continue
+        q = slerp_resample(st.t_s, st.q_world_from_sensor, t)
+        ok = np.all(np.isfinite(q), axis=1)
+        qw = np.full(q.shape, np.nan)
+        if np.any(ok):
+            H = Rotation.from_matrix(cal.heading_matrix(s))
+            qw[ok] = (H * Rotation.from_quat(q[ok], scalar_first=True)).as_quat(scalar_first=True)
+        out[s] = qw
+    return out
+
+
+def _joint_angles(recording, cal, t: np.ndarray, notes: list[str]) -> dict[str, np.ndarray]:
+    """ISB joint angles (deg) from the calibrated segment frames, with a range check."""
+    angles = joint_angles(segment_orientations(recording, cal, t))
+    if angles:
+        notes.append(
+            "joint angles (deg, ISB: Wu et al. 2002/2005, Grood & Suntay 1983; zero in the "
+            f"calibration pose): {', '.join(angles)}"
+        )
+    for j, a in angles.items():
+        lo, hi = _HINGE_RANGE_DEG.get(j.rsplit("_", 1)[0], (-np.inf, np.inf))
+        f = a[:, 0][np.isfinite(a[:, 0])]
+        if f.size and (np.percentile(f, 1) < lo or np.percentile(f, 99) > hi):
+            notes.append(
+                f"warning: {j} flexion spans {f.min():.0f} to {f.max():.0f} deg, beyond the "
+                f"anatomical {lo:.0f} to {hi:.0f} deg: the facing direction or the pose is "
+                "probably wrong (the facing, the pose, or too little flexion to fit its axis: "
+                "see the calibration notes; [calibration] flexion_axes, facing)"
+            )
+    return angles

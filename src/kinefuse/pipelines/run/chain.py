@@ -1,0 +1,294 @@
+"""The IMU chain: sensor orientations, the skeleton over the mapped segments, its roots.
+
+:func:`build_chain` builds the :class:`~kinefuse.kinematics.Skeleton` over the limb segments
+that carry an IMU (:data:`SEGMENT_JOINTS`); the private steps of
+:func:`kinefuse.pipelines.run.process_recording` estimate missing orientations, resolve the
+segment lengths and place the chain's root joints.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from kinefuse.exceptions import ConfigError, InputError
+from kinefuse.kinematics import (
+    ANTHROPOMETRIC_RATIOS,
+    AXES,
+    Skeleton,
+    lengths_from_joints,
+    segment_lengths,
+    segment_orientations,
+)
+from kinefuse.kinematics.forward import as_rotation_matrices
+from kinefuse.orientation import estimate
+from kinefuse.orientation.resample import slerp_resample
+from kinefuse.pipelines.run.timeline import sample_joint
+
+__all__ = ["SEGMENT_JOINTS", "build_chain"]
+
+#: Proximal and distal joint of every limb segment (segments with a length).
+SEGMENT_JOINTS = {
+    **{f"upper_arm_{s}": (f"shoulder_{s}", f"elbow_{s}") for s in "lr"},
+    **{f"forearm_{s}": (f"elbow_{s}", f"wrist_{s}") for s in "lr"},
+    **{f"thigh_{s}": (f"hip_{s}", f"knee_{s}") for s in "lr"},
+    **{f"shank_{s}": (f"knee_{s}", f"ankle_{s}") for s in "lr"},
+    **{f"foot_{s}": (f"ankle_{s}", f"foot_{s}") for s in "lr"},
+}
+
+
+def _ensure_orientations(
+    recording, params: Mapping, notes: list[str], warnings_out: list[str]
+) -> set[str]:
+    """Estimate ``q_world_from_sensor`` with VQF for the streams that have raw data only.
+
+    The policy is ``estimate_orientation`` of ``[method.parameters]``: ``"auto"`` (default)
+    estimates only when no mapped sensor has an orientation (a raw-only recording), ``true``
+    for every sensor without one, ``false`` never. The substitution is always reported (a
+    warning in the run summary and the report), never silent.
+
+    Returns the segments whose orientation is 6-D (no magnetometer: arbitrary heading).
+    """
+    vqf_params = params.get("orientation_params")
+    policy = params.get("estimate_orientation", "auto")
+    if policy not in ("auto", True, False):
+        raise ConfigError(
+            f"[method.parameters] estimate_orientation: expected true, false or 'auto', got "
+            f"{policy!r}"
+        )
+    lacking = [seg for seg, st in recording.imu.items() if st.q_world_from_sensor is None]
+    having = [seg for seg in recording.imu if seg not in lacking]
+    if lacking and (policy is False or (policy == "auto" and having)):
+        why = (
+            f"while {', '.join(having)} {'has' if len(having) == 1 else 'have'} one"
+            if having
+            else "and estimate_orientation = false"
+        )
+        raise InputError(
+            f"no orientation for {', '.join(lacking)} in the IMU file (quaternion columns "
+            f"missing or all empty) {why}; kinefuse does not substitute an estimate silently: "
+            "set estimate_orientation = true in [method.parameters] to estimate it from acc + "
+            "gyr with VQF, or fix the file"
+        )
+    six_d: set[str] = set()
+    for seg, st in list(recording.imu.items()):
+        if st.q_world_from_sensor is not None:
+            continue
+        ok = np.all(np.isfinite(st.acc_m_s2), axis=1) & np.all(np.isfinite(st.gyr_rad_s), axis=1)
+        acc, gyr = st.acc_m_s2, st.gyr_rad_s
+        if not np.all(ok):  # hold the last valid sample across gaps (VQF needs finite input)
+            idx = np.maximum.accumulate(np.where(ok, np.arange(ok.size), 0))
+            first = int(np.flatnonzero(ok)[0])
+            idx[:first] = first
+            acc, gyr = acc[idx], gyr[idx]
+        mag = None
+        if st.mag is not None and np.all(np.isfinite(st.mag)):
+            mag = st.mag
+        try:
+            q = estimate(acc, gyr, mag, rate_hz=st.rate_hz, params=vqf_params)
+        except InputError as exc:
+            raise InputError(f"IMU {seg!r}: orientation estimation failed: {exc}") from None
+        q[~ok] = np.nan
+        recording.imu[seg] = replace(st, q_world_from_sensor=q)
+        notes.append(
+            f"{seg}: orientation estimated from raw data with VQF "
+            f"({'9D, magnetometer' if mag is not None else '6D, arbitrary heading'})"
+        )
+        if mag is None:
+            six_d.add(seg)
+    if lacking:
+        msg = (
+            f"the IMU file has no orientation for {', '.join(lacking)}: estimated from acc + "
+            "gyr with VQF (policy estimate_orientation = "
+            f"{'true' if policy is True else 'auto: no sensor has one'})"
+        )
+        notes.append(f"WARNING: {msg}")
+        warnings_out.append(msg)
+    return six_d
+
+
+def build_chain(
+    segments: Sequence[str],
+    lengths: Mapping[str, float],
+    axes: Mapping[str, object] | None = None,
+):
+    """A Skeleton over the given limb segments, rooted at the proximal joints of unparented ones.
+
+    Parameters
+    ----------
+    segments : sequence of str
+        Limb segments (:data:`SEGMENT_JOINTS` keys), e.g. ``("thigh_l", "shank_l")`` or
+        ``("forearm_r",)``; a segment's parent is the segment whose distal joint is its
+        proximal joint, if given.
+    lengths : mapping of str -> float
+        Length of every segment, m.
+    axes : mapping, optional
+        Segment axis in each sensor frame (default ``+e2``).
+
+    Returns
+    -------
+    Skeleton
+        Parents before children; the first root joint is ``root``, further roots are offset
+        joints of unknown offset (to be given as root positions, e.g. from a camera).
+    roots : tuple of str
+        The root joints, whose positions must be supplied.
+    """
+    segs = [s for s in SEGMENT_JOINTS if s in set(segments)]
+    unknown = sorted(set(segments) - set(SEGMENT_JOINTS))
+    if unknown:
+        raise InputError(f"segments {unknown} have no length; expected limb segments")
+    order: list[str] = []
+    pending = list(segs)
+    distal = {SEGMENT_JOINTS[s][1]: s for s in segs}
+    while pending:
+        for s in list(pending):
+            parent = distal.get(SEGMENT_JOINTS[s][0])
+            if parent is None or parent in order:
+                order.append(s)
+                pending.remove(s)
+    parents = []
+    roots: list[str] = []
+    for s in order:
+        parent = distal.get(SEGMENT_JOINTS[s][0])
+        parents.append(-1 if parent is None else order.index(parent))
+        if parent is None and SEGMENT_JOINTS[s][0] not in roots:
+            roots.append(SEGMENT_JOINTS[s][0])
+    axes = dict(axes or {})
+    sk = Skeleton(
+        segments=tuple(order),
+        parents=tuple(parents),
+        proximal=tuple(SEGMENT_JOINTS[s][0] for s in order),
+        distal=tuple(SEGMENT_JOINTS[s][1] for s in order),
+        lengths_m=tuple(float(lengths[s]) for s in order),
+        axes=np.array([axes.get(s, (0.0, 1.0, 0.0)) for s in order], dtype=float),
+        root=roots[0],
+        root_segment="pelvis" if len(roots) > 1 else None,
+        offsets_m={j: (np.nan,) * 3 for j in roots[1:]},
+    )
+    return sk, tuple(roots)
+
+
+def _declared_axes(value, segs) -> dict[str, tuple]:
+    """``[skeleton.axes]``: segment -> sensor axis along it (names ``"+e1"``... or 3-vectors)."""
+    out = {}
+    for s, a in dict(value or {}).items():
+        if s not in SEGMENT_JOINTS and s != "pelvis":
+            raise ConfigError(f"[skeleton.axes] {s}: not a limb segment or 'pelvis'")
+        if isinstance(a, str):
+            if a not in AXES:
+                raise ConfigError(
+                    f"[skeleton.axes] {s}: unknown axis {a!r}; expected one of {sorted(AXES)}"
+                )
+            a = AXES[a]
+        v = np.asarray(a, dtype=float)
+        if v.shape != (3,) or not np.all(np.isfinite(v)) or np.linalg.norm(v) < 1e-9:
+            raise ConfigError(f"[skeleton.axes] {s}: expected an axis name or [x, y, z], got {a!r}")
+        out[s] = tuple(v / np.linalg.norm(v))
+    return out
+
+
+def _hip_roots(recording, cal, t, origin, body_height_m, notes) -> dict[str, np.ndarray]:
+    """Hip joint centres from the pelvis IMU: origin (mid-hip) ± half the hip width along Z."""
+    if body_height_m is None:
+        raise ConfigError(
+            "the hips are placed from the pelvis IMU with the hip width 0.191 x body height "
+            "(Winter 2009); give [skeleton] body_height_m"
+        )
+    w = ANTHROPOMETRIC_RATIOS["hip_width"] * float(body_height_m)
+    if cal is not None and "pelvis" in cal.frames:
+        R = segment_orientations(recording, cal, t, ["pelvis"])["pelvis"]
+        how = "the pelvis frame of the static calibration (Z = right in the pose)"
+    else:
+        st = recording.imu["pelvis"]
+        R = as_rotation_matrices(slerp_resample(st.t_s, st.q_world_from_sensor, t))
+        R = R[..., [1, 2, 0]]  # right-front-up sensor: ISB X fwd = y, Y up = z, Z right = x
+        how = "the pelvis sensor frame taken as right-front-up (no calibrated pelvis frame)"
+    notes.append(
+        f"hips: pelvis origin (mid-hip) ± {w / 2:.3f} m along the pelvis right axis "
+        f"(hip width 0.191 x {float(body_height_m):g} m, Winter 2009), from {how}"
+    )
+    right = R[..., :, 2]
+    return {"hip_l": origin - 0.5 * w * right, "hip_r": origin + 0.5 * w * right}
+
+
+def _resolve_lengths(
+    recording, segs, cal, calib, root_kind, use_stream_lengths, measured, body_height_m, notes
+) -> tuple[dict[str, float], dict[str, str]]:
+    """Segment lengths, m, and where each came from (measured, stream, functional, height)."""
+    derived = {}
+    if (
+        use_stream_lengths
+        and cal is not None
+        and cal.lengths_m
+        and calib in ("vision", "reference")
+    ):
+        src = "camera" if calib == "vision" else "REFERENCE"
+        derived = {s: (v, f"{src} (calibration window)") for s, v in cal.lengths_m.items()}
+    functional = dict(cal.lengths_m) if cal is not None and calib == "functional" else {}
+    if root_kind == "vision" and use_stream_lengths:
+        got = lengths_from_joints(
+            recording.vision, [(s, *SEGMENT_JOINTS[s]) for s in segs], missing="skip"
+        )
+        for s, v in got.items():
+            derived.setdefault(s, (v, "camera (median)"))
+    try:
+        seg_lengths, how = segment_lengths(
+            segs,
+            measured=measured,
+            height_m=body_height_m,
+            functional=functional,
+            derived=derived,
+        )
+    except InputError as exc:
+        raise ConfigError(str(exc)) from None
+    notes.append(
+        "segment lengths (m): " + ", ".join(f"{s} {seg_lengths[s]:.3f} ({how[s]})" for s in segs)
+    )
+    return seg_lengths, how
+
+
+def _place_roots(recording, params, plan, roots, root_stream, t, cal, cal_segs, body_height_m,
+                 notes):  # fmt: skip
+    """Positions of the chain's root joints on ``t``, the output frame and their description.
+
+    Returns
+    -------
+    root_pos : dict of str -> ndarray, shape (T, 3)
+    frame : str
+    root_desc : str
+    """
+    root_kind = plan["root"]
+    root_name = {"vision": "camera", "reference": "reference"}.get(root_kind, root_kind)
+    if root_stream is not None:
+        lack = [j for j in roots if j not in root_stream.joints]
+        if lack:
+            raise InputError(
+                f"the chain starts at {list(roots)}, but the {root_name} stream lacks {lack} "
+                f"(it has {list(root_stream.joints)})"
+            )
+        root_pos = {j: sample_joint(root_stream, j, t, fill=True) for j in roots}
+        return root_pos, root_stream.frame, f"{', '.join(roots)} from the {root_name}"
+    rp = params.get("root_position_m", (0.0, 0.0, 0.0))
+    if isinstance(rp, Mapping):
+        root_pos = {j: np.tile(np.asarray(rp[j], dtype=float), (t.size, 1)) for j in roots}
+        root_desc = "fixed " + ", ".join(f"{j} at {list(rp[j])} m" for j in roots)
+    else:
+        origin = np.tile(np.asarray(rp, dtype=float), (t.size, 1))
+        if plan["hips"]:
+            root_pos = _hip_roots(recording, cal, t, origin, body_height_m, notes)
+            root_pos.update({j: origin for j in roots if j not in root_pos})
+            root_desc = f"pelvis (mid-hip) at {list(map(float, rp))} m, hips from the pelvis IMU"
+        else:
+            root_pos = {j: origin for j in roots}
+            root_desc = f"fixed {', '.join(roots)} at {list(map(float, rp))} m"
+    frame = "ENU"
+    if cal is not None and cal.world_heading_deg:
+        frame += f" (heading of the {cal_segs[0]} sensor)"
+    zero = not isinstance(rp, Mapping) and not np.any(np.asarray(rp, dtype=float))
+    if zero:
+        frame += (
+            ", relative to the pelvis (mid-hip)" if plan["hips"] else f", relative to {roots[0]}"
+        )
+    return root_pos, frame, root_desc

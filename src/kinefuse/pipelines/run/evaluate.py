@@ -1,0 +1,117 @@
+"""``kinefuse evaluate``: one method on any loadable recording that has a reference."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import replace
+
+from kinefuse import methods
+from kinefuse.conventions import SEGMENTS
+from kinefuse.exceptions import ConfigError, FormatError, InputError
+from kinefuse.io import FORMATS, load
+from kinefuse.pipelines.run.process import process_recording
+
+__all__ = ["evaluate_recording"]
+
+_CAMERA_METHODS = methods.names(needs="camera")
+
+
+def evaluate_recording(
+    path,
+    method: str,
+    parameters: Mapping | None = None,
+    *,
+    format: str | None = None,
+    calibration: str | None = None,
+    root: str | None = None,
+    align: str | None = None,
+    body_height_m: float | None = None,
+):
+    """Back-end of ``kinefuse evaluate``: one method on a recording with a reference.
+
+    Parameters
+    ----------
+    path : str or Path
+        Anything :func:`kinefuse.io.load` reads (a file or a dataset folder), with a reference
+        (or a camera, which then serves as the reference, as in paper A).
+    method : str
+        A :mod:`kinefuse.methods` name.
+    parameters : mapping, optional
+        As ``[method.parameters]``; ``calibration``, ``root`` and ``align`` below override it.
+    format : str, optional
+        A :data:`kinefuse.io.FORMATS` key (default: detected).
+    calibration : str, optional
+        ``"static"`` (default: a still pose in the IMU data), ``"functional"``, ``"vision"``
+        or ``"reference"`` (then axes *and* segment lengths come from the reference, and every
+        table says "[calibrated on reference, lengths from reference]").
+    root : str, optional
+        Where the chain starts (default ``"reference"``: the root joints, e.g. the hips, are
+        taken as measured by the reference, as paper A measures the shoulder; this is said in
+        the notes, not a calibration).
+    align : {"none", "rigid"}, optional
+        ``"rigid"``: Kabsch-align the estimates to the reference before scoring (labelled).
+    body_height_m : float, optional
+        Body height for anthropometric segment lengths (Winter 2009).
+
+    Returns
+    -------
+    EvaluationResult
+        The method, the unfiltered IMU chain and the camera (if any) per joint.
+
+    Raises
+    ------
+    InputError
+        Unreadable file, no reference, no limb IMU, a method that needs a camera without one,
+        no still window for static calibration.
+    """
+    if format is not None and format not in FORMATS:
+        raise InputError(
+            f"--format: unknown format {format!r}; expected one of {', '.join(sorted(FORMATS))}"
+        )
+    rec = _load_scorable(path, format, method)
+    params = dict(parameters or {})
+    if method not in _CAMERA_METHODS:
+        if rec.vision is not None:
+            rec = replace(rec, vision=None)
+        params["root"] = root or params.get("root", "reference")
+    elif root is not None:
+        params["root"] = root
+    if calibration is not None:
+        params["calibration"] = calibration
+    params.setdefault("calibration", "vision" if rec.vision is not None else "static")
+    if params["calibration"] == "reference":
+        params.setdefault("measured_lengths", True)
+    if align is not None:
+        params["align_to_reference"] = align
+    try:
+        out = process_recording(rec, method, params, body_height_m=body_height_m)
+    except ConfigError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    ev = out.evaluation()
+    if ev is None:
+        raise InputError(f"{path}: nothing to score: {out.notes[-1]}")
+    return ev
+
+
+def _load_scorable(path, format, method: str):
+    """The recording, its canonical-segment IMUs only, with a reference (or the camera as one)."""
+    try:
+        rec = load(path, format=format)
+    except FileNotFoundError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    except FormatError:
+        raise
+    imu = {k: v for k, v in rec.imu.items() if k in SEGMENTS}
+    if not imu:
+        raise InputError(f"{path}: no IMU on a canonical segment (found {sorted(rec.imu)})")
+    if rec.reference is None:
+        if rec.vision is None:
+            raise InputError(f"{path}: the recording has no reference to evaluate against")
+        if method in _CAMERA_METHODS:
+            raise InputError(
+                f"{path}: method {method!r} needs a camera, and this recording's only joint "
+                "stream is used as the reference; try 'imu-only' or 'paper-a'"
+            )
+        rec = replace(rec, reference=rec.vision)
+    rec = replace(rec, imu=imu)
+    return rec

@@ -1,0 +1,410 @@
+"""Processing one recording: :func:`process_recording`, the shared core of ``kinefuse run``.
+
+A sequence of steps, each in the module of its idea: the parameters and the plan
+(:mod:`~kinefuse.pipelines.run.parameters`), the orientations, the skeleton and its roots
+(:mod:`~kinefuse.pipelines.run.chain`), the output timeline and the coverage
+(:mod:`~kinefuse.pipelines.run.timeline`), the calibration
+(:mod:`~kinefuse.pipelines.run.calibration`); here the method runs on the chain (paper A's
+filter or a :data:`kinefuse.pipelines.METHODS` fusion method), with the simple baselines beside
+every camera method, and the scores are labelled with what the reference was used for.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Mapping
+from dataclasses import replace
+
+import numpy as np
+
+from kinefuse import methods
+from kinefuse.conventions import SOURCE_IMU
+from kinefuse.exceptions import ConfigError, InputError
+from kinefuse.kinematics import chain_positions, kabsch_rotation, segment_lengths
+from kinefuse.pipelines import METHODS as FUSION_METHODS
+from kinefuse.pipelines import (
+    VisionParams,
+    upper_limb,
+    vision_assisted,
+    vision_assisted_from_recording,
+)
+from kinefuse.pipelines.run.calibration import (
+    _joint_angles,
+    _sensor_orientations,
+    calibrate_session,
+)
+from kinefuse.pipelines.run.chain import (
+    SEGMENT_JOINTS,
+    _declared_axes,
+    _ensure_orientations,
+    _place_roots,
+    _resolve_lengths,
+    build_chain,
+)
+from kinefuse.pipelines.run.output import SessionOutput
+from kinefuse.pipelines.run.parameters import (
+    _VISION_KEYS,
+    _check_params,
+    _number_or_table,
+    _plan,
+)
+from kinefuse.pipelines.run.timeline import (
+    _input_coverage,
+    _output_timeline,
+    _sample_joints,
+    apply_coverage,
+)
+
+__all__ = ["process_recording"]
+
+_CAMERA_METHODS = methods.names(needs="camera")
+
+
+def process_recording(
+    recording,
+    method: str,
+    parameters: Mapping | None = None,
+    *,
+    lengths: Mapping[str, float] | None = None,
+    body_height_m: float | None = None,
+) -> SessionOutput:
+    """Run one method on a recording whose IMUs are keyed by canonical segment.
+
+    Parameters
+    ----------
+    recording : Recording
+        ``imu`` keyed by canonical segment (orientation or raw acc + gyr), optional ``vision``
+        (camera) and ``reference``.
+    method : str
+        A :mod:`kinefuse.methods` name.
+    parameters : mapping, optional
+        ``[method.parameters]`` (see :mod:`kinefuse.pipelines.run`).
+    lengths : mapping of str -> float, optional
+        Measured segment lengths, m (win over everything else).
+    body_height_m : float, optional
+        Body height for anthropometric lengths (Winter 2009) and the hip width.
+
+    Returns
+    -------
+    SessionOutput
+
+    Raises
+    ------
+    ConfigError
+        Bad parameters, a method or calibration that needs a camera or reference without one,
+        a root that cannot be placed, no limb segment, a segment without a length: all before
+        any processing.
+    InputError
+        Problems found in the data (no still window, missing root joints...).
+
+    Notes
+    -----
+    The IMU chain (SPEC §2.1) starts at the *root joints* (:mod:`kinefuse.pipelines.run`);
+    nothing but the scores is taken from a reference unless asked (``calibration =
+    "reference"``, ``measured_lengths = true``, ``align_to_reference = "rigid"``); tables of
+    scores that used it are labelled.
+    """
+    if method not in methods.REGISTRY:
+        known = methods.names()
+        raise ConfigError(f"unknown method {method!r}; expected one of {', '.join(known)}")
+    params = dict(parameters or {})
+    _check_params(params, method)
+    segs = [s for s in SEGMENT_JOINTS if s in recording.imu]
+    if not segs:
+        raise ConfigError(
+            "no limb segment among the mapped sensors "
+            f"{sorted(recording.imu)}; map at least one of {', '.join(SEGMENT_JOINTS)}"
+        )
+    plan = _plan(recording, method, params, segs)
+    out, recording, ctx = _chain_output(recording, method, params, segs, plan, lengths,
+                                        body_height_m)  # fmt: skip
+    _run_method(out, recording, method, params, ctx)
+    _label_and_align(out, recording, plan, ctx["reference"])
+    return out
+
+
+def _chain_output(recording, method, params, segs, plan, lengths, body_height_m):
+    """Everything up to the method: the calibrated chain, the streams on the output timeline.
+
+    Returns the :class:`SessionOutput` holding the unfiltered chain, the recording (headings
+    aligned by a functional calibration) and what the later steps need.
+    """
+    calib, root_kind = plan["calibration"], plan["root"]
+    notes: list[str] = []
+    run_warnings: list[str] = []
+    measured = dict(lengths or {})
+    use_stream_lengths = bool(params.get("measured_lengths", calib == "vision"))
+    if calib not in ("vision", "reference", "functional") or not use_stream_lengths:
+        try:  # a missing length is refused before any work
+            segment_lengths(segs, measured=measured, height_m=body_height_m)
+        except InputError as exc:
+            if calib != "functional":
+                raise ConfigError(str(exc)) from None
+    six_d = _ensure_orientations(recording, params, notes, run_warnings)
+    t, root_stream = _output_timeline(recording, method, params, segs, root_kind)
+    axes_decl = _declared_axes(params.get("axes"), segs)
+    cal_segs = list(segs) + (["pelvis"] if root_kind == "pelvis" else [])
+    sk, roots = build_chain(segs, dict.fromkeys(segs, 0.3), axes_decl)
+    if root_kind == "pelvis":
+        sk = replace(sk, root_segment="pelvis")
+    provenance: dict = {"calibration": calib, "root": root_kind}
+    recording, cal = calibrate_session(
+        recording, sk, params, calib, six_d, axes_decl, cal_segs, notes, provenance
+    )
+    seg_lengths, how = _resolve_lengths(
+        recording, segs, cal, calib, root_kind, use_stream_lengths, measured, body_height_m, notes
+    )
+    provenance["segment_lengths"] = {
+        s: {"m": round(seg_lengths[s], 6), "source": how[s]} for s in segs
+    }
+    sk, roots = build_chain(segs, seg_lengths, axes_decl)
+    if cal is not None:
+        sk = cal.apply(sk, lengths=False)
+    root_pos, frame, root_desc = _place_roots(
+        recording, params, plan, roots, root_stream, t, cal, cal_segs, body_height_m, notes
+    )
+    provenance["root_position"] = root_desc
+    source = "vision" if root_kind == "vision" else "reference"
+    chain_st = chain_positions(recording, sk, cal, root=root_pos, source=source, t_s=t)
+    joints = tuple(s for s in sk.distal)
+    chain = np.stack([chain_st.position(j, masked=False) for j in joints], axis=1)
+    coverage, root_ok = _input_coverage(recording, sk, root_stream, t, joints)
+    chain[~(coverage["imu"] & root_ok)] = np.nan  # no chain without its inputs
+    notes.append(
+        f"IMU chain from {root_desc}"
+        f"{' (gaps interpolated)' if root_kind == 'vision' else ''} through "
+        f"{', '.join(sk.segments)}; {t.size} samples at "
+        f"{1.0 / float(np.median(np.diff(t))) if t.size > 1 else float('nan'):.1f} Hz; "
+        f"frame: {frame}"
+    )
+    out = _new_output(recording, method, t, joints, chain, frame, sk, cal, root_kind)
+    out.notes, out.warnings, out.root, out.provenance = notes, run_warnings, root_desc, provenance
+    if cal is not None:
+        out.sensor_orientations = _sensor_orientations(recording, cal, t)
+    if cal is not None and cal.frames:
+        out.angles = _joint_angles(recording, cal, t, notes)
+    ctx = {"cal": cal, "calib": calib, "coverage": coverage, "root_ok": root_ok,
+           "root_name": {"vision": "camera", "reference": "reference"}.get(root_kind, root_kind),
+           "reference": out.reference, "joints": joints}  # fmt: skip
+    return out, recording, ctx
+
+
+def _new_output(recording, method, t, joints, chain, frame, sk, cal, root_kind) -> SessionOutput:
+    """The output before the method: the chain, and the camera and reference on ``t``."""
+    T, J = t.size, len(joints)
+    camera = None
+    if recording.vision is not None:
+        camera = _sample_joints(recording.vision, joints, t)
+        if cal is not None and cal.R_world_from_camera is not None and root_kind != "vision":
+            camera = camera @ np.asarray(cal.R_world_from_camera).T
+    reference = None
+    if recording.reference is not None:
+        reference = _sample_joints(recording.reference, joints, t)
+    return SessionOutput(
+        t_s=t,
+        joints=joints,
+        position=chain.copy(),
+        std_m=np.full((T, J, 3), np.nan),
+        source=np.where(np.all(np.isfinite(chain), -1), SOURCE_IMU, -1).astype(np.int64),
+        mode=np.full((T, J), -1, dtype=np.int64),
+        frame=frame,
+        method=method,
+        label=methods.get(method).label,
+        chain=chain,
+        camera=camera,
+        reference=reference,
+        edges=tuple((p, d) for p, d in zip(sk.proximal, sk.distal, strict=True) if p in joints),
+    )
+
+
+def _run_method(out: SessionOutput, recording, method: str, params: Mapping, ctx: dict) -> None:
+    """The method on the chain (timed), then coverage and the baselines of camera methods."""
+    T = out.t_s.size
+    chain, camera = out.chain, out.camera
+    dt = float(np.median(np.diff(out.t_s))) if T > 1 else 1.0 / 30.0
+    t0 = time.perf_counter()
+    flt = params.get("filter", "em-kf-fir" if method == "paper-a" else "none")
+    if method in ("paper-a", "imu-only"):
+        if flt != "none":
+            t0 = _paper_a_filter(out, chain, dt, flt, params)
+            out.label = methods.FILTERS[flt]
+            if method == "imu-only":
+                out.label = f"IMU only + {out.label}"
+    else:
+        _vision(out, recording, chain, camera, dt, method, params, ctx["cal"])
+    out.run_time_s = time.perf_counter() - t0
+    apply_coverage(out, ctx["coverage"], ctx["root_ok"], ctx["joints"], method, ctx["root_name"])
+    if method in _CAMERA_METHODS and out.camera is not None:
+        out.baselines = _baselines(out.chain, out.camera, dt, out.joints)
+
+
+def _label_and_align(out: SessionOutput, recording, plan: dict, reference) -> None:
+    """Tags saying what the reference was used for; the rigid alignment, if asked."""
+    notes, provenance = out.notes, out.provenance
+    tags = []
+    if plan["calibration"] == "reference":
+        tags.append("calibrated on reference")
+    if any("REFERENCE" in v["source"] for v in provenance["segment_lengths"].values()):
+        tags.append("lengths from reference")
+    if out.reference is not None and out.frame != "ENU chest-relative":
+        ref_frame = recording.reference.frame
+        if plan["align"] == "rigid":
+            for name in ("position", "chain", "camera"):
+                arr = getattr(out, name)
+                if arr is not None and np.any(np.isfinite(arr)):
+                    setattr(out, name, _rigid_align(arr, reference)[0])
+            out.baselines = {
+                k: _rigid_align(v, reference)[0] if np.any(np.isfinite(v)) else v
+                for k, v in out.baselines.items()
+            }
+            tags.append("aligned to reference")
+            notes.append(
+                "estimates rigidly aligned to the reference (Kabsch rotation + translation over "
+                "all samples, as asked: align_to_reference = 'rigid') before evaluation"
+            )
+            provenance["alignment"] = "rigid (Kabsch) to the reference, as asked"
+        elif ref_frame != out.frame:
+            notes.append(
+                f"no scores: the output frame ({out.frame}) is not the reference frame "
+                f"({ref_frame}); positions in different frames are not comparable. Set "
+                "align_to_reference = 'rigid' for scores after a rigid alignment (labelled), or "
+                "root = 'reference' to start the chain at the reference joints"
+            )
+            out.reference = None
+            provenance["alignment"] = "none (frames differ: not scored)"
+        else:
+            provenance["alignment"] = "none"
+    out.tag = f" [{', '.join(tags)}]" if tags else ""
+    provenance["labels"] = out.tag.strip() or "IMU/camera data only"
+
+
+def _rigid_align(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, float]:
+    """Best rotation + translation of ``est (T, J, 3)`` onto ``ref``; aligned copy and RMS (m)."""
+    P, Q = est.reshape(-1, 3), ref.reshape(-1, 3)
+    ok = np.all(np.isfinite(P), axis=1) & np.all(np.isfinite(Q), axis=1)
+    cp, cq = P[ok].mean(axis=0), Q[ok].mean(axis=0)
+    R = kabsch_rotation(P[ok] - cp, Q[ok] - cq)
+    out = (est - cp) @ R.T + cq
+    return out, float(np.sqrt(np.nanmean(np.sum((out - ref) ** 2, axis=-1))))
+
+
+def _paper_a_filter(out: SessionOutput, chain, dt, flt: str, params: Mapping) -> float:
+    """Paper A's filter per joint, in place; returns the start time of the timed run."""
+    kw = {k: params[k] for k in ("horizon", "threshold1", "threshold2", "n_em_iter") if k in params}
+    q = _number_or_table(params.get("q", 0.1), out.joints, "q")
+    r = _number_or_table(params.get("r", 0.01), out.joints, "r")
+    ok = np.any(np.all(np.isfinite(chain), axis=-1), axis=0)
+    if not np.all(ok):
+        bad = [j for j, o in zip(out.joints, ok, strict=True) if not o]
+        raise InputError(f"the IMU chain has no valid sample for {bad}")
+    method = "em-kf-fir" if flt == "em-kf-fir" else flt
+    try:
+        # compile outside the timed run (numba compiles on the first call)
+        z0 = chain[:, 0][np.all(np.isfinite(chain[:, 0]), axis=1)][:30]
+        with warnings.catch_warnings():  # e.g. "horizon longer than the series": warm-up only
+            warnings.simplefilter("ignore")
+            upper_limb(z0, None, dt, method, q=q[0], r=r[0], **kw)
+        t0 = time.perf_counter()
+        for j, name in enumerate(out.joints):
+            res = upper_limb(chain[:, j], None, dt, method, q=q[j], r=r[j], joints=(name,), **kw)
+            out.position[:, j] = res.position[:, 0]
+            out.std_m[:, j] = np.sqrt(np.diagonal(res.cov[:, 0], axis1=-2, axis2=-1))
+            out.mode[:, j] = res.mode[:, 0]
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"[method.parameters]: {exc}") from None
+    out.notes.append(
+        f"filter {flt} (paper A) per joint, dt = {dt * 1e3:.1f} ms, q = {params.get('q', 0.1)}, "
+        f"r = {params.get('r', 0.01)}"
+    )
+    return t0
+
+
+def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, cal) -> None:
+    if method not in FUSION_METHODS:
+        raise ConfigError(
+            f"method {method!r} is not available in this installation (available: "
+            f"{', '.join(sorted(FUSION_METHODS))})"
+        )
+    vp = {k: params[k] for k in _VISION_KEYS if k in params}
+    try:
+        vparams = VisionParams(**vp)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"[method.parameters]: {exc}") from None
+    causal = bool(params.get("causal", False))
+    full = {"chest", "upper_arm_l", "upper_arm_r", "forearm_l", "forearm_r"} | {
+        "thigh_l",
+        "thigh_r",
+        "shank_l",
+        "shank_r",
+    }
+    cam = recording.vision
+    if full <= set(recording.imu) and "spine_shoulder" in cam.joints:
+        joints = tuple(j for j in out.joints if j in cam.joints)
+        rate = 1.0 / dt
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fused = vision_assisted_from_recording(
+                recording, None, cal, method, rate, joints=joints, causal=causal, params=vparams
+            )
+        if fused.t_s.size != out.t_s.size:
+            raise InputError(
+                f"camera timeline ({fused.t_s.size} samples) differs from the output timeline"
+            )
+        out.joints = joints
+        out.position = fused.result.position
+        out.chain = fused.z_imu
+        out.camera = fused.z_cam
+        out.reference = fused.reference
+        out.std_m = np.sqrt(np.diagonal(fused.result.cov, axis1=-2, axis2=-1))
+        out.source = fused.result.source.astype(np.int64)
+        out.mode = np.full(out.source.shape, -1, dtype=np.int64)
+        out.frame = "ENU chest-relative"
+        out.notes.append(
+            f"paper B pipeline {method!r} from the chest IMU (Xu 2023, SPEC §10.3); positions "
+            "relative to spine_shoulder"
+        )
+        return
+    avail = np.all(np.isfinite(camera), axis=-1)
+    keep = [j for j in range(len(out.joints)) if np.any(avail[:, j]) or method != "camera-only"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = vision_assisted(
+            chain[:, keep],
+            camera[:, keep],
+            avail[:, keep],
+            dt,
+            method,
+            joints=[out.joints[j] for j in keep],
+            causal=causal,
+            params=vparams,
+        )
+    out.position = np.full_like(chain, np.nan)
+    out.position[:, keep] = res.position
+    out.std_m[:, keep] = np.sqrt(np.diagonal(res.cov, axis1=-2, axis2=-1))
+    out.source[:, keep] = res.source
+    out.notes.append(
+        f"paper B pipeline {method!r} per joint (Xu 2023, SPEC §10.3) on the IMU chain and the "
+        "camera joints"
+    )
+
+
+def _baselines(chain, camera, dt, joints) -> dict[str, np.ndarray]:
+    """The simple baselines (offset interp / hold, camera gap-fill) on one chain and camera."""
+    avail = np.all(np.isfinite(camera), axis=-1)
+    keep = [j for j in range(len(joints)) if np.any(np.all(np.isfinite(chain[:, j]), axis=-1))]
+    out = {}
+    for m in methods.BASELINES:
+        pos = np.full(chain.shape, np.nan)
+        if keep:
+            res = vision_assisted(
+                chain[:, keep],
+                camera[:, keep],
+                avail[:, keep],
+                dt,
+                m,
+                joints=[joints[j] for j in keep],
+            )
+            pos[:, keep] = res.position
+        out[methods.get(m).label] = pos
+    return out
