@@ -111,7 +111,9 @@ def test_stream_file_method_selects_its_online_form(tmp_path):
     with pytest.raises(ConfigError, match="'kinefuse' has no online form"):
         load_stream_config(p)
     # an explicit processor is the user's choice
-    p.write_text('[stream]\nname_prefix = "x"\nprocessor = "kf-fusion"\n[method]\nname = "kinefuse"\n')
+    p.write_text(
+        '[stream]\nname_prefix = "x"\nprocessor = "kf-fusion"\n[method]\nname = "kinefuse"\n'
+    )
     assert load_stream_config(p).processor == "kf-fusion"
     p.write_text('[stream]\nname_prefix = "x"\nnotes = ["a"]\n')
     with pytest.raises(ConfigError, match="unknown key"):

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from kinefuse import cli
 from kinefuse.exceptions import ConfigError, InputError
 from kinefuse.io import read_joint_csv, read_trc, write_imu_csv, write_joint_csv
-from kinefuse.pipelines.run import build_chain, evaluate_recording, run_session
+from kinefuse.pipelines.run import RunResult, build_chain, evaluate_recording, run_session
 
 SESSIONS = Path(__file__).parent / "data" / "sessions"
 runner = CliRunner()
@@ -108,6 +108,12 @@ def test_synthetic_session_writes_csv_trc_report(synthetic_files, tmp_path):
     # orientation, soft tissue, calibrated against a Kinect-like camera: real chains are ~5 cm off)
     assert np.all(ev.mean_rmse[1] < 0.06), ev.mean_rmse
     assert summary["report"].is_file()
+    # a typed result that still reads as the mapping `--json` writes (same keys, same order)
+    assert isinstance(summary, RunResult) and summary.report == summary["report"]
+    keys = ["outputs", "notes", "provenance", "coverage", "warnings", "tables", "angles_deg",
+            "evaluation", "report"]  # fmt: skip
+    assert list(summary) == [k for k in keys if k != "angles_deg" or summary.angles_deg]
+    assert dict(summary)["evaluation"] is ev and summary.get("nosuch") is None
     # never overwrite without force; nothing written in that case
     before = csv.stat().st_mtime_ns
     with pytest.raises(FileExistsError, match="--force"):

@@ -91,80 +91,35 @@ class Method:
         return " + ".join(words[n] for n in self.needs)
 
 
+# fmt: off
+_TABLE = (
+    # name, label, needs, forms, online (or None), online substitute (or None), paper, summary
+    ("paper-a", "EM-KF/FIR", "imu", "offline causal online", "paper-a", None, PAPER_A,
+     "EM-KF/FIR integrated filter on the IMU chain (Sun et al. 2024)"),
+    ("elm-fir", "ELM/FIR", "imu camera", "offline causal online", "elm-fir", None, PAPER_B,
+     "ELM/FIR with IMM fusion of chain and camera (Xu et al. 2023)"),
+    ("elm-kf", "ELM/KF", "imu camera", "offline causal online", "elm-kf", None, PAPER_B,
+     "the ELM/KF baseline of Xu et al. 2023"),
+    ("imu-only", "IMU only", "imu", "offline causal", None, "paper-a", None,
+     "forward kinematics of the IMU chain, no filtering"),
+    ("camera-only", "camera only", "camera", "offline", None, None, None,
+     "the camera joints alone, gaps interpolated (a baseline)"),
+    ("kinefuse", "kinefuse", "imu camera", "offline causal", None, None, None,
+     "kinefuse's chain + camera fusion with a learned chain-error model"),
+    ("offset-interp", "offset interp", "imu camera", "offline", None, None, None,
+     "baseline: IMU chain + camera-chain offset interpolated across outages (offline)"),
+    ("offset-hold", "offset hold", "imu camera", "offline causal", None, None, None,
+     "baseline: IMU chain + mean offset of the last 5 camera samples (causal)"),
+    ("camera-gapfill", "camera gap-fill", "camera", "offline", None, None, None,
+     "the camera, gaps up to 20 frames linearly interpolated (as Pose2Sim)"),
+)
+# fmt: on
+
+#: The registry: name -> :class:`Method`, in the order help texts and templates list them.
 REGISTRY: dict[str, Method] = {
-    m.name: m
-    for m in (
-        Method(
-            "paper-a",
-            "EM-KF/FIR",
-            ("imu",),
-            ("offline", "causal", "online"),
-            "EM-KF/FIR integrated filter on the IMU chain (Sun et al. 2024)",
-            PAPER_A,
-            online="paper-a",
-        ),
-        Method(
-            "elm-fir",
-            "ELM/FIR",
-            ("imu", "camera"),
-            ("offline", "causal", "online"),
-            "ELM/FIR with IMM fusion of chain and camera (Xu et al. 2023)",
-            PAPER_B,
-            online="elm-fir",
-        ),
-        Method(
-            "elm-kf",
-            "ELM/KF",
-            ("imu", "camera"),
-            ("offline", "causal", "online"),
-            "the ELM/KF baseline of Xu et al. 2023",
-            PAPER_B,
-            online="elm-kf",
-        ),
-        Method(
-            "imu-only",
-            "IMU only",
-            ("imu",),
-            ("offline", "causal"),
-            "forward kinematics of the IMU chain, no filtering",
-            online_substitute="paper-a",
-        ),
-        Method(
-            "camera-only",
-            "camera only",
-            ("camera",),
-            ("offline",),
-            "the camera joints alone, gaps interpolated (a baseline)",
-        ),
-        Method(
-            "kinefuse",
-            "kinefuse",
-            ("imu", "camera"),
-            ("offline", "causal"),
-            "kinefuse's chain + camera fusion with a learned chain-error model",
-        ),
-        Method(
-            "offset-interp",
-            "offset interp",
-            ("imu", "camera"),
-            ("offline",),
-            "baseline: IMU chain + camera-chain offset interpolated across outages (offline)",
-        ),
-        Method(
-            "offset-hold",
-            "offset hold",
-            ("imu", "camera"),
-            ("offline", "causal"),
-            "baseline: IMU chain + mean offset of the last 5 camera samples (causal)",
-        ),
-        Method(
-            "camera-gapfill",
-            "camera gap-fill",
-            ("camera",),
-            ("offline",),
-            "the camera, gaps up to 20 frames linearly interpolated (as Pose2Sim)",
-        ),
-    )
+    name: Method(name, label, tuple(needs.split()), tuple(forms.split()), summary, paper,
+                 online, substitute)  # fmt: skip
+    for name, label, needs, forms, online, substitute, paper, summary in _TABLE
 }
 
 #: The simple baselines run beside every camera method, in report order.

@@ -10,37 +10,10 @@ resolved against the folder of the TOML file, so a session folder can be moved a
 ``[method] name`` choices come from the registry :mod:`kinefuse.methods`.
 """
 
+from kinefuse.session_file import config
 from kinefuse.session_file._checks import _Ctx
-from kinefuse.session_file.config import (
-    CALIBRATIONS,
-    CAMERA_METHODS,
-    METHODS,
-    ROOTS,
-    CalibrationConfig,
-    CameraConfig,
-    ImuConfig,
-    MethodConfig,
-    ReferenceConfig,
-    SessionConfig,
-    SkeletonConfig,
-)
+from kinefuse.session_file.config import *  # noqa: F403 - the dataclasses and the choices
 from kinefuse.session_file.load import load_session, read_toml
 from kinefuse.session_file.template import session_template
 
-__all__ = [
-    "CALIBRATIONS",
-    "CAMERA_METHODS",
-    "METHODS",
-    "ROOTS",
-    "CalibrationConfig",
-    "CameraConfig",
-    "ImuConfig",
-    "MethodConfig",
-    "ReferenceConfig",
-    "SessionConfig",
-    "SkeletonConfig",
-    "_Ctx",
-    "load_session",
-    "read_toml",
-    "session_template",
-]
+__all__ = [*config.__all__, "load_session", "read_toml", "session_template", "_Ctx"]

@@ -5,15 +5,13 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import replace
 
-from kinefuse import methods
 from kinefuse.conventions import SEGMENTS
 from kinefuse.exceptions import ConfigError, FormatError, InputError
 from kinefuse.io import FORMATS, load
+from kinefuse.pipelines.run.parameters import _CAMERA_METHODS
 from kinefuse.pipelines.run.process import process_recording
 
 __all__ = ["evaluate_recording"]
-
-_CAMERA_METHODS = methods.names(needs="camera")
 
 
 def evaluate_recording(

@@ -44,6 +44,7 @@ from kinefuse.pipelines.run.chain import (
 )
 from kinefuse.pipelines.run.output import SessionOutput
 from kinefuse.pipelines.run.parameters import (
+    _CAMERA_METHODS,
     _VISION_KEYS,
     _check_params,
     _number_or_table,
@@ -57,8 +58,6 @@ from kinefuse.pipelines.run.timeline import (
 )
 
 __all__ = ["process_recording"]
-
-_CAMERA_METHODS = methods.names(needs="camera")
 
 
 def process_recording(

@@ -312,10 +312,8 @@ def _output_timeline(recording, method: str, params: Mapping, segs, root_kind: s
 
 def _sample_joints(stream, joints, t: np.ndarray) -> np.ndarray:
     """``(T, J, 3)`` positions of ``joints`` on ``t`` (NaN for joints the stream lacks)."""
+    nan = np.full((t.size, 3), np.nan)
     return np.stack(
-        [
-            sample_joint(stream, j, t, fill=False) if j in stream.joints else np.full((t.size, 3), np.nan)
-            for j in joints
-        ],
+        [sample_joint(stream, j, t, fill=False) if j in stream.joints else nan for j in joints],
         axis=1,
     )

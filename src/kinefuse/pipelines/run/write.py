@@ -76,7 +76,11 @@ class RunResult(Mapping):
 
     def _keys(self) -> list[str]:
         optional = ("angles_deg", "evaluation")
-        return [f.name for f in fields(self) if f.name not in optional or getattr(self, f.name) is not None]
+        return [
+            f.name
+            for f in fields(self)
+            if f.name not in optional or getattr(self, f.name) is not None
+        ]
 
     def __getitem__(self, key: str):
         if key not in self._keys():
