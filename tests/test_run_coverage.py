@@ -141,6 +141,7 @@ def test_inf_in_an_input_names_file_column_and_line(synthetic_files, tmp_path):
 
 def test_inf_from_a_non_table_reader_is_an_error(monkeypatch, tmp_path, synthetic_files):
     import kinefuse.io
+    from kinefuse.pipelines.run import streams
 
     real = kinefuse.io.load
 
@@ -153,7 +154,7 @@ def test_inf_from_a_non_table_reader_is_an_error(monkeypatch, tmp_path, syntheti
             rec.imu["IMU 2"] = dataclasses.replace(st, q_world_from_sensor=q)
         return rec
 
-    monkeypatch.setattr(kinefuse.io, "load", load_with_inf)
+    monkeypatch.setattr(streams, "load", load_with_inf)  # the reader load_streams calls
     with pytest.raises(ConfigError, match=r"sensor 'IMU 2', column qy: infinite value at sample 7"):
         run_session(_base._good(synthetic_files), tmp_path / "out")
 

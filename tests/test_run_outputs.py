@@ -158,15 +158,11 @@ def test_failure_while_writing_leaves_previous_results(
 ):
     out = tmp_path / "out"
     _restore(previous, out)
-    import kinefuse.evaluation
-    import kinefuse.io
 
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(
-        kinefuse.evaluation if where == "write_report" else kinefuse.io, where, interrupted
-    )
+    monkeypatch.setattr(session_mod, where, interrupted)  # the writer run_session calls
     with pytest.raises(KeyboardInterrupt):
         run_session(_good(synthetic_files), out, force=True)
     assert _snapshot(out) == previous
