@@ -214,6 +214,38 @@ def fit_joint(
             f"{exc_joint:.3g} s^-2 < {min_excitation:g} s^-2 required; record movement of that joint "
             "(several cycles, in more than one direction for a ball joint) or use a static calibration"
         )
+    fun, x0, Amat = _joint_model(A, B, ok, constraint)
+    sol = least_squares(fun, x0, method="trf", x_scale="jac")
+    resid = float(np.sqrt(np.mean(sol.fun**2)))
+    jA, jB, rates = _hinge_axes(A, B, ok)
+    axial = _axial_excitation(A, B, ok, jA, jB, Amat, n)
+    sd = _standard_deviations(sol, n_eff_ratio)
+    if A is None:
+        rA, rB, psi = None, sol.x[:3], 0.0
+    else:
+        rA, rB = sol.x[:3], sol.x[3:6]
+        psi = float(np.arctan2(np.sin(sol.x[6]), np.cos(sol.x[6]))) if sol.x.size > 6 else np.nan
+    return JointFit(
+        joint=joint,
+        proximal=prox,
+        distal=dist,
+        r_proximal_m=rA,
+        r_distal_m=rB,
+        heading_deg=float(np.degrees(psi)),
+        heading_sd_deg=0.0 if A is None else float(np.degrees(sd[6])) if sd.size > 6 else np.nan,
+        r_sd_m=float(np.max(sd[:6] if A is not None else sd[:3])),
+        axis_proximal=jA,
+        axis_distal=jB,
+        hinge_rate_rad_s=rates,
+        excitation_s2=exc_joint,
+        axial_excitation_s2=axial,
+        residual_m_s2=resid,
+        n_samples=n,
+    ), exc
+
+
+def _joint_model(A: Signals | None, B: Signals, ok: np.ndarray, constraint: str):
+    """The residual function of the joint constraint, its linear start and design matrix."""
     KB, aB = B.K[ok], B.acc[ok]
     wB0, GB = B.accw[ok], B.Kw[ok]
     if A is None:
@@ -248,17 +280,24 @@ def fit_joint(
                 ) - np.linalg.norm(aB + np.einsum("kij,j->ki", KB, x[3:6]), axis=1)
 
             x0 = x0[:6]
-    sol = least_squares(fun, x0, method="trf", x_scale="jac")
-    resid = float(np.sqrt(np.mean(sol.fun**2)))
-    jA, jB, rates = _hinge_axes(A, B, ok)
+    return fun, x0, Amat
+
+
+def _axial_excitation(A, B, ok, jA, jB, Amat, n: int) -> float:
+    """Excitation of the centre moving along the hinge axis (in both frames at once), s⁻²."""
+    KB = B.K[ok]
     if A is None:
         M = np.einsum("kji,kjl->il", KB, KB) / n
-        axial = float(np.sqrt(max(jB @ M @ jB, 0.0)))
+        return float(np.sqrt(max(jB @ M @ jB, 0.0)))
     else:
         # the centre moved along the hinge in both frames at once: (j_A, j_B)/√2
         v = np.r_[jA, jB] / np.sqrt(2.0)
         Gv = Amat.reshape(n, 3, 6) @ v
-        axial = float(np.sqrt(np.mean(np.sum(Gv**2, axis=1))))
+        return float(np.sqrt(np.mean(np.sum(Gv**2, axis=1))))
+
+
+def _standard_deviations(sol, n_eff_ratio: float) -> np.ndarray:
+    """Standard deviations of the fitted parameters (Gauss-Newton covariance)."""
     # standard deviations from the Gauss-Newton covariance, residuals taken as white over the
     # effective samples (the low-pass leaves about 2 f_c / f_s independent samples per sample)
     J = sol.jac
@@ -266,25 +305,4 @@ def fit_joint(
     s2 = float(np.sum(sol.fun**2)) * n_eff_ratio / dof
     cov = s2 * np.linalg.pinv(J.T @ J) / n_eff_ratio
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    if A is None:
-        rA, rB, psi = None, sol.x[:3], 0.0
-    else:
-        rA, rB = sol.x[:3], sol.x[3:6]
-        psi = float(np.arctan2(np.sin(sol.x[6]), np.cos(sol.x[6]))) if sol.x.size > 6 else np.nan
-    return JointFit(
-        joint=joint,
-        proximal=prox,
-        distal=dist,
-        r_proximal_m=rA,
-        r_distal_m=rB,
-        heading_deg=float(np.degrees(psi)),
-        heading_sd_deg=0.0 if A is None else float(np.degrees(sd[6])) if sd.size > 6 else np.nan,
-        r_sd_m=float(np.max(sd[:6] if A is not None else sd[:3])),
-        axis_proximal=jA,
-        axis_distal=jB,
-        hinge_rate_rad_s=rates,
-        excitation_s2=exc_joint,
-        axial_excitation_s2=axial,
-        residual_m_s2=resid,
-        n_samples=n,
-    ), exc
+    return sd

@@ -115,13 +115,7 @@ def virtual_recording(
     ref_orient: dict[str, ImuStream] = {}
     if imu is not None and segments:
         imus, ref_orient = _virtual_imus(motion, imu, segments, seed, meta)
-    vision = None
-    if camera is not None:
-        t_cam = time_grid(motion.t_s, camera.rate_hz)
-        vision, cam_truth = simulate_camera(motion, camera, np.random.default_rng([seed, 2]), t_cam)
-        meta["camera_truth"] = cam_truth
-        meta["R_world_from_camera"] = cam_truth["R_world_from_camera"]
-        meta["camera_position_m"] = cam_truth["camera_position_m"]
+    vision = None if camera is None else _virtual_camera(motion, camera, seed, meta)
     reference = reference_at(motion, t_ref, joints=vision.joints if vision is not None else None)
     return Recording(
         imu=imus,
@@ -148,6 +142,16 @@ def _checked_segments(motion, imu, camera, segments) -> tuple[str, ...]:
     for s in segments:
         motion.segment_index(s)
     return segments
+
+
+def _virtual_camera(motion, camera: CameraConfig, seed: int, meta: dict):
+    """The virtual camera's joint stream; its truth added to ``meta``."""
+    t_cam = time_grid(motion.t_s, camera.rate_hz)
+    vision, cam_truth = simulate_camera(motion, camera, np.random.default_rng([seed, 2]), t_cam)
+    meta["camera_truth"] = cam_truth
+    meta["R_world_from_camera"] = cam_truth["R_world_from_camera"]
+    meta["camera_position_m"] = cam_truth["camera_position_m"]
+    return vision
 
 
 def _virtual_imus(motion, imu: ImuConfig, segments, seed: int, meta: dict):

@@ -286,6 +286,16 @@ def simulate_imu_from_pose(
     if config.orientation != "idealised-ahrs" and config.warmup_s > 0:
         n_warm = int(round(config.warmup_s * config.rate_hz))
         gyr_true, acc_true, rot_ws, t = _prepend_rest(n_warm, gyr_true, acc_true, rot_ws, t, dt)
+    out, truth = _readings(rng, t, rot_ws, gyr_true, acc_true, config, dt, n_warm)
+    if n_warm:
+        t = t[n_warm:]
+        _drop_warmup(out, truth, n_warm)
+    truth["position_m"] = spline(t)
+    return ImuStream(t_s=t, name=name, **out), truth
+
+
+def _readings(rng, t, rot_ws, gyr_true, acc_true, config: ImuConfig, dt: float, n_warm: int):
+    """The sensor's outputs (ImuStream fields) and the truth, warm-up included (draw order fixed)."""
     gyr, gyr_err, acc, acc_err = _inertial_readings(rng, gyr_true, acc_true, config, dt)
     if n_warm and config.gyr_startup_calibration:
         offset = gyr[:n_warm].mean(axis=0)
@@ -295,6 +305,8 @@ def simulate_imu_from_pose(
     mag, mag_err, mag_true, m_world, episodes = _magnetometer(rng, t, rot_ws, config, dt)
     q_true = _continuous_quat(rot_ws.as_quat(scalar_first=True))
     q_out, frame, psi = _output_orientation(rng, t, rot_ws, acc, gyr, mag, config)
+    out = {"q_world_from_sensor": q_out, "acc_m_s2": acc, "gyr_rad_s": gyr, "mag": mag}
+    out["frame"] = frame
     truth = {
         "q_world_from_sensor": q_true,
         "acc_m_s2": acc_true,
@@ -307,26 +319,20 @@ def simulate_imu_from_pose(
         "mag_episodes": episodes,
         "ahrs_heading_error_rad": psi,
     }
-    if n_warm:
-        keep = slice(n_warm, None)
-        t, q_out, acc, gyr, mag = t[keep], q_out[keep], acc[keep], gyr[keep], mag[keep]
-        for key in ("q_world_from_sensor", "acc_m_s2", "gyr_rad_s", "mag_ut", "mag_world_ut"):
-            truth[key] = truth[key][keep]
-        for err in (acc_err, gyr_err, mag_err):
-            err["bias"] = err["bias"][keep]
-        if psi is not None:
-            truth["ahrs_heading_error_rad"] = psi[keep]
-    truth["position_m"] = spline(t)
-    stream = ImuStream(
-        t_s=t,
-        q_world_from_sensor=q_out,
-        acc_m_s2=acc,
-        gyr_rad_s=gyr,
-        mag=mag,
-        name=name,
-        frame=frame,
-    )
-    return stream, truth
+    return out, truth
+
+
+def _drop_warmup(out: dict, truth: dict, n_warm: int) -> None:
+    """Remove the ``n_warm`` warm-up samples from the outputs and the truth (in place)."""
+    keep = slice(n_warm, None)
+    for key in ("q_world_from_sensor", "acc_m_s2", "gyr_rad_s", "mag"):
+        out[key] = out[key][keep]
+    for key in ("q_world_from_sensor", "acc_m_s2", "gyr_rad_s", "mag_ut", "mag_world_ut"):
+        truth[key] = truth[key][keep]
+    for key in ("acc_error", "gyr_error", "mag_error"):
+        truth[key]["bias"] = truth[key]["bias"][keep]
+    if truth["ahrs_heading_error_rad"] is not None:
+        truth["ahrs_heading_error_rad"] = truth["ahrs_heading_error_rad"][keep]
 
 
 def _true_inertial(rot_ws: Rotation, spline: CubicSpline, t, t_src, dt: float):
