@@ -29,16 +29,8 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 
+from rich import progress as rp
 from rich.console import Console
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    SpinnerColumn,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
 
 from kinefuse import _compile  # sets NUMBA_CACHE_DIR when the package is read-only
 from kinefuse.batch.report import summary_table, write_study_report
@@ -124,15 +116,15 @@ class _Progress:
         self.bar = None
         if quiet:
             return
-        self.bar = Progress(
-            SpinnerColumn(),
-            TextColumn("study"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("{task.fields[running]} running · {task.fields[failed]} failed"),
-            TextColumn("ETA"),
-            TimeRemainingColumn(),
-            TimeElapsedColumn(),
+        self.bar = rp.Progress(
+            rp.SpinnerColumn(),
+            rp.TextColumn("study"),
+            rp.BarColumn(),
+            rp.MofNCompleteColumn(),
+            rp.TextColumn("{task.fields[running]} running · {task.fields[failed]} failed"),
+            rp.TextColumn("ETA"),
+            rp.TimeRemainingColumn(),
+            rp.TimeElapsedColumn(),
             console=Console(stderr=True),
             transient=True,
         )
@@ -340,12 +332,21 @@ def run_study(
         )  # fmt: skip
         results.update(fresh)
     ordered = [results[t.key] for t in study.tasks]
-    paths = write_table(out_dir, flatten(ordered))
+    summary = _summary(study, ordered, cluster_desc, link, tasks_wall)
+    if report:
+        summary["report"] = write_study_report(out_dir, study, ordered)
+    summary["wall_s"] = time.perf_counter() - t_start
+    return summary
+
+
+def _summary(study: Study, ordered: list, cluster_desc: str, link, tasks_wall: float) -> dict:
+    """Write the study table; the run's summary (without ``report`` and ``wall_s``)."""
+    paths = write_table(study.out_dir, flatten(ordered))
     counts = {k: sum(1 for r in ordered if r["status"] == k) for k in ("done", "skipped", "failed")}
     counts["total"] = len(ordered)
-    summary = {
+    return {
         "study": study.name,
-        "out_dir": out_dir,
+        "out_dir": study.out_dir,
         "counts": counts,
         "failed": [
             (f"{r['recording']}/{r['method'] or '-'}", r["error"])
@@ -358,10 +359,6 @@ def run_study(
         "table": paths,
         "results": ordered,
     }
-    if report:
-        summary["report"] = write_study_report(out_dir, study, ordered)
-    summary["wall_s"] = time.perf_counter() - t_start
-    return summary
 
 
 def _known_results(study: Study, force: bool) -> tuple[dict[str, dict], list]:

@@ -232,10 +232,11 @@ def write_report(
         snapshot_instants,
         dpi,
     )
+    t = d.t
     viewer_html = None
-    if interactive and d.t.size:
+    if interactive and t.size:
         viewer_html = viewer.report_viewer_html(
-            d.t,
+            t,
             evaluation.joints,
             reference=d.ref,
             estimates=d.traj,
@@ -255,7 +256,7 @@ def write_report(
         figures,
         title=title,
         notes=notes,
-        t=d.t,
+        t=t,
         axis_labels=axis_labels,
         paper=paper,
         viewer_html=viewer_html,

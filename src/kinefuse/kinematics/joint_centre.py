@@ -21,10 +21,6 @@ from kinefuse.orientation.resample import slerp_resample
 
 __all__ = ["GRAVITY_M_S2", "JointFit", "Signals", "fit_joint", "joint_signals"]
 
-#: Gravity used by the one-sensor (fixed-centre) model, m/s².
-GRAVITY_M_S2 = 9.81
-
-
 @dataclass(frozen=True, eq=False)
 class JointFit:
     """One joint's functional estimate.
@@ -100,6 +96,10 @@ def _fill(x: np.ndarray) -> np.ndarray:
         return x
     i = np.arange(x.shape[0])
     return np.stack([np.interp(i, i[ok], x[ok, k]) for k in range(x.shape[1])], -1)
+
+
+#: Gravity used by the one-sensor (fixed-centre) model, m/s².
+GRAVITY_M_S2 = 9.81
 
 
 @dataclass(frozen=True)
