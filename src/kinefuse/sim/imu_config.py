@@ -41,7 +41,7 @@ __all__ = ["ORIENTATIONS", "ImuConfig"]
 
 _DEG = math.pi / 180.0
 
-#: Orientation sources of a virtual IMU (module doc, "Orientation").
+#: Orientation sources of a virtual IMU (:mod:`kinefuse.sim.imu`, "Orientation").
 ORIENTATIONS = ("vqf", "vqf-6d", "idealised-ahrs")
 
 @dataclass(frozen=True)
@@ -71,7 +71,7 @@ class ImuConfig:
         Half-range of the uniform cross-axis coupling (0.02 = ±2 %).
     motion_lowpass_hz : float or None
         Cut-off of the zero-phase low-pass applied to the mocap segment motion before
-        differentiation, Hz (module doc); ``None`` = raw mocap.
+        differentiation, Hz (:mod:`kinefuse.sim.imu`); ``None`` = raw mocap.
     mounting_error_deg : float
         Std per axis of the rotation vector of ``q_segment_from_sensor``, degrees.
     soft_tissue_scale : float
@@ -90,16 +90,16 @@ class ImuConfig:
     mag_disturbance_per_min, mag_disturbance_ut, mag_disturbance_duration_s : float
         Disturbance episodes: rate (per minute), largest magnitude (µT), mean duration (s).
     orientation : {"vqf", "vqf-6d", "idealised-ahrs"}
-        Where ``q_world_from_sensor`` comes from (module doc).
+        Where ``q_world_from_sensor`` comes from (:mod:`kinefuse.sim.imu`).
     warmup_s : float
         VQF only: the sensor is switched on this long before the recording and lies still in the
-        first pose (module doc); 0 = VQF starts at the first recorded sample.
+        first pose (:mod:`kinefuse.sim.imu`); 0 = VQF starts at the first recorded sample.
     gyr_startup_calibration : bool
         With a warm-up: the gyroscope offset is estimated as the mean over the warm-up rest and
         removed from every output sample, as sensor drivers and on-board fusion do at start-up
         (the residual is the noise of that mean plus the later bias drift).
     ahrs_heading_drift_deg_per_min, ahrs_heading_noise_deg, ahrs_tilt_noise_deg, ahrs_initial_heading_deg : float
-        Error of the ``"idealised-ahrs"`` orientation (module doc), degrees.
+        Error of the ``"idealised-ahrs"`` orientation (:mod:`kinefuse.sim.imu`), degrees.
     """
 
     rate_hz: float = 100.0

@@ -41,7 +41,7 @@ from kinefuse.io.motion import Motion
 __all__ = ["STA_AMPLITUDE", "joint_drive", "neighbours", "sta_kind"]
 
 #: Soft-tissue artefact per radian of joint motion: segment kind -> (translation mm, rotation
-#: deg); module doc "Soft-tissue artefact" for the sources.
+#: deg); the module doc gives the sources.
 STA_AMPLITUDE = {
     "thigh": (18.0, 10.0),
     "shank": (17.0, 7.0),
