@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from kinefuse.exceptions import InputError
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 from kinefuse.kinematics.forward import rotation_z
-from kinefuse.kinematics.skeleton import Skeleton, _unit_axis
+from kinefuse.kinematics.skeleton import Skeleton, unit_axis
 from kinefuse.kinematics.still import StillWindow
 
 __all__ = ["Calibration", "joint_stream", "oriented_imu"]
@@ -91,7 +91,7 @@ class Calibration:
             raise InputError(
                 f"unknown segment {segment!r}; calibrated segments are {sorted(self.axes)}"
             )
-        e = _unit_axis(segment_axis, "segment_axis")
+        e = unit_axis(segment_axis, "segment_axis")
         rot = Rotation.align_vectors(self.axes[segment][None], e[None])[0]
         return rot.as_quat(scalar_first=True)
 

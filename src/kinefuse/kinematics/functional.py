@@ -94,7 +94,7 @@ from kinefuse.io.recording import Recording
 from kinefuse.kinematics.calibration_result import Calibration, oriented_imu
 from kinefuse.kinematics.hinge import hinge_frames
 from kinefuse.kinematics.joint_centre import GRAVITY_M_S2, JointFit, fit_joint, joint_signals
-from kinefuse.kinematics.skeleton import Skeleton, _unit_axis, window_mask
+from kinefuse.kinematics.skeleton import Skeleton, unit_axis, window_mask
 
 __all__ = [
     "CUTOFF_HZ",
@@ -275,7 +275,7 @@ def functional_calibration(
     beyond = dict(DISTAL_SEGMENTS if distal_segments is None else distal_segments)
     hinges = set(HINGE_JOINTS if hinge_joints is None else hinge_joints)
     declared = {
-        seg: _unit_axis(a, f"declared_axes[{seg!r}]") for seg, a in (declared_axes or {}).items()
+        seg: unit_axis(a, f"declared_axes[{seg!r}]") for seg, a in (declared_axes or {}).items()
     }
     pairs = _joint_pairs(recording, skeleton, segs, proximal_segments or {}, beyond, declared)
     used = sorted({x for pr in pairs.values() for x in pr if x is not None})

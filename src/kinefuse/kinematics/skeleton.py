@@ -60,7 +60,11 @@ AXES = {
 AXES.update({k[1:]: v for k, v in list(AXES.items()) if k[0] == "+"})
 
 
-def _unit_axis(value, where: str) -> np.ndarray:
+def unit_axis(value, where: str) -> np.ndarray:
+    """``value`` (an :data:`AXES` name such as ``"+e2"`` or a 3-vector) as a unit vector (3,).
+
+    ``where`` names the setting in the InputError raised for an unknown name or a zero vector.
+    """
     if isinstance(value, str):
         if value not in AXES:
             raise InputError(
@@ -156,7 +160,7 @@ class Skeleton:
         axes = (
             np.stack(
                 [
-                    _unit_axis(a, f"skeleton: axis of {s!r}")
+                    unit_axis(a, f"skeleton: axis of {s!r}")
                     for s, a in zip(self.segments, axes, strict=True)
                 ]
             )
@@ -247,7 +251,7 @@ class Skeleton:
         self._check_keys(axes, "with_axes")
         new = np.array(self.axes)
         for s, a in axes.items():
-            new[self.index(s)] = _unit_axis(a, f"with_axes: axis of {s!r}")
+            new[self.index(s)] = unit_axis(a, f"with_axes: axis of {s!r}")
         return replace(self, axes=new)
 
     def with_offsets(self, offsets: Mapping[str, object]) -> Skeleton:
@@ -508,9 +512,9 @@ def _axes_for(segments: Sequence[str], axes, where: str) -> np.ndarray:
                 f"{where}: unknown segment(s) {unknown} in axes; expected names from {list(segments)}"
             )
         return np.stack(
-            [_unit_axis(axes.get(s, "+e2"), f"{where}: axis of {s!r}") for s in segments]
+            [unit_axis(axes.get(s, "+e2"), f"{where}: axis of {s!r}") for s in segments]
         )
-    a = _unit_axis(axes, f"{where}: axes")
+    a = unit_axis(axes, f"{where}: axes")
     return np.tile(a, (len(segments), 1))
 
 

@@ -18,7 +18,7 @@ from kinefuse.io.recording import ImuStream
 from kinefuse.kinematics.alignment import angles_deg, unit_direction
 from kinefuse.kinematics.calibration_result import Calibration
 from kinefuse.kinematics.forward import as_rotation_matrices
-from kinefuse.kinematics.skeleton import Skeleton, _unit_axis, window_mask
+from kinefuse.kinematics.skeleton import Skeleton, unit_axis, window_mask
 from kinefuse.kinematics.still import StillWindow, find_still_window
 
 __all__ = ["POSE_WARN_DEG", "static_calibration"]
@@ -102,7 +102,7 @@ def static_calibration(
         turn = Rotation.align_vectors(d0[s][None], _DOWN[None])[0].as_matrix()
         frames[s] = R_mean[s].T @ (turn @ B)
         if s in mounting:
-            m = _unit_axis(mounting[s], f"mounting[{s!r}]")
+            m = unit_axis(mounting[s], f"mounting[{s!r}]")
             pose_res[s] = float(np.sqrt(np.mean(angles_deg(R_win[s] @ m, d0[s][None]) ** 2)))
     _warn_off_pose(resid, pose_res, d0, pose, still)
     return Calibration(
