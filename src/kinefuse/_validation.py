@@ -35,14 +35,26 @@ def as_float_array(
     return np.ascontiguousarray(arr, dtype=np.float64)
 
 
+def as_float(value, message: str) -> float:
+    """``float(value)``; an InputError with ``message`` when ``value`` is not a number."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise InputError(message) from None
+
+
+def readonly_array(a) -> np.ndarray:
+    """A float64 copy of ``a`` that cannot be written to (frozen configurations hold these)."""
+    a = np.array(a, dtype=np.float64, copy=True)
+    a.setflags(write=False)
+    return a
+
+
 def positive_finite(value, name: str) -> float:
     """Return ``value`` as a float, requiring it to be finite and > 0 (text is refused)."""
     if isinstance(value, (str, bytes, bool, np.bool_)):
         raise InputError(f"expected {name} as a positive number, got {value!r}")
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"expected {name} as a positive number, got {value!r}") from None
+    out = as_float(value, f"expected {name} as a positive number, got {value!r}")
     if not math.isfinite(out) or out <= 0.0:
         raise InputError(f"expected {name} finite and > 0, got {value!r}")
     return out

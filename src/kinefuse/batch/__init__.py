@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib.util
 
+from kinefuse.batch.runner import compare_workers, run_study
 from kinefuse.batch.study import Study, Task, load_study, study_from_sessions
 
 __all__ = [
@@ -31,17 +32,3 @@ BATCH_PACKAGES = {"distributed": "distributed", "pyarrow": "pyarrow"}
 def missing_packages() -> list[str]:
     """Distributions of the ``batch`` extra that are not installed."""
     return [dist for mod, dist in BATCH_PACKAGES.items() if importlib.util.find_spec(mod) is None]
-
-
-def run_study(*args, **kwargs):
-    """See :func:`kinefuse.batch.runner.run_study`."""
-    from kinefuse.batch.runner import run_study as _run
-
-    return _run(*args, **kwargs)
-
-
-def compare_workers(*args, **kwargs):
-    """See :func:`kinefuse.batch.runner.compare_workers`."""
-    from kinefuse.batch.runner import compare_workers as _cmp
-
-    return _cmp(*args, **kwargs)

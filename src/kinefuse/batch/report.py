@@ -18,9 +18,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
+from kinefuse import __version__
 from kinefuse.evaluation import plots, tables
-from kinefuse.evaluation.report import _CSS
+from kinefuse.evaluation.report import REPORT_CSS
+from kinefuse.evaluation.tables import ResultTable, TableRow
 
 __all__ = ["STUDY_REPORT_NAME", "collect", "summary_table", "write_study_report"]
 
@@ -44,9 +48,6 @@ def collect(results: Sequence[Mapping], metric: str, subset: str = "all") -> dic
 
 
 def _box_figure(data: Mapping[tuple[str, str], np.ndarray], title: str, ylabel: str):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     joints = list(dict.fromkeys(j for _, j in data))
     estimates = list(dict.fromkeys(e for e, _ in data))
     colors = plots.method_colors(estimates)
@@ -71,8 +72,6 @@ def _box_figure(data: Mapping[tuple[str, str], np.ndarray], title: str, ylabel: 
 
 
 def summary_table(results: Sequence[Mapping], subset: str, title: str):
-    from kinefuse.evaluation.tables import ResultTable, TableRow
-
     metrics = ("rmse_3d", "rmse_mean", "error_cdf_0.9")
     cols = {m: collect(results, m, subset) for m in metrics}
     keys = list(cols["rmse_3d"])
@@ -148,41 +147,14 @@ def write_study_report(out_dir: str | Path, study, results: Sequence[Mapping]) -
     Path
         The report (written atomically: temporary sibling + rename).
     """
-    from kinefuse import __version__
-
     out = Path(out_dir)
-    fig_dir = out / "figures"
-    fig_dir.mkdir(parents=True, exist_ok=True)
-    e = html.escape
-    figures: list[str] = []
-
-    def emit(key: str, fig, alt: str, caption: str) -> None:
-        data = plots.figure_to_png(fig, fig_dir / f"{key}.png")
-        b64 = base64.b64encode(data).decode("ascii")
-        figures.append(
-            f'<figure><img alt="{e(alt)}" src="data:image/png;base64,{b64}">'
-            f"<figcaption>{e(caption)} (also <code>figures/{e(key)}.png</code>)</figcaption></figure>"
-        )
-
     has_outage = any(
         r["subset"] == "outage" and r["metric"] == "n_samples" and (r["value"] or 0) > 0
         for res in results
         for r in res.get("rows") or ()
     )
-    panels = [("rmse_3d", "all", "3-D RMSE per recording, all samples")]
-    panels.append(("error_cdf_0.9", "all", "Error at CDF 0.9 per recording, all samples"))
-    if has_outage:
-        panels.append(("rmse_3d", "outage", "3-D RMSE per recording, inside camera outages"))
-    for metric, subset, title in panels:
-        data = collect(results, metric, subset)
-        if data:
-            emit(
-                f"study_{metric.replace('.', '_')}_{subset}",
-                _box_figure(data, title, "m"),
-                title,
-                f"{title}: box = quartiles, line = median, whiskers 1.5 IQR; one value per "
-                "recording.",
-            )
+    figures = _distribution_figures(out / "figures", results, has_outage)
+    e = html.escape
     ok = [r for r in results if r["status"] != "failed"]
     failed = [r for r in results if r["status"] == "failed"]
     calibrated = sorted({r.get("calibrated_on") or "" for r in ok} - {""})
@@ -196,7 +168,7 @@ def write_study_report(out_dir: str | Path, study, results: Sequence[Mapping]) -
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
-        f"<title>kinefuse study: {e(study.name)}</title><style>{_CSS}</style></head><body>",
+        f"<title>kinefuse study: {e(study.name)}</title><style>{REPORT_CSS}</style></head><body>",
         f'<header><h1>kinefuse study: {e(study.name)}</h1><div class="meta">{meta}</div></header>',
         '<nav><a href="#summary">Summary</a><a href="#distributions">Distributions</a>'
         '<a href="#failed">Failed</a></nav><main>',
@@ -215,7 +187,49 @@ def write_study_report(out_dir: str | Path, study, results: Sequence[Mapping]) -
     parts.append('<section id="distributions"><h2>Distributions over recordings</h2>')
     parts += figures
     parts.append("</section>")
-    parts.append(f'<section id="failed"><h2>Failed tasks ({len(failed)})</h2>')
+    parts.append(_failed_section(failed) + "</main></body></html>")
+    path = out / STUDY_REPORT_NAME
+    tmp = path.with_name(STUDY_REPORT_NAME + ".part")
+    tmp.write_text("\n".join(parts), encoding="utf-8")
+    tmp.replace(path)
+    return path
+
+
+def _distribution_figures(fig_dir: Path, results, has_outage: bool) -> list[str]:
+    """Box plots over recordings, written as PNGs and returned as inline ``<figure>`` HTML."""
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    e = html.escape
+    figures: list[str] = []
+
+    def emit(key: str, fig, alt: str, caption: str) -> None:
+        data = plots.figure_to_png(fig, fig_dir / f"{key}.png")
+        b64 = base64.b64encode(data).decode("ascii")
+        figures.append(
+            f'<figure><img alt="{e(alt)}" src="data:image/png;base64,{b64}">'
+            f"<figcaption>{e(caption)} (also <code>figures/{e(key)}.png</code>)</figcaption></figure>"
+        )
+
+    panels = [("rmse_3d", "all", "3-D RMSE per recording, all samples")]
+    panels.append(("error_cdf_0.9", "all", "Error at CDF 0.9 per recording, all samples"))
+    if has_outage:
+        panels.append(("rmse_3d", "outage", "3-D RMSE per recording, inside camera outages"))
+    for metric, subset, title in panels:
+        data = collect(results, metric, subset)
+        if data:
+            emit(
+                f"study_{metric.replace('.', '_')}_{subset}",
+                _box_figure(data, title, "m"),
+                title,
+                f"{title}: box = quartiles, line = median, whiskers 1.5 IQR; one value per "
+                "recording.",
+            )
+    return figures
+
+
+def _failed_section(failed) -> str:
+    """The failed tasks as an HTML section (recording, method, error)."""
+    e = html.escape
+    parts = [f'<section id="failed"><h2>Failed tasks ({len(failed)})</h2>']
     if failed:
         parts.append(
             '<table class="results"><tr><th>Recording</th><th>Method</th><th>Error</th></tr>'
@@ -228,9 +242,5 @@ def write_study_report(out_dir: str | Path, study, results: Sequence[Mapping]) -
         parts.append("</table>")
     else:
         parts.append("<p>None.</p>")
-    parts.append("</section></main></body></html>")
-    path = out / STUDY_REPORT_NAME
-    tmp = path.with_name(STUDY_REPORT_NAME + ".part")
-    tmp.write_text("\n".join(parts), encoding="utf-8")
-    tmp.replace(path)
-    return path
+    parts.append("</section>")
+    return "\n".join(parts)

@@ -23,13 +23,21 @@ starts no cluster.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 
+from rich import progress as rp
+from rich.console import Console
+
+from kinefuse import _compile  # sets NUMBA_CACHE_DIR when the package is read-only
+from kinefuse.batch.report import summary_table, write_study_report
 from kinefuse.batch.study import Study
 from kinefuse.batch.table import flatten, write_table
 from kinefuse.batch.tasks import clean_temporaries, is_finished, read_result, run_task
+from kinefuse.evaluation.tables import ResultTable, TableRow
 from kinefuse.exceptions import InputError
 
 __all__ = ["MAX_ATTEMPTS", "compare_workers", "run_study", "start_local_cluster"]
@@ -40,9 +48,7 @@ _POLL_S = 0.25
 
 
 def _numba_cache_dir() -> str:
-    """The numba cache directory every worker shares (this process's)."""
-    import kinefuse._compile  # noqa: F401  (sets NUMBA_CACHE_DIR when the package is read-only)
-
+    """The numba cache directory every worker shares (this process's, set by :mod:`kinefuse._compile`)."""
     explicit = os.environ.get("NUMBA_CACHE_DIR")
     if explicit:
         return explicit
@@ -86,8 +92,6 @@ def start_local_cluster(n_workers: int | None = None, *, dashboard: bool = False
 
 
 def _has_bokeh() -> bool:
-    import importlib.util
-
     return importlib.util.find_spec("bokeh") is not None
 
 
@@ -112,26 +116,15 @@ class _Progress:
         self.bar = None
         if quiet:
             return
-        from rich.console import Console
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            SpinnerColumn,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
-
-        self.bar = Progress(
-            SpinnerColumn(),
-            TextColumn("study"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("{task.fields[running]} running · {task.fields[failed]} failed"),
-            TextColumn("ETA"),
-            TimeRemainingColumn(),
-            TimeElapsedColumn(),
+        self.bar = rp.Progress(
+            rp.SpinnerColumn(),
+            rp.TextColumn("study"),
+            rp.BarColumn(),
+            rp.MofNCompleteColumn(),
+            rp.TextColumn("{task.fields[running]} running · {task.fields[failed]} failed"),
+            rp.TextColumn("ETA"),
+            rp.TimeRemainingColumn(),
+            rp.TimeElapsedColumn(),
             console=Console(stderr=True),
             transient=True,
         )
@@ -255,9 +248,7 @@ def _schedule(
 
 
 def _kernels_cached() -> bool:
-    from kinefuse._compile import kernels_cached
-
-    return kernels_cached()
+    return _compile.kernels_cached()
 
 
 def _client(scheduler: str | None, workers: int | None, dashboard: bool):
@@ -331,52 +322,31 @@ def run_study(
         raise InputError(f"output folder {out_dir} exists and is not a folder")
     out_dir.mkdir(parents=True, exist_ok=True)
     clean_temporaries(out_dir)
-    results: dict[str, dict] = {}
-    pending = []
-    for t in study.tasks:
-        if t.error is not None:
-            results[t.key] = run_task(t, str(out_dir), force, study.name)
-        elif not force and is_finished(out_dir, t):
-            results[t.key] = read_result(out_dir, t)
-        else:
-            pending.append(t)
-    n_pre = len(results)
+    results, pending = _known_results(study, force)
     cluster_desc, link = "none (nothing to run)", None
     tasks_wall = 0.0
     if pending:
-        own = client is None
-        cluster = None
-        if own:
-            client, cluster, cluster_desc = _client(scheduler, workers, dashboard)
-        else:
-            cluster_desc = "given client"
-        link = _dashboard_link(client)
-        if on_event:
-            on_event("started", client)
-        prog = _Progress(len(study.tasks), n_pre, quiet)
-        if link and not quiet:
-            from rich.console import Console
-
-            Console(stderr=True).print(f"Dask dashboard: {link}")
-        fresh: dict[str, dict] = {}
-        t0 = time.perf_counter()
-        try:
-            _schedule(client, pending, study, force, fresh, prog, n_pre, on_event)
-        finally:
-            tasks_wall = time.perf_counter() - t0
-            prog.close()
-            if own:
-                client.close()
-                if cluster is not None:
-                    cluster.close()
+        fresh, cluster_desc, link, tasks_wall = _run_pending(
+            study, pending, len(results), force=force, workers=workers, scheduler=scheduler,
+            dashboard=dashboard, quiet=quiet, client=client, on_event=on_event,
+        )  # fmt: skip
         results.update(fresh)
     ordered = [results[t.key] for t in study.tasks]
-    paths = write_table(out_dir, flatten(ordered))
+    summary = _summary(study, ordered, cluster_desc, link, tasks_wall)
+    if report:
+        summary["report"] = write_study_report(out_dir, study, ordered)
+    summary["wall_s"] = time.perf_counter() - t_start
+    return summary
+
+
+def _summary(study: Study, ordered: list, cluster_desc: str, link, tasks_wall: float) -> dict:
+    """Write the study table; the run's summary (without ``report`` and ``wall_s``)."""
+    paths = write_table(study.out_dir, flatten(ordered))
     counts = {k: sum(1 for r in ordered if r["status"] == k) for k in ("done", "skipped", "failed")}
     counts["total"] = len(ordered)
-    summary = {
+    return {
         "study": study.name,
-        "out_dir": out_dir,
+        "out_dir": study.out_dir,
         "counts": counts,
         "failed": [
             (f"{r['recording']}/{r['method'] or '-'}", r["error"])
@@ -389,12 +359,51 @@ def run_study(
         "table": paths,
         "results": ordered,
     }
-    if report:
-        from kinefuse.batch.report import write_study_report
 
-        summary["report"] = write_study_report(out_dir, study, ordered)
-    summary["wall_s"] = time.perf_counter() - t_start
-    return summary
+
+def _known_results(study: Study, force: bool) -> tuple[dict[str, dict], list]:
+    """Results of tasks that need no cluster (broken sessions, finished earlier) and the rest."""
+    out_dir = study.out_dir
+    results: dict[str, dict] = {}
+    pending = []
+    for t in study.tasks:
+        if t.error is not None:
+            results[t.key] = run_task(t, str(out_dir), force, study.name)
+        elif not force and is_finished(out_dir, t):
+            results[t.key] = read_result(out_dir, t)
+        else:
+            pending.append(t)
+    return results, pending
+
+
+def _run_pending(
+    study, pending, n_pre, *, force, workers, scheduler, dashboard, quiet, client, on_event
+):
+    """Run ``pending`` on the requested cluster: (results, cluster, dashboard link, tasks wall s)."""
+    own = client is None
+    cluster = None
+    if own:
+        client, cluster, cluster_desc = _client(scheduler, workers, dashboard)
+    else:
+        cluster_desc = "given client"
+    link = _dashboard_link(client)
+    if on_event:
+        on_event("started", client)
+    prog = _Progress(len(study.tasks), n_pre, quiet)
+    if link and not quiet:
+        Console(stderr=True).print(f"Dask dashboard: {link}")
+    fresh: dict[str, dict] = {}
+    t0 = time.perf_counter()
+    try:
+        _schedule(client, pending, study, force, fresh, prog, n_pre, on_event)
+    finally:
+        tasks_wall = time.perf_counter() - t0
+        prog.close()
+        if own:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    return fresh, cluster_desc, link, tasks_wall
 
 
 def compare_workers(study: Study, counts: Sequence[int], *, quiet: bool = False) -> list[Mapping]:
@@ -404,15 +413,11 @@ def compare_workers(study: Study, counts: Sequence[int], *, quiet: bool = False)
     first so no run pays the compile cost. Returns one mapping per count: ``workers``,
     ``wall_s`` (cluster start to report), ``tasks_wall_s``, ``counts``.
     """
-    from dataclasses import replace
-
-    from kinefuse.batch.tasks import run_task as _run
-
     if not _kernels_cached() and study.tasks:  # compile before any timed run
         warm = replace(study, out_dir=study.out_dir / "compare" / "warm-up")
         first = next((t for t in study.tasks if t.error is None), None)
         if first is not None:
-            _run(first, str(warm.out_dir), True, study.name)
+            run_task(first, str(warm.out_dir), True, study.name)
     runs = []
     for n in counts:
         sub = replace(study, out_dir=study.out_dir / "compare" / f"workers-{n}")
@@ -430,9 +435,6 @@ def compare_workers(study: Study, counts: Sequence[int], *, quiet: bool = False)
 
 def summary_tables(summary: Mapping) -> list:
     """The tables ``kinefuse batch`` prints: run, errors over recordings, failed tasks."""
-    from kinefuse.batch.report import summary_table
-    from kinefuse.evaluation.tables import ResultTable, TableRow
-
     c = summary["counts"]
     items = [
         (
@@ -471,8 +473,6 @@ def summary_tables(summary: Mapping) -> list:
 
 def compare_table(runs: Sequence[Mapping]):
     """Wall time per worker count and the speed-up over the first count."""
-    from kinefuse.evaluation.tables import ResultTable, TableRow
-
     base = runs[0]
     rows = tuple(
         TableRow(

@@ -54,7 +54,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from kinefuse.exceptions import ConfigError
-from kinefuse.session_file import METHODS, _Ctx, read_toml
+from kinefuse.session_file import METHODS, _Ctx, load_session, read_toml
 
 __all__ = ["Study", "Task", "load_study", "study_from_sessions"]
 
@@ -161,8 +161,6 @@ def _check_sections(c: _Ctx, doc: Mapping, where: str, *, extra: tuple[str, ...]
     made of ``doc`` over a minimal valid one, so the allowed keys have one source of truth;
     only its "unknown ..." errors are reported here (everything else is checked per recording).
     """
-    from kinefuse.session_file import load_session
-
     if "session" in doc:
         raise c.error(where, "session", "not allowed here", "each recording names its own session")
     body = {k: v for k, v in doc.items() if k not in extra}
@@ -271,8 +269,6 @@ def _task_list(
     c: _Ctx | None,
 ) -> tuple[Task, ...]:
     """Merge defaults and overrides into each recording; one Task per recording x method."""
-    from kinefuse.session_file import load_session
-
     tasks: list[Task] = []
     seen: dict[str, Path] = {}
     for name, source, doc, error in entries:
@@ -346,6 +342,16 @@ def load_study(path: str | Path) -> Study:
     _check_sections(c, defaults, "defaults")
     defaults = _absolute_paths(defaults, base)
 
+    overrides = _overrides(c, doc, base)
+    entries: list[tuple[str, Path, dict, str | None]] = []
+    for i, r in enumerate(_recording_tables(c, doc), start=1):
+        entries += _recording_entries(c, r, f"recordings #{i}", base, p)
+    tasks = _task_list(entries, defaults, overrides, methods, c)
+    return Study(name=name, path=p, out_dir=out_dir, tasks=tasks)
+
+
+def _overrides(c: _Ctx, doc: Mapping, base: Path) -> list:
+    """``[overrides."PATTERN"]`` tables: ``(pattern, body with absolute paths, methods)``."""
     overrides = []
     ov = c.table(doc, "overrides", required=False) or {}
     for pattern, body in ov.items():
@@ -356,7 +362,11 @@ def load_study(path: str | Path) -> Study:
         over_methods = _methods(c, body, where)
         body = _absolute_paths({k: v for k, v in body.items() if k != "methods"}, base)
         overrides.append((pattern, body, over_methods))
+    return overrides
 
+
+def _recording_tables(c: _Ctx, doc: Mapping) -> list:
+    """The ``[[recordings]]`` tables (one table is accepted as a list of one)."""
     recs = doc.get("recordings")
     if recs is None:
         raise c.error(
@@ -366,52 +376,55 @@ def load_study(path: str | Path) -> Study:
         recs = [recs]
     if not isinstance(recs, list) or not recs:
         raise c.error("recordings", None, "expected [[recordings]] tables")
-    entries: list[tuple[str, Path, dict, str | None]] = []
-    for i, r in enumerate(recs, start=1):
-        where = f"recordings #{i}"
-        if not isinstance(r, dict):
-            raise c.error(where, None, "expected a table", "write it as [[recordings]]")
-        c.check_keys(r, where, _RECORDING_KEYS)
-        if ("sessions" in r) == ("files" in r):
-            raise c.error(
-                where,
-                None,
-                "needs exactly one of sessions = [...] (session files) or files = '...' (data "
-                "files with a [recordings.session] template)",
-            )
-        if "sessions" in r:
-            for bad in ("pattern", "session"):
-                if bad in r:
-                    raise c.error(where, bad, "only used with files = '...'")
-            for f in _expand(_strings(c, r, where, "sessions"), base, c, where, "sessions"):
-                entries.append(_session_entry(f))
-            continue
-        template = r.get("session")
-        if not isinstance(template, dict):
-            raise c.error(
-                where,
-                "session",
-                "missing",
-                "add a [recordings.session] table: the session with {path} placeholders",
-            )
-        pattern = None
-        if "pattern" in r:
-            raw = c.string(r, where, "pattern")
-            try:
-                pattern = re.compile(raw)
-            except re.error as exc:
-                raise c.error(where, "pattern", f"not a valid regular expression: {exc}") from None
-        for f in _expand(_strings(c, r, where, "files"), base, c, where, "files"):
-            fields = {"path": str(f), "dir": str(f.parent), "stem": f.stem, "name": f.name}
-            if pattern is not None:
-                m = pattern.search(f.name)
-                if m is None:
-                    raise c.error(where, "pattern", f"does not match the file name {f.name!r}")
-                fields.update({k: v for k, v in m.groupdict().items() if v is not None})
-            body = _absolute_paths(_fill(template, fields, c, where), base)
-            entries.append((_session_name(body, f.stem), p, body, None))
-    tasks = _task_list(entries, defaults, overrides, methods, c)
-    return Study(name=name, path=p, out_dir=out_dir, tasks=tasks)
+    return recs
+
+
+def _recording_entries(c: _Ctx, r, where: str, base: Path, p: Path) -> list:
+    """One ``[[recordings]]`` table's entries ``(name, source, session document, error)``."""
+    if not isinstance(r, dict):
+        raise c.error(where, None, "expected a table", "write it as [[recordings]]")
+    c.check_keys(r, where, _RECORDING_KEYS)
+    if ("sessions" in r) == ("files" in r):
+        raise c.error(
+            where,
+            None,
+            "needs exactly one of sessions = [...] (session files) or files = '...' (data "
+            "files with a [recordings.session] template)",
+        )
+    if "sessions" in r:
+        for bad in ("pattern", "session"):
+            if bad in r:
+                raise c.error(where, bad, "only used with files = '...'")
+        return [
+            _session_entry(f)
+            for f in _expand(_strings(c, r, where, "sessions"), base, c, where, "sessions")
+        ]
+    template = r.get("session")
+    if not isinstance(template, dict):
+        raise c.error(
+            where,
+            "session",
+            "missing",
+            "add a [recordings.session] table: the session with {path} placeholders",
+        )
+    pattern = None
+    if "pattern" in r:
+        raw = c.string(r, where, "pattern")
+        try:
+            pattern = re.compile(raw)
+        except re.error as exc:
+            raise c.error(where, "pattern", f"not a valid regular expression: {exc}") from None
+    entries = []
+    for f in _expand(_strings(c, r, where, "files"), base, c, where, "files"):
+        fields = {"path": str(f), "dir": str(f.parent), "stem": f.stem, "name": f.name}
+        if pattern is not None:
+            m = pattern.search(f.name)
+            if m is None:
+                raise c.error(where, "pattern", f"does not match the file name {f.name!r}")
+            fields.update({k: v for k, v in m.groupdict().items() if v is not None})
+        body = _absolute_paths(_fill(template, fields, c, where), base)
+        entries.append((_session_name(body, f.stem), p, body, None))
+    return entries
 
 
 def _session_entry(f: Path) -> tuple[str, Path, dict, str | None]:

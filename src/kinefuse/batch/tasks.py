@@ -1,7 +1,7 @@
 """One batch task: one recording x one method through ``kinefuse run``'s code path.
 
 :func:`run_task` runs on a Dask worker (or in-process). It calls
-:func:`kinefuse.pipelines.session.run_session` on the task's validated session, so a
+:func:`kinefuse.pipelines.run.run_session` on the task's validated session, so a
 recording's outputs are exactly those of ``kinefuse run`` (joint CSV, TRC, ``report.html``,
 ``figures/``, ``metrics.json``), plus ``result.json``: the task's rows of the study table.
 
@@ -23,6 +23,9 @@ import uuid
 from pathlib import Path
 
 from kinefuse.batch.study import Task, safe_name
+from kinefuse.exceptions import InputError
+from kinefuse.pipelines.run import run_session
+from kinefuse.session_file import load_session
 
 __all__ = ["RESULT_NAME", "is_finished", "read_result", "run_task", "task_dir"]
 
@@ -50,8 +53,6 @@ def read_result(out_dir: str | Path, task: Task) -> dict:
 
 def one_line(exc: BaseException) -> str:
     """The error line a failed task records (kinefuse errors as such, others with their type)."""
-    from kinefuse.exceptions import InputError
-
     msg = " ".join(str(exc).split())
     if isinstance(exc, (InputError, FileExistsError)):
         return msg
@@ -150,9 +151,6 @@ def run_task(task: Task, out_dir: str, force: bool = False, study: str = "") -> 
         return read_result(out_dir, task)
     if task.error is not None:
         return {**base, "status": "failed", "error": " ".join(task.error.split()), "rows": []}
-    from kinefuse.pipelines.run import run_session
-    from kinefuse.session_file import load_session
-
     tmp = final.with_name(f"{_TMP_PREFIX}{final.name}-{uuid.uuid4().hex[:8]}")
     t0 = time.perf_counter()
     try:

@@ -18,7 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from kinefuse import __version__
 from kinefuse.evaluation import plots, tables
+from kinefuse.evaluation.report import REPORT_CSS, REPORT_NAME
 from kinefuse.exceptions import InputError
 
 __all__ = ["angle_figure", "angle_section", "range_of_motion_table", "write_angle_report"]
@@ -113,9 +115,6 @@ def write_angle_report(
     Also writes ``figures/joint_angles.png`` and ``provenance.json`` (which data calibrated
     what). Refuses to overwrite ``report.html`` unless ``force`` (FileExistsError).
     """
-    from kinefuse import __version__
-    from kinefuse.evaluation.report import _CSS, REPORT_NAME
-
     out = Path(out_dir)
     path = out / REPORT_NAME
     if path.exists() and not force:
@@ -130,7 +129,7 @@ def write_angle_report(
     )
     parts = [
         '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">',
-        f"<title>{e(title)}</title><style>{_CSS}</style></head><body>",
+        f"<title>{e(title)}</title><style>{REPORT_CSS}</style></head><body>",
         f'<header><h1>{e(title)}</h1><div class="meta">{meta}</div></header><main>',
     ]
     if notes:

@@ -155,17 +155,9 @@ def rmse_per_axis(est, ref, mask=None) -> np.ndarray:
 def mean_rmse(est, ref, mask=None) -> np.ndarray:
     """The papers' "Mean" RMSE: the arithmetic mean of the three per-axis RMSEs (SPEC §14).
 
-    Parameters
-    ----------
-    est, ref : array_like, shape (..., T, 3)
-        Estimated and reference positions, m.
-    mask : array_like of bool, shape (..., T), optional
-        Use only samples where True.
-
-    Returns
-    -------
-    ndarray, shape (...)
-        ``(RMSE_x + RMSE_y + RMSE_z) / 3``, m; NaN where no sample is valid.
+    ``est``, ``ref`` (``(..., T, 3)``, m) and ``mask`` (``(..., T)``) as in
+    :func:`rmse_per_axis`. Returns ``(RMSE_x + RMSE_y + RMSE_z) / 3``, shape ``(...)``, m; NaN
+    where no sample is valid.
 
     Notes
     -----
@@ -176,19 +168,10 @@ def mean_rmse(est, ref, mask=None) -> np.ndarray:
 
 
 def rmse_3d(est, ref, mask=None) -> np.ndarray:
-    """3-D RMSE: ``sqrt(mean_k ||est_k - ref_k||²)``.
+    """3-D RMSE: ``sqrt(mean_k ||est_k - ref_k||²)``, shape ``(...)``, m.
 
-    Parameters
-    ----------
-    est, ref : array_like, shape (..., T, 3)
-        Estimated and reference positions, m.
-    mask : array_like of bool, shape (..., T), optional
-        Use only samples where True.
-
-    Returns
-    -------
-    ndarray, shape (...)
-        m; NaN where no sample is valid. Equals ``sqrt(sum_a RMSE_a²)``.
+    ``est``, ``ref`` and ``mask`` as in :func:`rmse_per_axis`; NaN where no sample is valid.
+    Equals ``sqrt(sum_a RMSE_a²)``.
     """
     d2, n = _sq_error(est, ref, mask)
     return np.sqrt(_divide(d2.sum(axis=(-2, -1)), n))
@@ -250,12 +233,10 @@ def error_at(est, ref, *, p: float = 0.9, mask=None) -> np.ndarray:
 
     Parameters
     ----------
-    est, ref : array_like, shape (..., T, 3)
-        Estimated and reference positions, m.
+    est, ref, mask
+        As in :func:`rmse_per_axis`: positions ``(..., T, 3)`` in m, samples used ``(..., T)``.
     p : float in (0, 1]
         CDF level; 0.9 is the level both papers read off their CDF figures.
-    mask : array_like of bool, shape (..., T), optional
-        Use only samples where True.
 
     Returns
     -------
@@ -568,34 +549,10 @@ def evaluate(
     axes = tuple(axes)
     if len(axes) != 3:
         raise InputError(f"expected 3 axis names, got {axes}")
-    est = []
-    for name, value in estimates.items():
-        e = _positions(value, f"estimates[{name!r}]")
-        if e.shape != ref.shape:
-            raise InputError(
-                f"expected estimates[{name!r}] with shape (T, J, 3) = {ref.shape}, got {e.shape}"
-            )
-        est.append(e)
-    E = np.stack(est)  # (M, T, J, 3)
-    E = np.moveaxis(E, 1, 2)  # (M, J, T, 3)
+    E = _stacked_estimates(estimates, ref)  # (M, J, T, 3)
     R = np.moveaxis(ref, 0, 1)[None]  # (1, J, T, 3)
-    if outage_mask is not None:
-        om = np.asarray(outage_mask)
-        if om.dtype != bool or om.shape != (T, J):
-            raise InputError(
-                f"expected outage_mask as bool with shape (T, J) = {(T, J)}, got {om.shape} {om.dtype}"
-            )
-        om = om.copy()
-    else:
-        om = None
-    rt = {}
-    for k, v in (run_time_s or {}).items():
-        if k not in estimates:
-            raise InputError(
-                f"run_time_s has method {k!r} that is not in estimates {list(estimates)}"
-            )
-        rt[k] = float(v)
-
+    om = _outage_mask(outage_mask, T, J)
+    rt = _run_times(run_time_s, estimates)
     both = np.isfinite(E).all(-1) & np.isfinite(R).all(-1)  # (M, J, T)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -604,26 +561,7 @@ def evaluate(
         r3 = rmse_3d(E, R)
         e_at = error_at(E, R, p=p)
         errors = position_error(E, R)
-        subsets = {}  # "_outage" (inside camera outages), "_in_view" (outside them)
-        for sfx, inside in (("_outage", True), ("_in_view", False)):
-            if om is not None:
-                sel = np.moveaxis(om == inside, 0, 1)[None]  # (1, J, T)
-                r_s = rmse_per_axis(E, R, sel)
-                subsets[sfx] = (
-                    r_s,
-                    r_s.mean(-1),
-                    rmse_3d(E, R, sel),
-                    error_at(E, R, p=p, mask=sel),
-                    (both & sel).sum(-1),
-                )
-            else:
-                subsets[sfx] = (
-                    np.full_like(rmse, np.nan),
-                    np.full_like(mean, np.nan),
-                    np.full_like(r3, np.nan),
-                    np.full_like(e_at, np.nan),
-                    np.zeros(mean.shape, dtype=np.int64),
-                )
+        subsets = _subset_metrics(E, R, om, both, p, (rmse, mean, r3, e_at))
     names_s = ("rmse", "mean_rmse", "rmse_3d", "error_at_p", "n_samples")
     per_subset = {
         n + sfx: v for sfx, vals in subsets.items() for n, v in zip(names_s, vals, strict=True)
@@ -645,3 +583,67 @@ def evaluate(
         run_time_s=rt,
         n_steps=int(T),
     )
+
+
+def _stacked_estimates(estimates: Mapping, ref: np.ndarray) -> np.ndarray:
+    """The methods' positions, validated against ``ref`` (T, J, 3), as (M, J, T, 3)."""
+    est = []
+    for name, value in estimates.items():
+        e = _positions(value, f"estimates[{name!r}]")
+        if e.shape != ref.shape:
+            raise InputError(
+                f"expected estimates[{name!r}] with shape (T, J, 3) = {ref.shape}, got {e.shape}"
+            )
+        est.append(e)
+    E = np.stack(est)  # (M, T, J, 3)
+    return np.moveaxis(E, 1, 2)  # (M, J, T, 3)
+
+
+def _run_times(run_time_s, estimates) -> dict[str, float]:
+    """Run time per method, s, for methods among the estimates."""
+    rt = {}
+    for k, v in (run_time_s or {}).items():
+        if k not in estimates:
+            raise InputError(
+                f"run_time_s has method {k!r} that is not in estimates {list(estimates)}"
+            )
+        rt[k] = float(v)
+    return rt
+
+
+def _outage_mask(outage_mask, T: int, J: int) -> np.ndarray | None:
+    """A copy of the (T, J) boolean outage mask, validated; None when not given."""
+    if outage_mask is None:
+        return None
+    om = np.asarray(outage_mask)
+    if om.dtype != bool or om.shape != (T, J):
+        raise InputError(
+            f"expected outage_mask as bool with shape (T, J) = {(T, J)}, got {om.shape} {om.dtype}"
+        )
+    return om.copy()
+
+
+def _subset_metrics(E, R, om, both, p, overall) -> dict[str, tuple]:
+    """Metrics inside (``"_outage"``) and outside (``"_in_view"``) camera outages (NaN without)."""
+    rmse, mean, r3, e_at = overall
+    subsets = {}
+    for sfx, inside in (("_outage", True), ("_in_view", False)):
+        if om is not None:
+            sel = np.moveaxis(om == inside, 0, 1)[None]  # (1, J, T)
+            r_s = rmse_per_axis(E, R, sel)
+            subsets[sfx] = (
+                r_s,
+                r_s.mean(-1),
+                rmse_3d(E, R, sel),
+                error_at(E, R, p=p, mask=sel),
+                (both & sel).sum(-1),
+            )
+        else:
+            subsets[sfx] = (
+                np.full_like(rmse, np.nan),
+                np.full_like(mean, np.nan),
+                np.full_like(r3, np.nan),
+                np.full_like(e_at, np.nan),
+                np.zeros(mean.shape, dtype=np.int64),
+            )
+    return subsets

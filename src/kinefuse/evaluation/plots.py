@@ -16,11 +16,14 @@ from __future__ import annotations
 import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
+from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the 3-D projection)
+from PIL import Image
 
 __all__ = [
     "cdf_figure",
@@ -100,8 +103,6 @@ def figure_to_png(
     fig.savefig(buf, format="png", dpi=dpi, metadata={"Software": "kinefuse"})
     data = buf.getvalue()
     if palette:
-        from PIL import Image
-
         img = Image.open(io.BytesIO(data)).convert("RGB")
         img = img.quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
         out = io.BytesIO()
@@ -191,45 +192,9 @@ def trajectory_figure(
     fig = _figure(10, 8.2)
     axs = fig.subplots(4, 1, sharex=True, gridspec_kw={"height_ratios": [1, 1, 1, 0.9]})
     for a, ax in enumerate(axs[:3]):
-        _shade(ax, t, outage, label=(a == 0))
-        if measurement is not None:
-            ax.plot(
-                t,
-                np.asarray(measurement)[:, a],
-                ".",
-                color="0.35",
-                ms=2.2,
-                zorder=5,  # on top: the "camera only" method runs right under these dots
-                label="camera (input)" if a == 0 else None,
-            )
-        ax.plot(
-            t, ref[:, a], color=_REF_COLOR, lw=1.6, zorder=3, label="reference" if a == 0 else None
-        )
-        for m, est in estimates.items():
-            style = (
-                {"ls": "none", "marker": ".", "ms": 2.5}
-                if m in dotted
-                else {"lw": 1.1, "alpha": 0.9, "ls": styles.get(m, "-")}
-            )
-            ax.plot(
-                t, np.asarray(est)[:, a], color=colors.get(m), label=m if a == 0 else None, **style
-            )
+        _axis_panel(ax, a, t, ref, estimates, measurement, outage, colors, styles, dotted)
         ax.set_ylabel(f"{axis_labels[a]} (m)")
-        ax.grid(alpha=0.3)
-    ax = axs[3]
-    _shade(ax, t, outage)
-    for m, est in estimates.items():
-        err = np.linalg.norm(np.asarray(est) - ref, axis=-1)
-        style = (
-            {"ls": "none", "marker": ".", "ms": 2.5}
-            if m in dotted
-            else {"lw": 1.0, "ls": styles.get(m, "-")}
-        )
-        ax.plot(t, err, color=colors.get(m), **style)
-    ax.set_ylabel("error (m)")
-    ax.set_xlabel("time (s)")
-    ax.grid(alpha=0.3)
-    ax.set_ylim(bottom=0)
+    _error_panel(axs[3], t, ref, estimates, outage, colors, styles, dotted)
     handles, labels = axs[0].get_legend_handles_labels()
     fig.legend(
         handles,
@@ -245,6 +210,51 @@ def trajectory_figure(
         fontweight="bold",
     )
     return fig
+
+
+def _error_panel(ax, t, ref, estimates, outage, colors, styles, dotted) -> None:
+    """The bottom panel of :func:`trajectory_figure`: each method's Euclidean error."""
+    _shade(ax, t, outage)
+    for m, est in estimates.items():
+        err = np.linalg.norm(np.asarray(est) - ref, axis=-1)
+        style = (
+            {"ls": "none", "marker": ".", "ms": 2.5}
+            if m in dotted
+            else {"lw": 1.0, "ls": styles.get(m, "-")}
+        )
+        ax.plot(t, err, color=colors.get(m), **style)
+    ax.set_ylabel("error (m)")
+    ax.set_xlabel("time (s)")
+    ax.grid(alpha=0.3)
+    ax.set_ylim(bottom=0)
+
+
+def _axis_panel(ax, a, t, ref, estimates, measurement, outage, colors, styles, dotted) -> None:
+    """Axis ``a`` of :func:`trajectory_figure`: outages, camera dots, reference, methods."""
+    _shade(ax, t, outage, label=(a == 0))
+    if measurement is not None:
+        ax.plot(
+            t,
+            np.asarray(measurement)[:, a],
+            ".",
+            color="0.35",
+            ms=2.2,
+            zorder=5,  # on top: the "camera only" method runs right under these dots
+            label="camera (input)" if a == 0 else None,
+        )
+    ax.plot(
+        t, ref[:, a], color=_REF_COLOR, lw=1.6, zorder=3, label="reference" if a == 0 else None
+    )
+    for m, est in estimates.items():
+        style = (
+            {"ls": "none", "marker": ".", "ms": 2.5}
+            if m in dotted
+            else {"lw": 1.1, "alpha": 0.9, "ls": styles.get(m, "-")}
+        )
+        ax.plot(
+            t, np.asarray(est)[:, a], color=colors.get(m), label=m if a == 0 else None, **style
+        )
+    ax.grid(alpha=0.3)
 
 
 def cdf_figure(
@@ -412,30 +422,12 @@ def skeleton_figure(
         One panel per instant (two rows when there are more than three), the axes equal
         and fitted to the whole body, a legend of exactly the series drawn.
     """
-    from mpl_toolkits.mplot3d import Axes3D  # noqa: F401  (registers the 3-D projection)
-
     ref = np.asarray(reference, dtype=float)
     colors = dict(colors or method_colors(list(estimates)))
     styles = dict(linestyles or method_linestyles(list(estimates)))
     index = {n: i for i, n in enumerate(joints)}
     bones = [(index[a], index[b]) for a, b in edges if a in index and b in index]
-    b_names, b_pos, b_bones, attach = (), None, [], []
-    if body is not None:
-        b_names, b_pos, b_edges = body
-        b_pos = np.asarray(b_pos, dtype=float)
-        bi = {n: i for i, n in enumerate(b_names)}
-        b_bones = [
-            (bi[a], bi[b])
-            for a, b in b_edges
-            if a in bi and b in bi and not (a in index and b in index)
-        ]
-        # bones from a context joint (not evaluated) to an evaluated joint: drawn per series
-        attach = [
-            (bi[a], index[b]) for a, b in b_edges if a in bi and a not in index and b in index
-        ]
-        attach += [
-            (bi[b], index[a]) for a, b in b_edges if b in bi and b not in index and a in index
-        ]
+    ctx = _body_context(body, index)
     instants = list(instants)
     n = max(len(instants), 1)
     ncols = n if n <= 3 else (n + 1) // 2
@@ -444,8 +436,8 @@ def skeleton_figure(
     pts = [ref[k] for k in instants] + [
         np.asarray(e)[k] for e in estimates.values() for k in instants
     ]
-    if b_pos is not None:
-        pts += [b_pos[k] for k in instants]
+    if ctx.pos is not None:
+        pts += [ctx.pos[k] for k in instants]
     allp = np.concatenate([p[np.all(np.isfinite(p), axis=-1)] for p in pts] or [np.zeros((1, 3))])
     if allp.size == 0:
         allp = np.zeros((1, 3))
@@ -458,30 +450,8 @@ def skeleton_figure(
     ]
     for p_i, k in enumerate(instants):
         ax = fig.add_subplot(nrows, ncols, p_i + 1, projection="3d")
-        if b_pos is not None:
-            q = b_pos[k]
-            for a, b in b_bones:
-                ax.plot(*zip(q[a], q[b], strict=True), color=_BODY_COLOR, lw=3.0, solid_capstyle="round",
-                        label="whole body (reference)" if (p_i == 0 and (a, b) == b_bones[0]) else None)  # fmt: skip
-        for name, arr, col, lw, ls in series:
-            p = arr[k]
-            for a, b in bones:
-                ax.plot(*zip(p[a], p[b], strict=True), color=col, lw=lw, ls=ls)
-            if b_pos is not None:
-                for a, b in attach:
-                    ax.plot(*zip(b_pos[k, a], p[b], strict=True), color=col, lw=lw, ls=ls)
-            ax.scatter(*p.T, color=col, s=16 if name == "reference" else 9, depthshade=False)
-            if p_i == 0:
-                ax.plot([], [], color=col, lw=lw, ls=ls, marker="o", ms=3, label=name)
-        ax.set_xlim(center[0] - half, center[0] + half)
-        ax.set_ylim(center[1] - half, center[1] + half)
-        ax.set_zlim(center[2] - half, center[2] + half)
-        ax.set_box_aspect((1, 1, 1))
-        ax.view_init(elev=12, azim=-60)
-        ax.set_xlabel("x (m)", fontsize="small")
-        ax.set_ylabel("y (m)", fontsize="small")
-        ax.set_zlabel("z, up (m)", fontsize="small")
-        ax.tick_params(labelsize="x-small")
+        _snapshot(ax, k, p_i == 0, series, bones, ctx)
+        _cube_axes(ax, center, half)
         ax.set_title(f"t = {float(np.asarray(t_s)[k]):.2f} s" if t_s is not None else f"sample {k}")
     handles, labels = fig.axes[0].get_legend_handles_labels() if fig.axes else ([], [])
     fig.legend(
@@ -490,6 +460,63 @@ def skeleton_figure(
     )  # fmt: skip
     fig.suptitle("Skeleton snapshots", fontweight="bold")
     return fig
+
+
+class _BodyContext(NamedTuple):
+    """Whole-body context of :func:`skeleton_figure`: positions (T, K, 3), its own bones and
+    the bones from a context joint to an evaluated joint (drawn per series)."""
+
+    pos: np.ndarray | None
+    bones: list[tuple[int, int]]
+    attach: list[tuple[int, int]]
+
+
+def _body_context(body, index: dict[str, int]) -> _BodyContext:
+    if body is None:
+        return _BodyContext(None, [], [])
+    b_names, b_pos, b_edges = body
+    b_pos = np.asarray(b_pos, dtype=float)
+    bi = {n: i for i, n in enumerate(b_names)}
+    b_bones = [
+        (bi[a], bi[b]) for a, b in b_edges if a in bi and b in bi and not (a in index and b in index)
+    ]
+    # bones from a context joint (not evaluated) to an evaluated joint: drawn per series
+    attach = [(bi[a], index[b]) for a, b in b_edges if a in bi and a not in index and b in index]
+    attach += [(bi[b], index[a]) for a, b in b_edges if b in bi and b not in index and a in index]
+    return _BodyContext(b_pos, b_bones, attach)
+
+
+def _snapshot(ax, k: int, first: bool, series, bones, ctx: _BodyContext) -> None:
+    """One 3-D panel at sample ``k``: the body context, then each series' bones and joints."""
+    b_bones = ctx.bones
+    if ctx.pos is not None:
+        q = ctx.pos[k]
+        for a, b in b_bones:
+            ax.plot(*zip(q[a], q[b], strict=True), color=_BODY_COLOR, lw=3.0, solid_capstyle="round",
+                    label="whole body (reference)" if (first and (a, b) == b_bones[0]) else None)  # fmt: skip
+    for name, arr, col, lw, ls in series:
+        p = arr[k]
+        for a, b in bones:
+            ax.plot(*zip(p[a], p[b], strict=True), color=col, lw=lw, ls=ls)
+        if ctx.pos is not None:
+            for a, b in ctx.attach:
+                ax.plot(*zip(ctx.pos[k, a], p[b], strict=True), color=col, lw=lw, ls=ls)
+        ax.scatter(*p.T, color=col, s=16 if name == "reference" else 9, depthshade=False)
+        if first:
+            ax.plot([], [], color=col, lw=lw, ls=ls, marker="o", ms=3, label=name)
+
+
+def _cube_axes(ax, center, half: float) -> None:
+    """Equal 3-D axes of half-width ``half`` about ``center``, a fixed view, small labels."""
+    ax.set_xlim(center[0] - half, center[0] + half)
+    ax.set_ylim(center[1] - half, center[1] + half)
+    ax.set_zlim(center[2] - half, center[2] + half)
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(elev=12, azim=-60)
+    ax.set_xlabel("x (m)", fontsize="small")
+    ax.set_ylabel("y (m)", fontsize="small")
+    ax.set_zlabel("z, up (m)", fontsize="small")
+    ax.tick_params(labelsize="x-small")
 
 
 def rmse_bar_figure(result, *, colors: Mapping[str, str] | None = None) -> Figure:

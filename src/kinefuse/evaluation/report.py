@@ -16,9 +16,11 @@ import json
 import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
+from kinefuse import __version__
 from kinefuse.conventions import MODE_NAMES, SOURCE_NAMES
 from kinefuse.evaluation import plots, tables, viewer
 from kinefuse.evaluation.metrics import EvaluationResult
@@ -29,7 +31,8 @@ __all__ = ["REPORT_NAME", "write_report"]
 #: File name of the report inside ``out_dir``.
 REPORT_NAME = "report.html"
 
-_CSS = """
+#: The report page's style sheet (also used by :mod:`kinefuse.evaluation.angles`).
+REPORT_CSS = """
 :root { --fg:#1d2330; --muted:#5b6475; --line:#d9dee7; --accent:#1f5fbf; --paper:#7a6a3a; }
 * { box-sizing: border-box; }
 body { font: 15px/1.5 system-ui, -apple-system, "Segoe UI", Roboto, "DejaVu Sans", sans-serif;
@@ -205,6 +208,96 @@ def write_report(
         raise FileExistsError(
             f"{report_path} already exists; pass force=True (CLI: --force) to overwrite it, or choose another output folder"
         )
+    d = _checked_inputs(
+        evaluation, trajectories, reference, t_s, outage_mask, measurement, modes, sources, body
+    )
+    unknown = [m for m in viewer_methods or () if m not in evaluation.methods]
+    if unknown:
+        raise InputError(
+            f"viewer_methods {unknown} are not evaluated methods {list(evaluation.methods)}"
+        )
+    style = _Style(
+        plots.method_colors(evaluation.methods),
+        plots.method_linestyles(evaluation.methods),
+        tuple(axis_labels),
+        tuple(dotted),
+    )
+    figures = _write_figures(
+        out / "figures",
+        evaluation,
+        d,
+        style,
+        (mode_names, source_names),
+        skeleton_edges,
+        snapshot_instants,
+        dpi,
+    )
+    t = d.t
+    viewer_html = None
+    if interactive and t.size:
+        viewer_html = viewer.report_viewer_html(
+            t,
+            evaluation.joints,
+            reference=d.ref,
+            estimates=d.traj,
+            colors=style.colors,
+            edges=skeleton_edges,
+            dashed=[m for m, ls in style.linestyles.items() if ls != "-"],
+            sources=d.source_codes,
+            camera=d.meas,
+            body=d.body,
+            shown=None
+            if viewer_methods is None
+            else ["whole body (reference)", "reference", "camera", *viewer_methods],
+            source_names=source_names,
+        )
+    doc = _html(
+        evaluation,
+        figures,
+        title=title,
+        notes=notes,
+        t=t,
+        axis_labels=axis_labels,
+        paper=paper,
+        viewer_html=viewer_html,
+    )
+    if sections:
+        anchor = '<section id="summary">'
+        doc = doc.replace(anchor, "".join(sections) + anchor, 1)
+    tmp = report_path.with_name(REPORT_NAME + ".part")
+    tmp.write_text(doc, encoding="utf-8")
+    tmp.replace(report_path)
+    metrics = {**evaluation.to_dict(), **dict(extra_metrics or {})}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2), encoding="utf-8")
+    return report_path
+
+
+class _Inputs(NamedTuple):
+    """The validated arrays of :func:`write_report` (positions (T, J, 3), codes (T, J))."""
+
+    ref: np.ndarray
+    traj: dict[str, np.ndarray]
+    t: np.ndarray
+    outage: np.ndarray | None
+    meas: np.ndarray | None
+    mode_codes: dict[str, np.ndarray] | None
+    source_codes: dict[str, np.ndarray] | None
+    body: tuple | None
+
+
+class _Style(NamedTuple):
+    """How methods are drawn: colours, line styles, axis names, methods drawn as dots."""
+
+    colors: dict[str, str]
+    linestyles: dict[str, str]
+    axis_labels: tuple[str, ...]
+    dotted: tuple[str, ...]
+
+
+def _checked_inputs(
+    evaluation, trajectories, reference, t_s, outage_mask, measurement, modes, sources, body
+) -> _Inputs:
+    """Validate :func:`write_report`'s arrays against the evaluation's shape (InputError)."""
     if not isinstance(evaluation, EvaluationResult):
         raise InputError(
             f"expected evaluation as an EvaluationResult, got {type(evaluation).__name__}"
@@ -246,72 +339,48 @@ def write_report(
             _as_positions(b_pos, "body positions", (T, len(b_names), 3)),
             list(b_edges),
         )
-    unknown = [m for m in viewer_methods or () if m not in evaluation.methods]
-    if unknown:
-        raise InputError(
-            f"viewer_methods {unknown} are not evaluated methods {list(evaluation.methods)}"
-        )
+    return _Inputs(ref, traj, t, outage, meas, mode_codes, source_codes, body)
 
-    fig_dir = out / "figures"
+
+def _write_figures(
+    fig_dir: Path,
+    evaluation: EvaluationResult,
+    d: _Inputs,
+    style: _Style,
+    code_names,
+    skeleton_edges,
+    snapshot_instants,
+    dpi: int,
+) -> dict[str, str]:
+    """Every figure as a PNG in ``fig_dir``; returns key -> base64 PNG for inlining."""
+    mode_names, source_names = code_names
     fig_dir.mkdir(parents=True, exist_ok=True)
-    colors = plots.method_colors(evaluation.methods)
-    styles = plots.method_linestyles(evaluation.methods)
     figures: dict[str, str] = {}  # key -> base64
 
     def emit(key: str, fig) -> None:
         data = plots.figure_to_png(fig, fig_dir / f"{key}.png", dpi=dpi)
         figures[key] = base64.b64encode(data).decode("ascii")
 
-    emit("summary_rmse", plots.rmse_bar_figure(evaluation, colors=colors))
-    for j, joint in enumerate(joints):
-        slug = _slug(joint)
-        emit(
-            f"trajectory_{slug}",
-            plots.trajectory_figure(
-                t,
-                ref[:, j],
-                {m: traj[m][:, j] for m in evaluation.methods},
-                outage=None if outage is None else outage[:, j],
-                measurement=None if meas is None else meas[:, j],
-                joint=joint,
-                axis_labels=axis_labels,
-                colors=colors,
-                dotted=dotted,
-                linestyles=styles,
-            ),
-        )
-        cdfs = {m: evaluation.cdf(m, joint) for m in evaluation.methods}
-        out_cdfs = (
-            {m: evaluation.cdf(m, joint, outage=True) for m in evaluation.methods}
-            if evaluation.has_outages
-            else None
-        )
-        emit(
-            f"cdf_{slug}",
-            plots.cdf_figure(
-                cdfs,
-                outage_cdfs=out_cdfs,
-                p=evaluation.p,
-                joint=joint,
-                colors=colors,
-                linestyles=styles,
-            ),
-        )
-    if mode_codes:
+    emit("summary_rmse", plots.rmse_bar_figure(evaluation, colors=style.colors))
+    for j, joint in enumerate(evaluation.joints):
+        _joint_figures(emit, evaluation, d, style, j, joint)
+    joints, t, outage = evaluation.joints, d.t, d.outage
+    if d.mode_codes:
         emit(
             "timeline_modes",
             plots.timeline_figure(
-                t, mode_codes, mode_names, joints, outage=outage, title="Filter branch per sample"
+                t, d.mode_codes, mode_names, joints, outage=outage, title="Filter branch per sample"
             ),
         )
-    if source_codes:
+    if d.source_codes:
         emit(
             "timeline_sources",
             plots.timeline_figure(
-                t, source_codes, source_names, joints, outage=outage, title="Data source per sample"
+                t, d.source_codes, source_names, joints, outage=outage, title="Data source per sample"
             ),
         )
     if skeleton_edges:
+        T = t.size
         instants = (
             _default_instants(T, outage)
             if snapshot_instants is None
@@ -324,55 +393,55 @@ def write_report(
             emit(
                 "skeleton",
                 plots.skeleton_figure(
-                    ref,
-                    traj,
+                    d.ref,
+                    d.traj,
                     joints,
                     skeleton_edges,
                     instants,
                     t_s=t,
-                    colors=colors,
-                    linestyles=styles,
-                    body=body,
+                    colors=style.colors,
+                    linestyles=style.linestyles,
+                    body=d.body,
                 ),
             )
-    viewer_html = None
-    if interactive and T:
-        viewer_html = viewer.report_viewer_html(
-            t,
-            joints,
-            reference=ref,
-            estimates=traj,
-            colors=colors,
-            edges=skeleton_edges,
-            dashed=[m for m, ls in styles.items() if ls != "-"],
-            sources=source_codes,
-            camera=meas,
-            body=body,
-            shown=None
-            if viewer_methods is None
-            else ["whole body (reference)", "reference", "camera", *viewer_methods],
-            source_names=source_names,
-        )
+    return figures
 
-    doc = _html(
-        evaluation,
-        figures,
-        title=title,
-        notes=notes,
-        t=t,
-        axis_labels=axis_labels,
-        paper=paper,
-        viewer_html=viewer_html,
+
+def _joint_figures(emit, evaluation: EvaluationResult, d: _Inputs, style: _Style, j, joint):
+    """The trajectory and error-CDF figures of one joint."""
+    slug = _slug(joint)
+    emit(
+        f"trajectory_{slug}",
+        plots.trajectory_figure(
+            d.t,
+            d.ref[:, j],
+            {m: d.traj[m][:, j] for m in evaluation.methods},
+            outage=None if d.outage is None else d.outage[:, j],
+            measurement=None if d.meas is None else d.meas[:, j],
+            joint=joint,
+            axis_labels=style.axis_labels,
+            colors=style.colors,
+            dotted=style.dotted,
+            linestyles=style.linestyles,
+        ),
     )
-    if sections:
-        anchor = '<section id="summary">'
-        doc = doc.replace(anchor, "".join(sections) + anchor, 1)
-    tmp = report_path.with_name(REPORT_NAME + ".part")
-    tmp.write_text(doc, encoding="utf-8")
-    tmp.replace(report_path)
-    metrics = {**evaluation.to_dict(), **dict(extra_metrics or {})}
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2), encoding="utf-8")
-    return report_path
+    cdfs = {m: evaluation.cdf(m, joint) for m in evaluation.methods}
+    out_cdfs = (
+        {m: evaluation.cdf(m, joint, outage=True) for m in evaluation.methods}
+        if evaluation.has_outages
+        else None
+    )
+    emit(
+        f"cdf_{slug}",
+        plots.cdf_figure(
+            cdfs,
+            outage_cdfs=out_cdfs,
+            p=evaluation.p,
+            joint=joint,
+            colors=style.colors,
+            linestyles=style.linestyles,
+        ),
+    )
 
 
 def _img(figures: Mapping[str, str], key: str, alt: str, caption: str) -> str:
@@ -388,8 +457,6 @@ def _img(figures: Mapping[str, str], key: str, alt: str, caption: str) -> str:
 def _html(
     ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper, viewer_html=None
 ) -> str:
-    from kinefuse import __version__
-
     e = html.escape
     duration = float(t[-1] - t[0]) if t.size > 1 else 0.0
     meta = (
@@ -404,7 +471,7 @@ def _html(
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
-        f"<title>{e(title)}</title><style>{_CSS}{viewer.VIEWER_CSS if viewer_html else ''}</style>"
+        f"<title>{e(title)}</title><style>{REPORT_CSS}{viewer.VIEWER_CSS if viewer_html else ''}</style>"
         "</head><body>",
         f'<header><h1>{e(title)}</h1><div class="meta">{meta}</div></header>',
     ]

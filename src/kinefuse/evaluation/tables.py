@@ -22,6 +22,9 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+from rich import box
+from rich.table import Table
+
 from kinefuse.exceptions import InputError
 
 __all__ = [
@@ -189,7 +192,26 @@ def method_table(
         headers.append("Mean, paper (m)")
     if include_counts:
         headers.append("N")
-    pad = (None,) * (len(headers) - 4)
+    rows, empty = _method_rows(
+        result, joint, outage, paper, paper_mode, include_counts, drop_empty, len(headers) - 4
+    )
+    where = "inside camera outages" if outage else "all samples"
+    notes = ["Mean = arithmetic mean of the three per-axis RMSEs (as in the papers)."]
+    if empty:
+        notes.append(_not_applicable(empty, f"at {joint}" + (" inside outages" if outage else "")))
+    return ResultTable(
+        title=title or f"RMSE at {joint}, {where}",
+        label_headers=("Method",),
+        value_headers=tuple(headers),
+        rows=tuple(rows),
+        digits=digits,
+        notes=tuple(notes),
+    )
+
+
+def _method_rows(result, joint, outage, paper, paper_mode, include_counts, drop_empty, n_pad):
+    """Rows of :func:`method_table` and the methods left out for having no sample."""
+    pad = (None,) * n_pad
     rows = []
     empty = []
     for method in result.methods:
@@ -214,18 +236,7 @@ def method_table(
                         (f"{method} (paper)",), _paper_values(paper, method, 4) + pad, paper=True
                     )
                 )
-    where = "inside camera outages" if outage else "all samples"
-    notes = ["Mean = arithmetic mean of the three per-axis RMSEs (as in the papers)."]
-    if empty:
-        notes.append(_not_applicable(empty, f"at {joint}" + (" inside outages" if outage else "")))
-    return ResultTable(
-        title=title or f"RMSE at {joint}, {where}",
-        label_headers=("Method",),
-        value_headers=tuple(headers),
-        rows=tuple(rows),
-        digits=digits,
-        notes=tuple(notes),
-    )
+    return rows, empty
 
 
 def _not_applicable(methods: Sequence[str], where: str) -> str:
@@ -294,39 +305,67 @@ def joint_method_table(
     rows = []
     for joint in joints:
         jp = paper.get(joint) if paper is not None else None
-        for method in result.methods:
-            r = result.row(method, joint)
-            if drop_empty and r["n_samples"] == 0:
-                empty.setdefault(method, []).append(joint)
-                continue
-            vals = [r[a] for a in result.axes] + [r["mean"]]
-            if include_cdf:
-                vals.append(r["error_at_p"])
-            if include_outage:
-                vals.append(result.row(method, joint, in_view=True)["mean"])
-                ro = result.row(method, joint, outage=True)
-                vals.append(ro["mean"])
-                if include_cdf:
-                    vals.append(ro["error_at_p"])
-            pv = _paper_values(jp, method, 4)
-            if paper is not None and paper_mode == "column":
-                vals.append(pv[3] if pv else None)
-            rows.append(TableRow((joint, method), tuple(vals)))
-            if pv and paper_mode == "rows":
+        rows += _joint_rows(
+            result, joint, jp, paper is not None, paper_mode, include_cdf, include_outage,
+            drop_empty, n_extra, empty,
+        )  # fmt: skip
+    return ResultTable(
+        title=title or "RMSE per joint and method (m)",
+        label_headers=("Joint", "Method"),
+        value_headers=tuple(headers),
+        rows=tuple(rows),
+        digits=digits,
+        notes=(*_joint_method_notes(result, pct, include_cdf, include_outage, empty), *notes),
+    )
+
+
+def _joint_rows(
+    result, joint, jp, has_paper, paper_mode, include_cdf, include_outage, drop_empty, n_extra, empty
+) -> list[TableRow]:
+    """The rows of one joint in :func:`joint_method_table` (``empty`` collects left-out methods)."""
+    rows = []
+    for method in result.methods:
+        r = result.row(method, joint)
+        if drop_empty and r["n_samples"] == 0:
+            empty.setdefault(method, []).append(joint)
+            continue
+        vals = _joint_values(result, method, joint, r, include_cdf, include_outage)
+        pv = _paper_values(jp, method, 4)
+        if has_paper and paper_mode == "column":
+            vals.append(pv[3] if pv else None)
+        rows.append(TableRow((joint, method), tuple(vals)))
+        if pv and paper_mode == "rows":
+            rows.append(
+                TableRow((joint, f"{method} (paper)"), tuple(pv) + (None,) * n_extra, paper=True)
+            )
+    if jp is not None and paper_mode == "rows":
+        for method in jp:
+            if method not in result.methods:
+                pv = _paper_values(jp, method, 4)
                 rows.append(
                     TableRow(
                         (joint, f"{method} (paper)"), tuple(pv) + (None,) * n_extra, paper=True
                     )
                 )
-        if jp is not None and paper_mode == "rows":
-            for method in jp:
-                if method not in result.methods:
-                    pv = _paper_values(jp, method, 4)
-                    rows.append(
-                        TableRow(
-                            (joint, f"{method} (paper)"), tuple(pv) + (None,) * n_extra, paper=True
-                        )
-                    )
+    return rows
+
+
+def _joint_values(result, method, joint, r, include_cdf, include_outage) -> list:
+    """One joint-method row's values: axes, mean, then CDF and outage columns as asked."""
+    vals = [r[a] for a in result.axes] + [r["mean"]]
+    if include_cdf:
+        vals.append(r["error_at_p"])
+    if include_outage:
+        vals.append(result.row(method, joint, in_view=True)["mean"])
+        ro = result.row(method, joint, outage=True)
+        vals.append(ro["mean"])
+        if include_cdf:
+            vals.append(ro["error_at_p"])
+    return vals
+
+
+def _joint_method_notes(result, pct, include_cdf, include_outage, empty) -> list[str]:
+    """Footnotes of :func:`joint_method_table`: column definitions, methods not applicable."""
     foot = [
         "All values in m. Mean = arithmetic mean of the three per-axis RMSEs (as in the papers)."
     ]
@@ -344,14 +383,7 @@ def joint_method_table(
         by_joints.setdefault(tuple(js), []).append(method)
     for js, methods in by_joints.items():
         foot.append(_not_applicable(methods, "at " + ", ".join(js)))
-    return ResultTable(
-        title=title or "RMSE per joint and method (m)",
-        label_headers=("Joint", "Method"),
-        value_headers=tuple(headers),
-        rows=tuple(rows),
-        digits=digits,
-        notes=(*foot, *notes),
-    )
+    return foot
 
 
 def timing_table(
@@ -415,9 +447,6 @@ def _best_per_column(table: ResultTable) -> dict[tuple[int, int], bool]:
 
 def to_rich(table: ResultTable):
     """Render as a :class:`rich.table.Table` (paper rows dim italic, best value per column bold)."""
-    from rich import box
-    from rich.table import Table
-
     t = Table(
         title=table.title,
         caption="\n".join(table.notes) or None,

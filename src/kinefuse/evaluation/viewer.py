@@ -217,7 +217,44 @@ def report_viewer_html(
         HTML.
     """
     t = np.asarray(t_s, dtype=float)
-    series = []  # (name, kind, positions (T, n, 3), colour, src, own joints, own edges)
+    series = _series(t, reference, estimates, colors, sources, camera, body)
+    if shown is None:
+        first = [m for m in estimates][:1]
+        shown = ["whole body (reference)", "reference", "camera", *first]
+    values = sum(s[2].shape[1] * 3 for s in series)
+    k = downsample_stride(t, values, max_rate_hz=max_rate_hz, max_bytes=max_bytes)
+    keep = np.arange(0, t.size, k)
+    payload = _payload(t, keep, k, joints, edges, series, shown, dashed, source_names)
+    script, _ = viewer_assets()
+    data = json.dumps(payload, separators=(",", ":")).replace("</", "<\\/")
+    return _section(data, script, len(keep), t, k)
+
+
+def _section(data: str, script: str, n_kept: int, t: np.ndarray, k: int) -> str:
+    """The viewer's ``<section>``: container, note, the JSON data and the inlined scripts."""
+    rate = 1.0 / (k * float(np.median(np.diff(t)))) if t.size > 1 else 0.0
+    e = html.escape
+    note = (
+        f"Drag to orbit, scroll to zoom, right-drag to pan. {n_kept} of {t.size} samples "
+        f"shown ({rate:.0f} Hz); joints coloured by their source per sample, bones by method; "
+        f"the table gives each shown method's Euclidean error per joint at the current time. "
+        f"three.js {e(THREE_VERSION)}, MIT licence, inlined (works offline)."
+    )
+    return (
+        '<section id="viewer"><h2>3-D viewer</h2>'
+        '<div id="kf-viewer" class="kf-viewer"><div class="kf-main"><div class="kf-stage"></div>'
+        '<div class="kf-controls"></div></div><div class="kf-side"></div></div>'
+        f'<p class="note">{note}</p>'
+        f'<script type="application/json" id="kf-viewer-data">{data}</script>'
+        f"<script>{script}</script>"
+        "<script>kinefuseReport(JSON.parse(document.getElementById('kf-viewer-data').textContent));"
+        "</script></section>"
+    )
+
+
+def _series(t, reference, estimates, colors, sources, camera, body) -> list[tuple]:
+    """The drawn series: ``(name, kind, positions (T, n, 3), colour, src, own joints, own edges)``."""
+    series = []
     if body is not None:
         names, pos, bedges = body
         pos = np.asarray(pos, dtype=float)
@@ -247,12 +284,11 @@ def report_viewer_html(
         series.append(
             (m, "method", np.asarray(est, float), colors.get(m, "#444444"), src, None, None)
         )
-    if shown is None:
-        first = [m for m in estimates][:1]
-        shown = ["whole body (reference)", "reference", "camera", *first]
-    values = sum(s[2].shape[1] * 3 for s in series)
-    k = downsample_stride(t, values, max_rate_hz=max_rate_hz, max_bytes=max_bytes)
-    keep = np.arange(0, t.size, k)
+    return series
+
+
+def _payload(t, keep, k, joints, edges, series, shown, dashed, source_names) -> dict:
+    """The viewer's JSON data: the kept frames, quantized positions relative to an origin."""
     center, radius = _bounds([s[2][keep] for s in series])
     origin = np.round(np.asarray(center[:3]), 1)  # positions are sent relative to it
     scale = quantization_scale([s[2][keep] for s in series], origin)
@@ -288,23 +324,4 @@ def report_viewer_html(
             codes = np.where((codes < 0) | (codes > 254), 255, codes).astype(np.uint8)
             entry["src"] = base64.b64encode(codes.tobytes()).decode("ascii")
         payload["series"].append(entry)
-    script, _ = viewer_assets()
-    data = json.dumps(payload, separators=(",", ":")).replace("</", "<\\/")
-    rate = 1.0 / (k * float(np.median(np.diff(t)))) if t.size > 1 else 0.0
-    e = html.escape
-    note = (
-        f"Drag to orbit, scroll to zoom, right-drag to pan. {len(keep)} of {t.size} samples "
-        f"shown ({rate:.0f} Hz); joints coloured by their source per sample, bones by method; "
-        f"the table gives each shown method's Euclidean error per joint at the current time. "
-        f"three.js {e(THREE_VERSION)}, MIT licence, inlined (works offline)."
-    )
-    return (
-        '<section id="viewer"><h2>3-D viewer</h2>'
-        '<div id="kf-viewer" class="kf-viewer"><div class="kf-main"><div class="kf-stage"></div>'
-        '<div class="kf-controls"></div></div><div class="kf-side"></div></div>'
-        f'<p class="note">{note}</p>'
-        f'<script type="application/json" id="kf-viewer-data">{data}</script>'
-        f"<script>{script}</script>"
-        "<script>kinefuseReport(JSON.parse(document.getElementById('kf-viewer-data').textContent));"
-        "</script></section>"
-    )
+    return payload

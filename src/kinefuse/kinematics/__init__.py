@@ -1,14 +1,10 @@
 """Skeleton (parent-index tree), forward kinematics and sensor-to-segment calibration (SPEC §2)."""
 
+from kinefuse.kinematics.alignment import heading_rotation, kabsch_rotation
 from kinefuse.kinematics.angles import JOINT_ANGLE_COMPONENTS, joint_angles
-from kinefuse.kinematics.calibration import (
-    Calibration,
-    calibrate,
-    chain_positions,
-    heading_rotation,
-    kabsch_rotation,
-    segment_orientations,
-)
+from kinefuse.kinematics.calibration import calibrate
+from kinefuse.kinematics.calibration_result import Calibration
+from kinefuse.kinematics.chain import chain_positions, segment_orientations
 from kinefuse.kinematics.forward import as_rotation_matrices, euler_to_matrix, forward_kinematics
 from kinefuse.kinematics.functional import FunctionalCalibration, functional_calibration
 from kinefuse.kinematics.skeleton import (

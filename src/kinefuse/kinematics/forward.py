@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from kinefuse.exceptions import InputError
 from kinefuse.kinematics.skeleton import Skeleton
 
-__all__ = ["as_rotation_matrices", "euler_to_matrix", "forward_kinematics"]
+__all__ = ["as_rotation_matrices", "euler_to_matrix", "forward_kinematics", "rotation_z"]
 
 
 def euler_to_matrix(gamma, theta, phi) -> np.ndarray:
@@ -46,6 +46,12 @@ def euler_to_matrix(gamma, theta, phi) -> np.ndarray:
     shape = g.shape
     angles = np.stack([-p.ravel(), t.ravel(), g.ravel()], axis=-1)
     return Rotation.from_euler("ZXY", angles).as_matrix().reshape(*shape, 3, 3)
+
+
+def rotation_z(psi: float) -> np.ndarray:
+    """``R_z(ψ)``: rotation by ``psi`` (rad, counter-clockwise seen from above) about z, (3, 3)."""
+    c, s = np.cos(psi), np.sin(psi)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def as_rotation_matrices(value, name: str = "orientation") -> np.ndarray:
@@ -148,6 +154,23 @@ def forward_kinematics(
     gives the paper's chest-frame output), with a configurable axis instead of "first column"
     (SPEC §2.2-1) and hip offsets from the chest origin (SPEC §2.2-4).
     """
+    known = _check_inputs(skeleton, orientations, frame)
+    pos = _root_positions(skeleton, root_position)
+    roots = sorted(pos)
+    matrix = _SegmentMatrices(orientations, known)
+    needs_root_seg = frame == "root_segment" or any(j not in pos for j in skeleton.offsets_m)
+    R0 = None
+    if needs_root_seg and skeleton.root_segment is not None:
+        R0 = matrix(skeleton.root_segment, "root segment: rotates the offsets / output frame")
+    _add_offset_joints(skeleton, pos, R0)
+    _add_chain_joints(skeleton, pos, matrix, roots)
+    if frame == "root_segment":
+        pos = _in_root_segment_frame(skeleton, pos, R0, roots)
+    return pos
+
+
+def _check_inputs(skeleton: Skeleton, orientations, frame: str) -> set[str]:
+    """Validate the arguments of :func:`forward_kinematics`; the segment names it accepts."""
     if not isinstance(skeleton, Skeleton):
         raise InputError(f"expected skeleton as a Skeleton, got {type(skeleton).__name__}")
     if frame not in ("world", "root_segment"):
@@ -162,8 +185,11 @@ def forward_kinematics(
         raise InputError(
             f"unknown segment(s) {unknown} in orientations; expected names from {sorted(known)}"
         )
+    return known
 
-    # roots
+
+def _root_positions(skeleton: Skeleton, root_position) -> dict[str, np.ndarray]:
+    """The given root joint positions, validated, as float arrays ``(..., T, 3)``."""
     if isinstance(root_position, Mapping):
         roots = dict(root_position)
     else:
@@ -180,22 +206,28 @@ def forward_kinematics(
                 f"expected root position {j!r} as floats with shape (..., T, 3), got {a.shape} {a.dtype}"
             )
         pos[j] = a.astype(float)
+    return pos
 
-    mats: dict[str, np.ndarray] = {}
 
-    def matrix(seg: str, why: str) -> np.ndarray:
-        if seg not in mats:
-            if seg not in orientations:
+class _SegmentMatrices:
+    """Rotation matrices of the segments, converted once on first use."""
+
+    def __init__(self, orientations: Mapping[str, object], known: set[str]):
+        self.orientations, self.known, self.mats = orientations, known, {}
+
+    def __call__(self, seg: str, why: str) -> np.ndarray:
+        if seg not in self.mats:
+            if seg not in self.orientations:
                 raise InputError(
-                    f"missing orientation for segment {seg!r} ({why}); expected keys {sorted(known)}, "
-                    f"got {sorted(orientations)}"
+                    f"missing orientation for segment {seg!r} ({why}); expected keys {sorted(self.known)}, "
+                    f"got {sorted(self.orientations)}"
                 )
-            mats[seg] = as_rotation_matrices(orientations[seg], f"orientations[{seg!r}]")
-        return mats[seg]
+            self.mats[seg] = as_rotation_matrices(self.orientations[seg], f"orientations[{seg!r}]")
+        return self.mats[seg]
 
-    needs_root_seg = frame == "root_segment" or any(j not in pos for j in skeleton.offsets_m)
-    if needs_root_seg and skeleton.root_segment is not None:
-        R0 = matrix(skeleton.root_segment, "root segment: rotates the offsets / output frame")
+
+def _add_offset_joints(skeleton: Skeleton, pos: dict, R0) -> None:
+    """Joints at a fixed offset from the root in the root segment's frame, added to ``pos``."""
     for j, off in skeleton.offsets_m.items():
         if j in pos:
             continue
@@ -214,6 +246,9 @@ def forward_kinematics(
             )
         pos[j] = pos[skeleton.root] + np.einsum("...ij,j->...i", R0, off)
 
+
+def _add_chain_joints(skeleton: Skeleton, pos: dict, matrix, roots: list[str]) -> None:
+    """Every segment's distal joint, ``p_distal = p_proximal + l R a``, added to ``pos``."""
     for i, seg in enumerate(skeleton.segments):
         prox = skeleton.proximal[i]
         if prox not in pos:
@@ -231,13 +266,14 @@ def forward_kinematics(
             "...ij,j->...i", R, skeleton.axes[i]
         )
 
-    if frame == "root_segment":
-        if skeleton.root_segment is None:
-            raise InputError("frame='root_segment' needs a skeleton with a root_segment, got None")
-        if skeleton.root not in pos:
-            raise InputError(
-                f"frame='root_segment' needs the root {skeleton.root!r} position; got {sorted(roots)}"
-            )
-        p0 = pos[skeleton.root]
-        pos = {j: np.einsum("...ji,...j->...i", R0, p - p0) for j, p in pos.items()}
-    return pos
+
+def _in_root_segment_frame(skeleton: Skeleton, pos: dict, R0, roots: list[str]) -> dict:
+    """Paper B's output frame: ``R0ᵀ (p − p_root)`` for every joint."""
+    if skeleton.root_segment is None:
+        raise InputError("frame='root_segment' needs a skeleton with a root_segment, got None")
+    if skeleton.root not in pos:
+        raise InputError(
+            f"frame='root_segment' needs the root {skeleton.root!r} position; got {roots}"
+        )
+    p0 = pos[skeleton.root]
+    return {j: np.einsum("...ji,...j->...i", R0, p - p0) for j, p in pos.items()}

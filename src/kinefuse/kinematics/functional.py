@@ -8,6 +8,64 @@ heading offset between adjacent sensors' world frames estimated from the same jo
 Each segment's axis in its sensor frame is the direction from its proximal to its distal joint
 centre, and its length their distance.
 
+Notes
+-----
+Rigid-body model: a point at ``r`` (sensor frame) on a segment whose sensor measures specific
+force ``a``, angular rate ``ω`` and angular acceleration ``ω̇`` has specific force
+``a + K r`` with ``K = [ω̇]× + [ω]×²``. Two segments joined at a centre share its
+acceleration (Seel et al. 2012, Eq. 8); with the orientations ``R_A, R_B`` this holds in the
+world frame up to the heading ``ψ`` between the sensors' world frames::
+
+    Rz(ψ) R_A(k) (a_A(k) + K_A(k) r_A) = R_B(k) (a_B(k) + K_B(k) r_B)
+
+solved for ``(r_A, r_B, ψ)`` by ``scipy.optimize.least_squares`` from the linear solution at
+``ψ = 0``, both sides low-passed (``cutoff_hz``). ``ψ`` is always free in the fit, which makes the centres immune to the heading
+errors of the orientation filter (the least reliable part of its output). Where the
+proximal segment has no IMU (paper A's shoulder, measured once) the centre is taken as still
+(Crabolu et al. 2017): ``R_B (a_B + K_B r_B) = [0, 0, g]``. ``ω̇`` is the time derivative of
+the gyro.
+
+A segment with sensor ``s``, proximal centre at ``r_P`` and distal centre at ``r_D`` (both in
+frame ``s``) gets the axis ``(r_D − r_P)/‖r_D − r_P‖`` and the length ``‖r_D − r_P‖``.
+Hinge prior: for a joint in ``hinge_joints`` whose axial excitation (the excitation of the
+centre moving along the hinge axis in both frames at once, ``(j_A, j_B)/√2``) is below
+``min_excitation_s2``, ``r_D − r_P`` is first projected on the plane normal to the hinge
+axis (the femoral and tibial mechanical axes are perpendicular to the knee flexion axis
+within a few degrees). CMU's 1-DoF virtual knees give 0.7-0.8 s⁻² (prior used); real knees
+in walking 10-16 s⁻² (Neura, x-IMU3: not used).
+
+Excitation of a joint: ``min`` over its sensors of ``sqrt(λ₂)``, ``λ₂`` the middle
+eigenvalue of ``mean_k K(k)ᵀ K(k)``: the acceleration change per metre of centre error in
+the second-best-determined direction (the best two directions are all a hinge can give; the
+third, along the hinge axis, is not needed to be excited). For a rotation at rate ``ω`` it is
+about ``sqrt(ω⁴ + ω̇²)``; walking gives 5-30 s⁻², a still limb about the gyro noise.
+
+Hinge axis: the invariant axis of the relative rotation, the top singular vectors of
+``mean_k R_A(k)ᵀ R_B(k)`` (the direction part of SARA, Ehrig et al. 2007, J. Biomech.
+40:2150); reported with the RMS relative angular rate about each principal axis (Seel et
+al. 2012/2014: a hinge has one large rate). Seel et al. 2012's gyro-only cost
+``‖ω_A × j_A‖ − ‖ω_B × j_B‖`` was tried and not kept: on CMU virtual walking it was no better
+(≤ 1.1° vs ≤ 0.7°) and in real walking, which rotates mostly about one axis, it is poorly
+determined.
+
+Assumptions and failure modes
+
+- Rigid segments and sensors (soft-tissue motion adds error, mostly at heel strike; the
+  low-pass removes the impact band).
+- The joint is a centre of rotation (ball or hinge). For a pure hinge the centre's position
+  along the axis is not observable (the fit would return the minimum-norm point and tilt
+  the segment axis by ``atan(offset / length)``): the hinge prior above handles it.
+- Orientations of both sensors must be right up to a common heading; inclination errors of
+  ``ε`` rad give acceleration errors of ``g·ε``.
+- The fitted heading also absorbs model error (soft tissue): on the Neura walk, whose IMU
+  frames agree with Vicon within a few degrees, the knee_l and ankle_r fits return −24° and
+  −18° with standard deviations near 1°. Apply it (``heading="estimate"``) only when the
+  frames really differ.
+- Too little motion (a still or slowly moving limb): the centre is undetermined; an
+  :class:`~kinefuse.exceptions.InputError` names the joint whose excitation fell below
+  ``min_excitation_s2``.
+- One-sensor model: only valid while the proximal segment is still.
+
 References
 ----------
 T. Seel, T. Schauer, J. Raisch, "Joint axis and position estimation from inertial measurement
@@ -29,15 +87,14 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.signal import butter, sosfiltfilt
+from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import InputError, NumericalWarning
-from kinefuse.io.recording import ImuStream, Recording
-from kinefuse.kinematics.calibration import Calibration, _imu_orientation
-from kinefuse.kinematics.forward import as_rotation_matrices
-from kinefuse.kinematics.skeleton import Skeleton, _unit_axis, window_mask
-from kinefuse.orientation.resample import slerp_resample
+from kinefuse.io.recording import Recording
+from kinefuse.kinematics.calibration_result import Calibration, oriented_imu
+from kinefuse.kinematics.hinge import hinge_frames
+from kinefuse.kinematics.joint_centre import GRAVITY_M_S2, JointFit, fit_joint, joint_signals
+from kinefuse.kinematics.skeleton import Skeleton, unit_axis, window_mask
 
 __all__ = [
     "CUTOFF_HZ",
@@ -68,9 +125,6 @@ HINGE_JOINTS = ("knee_l", "knee_r")
 #: length raises a warning: height-scaled tables predict segment lengths within about 10 %.
 LENGTH_WARN_FRACTION = 0.25
 
-#: Gravity used by the one-sensor (fixed-centre) model, m/s².
-GRAVITY_M_S2 = 9.81
-
 #: The sensor beyond a skeleton's last joint (the segment after it is not in the skeleton).
 DISTAL_SEGMENTS = {
     "ankle_l": "foot_l",
@@ -78,61 +132,6 @@ DISTAL_SEGMENTS = {
     "wrist_l": "hand_l",
     "wrist_r": "hand_r",
 }
-
-
-@dataclass(frozen=True, eq=False)
-class JointFit:
-    """One joint's functional estimate.
-
-    Attributes
-    ----------
-    joint : str
-        Joint name.
-    proximal, distal : str or None
-        The IMU segments on either side (``proximal`` None: one-sensor fixed-centre model).
-    r_proximal_m, r_distal_m : ndarray, shape (3,), or None
-        Vector from each sensor to the joint centre in that sensor's frame, m.
-    heading_deg : float
-        Heading (rotation about the vertical) taking the proximal sensor's world frame onto the
-        distal sensor's, deg (0 for the one-sensor model).
-    heading_sd_deg : float
-        Its standard deviation from the fit (Gauss-Newton covariance), deg. It only counts the
-        noise: where the rigid model is violated (soft tissue), ``heading_deg`` also absorbs
-        model error and can be far off while ``heading_sd_deg`` is small.
-    r_sd_m : float
-        Largest standard deviation of the sensor-to-joint vector components, m (same caveat).
-    axis_proximal, axis_distal : ndarray, shape (3,)
-        Dominant axis of the relative angular velocity (the hinge axis for a hinge joint) in each
-        sensor frame, signs matched in the world frame (``axis_proximal`` None without proximal).
-    hinge_rate_rad_s : ndarray, shape (3,)
-        RMS relative angular rate along the principal axes, largest first, rad/s (a hinge has
-        one large value).
-    excitation_s2 : float
-        The excitation measure (Notes of :func:`functional_calibration`), s⁻².
-    axial_excitation_s2 : float
-        Excitation along the hinge axis (the centre moved along it in both frames), s⁻²: below
-        the threshold the centre's position along the axis is not observable.
-    residual_m_s2 : float
-        RMS of the joint-acceleration mismatch after the fit, m/s².
-    n_samples : int
-        Samples used.
-    """
-
-    joint: str
-    proximal: str | None
-    distal: str
-    r_proximal_m: np.ndarray | None
-    r_distal_m: np.ndarray
-    heading_deg: float
-    heading_sd_deg: float
-    r_sd_m: float
-    axis_proximal: np.ndarray | None
-    axis_distal: np.ndarray
-    hinge_rate_rad_s: np.ndarray
-    excitation_s2: float
-    axial_excitation_s2: float
-    residual_m_s2: float
-    n_samples: int
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,216 +168,6 @@ class FunctionalCalibration(Calibration):
     hinge_prior: tuple[str, ...] = ()
     cutoff_hz: float = CUTOFF_HZ
     declared: tuple[str, ...] = ()
-
-
-# ---------------------------------------------------------------------- signals
-def _skew(v: np.ndarray) -> np.ndarray:
-    """``[v]×`` for ``v`` (K, 3) -> (K, 3, 3)."""
-    z = np.zeros(v.shape[0])
-    return np.stack(
-        [
-            np.stack([z, -v[:, 2], v[:, 1]], -1),
-            np.stack([v[:, 2], z, -v[:, 0]], -1),
-            np.stack([-v[:, 1], v[:, 0], z], -1),
-        ],
-        axis=1,
-    )
-
-
-def _rz(psi: float) -> np.ndarray:
-    c, s = np.cos(psi), np.sin(psi)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _fill(x: np.ndarray) -> np.ndarray:
-    """NaN rows linearly interpolated (for the filter only; those samples are not fitted)."""
-    ok = np.all(np.isfinite(x), axis=1)
-    if np.all(ok):
-        return x
-    i = np.arange(x.shape[0])
-    return np.stack([np.interp(i, i[ok], x[ok, k]) for k in range(x.shape[1])], -1)
-
-
-@dataclass(frozen=True)
-class _Signals:
-    R: np.ndarray  # (K, 3, 3) world_from_sensor
-    K: np.ndarray  # (K, 3, 3) LP([ω̇]× + [ω]×²), sensor frame
-    acc: np.ndarray  # (K, 3) LP(a), sensor frame
-    Kw: np.ndarray  # (K, 3, 3) LP(R K), world frame
-    accw: np.ndarray  # (K, 3) LP(R a), world frame
-    gyr: np.ndarray  # (K, 3) LP(ω)
-    ok: np.ndarray  # (K,)
-
-
-def _signals(st: ImuStream, segment: str, t: np.ndarray, cutoff_hz: float) -> _Signals:
-    for name, v in (("acc_m_s2", st.acc_m_s2), ("gyr_rad_s", st.gyr_rad_s)):
-        if v is None:
-            raise InputError(
-                f"IMU {segment!r}: functional calibration needs {name} (accelerometer and gyroscope), "
-                "got none"
-            )
-    same = st.t_s.shape == t.shape and np.allclose(st.t_s, t)
-    if same:
-        acc, gyr, q = st.acc_m_s2, st.gyr_rad_s, st.q_world_from_sensor
-    else:
-        acc = np.stack([np.interp(t, st.t_s, st.acc_m_s2[:, k]) for k in range(3)], -1)
-        gyr = np.stack([np.interp(t, st.t_s, st.gyr_rad_s[:, k]) for k in range(3)], -1)
-        q = slerp_resample(st.t_s, st.q_world_from_sensor, t)
-    R = as_rotation_matrices(q, f"IMU {segment!r} orientation")
-    ok = (
-        np.all(np.isfinite(acc), axis=1)
-        & np.all(np.isfinite(gyr), axis=1)
-        & np.all(np.isfinite(R), axis=(1, 2))
-    )
-    if np.count_nonzero(ok) < 10:
-        raise InputError(
-            f"IMU {segment!r}: expected at least 10 samples with orientation, acc and gyro in the "
-            f"calibration window, got {int(np.count_nonzero(ok))}"
-        )
-    R = np.where(ok[:, None, None], R, np.eye(3))
-    acc, gyr = _fill(acc), _fill(gyr)
-    fs = 1.0 / float(np.median(np.diff(t)))
-    if cutoff_hz is not None and cutoff_hz < 0.45 * fs and t.size > 15:
-        sos = butter(2, cutoff_hz, fs=fs, output="sos")
-
-        def lp(x):
-            return sosfiltfilt(sos, x, axis=0)
-    else:
-
-        def lp(x):
-            return x
-
-    # the model a + K r is linear in r: filtering both sides keeps it exact (the same linear
-    # filter on the measured acceleration and on the regressor K, not on K's inputs)
-    W = _skew(gyr)
-    K_raw = W @ W + _skew(np.gradient(gyr, t, axis=0))
-    return _Signals(
-        R=R,
-        K=lp(K_raw),
-        acc=lp(acc),
-        Kw=lp(R @ K_raw),
-        accw=lp(np.einsum("kij,kj->ki", R, acc)),
-        gyr=lp(gyr),
-        ok=ok,
-    )
-
-
-def _excitation(sig: _Signals) -> float:
-    """``sqrt`` of the middle eigenvalue of ``mean_k K(k)ᵀ K(k)``, s⁻²."""
-    M = np.einsum("kji,kjl->il", sig.K[sig.ok], sig.K[sig.ok]) / max(int(np.sum(sig.ok)), 1)
-    return float(np.sqrt(max(np.linalg.eigvalsh(M)[1], 0.0)))
-
-
-def _hinge_axes(A: _Signals | None, B: _Signals, ok: np.ndarray):
-    """Hinge axis in A's and B's frame and the RMS relative rates about the principal axes.
-
-    Axis: the invariant direction of the relative rotation ``R_Aᵀ R_B`` (the direction part of
-    Ehrig et al. 2007's SARA): the top singular vectors of ``mean_k R_A(k)ᵀ R_B(k)``. Rates: the
-    principal RMS values of the relative angular velocity ``R_Bᵀ(R_B ω_B − R_A ω_A)``.
-    """
-    wB = np.einsum("kij,kj->ki", B.R, B.gyr)
-    wrel = wB if A is None else wB - np.einsum("kij,kj->ki", A.R, A.gyr)
-    inB = np.einsum("kji,kj->ki", B.R[ok], wrel[ok])
-    ev, vec = np.linalg.eigh(inB.T @ inB / max(inB.shape[0], 1))
-    rates = np.sqrt(np.clip(ev[::-1], 0.0, None))
-    if A is None:
-        return None, vec[:, -1], rates
-    M = np.einsum("kji,kjl->il", A.R[ok], B.R[ok]) / max(int(np.sum(ok)), 1)
-    U, _, Vt = np.linalg.svd(M)
-    jA, jB = U[:, 0], Vt[0]
-    if np.dot(np.einsum("ij,j->i", M, jB), jA) < 0:
-        jB = -jB
-    return jA, jB, rates
-
-
-def _fit_joint(
-    joint, prox, dist, A: _Signals | None, B: _Signals, min_excitation, n_eff_ratio, constraint
-):
-    ok = B.ok if A is None else A.ok & B.ok
-    n = int(np.count_nonzero(ok))
-    # ---- excitation
-    exc = [_excitation(B)] if A is None else [_excitation(A), _excitation(B)]
-    exc_joint = min(exc)
-    if exc_joint < min_excitation:
-        raise InputError(
-            f"functional calibration: joint {joint!r} ({prox or 'fixed'} / {dist}) lacked excitation: "
-            f"{exc_joint:.3g} s^-2 < {min_excitation:g} s^-2 required; record movement of that joint "
-            "(several cycles, in more than one direction for a ball joint) or use a static calibration"
-        )
-    KB, aB = B.K[ok], B.acc[ok]
-    wB0, GB = B.accw[ok], B.Kw[ok]
-    if A is None:
-        # Crabolu et al. 2017: the centre is still, its specific force is gravity: R_B (a_B + K_B r) = g
-        g = np.array([0.0, 0.0, GRAVITY_M_S2])
-
-        def fun(x):
-            return (wB0 + GB @ x - g).ravel()
-
-        Amat = GB.reshape(-1, 3)
-        b = (g - wB0).reshape(-1)
-        x0 = np.linalg.lstsq(Amat, b, rcond=None)[0]
-    else:
-        KA, aA = A.K[ok], A.acc[ok]
-        wA0, GA = A.accw[ok], A.Kw[ok]
-
-        # Seel et al. 2012 Eq. (8) in vector form, with the world frames allowed to differ by a
-        # heading psi: Rz(psi) R_A (a_A + K_A r_A) = R_B (a_B + K_B r_B)
-        def fun(x):
-            pa = wA0 + GA @ x[:3]
-            pb = wB0 + GB @ x[3:6]
-            return (pa @ _rz(x[6]).T - pb).ravel()
-
-        Amat = np.concatenate([GA, -GB], axis=2).reshape(-1, 6)
-        b = (wB0 - wA0).reshape(-1)
-        x0 = np.r_[np.linalg.lstsq(Amat, b, rcond=None)[0], 0.0]
-        if constraint == "norm":
-            # Seel et al. 2012 Eq. (8) as published: orientation-free, immune to heading drift
-            def fun(x):
-                return np.linalg.norm(
-                    aA + np.einsum("kij,j->ki", KA, x[:3]), axis=1
-                ) - np.linalg.norm(aB + np.einsum("kij,j->ki", KB, x[3:6]), axis=1)
-
-            x0 = x0[:6]
-    sol = least_squares(fun, x0, method="trf", x_scale="jac")
-    resid = float(np.sqrt(np.mean(sol.fun**2)))
-    jA, jB, rates = _hinge_axes(A, B, ok)
-    if A is None:
-        M = np.einsum("kji,kjl->il", KB, KB) / n
-        axial = float(np.sqrt(max(jB @ M @ jB, 0.0)))
-    else:
-        # the centre moved along the hinge in both frames at once: (j_A, j_B)/√2
-        v = np.r_[jA, jB] / np.sqrt(2.0)
-        Gv = Amat.reshape(n, 3, 6) @ v
-        axial = float(np.sqrt(np.mean(np.sum(Gv**2, axis=1))))
-    # standard deviations from the Gauss-Newton covariance, residuals taken as white over the
-    # effective samples (the low-pass leaves about 2 f_c / f_s independent samples per sample)
-    J = sol.jac
-    dof = max(n_eff_ratio * sol.fun.size - J.shape[1], 1.0)
-    s2 = float(np.sum(sol.fun**2)) * n_eff_ratio / dof
-    cov = s2 * np.linalg.pinv(J.T @ J) / n_eff_ratio
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    if A is None:
-        rA, rB, psi = None, sol.x[:3], 0.0
-    else:
-        rA, rB = sol.x[:3], sol.x[3:6]
-        psi = float(np.arctan2(np.sin(sol.x[6]), np.cos(sol.x[6]))) if sol.x.size > 6 else np.nan
-    return JointFit(
-        joint=joint,
-        proximal=prox,
-        distal=dist,
-        r_proximal_m=rA,
-        r_distal_m=rB,
-        heading_deg=float(np.degrees(psi)),
-        heading_sd_deg=0.0 if A is None else float(np.degrees(sd[6])) if sd.size > 6 else np.nan,
-        r_sd_m=float(np.max(sd[:6] if A is not None else sd[:3])),
-        axis_proximal=jA,
-        axis_distal=jB,
-        hinge_rate_rad_s=rates,
-        excitation_s2=exc_joint,
-        axial_excitation_s2=axial,
-        residual_m_s2=resid,
-        n_samples=n,
-    ), exc
 
 
 # ---------------------------------------------------------------------- public
@@ -463,61 +252,8 @@ def functional_calibration(
 
     Notes
     -----
-    Rigid-body model: a point at ``r`` (sensor frame) on a segment whose sensor measures specific
-    force ``a``, angular rate ``ω`` and angular acceleration ``ω̇`` has specific force
-    ``a + K r`` with ``K = [ω̇]× + [ω]×²``. Two segments joined at a centre share its
-    acceleration (Seel et al. 2012, Eq. 8); with the orientations ``R_A, R_B`` this holds in the
-    world frame up to the heading ``ψ`` between the sensors' world frames::
-
-        Rz(ψ) R_A(k) (a_A(k) + K_A(k) r_A) = R_B(k) (a_B(k) + K_B(k) r_B)
-
-    solved for ``(r_A, r_B, ψ)`` by ``scipy.optimize.least_squares`` from the linear solution at
-    ``ψ = 0``, both sides low-passed (``cutoff_hz``). ``ψ`` is always free in the fit, which makes the centres immune to the heading
-    errors of the orientation filter (the least reliable part of its output). Where the
-    proximal segment has no IMU (paper A's shoulder, measured once) the centre is taken as still
-    (Crabolu et al. 2017): ``R_B (a_B + K_B r_B) = [0, 0, g]``. ``ω̇`` is the time derivative of
-    the gyro.
-
-    A segment with sensor ``s``, proximal centre at ``r_P`` and distal centre at ``r_D`` (both in
-    frame ``s``) gets the axis ``(r_D − r_P)/‖r_D − r_P‖`` and the length ``‖r_D − r_P‖``.
-    Hinge prior: for a joint in ``hinge_joints`` whose axial excitation (the excitation of the
-    centre moving along the hinge axis in both frames at once, ``(j_A, j_B)/√2``) is below
-    ``min_excitation_s2``, ``r_D − r_P`` is first projected on the plane normal to the hinge
-    axis (the femoral and tibial mechanical axes are perpendicular to the knee flexion axis
-    within a few degrees). CMU's 1-DoF virtual knees give 0.7-0.8 s⁻² (prior used); real knees
-    in walking 10-16 s⁻² (Neura, x-IMU3: not used).
-
-    Excitation of a joint: ``min`` over its sensors of ``sqrt(λ₂)``, ``λ₂`` the middle
-    eigenvalue of ``mean_k K(k)ᵀ K(k)``: the acceleration change per metre of centre error in
-    the second-best-determined direction (the best two directions are all a hinge can give; the
-    third, along the hinge axis, is not needed to be excited). For a rotation at rate ``ω`` it is
-    about ``sqrt(ω⁴ + ω̇²)``; walking gives 5-30 s⁻², a still limb about the gyro noise.
-
-    Hinge axis: the invariant axis of the relative rotation, the top singular vectors of
-    ``mean_k R_A(k)ᵀ R_B(k)`` (the direction part of SARA, Ehrig et al. 2007, J. Biomech.
-    40:2150); reported with the RMS relative angular rate about each principal axis (Seel et
-    al. 2012/2014: a hinge has one large rate). Seel et al. 2012's gyro-only cost
-    ``‖ω_A × j_A‖ − ‖ω_B × j_B‖`` was tried and not kept: on CMU virtual walking it was no better
-    (≤ 1.1° vs ≤ 0.7°) and in real walking, which rotates mostly about one axis, it is poorly
-    determined.
-
-    Assumptions and failure modes
-
-    - Rigid segments and sensors (soft-tissue motion adds error, mostly at heel strike; the
-      low-pass removes the impact band).
-    - The joint is a centre of rotation (ball or hinge). For a pure hinge the centre's position
-      along the axis is not observable (the fit would return the minimum-norm point and tilt
-      the segment axis by ``atan(offset / length)``): the hinge prior above handles it.
-    - Orientations of both sensors must be right up to a common heading; inclination errors of
-      ``ε`` rad give acceleration errors of ``g·ε``.
-    - The fitted heading also absorbs model error (soft tissue): on the Neura walk, whose IMU
-      frames agree with Vicon within a few degrees, the knee_l and ankle_r fits return −24° and
-      −18° with standard deviations near 1°. Apply it (``heading="estimate"``) only when the
-      frames really differ.
-    - Too little motion (a still or slowly moving limb): the centre is undetermined; an
-      :class:`~kinefuse.exceptions.InputError` names the joint whose excitation fell below
-      ``min_excitation_s2``.
-    - One-sensor model: only valid while the proximal segment is still.
+    The model, the excitation measure, the hinge prior and the failure modes:
+    :mod:`kinefuse.kinematics.functional`.
 
     Warns
     -----
@@ -532,6 +268,53 @@ def functional_calibration(
         centre cannot be located (no IMU on the other side); a joint lacking excitation; an
         unknown ``heading``.
     """
+    _check_arguments(recording, skeleton, constraint, heading, min_excitation_s2)
+    segs = list(skeleton.segments) if segments is None else list(segments)
+    for s in segs:
+        skeleton.index(s)
+    beyond = dict(DISTAL_SEGMENTS if distal_segments is None else distal_segments)
+    hinges = set(HINGE_JOINTS if hinge_joints is None else hinge_joints)
+    declared = {
+        seg: unit_axis(a, f"declared_axes[{seg!r}]") for seg, a in (declared_axes or {}).items()
+    }
+    pairs = _joint_pairs(recording, skeleton, segs, proximal_segments or {}, beyond, declared)
+    used = sorted({x for pr in pairs.values() for x in pr if x is not None})
+    streams = {s: oriented_imu(recording, s, "functional calibration") for s in used}
+    t_all = streams[segs[0]].t_s
+    t = t_all[window_mask(t_all, start_s, window_s)]
+    if t.size < 10:
+        raise InputError(
+            f"functional calibration: expected at least 10 samples in the window, got {t.size}"
+        )
+    sig = {s: joint_signals(st, s, t, cutoff_hz) for s, st in streams.items()}
+    if heading == "auto":
+        heading = "shared" if len({st.frame for st in streams.values()}) == 1 else "estimate"
+    fits = _fit_joints(pairs, sig, t, cutoff_hz, min_excitation_s2, constraint)
+    axes, lengths, prior = _segment_axes(skeleton, segs, fits, hinges, declared, min_excitation_s2)
+    head = {} if constraint == "norm" else _chain_headings(pairs, fits)
+    cal = FunctionalCalibration(
+        axes=axes,
+        lengths_m=lengths,
+        method="functional",
+        window_s=(float(t[0]), float(t[-1])),
+        residual_deg={},
+        align="none",
+        joints=fits,
+        excitation_s2={j: f.excitation_s2 for j, f in fits.items()},
+        heading_deg={s: float((v + 180.0) % 360.0 - 180.0) for s, v in head.items()},
+        heading=heading,
+        hinge_prior=tuple(sorted(prior)),
+        cutoff_hz=float(cutoff_hz),
+        declared=tuple(s for s in segs if s not in lengths),
+    )
+    # segment frames of elbows and knees for joint angles: long axes from the joint centres,
+    # flexion axes from the movement (kinefuse.kinematics.hinge), orientations in one heading
+    same = recording if heading == "shared" else align_headings(recording, cal)
+    return hinge_frames(same, cal, start_s=start_s, window_s=window_s)
+
+
+def _check_arguments(recording, skeleton, constraint, heading, min_excitation_s2) -> None:
+    """Validate the arguments of :func:`functional_calibration`."""
     if not isinstance(recording, Recording):
         raise InputError(f"expected recording as a Recording, got {type(recording).__name__}")
     if not isinstance(skeleton, Skeleton):
@@ -542,40 +325,17 @@ def functional_calibration(
         raise InputError(f"expected heading in ('auto', 'shared', 'estimate'), got {heading!r}")
     if not (np.isfinite(min_excitation_s2) and min_excitation_s2 >= 0):
         raise InputError(f"expected min_excitation_s2 >= 0, got {min_excitation_s2}")
-    segs = list(skeleton.segments) if segments is None else list(segments)
-    for s in segs:
-        skeleton.index(s)
-    beyond = dict(DISTAL_SEGMENTS if distal_segments is None else distal_segments)
-    hinges = set(HINGE_JOINTS if hinge_joints is None else hinge_joints)
-    declared = {
-        seg: _unit_axis(a, f"declared_axes[{seg!r}]") for seg, a in (declared_axes or {}).items()
-    }
 
-    # the two sensors of each joint the segments need
+
+def _joint_pairs(
+    recording, skeleton, segs, proximal_segments, beyond, declared
+) -> dict[str, tuple[str | None, str]]:
+    """The two sensors (proximal or None, distal) of each joint the segments need."""
     pairs: dict[str, tuple[str | None, str]] = {}
     for s in segs:
         i = skeleton.index(s)
         prox, dist = skeleton.proximal[i], skeleton.distal[i]
-        p = skeleton.parents[i]
-        before = (proximal_segments or {}).get(prox)
-        if p >= 0:
-            pairs[prox] = (skeleton.segments[p], s)
-        elif before is not None:
-            if before not in recording.imu:
-                raise InputError(
-                    f"proximal_segments[{prox!r}] = {before!r}: no such IMU; the recording has "
-                    f"{sorted(recording.imu)}"
-                )
-            pairs[prox] = (before, s)
-        elif skeleton.root_segment is not None and skeleton.root_segment in recording.imu:
-            pairs[prox] = (skeleton.root_segment, s)
-        elif skeleton.root_segment is not None:
-            raise InputError(
-                f"segment {s!r}: locating joint {prox!r} needs an IMU on the root segment "
-                f"{skeleton.root_segment!r}; the recording has {sorted(recording.imu)}"
-            )
-        else:
-            pairs[prox] = (None, s)  # fixed centre (paper A's shoulder)
+        pairs[prox] = _proximal_pair(recording, skeleton, s, proximal_segments.get(prox))
         children = [skeleton.segments[k] for k, q in enumerate(skeleton.parents) if q == i]
         if children and children[0] in recording.imu:
             pairs[dist] = (s, children[0])
@@ -592,25 +352,39 @@ def functional_calibration(
                 f'sensor axis along {s!r} ([skeleton.axes] {s} = "-e1" or similar; '
                 f"declared_axes=) and its measured length ([skeleton.lengths] {s})"
             )
-    used = sorted({x for pr in pairs.values() for x in pr if x is not None})
-    streams = {s: _imu_orientation(recording, s, "functional calibration") for s in used}
-    t_all = streams[segs[0]].t_s
-    sel = window_mask(t_all, start_s, window_s)
-    t = t_all[sel]
-    if t.size < 10:
+    return pairs
+
+
+def _proximal_pair(recording, skeleton, s: str, before: str | None) -> tuple[str | None, str]:
+    """The sensors of segment ``s``'s proximal joint (``before``: a given proximal IMU)."""
+    i = skeleton.index(s)
+    prox, p = skeleton.proximal[i], skeleton.parents[i]
+    if p >= 0:
+        return (skeleton.segments[p], s)
+    if before is not None:
+        if before not in recording.imu:
+            raise InputError(
+                f"proximal_segments[{prox!r}] = {before!r}: no such IMU; the recording has "
+                f"{sorted(recording.imu)}"
+            )
+        return (before, s)
+    if skeleton.root_segment is not None and skeleton.root_segment in recording.imu:
+        return (skeleton.root_segment, s)
+    if skeleton.root_segment is not None:
         raise InputError(
-            f"functional calibration: expected at least 10 samples in the window, got {t.size}"
+            f"segment {s!r}: locating joint {prox!r} needs an IMU on the root segment "
+            f"{skeleton.root_segment!r}; the recording has {sorted(recording.imu)}"
         )
-    sig = {s: _signals(st, s, t, cutoff_hz) for s, st in streams.items()}
+    return (None, s)  # fixed centre (paper A's shoulder)
 
-    if heading == "auto":
-        heading = "shared" if len({st.frame for st in streams.values()}) == 1 else "estimate"
 
+def _fit_joints(pairs, sig, t, cutoff_hz, min_excitation_s2, constraint) -> dict[str, JointFit]:
+    """:func:`fit_joint` for every joint, residuals weighted by the effective sample count."""
     fs = 1.0 / float(np.median(np.diff(t)))
     n_eff_ratio = min(1.0, 2.0 * cutoff_hz / fs) if cutoff_hz else 1.0
     fits: dict[str, JointFit] = {}
     for joint, (a, b) in pairs.items():
-        fits[joint], _ = _fit_joint(
+        fits[joint], _ = fit_joint(
             joint,
             a,
             b,
@@ -620,6 +394,11 @@ def functional_calibration(
             n_eff_ratio,
             constraint,
         )
+    return fits
+
+
+def _segment_axes(skeleton, segs, fits, hinges, declared, min_excitation_s2):
+    """Axis and length of each segment from its joint centres (hinge prior where needed)."""
 
     def r_in(seg: str, joint: str) -> np.ndarray:
         f = fits[joint]
@@ -653,18 +432,25 @@ def functional_calibration(
                 f"{skeleton.distal[i]!r} coincide ({n:.3g} m apart); the movement does not separate them"
             )
         axes[s], lengths[s] = d / n, n
-        expect = skeleton.lengths_m[i]
-        if expect > 0 and abs(n - expect) > LENGTH_WARN_FRACTION * expect:
-            warnings.warn(
-                f"functional calibration: segment {s!r} spans {n:.3f} m between its joint centres, "
-                f"the skeleton says {expect:.3f} m ({100 * (n / expect - 1):+.0f} %); its centres, "
-                "hence its axis, may be wrong (soft tissue, sensor saturation, a joint that is not "
-                "a centre of rotation, or too little motion)",
-                NumericalWarning,
-                stacklevel=2,
-            )
+        _warn_length(s, n, skeleton.lengths_m[i])
+    return axes, lengths, prior
 
-    # heading of each sensor's world frame relative to its chain's first sensor
+
+def _warn_length(s: str, n: float, expect: float) -> None:
+    """A NumericalWarning when a functional length is far from the skeleton's."""
+    if expect > 0 and abs(n - expect) > LENGTH_WARN_FRACTION * expect:
+        warnings.warn(
+            f"functional calibration: segment {s!r} spans {n:.3f} m between its joint centres, "
+            f"the skeleton says {expect:.3f} m ({100 * (n / expect - 1):+.0f} %); its centres, "
+            "hence its axis, may be wrong (soft tissue, sensor saturation, a joint that is not "
+            "a centre of rotation, or too little motion)",
+            NumericalWarning,
+            stacklevel=4,
+        )
+
+
+def _chain_headings(pairs, fits) -> dict[str, float]:
+    """Heading of each sensor's world frame relative to its chain's first sensor, deg."""
     distal_side = {b for _, b in pairs.values()}
     head = {a: 0.0 for a, _ in pairs.values() if a is not None and a not in distal_side}
     head.update({b: 0.0 for a, b in pairs.values() if a is None})
@@ -672,29 +458,7 @@ def functional_calibration(
         for joint, (a, b) in pairs.items():
             if a in head and b not in head:
                 head[b] = head[a] + fits[joint].heading_deg
-    if constraint == "norm":
-        head = {}  # the orientation-free form estimates no heading
-    cal = FunctionalCalibration(
-        axes=axes,
-        lengths_m=lengths,
-        method="functional",
-        window_s=(float(t[0]), float(t[-1])),
-        residual_deg={},
-        align="none",
-        joints=fits,
-        excitation_s2={j: f.excitation_s2 for j, f in fits.items()},
-        heading_deg={s: float((v + 180.0) % 360.0 - 180.0) for s, v in head.items()},
-        heading=heading,
-        hinge_prior=tuple(sorted(prior)),
-        cutoff_hz=float(cutoff_hz),
-        declared=tuple(s for s in segs if s not in lengths),
-    )
-    # segment frames of elbows and knees for joint angles: long axes from the joint centres,
-    # flexion axes from the movement (kinefuse.kinematics.hinge), orientations in one heading
-    from kinefuse.kinematics.hinge import hinge_frames
-
-    same = recording if heading == "shared" else align_headings(recording, cal)
-    return hinge_frames(same, cal, start_s=start_s, window_s=window_s)
+    return head
 
 
 def align_headings(recording: Recording, calibration: FunctionalCalibration) -> Recording:
@@ -703,8 +467,6 @@ def align_headings(recording: Recording, calibration: FunctionalCalibration) -> 
     ``q_world_from_sensor ← Rz(−ψ_s) q_world_from_sensor`` with ``ψ_s`` =
     ``calibration.heading_deg[s]``; streams without an estimate are kept as they are.
     """
-    from scipy.spatial.transform import Rotation
-
     if not isinstance(calibration, FunctionalCalibration):
         raise InputError(f"expected a FunctionalCalibration, got {type(calibration).__name__}")
     imu = dict(recording.imu)

@@ -56,7 +56,10 @@ from scipy.spatial.transform import Rotation
 from kinefuse.exceptions import NumericalWarning
 from kinefuse.io.recording import Recording
 from kinefuse.kinematics.angles import JOINTS, joint_angles
-from kinefuse.kinematics.calibration import Calibration, _imu_orientation
+from kinefuse.kinematics.calibration_result import Calibration, oriented_imu
+from kinefuse.kinematics.forward import as_rotation_matrices, rotation_z
+from kinefuse.kinematics.skeleton import window_mask
+from kinefuse.orientation.resample import slerp_resample
 
 __all__ = ["HEADING_PRIOR", "HINGES", "MIN_HINGE_RATE_RAD_S", "hinge_frames", "segment_frame"]
 
@@ -95,11 +98,6 @@ def segment_frame(axis, hinge) -> np.ndarray:
     return np.stack([np.cross(y, z), y, z], axis=1)
 
 
-def _rz(psi: float) -> np.ndarray:
-    c, s = np.cos(psi), np.sin(psi)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _world_rate(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """World-frame angular velocity of orientations ``R`` (K, 3, 3) on times ``t``, rad/s."""
     dR = np.einsum("kij,klj->kil", R[1:], R[:-1])  # R(k+1) R(k)ᵀ
@@ -134,7 +132,7 @@ def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool):
     w_prior = HEADING_PRIOR * np.sqrt(RA.shape[0]) * float(np.sqrt(np.mean((wB - wA) ** 2)))
 
     def res(x):
-        H = _rz(x[2] if refine_heading else 0.0)
+        H = rotation_z(x[2] if refine_heading else 0.0)
         n = np.cross(RA @ j1_of(x), (H @ RB) @ a2)
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
         r = np.einsum("ki,ki->k", wB @ H.T - wA, n)
@@ -188,10 +186,6 @@ def hinge_frames(
         A hinge that hardly moved (RMS relative rate about the axis below
         :data:`MIN_HINGE_RATE_RAD_S`): its segments keep the frames they had.
     """
-    from kinefuse.kinematics.forward import as_rotation_matrices
-    from kinefuse.kinematics.skeleton import window_mask
-    from kinefuse.orientation.resample import slerp_resample
-
     axes = calibration.axes
     if joints is None:
         joints = [j for j in HINGES if JOINTS[j][0] in axes and JOINTS[j][1] in axes]
@@ -200,45 +194,23 @@ def hinge_frames(
     resid = dict(getattr(calibration, "hinge_residual_rad_s", {}) or {})
     for j in joints:
         prox, dist, _ = JOINTS[j]
-        sa = _imu_orientation(recording, prox, f"hinge axis of {j}")
-        sb = _imu_orientation(recording, dist, f"hinge axis of {j}")
-        t = sa.t_s[window_mask(sa.t_s, start_s, window_s)]
-        RA = calibration.heading_matrix(prox) @ as_rotation_matrices(
-            slerp_resample(sa.t_s, sa.q_world_from_sensor, t), f"IMU {prox!r} orientation"
-        )
-        RB0 = calibration.heading_matrix(dist) @ as_rotation_matrices(
-            slerp_resample(sb.t_s, sb.q_world_from_sensor, t), f"IMU {dist!r} orientation"
-        )
-        ok = np.all(np.isfinite(RA), axis=(1, 2)) & np.all(np.isfinite(RB0), axis=(1, 2))
-        RA, RB0 = RA[ok], RB0[ok]
+        RA, RB0, tk = _hinge_orientations(recording, calibration, j, start_s, window_s)
         psi0 = np.radians(heading.get(dist, 0.0))
         # relative angular velocity from the orientations (finite differences), world frame
-        tk = t[ok]
         wA, wB0 = _world_rate(RA, tk), _world_rate(RB0, tk)
         jA, dpsi, rms = _fit_flexion_axis(RA, RB0, wA, wB0, axes[prox], axes[dist], refine_heading)
         psi = psi0 + dpsi
-        RBp = _rz(psi - psi0) @ RB0
+        RB = rotation_z(psi - psi0) @ RB0
         # the distal frame's Z: the flexion axis carried into the distal sensor in the pose
         # (static: the calibration window; else the whole recording)
         w0 = (tk >= calibration.window_s[0]) & (tk <= calibration.window_s[1])
         if calibration.still is None or not np.any(w0):
             w0 = np.ones(tk.shape, dtype=bool)
-        jB = np.einsum("kji,kjl,l->i", RBp[w0], RA[w0], jA)
+        jB = np.einsum("kji,kjl,l->i", RB[w0], RA[w0], jA)
         jB /= np.linalg.norm(jB)
-        RB = RBp
         Fa, Fb = segment_frame(axes[prox], jA), segment_frame(axes[dist], jB)
         fl = joint_angles({prox: RA @ Fa, dist: RB @ Fb}, [j])[j][:, 0]
-        rate = float(
-            np.sqrt(np.mean(np.gradient(np.radians(np.unwrap(fl, period=360.0)), t[ok]) ** 2))
-        )
-        if not np.isfinite(rate) or rate < MIN_HINGE_RATE_RAD_S:
-            warnings.warn(
-                f"hinge frames: {j} hardly moved (RMS flexion rate {rate:.2f} rad/s < "
-                f"{MIN_HINGE_RATE_RAD_S:g}); its flexion axis is not determined by the data, the "
-                f"frames of {prox!r} and {dist!r} are kept as calibrated",
-                NumericalWarning,
-                stacklevel=2,
-            )
+        if not _moved(fl, tk, j, prox, dist):
             continue
         resid[j] = rms
         # sign by anatomy: the larger excursion from the pose is flexion
@@ -251,3 +223,34 @@ def hinge_frames(
     return replace(
         calibration, frames=frames, world_heading_deg=heading, hinge_residual_rad_s=resid
     )
+
+
+def _hinge_orientations(recording, calibration, j: str, start_s, window_s):
+    """Heading-corrected world-from-sensor of both segments of hinge ``j`` where both are valid."""
+    prox, dist, _ = JOINTS[j]
+    sa = oriented_imu(recording, prox, f"hinge axis of {j}")
+    sb = oriented_imu(recording, dist, f"hinge axis of {j}")
+    t = sa.t_s[window_mask(sa.t_s, start_s, window_s)]
+    RA = calibration.heading_matrix(prox) @ as_rotation_matrices(
+        slerp_resample(sa.t_s, sa.q_world_from_sensor, t), f"IMU {prox!r} orientation"
+    )
+    RB0 = calibration.heading_matrix(dist) @ as_rotation_matrices(
+        slerp_resample(sb.t_s, sb.q_world_from_sensor, t), f"IMU {dist!r} orientation"
+    )
+    ok = np.all(np.isfinite(RA), axis=(1, 2)) & np.all(np.isfinite(RB0), axis=(1, 2))
+    return RA[ok], RB0[ok], t[ok]
+
+
+def _moved(fl: np.ndarray, tk: np.ndarray, j: str, prox: str, dist: str) -> bool:
+    """Whether the hinge flexed enough to determine its axis (else a NumericalWarning)."""
+    rate = float(np.sqrt(np.mean(np.gradient(np.radians(np.unwrap(fl, period=360.0)), tk) ** 2)))
+    if not np.isfinite(rate) or rate < MIN_HINGE_RATE_RAD_S:
+        warnings.warn(
+            f"hinge frames: {j} hardly moved (RMS flexion rate {rate:.2f} rad/s < "
+            f"{MIN_HINGE_RATE_RAD_S:g}); its flexion axis is not determined by the data, the "
+            f"frames of {prox!r} and {dist!r} are kept as calibrated",
+            NumericalWarning,
+            stacklevel=3,
+        )
+        return False
+    return True

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from kinefuse._validation import as_float
 from kinefuse.exceptions import InputError
 from kinefuse.io.recording import JointStream
 
@@ -59,7 +60,11 @@ AXES = {
 AXES.update({k[1:]: v for k, v in list(AXES.items()) if k[0] == "+"})
 
 
-def _unit_axis(value, where: str) -> np.ndarray:
+def unit_axis(value, where: str) -> np.ndarray:
+    """``value`` (an :data:`AXES` name such as ``"+e2"`` or a 3-vector) as a unit vector (3,).
+
+    ``where`` names the setting in the InputError raised for an unknown name or a zero vector.
+    """
     if isinstance(value, str):
         if value not in AXES:
             raise InputError(
@@ -76,10 +81,7 @@ def _unit_axis(value, where: str) -> np.ndarray:
 
 
 def _length(value, where: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: expected a length in metres, got {value!r}") from None
+    v = as_float(value, f"{where}: expected a length in metres, got {value!r}")
     if not np.isfinite(v) or v < 0:
         raise InputError(f"{where}: expected a finite length >= 0 m, got {v}")
     if v > 3.0:
@@ -158,7 +160,7 @@ class Skeleton:
         axes = (
             np.stack(
                 [
-                    _unit_axis(a, f"skeleton: axis of {s!r}")
+                    unit_axis(a, f"skeleton: axis of {s!r}")
                     for s, a in zip(self.segments, axes, strict=True)
                 ]
             )
@@ -249,7 +251,7 @@ class Skeleton:
         self._check_keys(axes, "with_axes")
         new = np.array(self.axes)
         for s, a in axes.items():
-            new[self.index(s)] = _unit_axis(a, f"with_axes: axis of {s!r}")
+            new[self.index(s)] = unit_axis(a, f"with_axes: axis of {s!r}")
         return replace(self, axes=new)
 
     def with_offsets(self, offsets: Mapping[str, object]) -> Skeleton:
@@ -510,9 +512,9 @@ def _axes_for(segments: Sequence[str], axes, where: str) -> np.ndarray:
                 f"{where}: unknown segment(s) {unknown} in axes; expected names from {list(segments)}"
             )
         return np.stack(
-            [_unit_axis(axes.get(s, "+e2"), f"{where}: axis of {s!r}") for s in segments]
+            [unit_axis(axes.get(s, "+e2"), f"{where}: axis of {s!r}") for s in segments]
         )
-    a = _unit_axis(axes, f"{where}: axes")
+    a = unit_axis(axes, f"{where}: axes")
     return np.tile(a, (len(segments), 1))
 
 
@@ -638,63 +640,49 @@ def full_body(*, lengths=None, height_m=None, axes=None, offsets=None) -> Skelet
     offsets ``Po_6`` (undefined in the paper) are constant offsets from the chest origin (rigid
     chest-pelvis, no pelvis IMU); 9 IMUs (chest + 8 limb segments), not 8.
     """
-    segs = (
-        "upper_arm_l",
-        "forearm_l",
-        "upper_arm_r",
-        "forearm_r",
-        "thigh_l",
-        "shank_l",
-        "thigh_r",
-        "shank_r",
-    )
-    kinds = ("upper_arm", "forearm", "upper_arm", "forearm", "thigh", "shank", "thigh", "shank")
+    segs = tuple(x[0] for x in _FULL_BODY)
+    kinds = tuple(s[:-2] for s in segs)
     h = _height(height_m)
     L = _pick_lengths(list(zip(segs, kinds, strict=True)), lengths, h, "full_body")
     if offsets is None:
-        if h is None:
-            raise InputError(
-                "full_body: no shoulder/hip offsets: give offsets={'shoulder_l': ..., 'shoulder_r': ..., "
-                "'hip_l': ..., 'hip_r': ...} (m, chest frame) or height_m"
-            )
-        sw = ANTHROPOMETRIC_RATIOS["shoulder_width"] * h
-        hw = ANTHROPOMETRIC_RATIOS["hip_width"] * h
-        c = ANTHROPOMETRIC_RATIOS["chest_to_hip"] * h
-        offsets = {
-            "shoulder_l": (-sw / 2, 0.0, 0.0),
-            "shoulder_r": (sw / 2, 0.0, 0.0),
-            "hip_l": (-hw / 2, 0.0, -c),
-            "hip_r": (hw / 2, 0.0, -c),
-        }
+        offsets = _default_offsets(h)
     need = {"shoulder_l", "shoulder_r", "hip_l", "hip_r"}
     if set(offsets) != need:
         raise InputError(f"full_body: expected offsets for {sorted(need)}, got {sorted(offsets)}")
     return Skeleton(
         segments=segs,
         parents=(-1, 0, -1, 2, -1, 4, -1, 6),
-        proximal=(
-            "shoulder_l",
-            "elbow_l",
-            "shoulder_r",
-            "elbow_r",
-            "hip_l",
-            "knee_l",
-            "hip_r",
-            "knee_r",
-        ),
-        distal=(
-            "elbow_l",
-            "wrist_l",
-            "elbow_r",
-            "wrist_r",
-            "knee_l",
-            "ankle_l",
-            "knee_r",
-            "ankle_r",
-        ),
+        proximal=tuple(x[1] for x in _FULL_BODY),
+        distal=tuple(x[2] for x in _FULL_BODY),
         lengths_m=tuple(L[x] for x in segs),
         axes=_axes_for(segs, axes, "full_body"),
         root="spine_shoulder",
         root_segment="chest",
         offsets_m=dict(offsets),
     )
+
+
+#: Paper B's limb segments (segment, proximal joint, distal joint) in :func:`full_body` order.
+_ARM = (("upper_arm", "shoulder", "elbow"), ("forearm", "elbow", "wrist"))
+_LEG = (("thigh", "hip", "knee"), ("shank", "knee", "ankle"))
+_FULL_BODY = tuple(
+    (f"{seg}_{s}", f"{p}_{s}", f"{d}_{s}") for limb in (_ARM, _LEG) for s in "lr" for seg, p, d in limb
+)
+
+
+def _default_offsets(h: float | None) -> dict[str, tuple[float, float, float]]:
+    """Shoulder and hip offsets from the chest origin scaled by body height ``h`` (m)."""
+    if h is None:
+        raise InputError(
+            "full_body: no shoulder/hip offsets: give offsets={'shoulder_l': ..., 'shoulder_r': ..., "
+            "'hip_l': ..., 'hip_r': ...} (m, chest frame) or height_m"
+        )
+    sw = ANTHROPOMETRIC_RATIOS["shoulder_width"] * h
+    hw = ANTHROPOMETRIC_RATIOS["hip_width"] * h
+    c = ANTHROPOMETRIC_RATIOS["chest_to_hip"] * h
+    return {
+        "shoulder_l": (-sw / 2, 0.0, 0.0),
+        "shoulder_r": (sw / 2, 0.0, 0.0),
+        "hip_l": (-hw / 2, 0.0, -c),
+        "hip_r": (hw / 2, 0.0, -c),
+    }

@@ -115,6 +115,32 @@ def _window_stats(t, x, starts, window_s):
     return out
 
 
+def _check_thresholds(streams, window_s, max_rate_rad_s, max_acc_std_m_s2) -> None:
+    if not streams:
+        raise InputError("find_still_window: expected at least one IMU stream, got none")
+    for name, v in (
+        ("window_s", window_s),
+        ("max_rate_rad_s", max_rate_rad_s),
+        ("max_acc_std_m_s2", max_acc_std_m_s2),
+    ):
+        if not np.isfinite(v) or v <= 0:
+            raise InputError(f"find_still_window: expected {name} finite and > 0, got {v}")
+
+
+def _candidate_stats(streams, starts: np.ndarray, win: float):
+    """Per sensor and candidate window: motion-rate and acceleration statistics, signals used."""
+    rate = np.full((len(streams), starts.size), np.nan)
+    acc = np.full((len(streams), starts.size), np.nan)
+    signals = set()
+    for i, st in enumerate(streams.values()):
+        w, sig = _rate(st)
+        signals.add(sig)
+        rate[i] = _window_stats(st.t_s, w, starts, win)
+        if st.acc_m_s2 is not None:
+            acc[i] = _window_stats(st.t_s, st.acc_m_s2, starts, win)
+    return rate, acc, signals
+
+
 def find_still_window(
     streams: Mapping[str, ImuStream],
     window_s: float = 1.0,
@@ -147,15 +173,7 @@ def find_still_window(
     ValueError (:class:`kinefuse.exceptions.InputError`)
         No streams, a non-positive window or threshold, or no time span shared by the sensors.
     """
-    if not streams:
-        raise InputError("find_still_window: expected at least one IMU stream, got none")
-    for name, v in (
-        ("window_s", window_s),
-        ("max_rate_rad_s", max_rate_rad_s),
-        ("max_acc_std_m_s2", max_acc_std_m_s2),
-    ):
-        if not np.isfinite(v) or v <= 0:
-            raise InputError(f"find_still_window: expected {name} finite and > 0, got {v}")
+    _check_thresholds(streams, window_s, max_rate_rad_s, max_acc_std_m_s2)
     t0 = max(float(st.t_s[0]) for st in streams.values())
     t1 = min(float(st.t_s[-1]) for st in streams.values())
     if t1 <= t0:
@@ -166,16 +184,8 @@ def find_still_window(
     win = min(float(window_s), t1 - t0 + 1e-6)
     step = float(step_s) if step_s is not None else win / 4.0
     starts = t0 + np.arange(max(int(np.floor((t1 - t0 - win) / step + 1e-9)) + 1, 1)) * step
-    rate = np.full((len(streams), starts.size), np.nan)
-    acc = np.full((len(streams), starts.size), np.nan)
-    signals = set()
+    rate, acc, signals = _candidate_stats(streams, starts, win)
     names = list(streams)
-    for i, st in enumerate(streams.values()):
-        w, sig = _rate(st)
-        signals.add(sig)
-        rate[i] = _window_stats(st.t_s, w, starts, win)
-        if st.acc_m_s2 is not None:
-            acc[i] = _window_stats(st.t_s, st.acc_m_s2, starts, win)
     with np.errstate(invalid="ignore"):
         r = np.max(np.where(np.isnan(rate), np.inf, rate), axis=0)
         has_acc = np.any(np.isfinite(acc), axis=0)

@@ -9,16 +9,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from kinefuse._validation import positive_finite, psd_matrix
+from kinefuse._validation import as_float, positive_finite, psd_matrix, readonly_array
 from kinefuse.exceptions import InputError
 
 __all__ = ["LinearGaussianModel", "constant_velocity"]
-
-
-def _readonly(a) -> np.ndarray:
-    a = np.array(a, dtype=np.float64, copy=True)
-    a.setflags(write=False)
-    return a
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,7 +60,7 @@ class LinearGaussianModel:
         Q = psd_matrix(self.Q, "Q", n_x)
         R = psd_matrix(self.R, "R", n_z, strict=True)
         for name, val in (("F", F), ("H", H), ("Q", Q), ("R", R)):
-            object.__setattr__(self, name, _readonly(val))
+            object.__setattr__(self, name, readonly_array(val))
         object.__setattr__(self, "dt_s", float(self.dt_s))
         object.__setattr__(self, "axis_blocks", _is_axis_blocked(F, H, Q, R))
 
@@ -143,10 +137,7 @@ def constant_velocity(dt_s: float, q, r, n_axes: int = 3) -> LinearGaussianModel
         isinstance(r, np.ndarray) and r.dtype.kind not in "iuf"
     ):
         raise InputError(f"expected r as a number or an (n, n) matrix, got {r!r}")
-    try:
-        q = float(q)
-    except (TypeError, ValueError):
-        raise InputError(f"expected q as a number >= 0, got {q!r}") from None
+    q = as_float(q, f"expected q as a number >= 0, got {q!r}")
     if not np.isfinite(q) or q < 0:
         raise InputError(f"expected q finite and >= 0, got {q!r}")
     r_arr = (

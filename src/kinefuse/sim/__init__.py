@@ -17,18 +17,14 @@ from dataclasses import asdict
 
 import numpy as np
 
+from kinefuse.conventions import SEGMENTS
 from kinefuse.exceptions import InputError
 from kinefuse.io.motion import Motion
 from kinefuse.io.recording import ImuStream, Recording
 from kinefuse.sim.camera import CameraConfig, camera_pose, reference_at, simulate_camera
-from kinefuse.sim.imu import (
-    ORIENTATIONS,
-    STA_AMPLITUDE,
-    ImuConfig,
-    simulate_imu,
-    simulate_imu_from_pose,
-    time_grid,
-)
+from kinefuse.sim.imu import simulate_imu, simulate_imu_from_pose, time_grid
+from kinefuse.sim.imu_config import ORIENTATIONS, ImuConfig
+from kinefuse.sim.soft_tissue import STA_AMPLITUDE
 
 __all__ = [
     "ORIENTATIONS",
@@ -46,17 +42,7 @@ __all__ = [
 ]
 
 #: The nine IMU segments of paper B (Xu 2023): chest, upper arms, forearms, thighs, shanks.
-PAPER_B_SEGMENTS = (
-    "chest",
-    "upper_arm_l",
-    "upper_arm_r",
-    "forearm_l",
-    "forearm_r",
-    "thigh_l",
-    "thigh_r",
-    "shank_l",
-    "shank_r",
-)
+PAPER_B_SEGMENTS = tuple(s for s in SEGMENTS if s not in ("pelvis", "foot_l", "foot_r"))
 
 _DEFAULT_IMU = ImuConfig()
 _DEFAULT_CAMERA = CameraConfig()
@@ -108,23 +94,8 @@ def virtual_recording(
         scales), ``R_world_from_camera``, ``camera_position_m``, ``segment_length_m``,
         ``segment_joints``, the configurations, ``seed`` and the motion's source.
     """
-    from kinefuse.conventions import SEGMENTS
-
-    if not isinstance(motion, Motion):
-        raise InputError(
-            f"expected motion as a kinefuse.io.motion.Motion, got {type(motion).__name__}"
-        )
-    if imu is not None and not isinstance(imu, ImuConfig):
-        raise InputError(f"expected imu as ImuConfig or None, got {type(imu).__name__}")
-    if camera is not None and not isinstance(camera, CameraConfig):
-        raise InputError(f"expected camera as CameraConfig or None, got {type(camera).__name__}")
-    if isinstance(segments, str):
-        raise InputError(f"expected segments as a sequence of names, got the string {segments!r}")
-    segments = tuple(segments) if imu is not None else ()
-    for s in segments:
-        motion.segment_index(s)
+    segments = _checked_segments(motion, imu, camera, segments)
     seed = int(seed)
-
     cam_rate = camera.rate_hz if camera is not None else 30.0
     ref_rate = cam_rate if reference_rate_hz is None else float(reference_rate_hz)
     t_ref = time_grid(motion.t_s, ref_rate)
@@ -140,31 +111,11 @@ def virtual_recording(
         "segment_joints": dict(motion.segment_joints),
         "segment_axis": "e2 (proximal -> distal) in the segment frame",
     }
-
     imus: dict[str, ImuStream] = {}
     ref_orient: dict[str, ImuStream] = {}
     if imu is not None and segments:
-        t_imu = time_grid(motion.t_s, imu.rate_hz)
-        truth_all = {}
-        for s in segments:
-            rng = np.random.default_rng([seed, 1, SEGMENTS.index(s)])
-            stream, truth = simulate_imu(motion, s, imu, rng, t_imu)
-            imus[s] = stream
-            truth_all[s] = truth
-            ref_orient[s] = ImuStream(
-                t_s=t_imu, q_world_from_sensor=truth["q_world_from_segment"], name=s
-            )
-        meta["imu_truth"] = truth_all
-        meta["reference_imu_rate"] = reference_at(motion, t_imu)
-
-    vision = None
-    if camera is not None:
-        t_cam = time_grid(motion.t_s, camera.rate_hz)
-        vision, cam_truth = simulate_camera(motion, camera, np.random.default_rng([seed, 2]), t_cam)
-        meta["camera_truth"] = cam_truth
-        meta["R_world_from_camera"] = cam_truth["R_world_from_camera"]
-        meta["camera_position_m"] = cam_truth["camera_position_m"]
-
+        imus, ref_orient = _virtual_imus(motion, imu, segments, seed, meta)
+    vision = None if camera is None else _virtual_camera(motion, camera, seed, meta)
     reference = reference_at(motion, t_ref, joints=vision.joints if vision is not None else None)
     return Recording(
         imu=imus,
@@ -173,3 +124,50 @@ def virtual_recording(
         reference_orientation=ref_orient,
         metadata=meta,
     )
+
+
+def _checked_segments(motion, imu, camera, segments) -> tuple[str, ...]:
+    """Validate the arguments of :func:`virtual_recording`; the IMU segments (none without IMU)."""
+    if not isinstance(motion, Motion):
+        raise InputError(
+            f"expected motion as a kinefuse.io.motion.Motion, got {type(motion).__name__}"
+        )
+    if imu is not None and not isinstance(imu, ImuConfig):
+        raise InputError(f"expected imu as ImuConfig or None, got {type(imu).__name__}")
+    if camera is not None and not isinstance(camera, CameraConfig):
+        raise InputError(f"expected camera as CameraConfig or None, got {type(camera).__name__}")
+    if isinstance(segments, str):
+        raise InputError(f"expected segments as a sequence of names, got the string {segments!r}")
+    segments = tuple(segments) if imu is not None else ()
+    for s in segments:
+        motion.segment_index(s)
+    return segments
+
+
+def _virtual_camera(motion, camera: CameraConfig, seed: int, meta: dict):
+    """The virtual camera's joint stream; its truth added to ``meta``."""
+    t_cam = time_grid(motion.t_s, camera.rate_hz)
+    vision, cam_truth = simulate_camera(motion, camera, np.random.default_rng([seed, 2]), t_cam)
+    meta["camera_truth"] = cam_truth
+    meta["R_world_from_camera"] = cam_truth["R_world_from_camera"]
+    meta["camera_position_m"] = cam_truth["camera_position_m"]
+    return vision
+
+
+def _virtual_imus(motion, imu: ImuConfig, segments, seed: int, meta: dict):
+    """One virtual IMU per segment and the true segment orientations; truth added to ``meta``."""
+    imus: dict[str, ImuStream] = {}
+    ref_orient: dict[str, ImuStream] = {}
+    t_imu = time_grid(motion.t_s, imu.rate_hz)
+    truth_all = {}
+    for s in segments:
+        rng = np.random.default_rng([seed, 1, SEGMENTS.index(s)])
+        stream, truth = simulate_imu(motion, s, imu, rng, t_imu)
+        imus[s] = stream
+        truth_all[s] = truth
+        ref_orient[s] = ImuStream(
+            t_s=t_imu, q_world_from_sensor=truth["q_world_from_segment"], name=s
+        )
+    meta["imu_truth"] = truth_all
+    meta["reference_imu_rate"] = reference_at(motion, t_imu)
+    return imus, ref_orient

@@ -57,6 +57,7 @@ from scipy.interpolate import CubicSpline
 from kinefuse.exceptions import InputError
 from kinefuse.io.motion import Motion
 from kinefuse.io.recording import JointStream
+from kinefuse.sim.noise import gauss_markov
 
 __all__ = ["SKELETON_PARENT", "CameraConfig", "camera_pose", "reference_at", "simulate_camera"]
 
@@ -256,17 +257,6 @@ def bone_edges(names) -> list[tuple[str, str]]:
     return [(parent_of(j), j) for j in names if parent_of(j) is not None]
 
 
-def _gm_scale(rng, n: int, n_edges: int, std: float, tau_s: float, dt: float) -> np.ndarray:
-    w = rng.standard_normal((n, n_edges))
-    phi = math.exp(-dt / tau_s) if tau_s > 0 else 0.0
-    eps = np.empty((n, n_edges))
-    eps[0] = std * w[0]
-    c = std * math.sqrt(1.0 - phi * phi)
-    for k in range(1, n):
-        eps[k] = phi * eps[k - 1] + c * w[k]
-    return eps
-
-
 def simulate_camera(
     motion: Motion, config: CameraConfig, rng: np.random.Generator, t_s: np.ndarray
 ) -> tuple[JointStream, dict]:
@@ -290,48 +280,18 @@ def simulate_camera(
     true_all = reference_at(motion, t_s).position_m  # (n, J_all, 3)
     all_names = motion.joints
 
-    # bone-length variation along the canonical tree
-    edges = bone_edges(all_names)
-    eps = _gm_scale(rng, n, len(edges), config.bone_length_std, config.bone_length_corr_time_s, dt)
-    scale = {child: 1.0 + eps[:, e] for e, (_, child) in enumerate(edges)}
-    parent = dict((c, p) for p, c in edges)
-    out = {}
-
-    def place(j):
-        if j in out:
-            return out[j]
-        i = all_names.index(j)
-        if j not in parent:
-            out[j] = true_all[:, i]
-        else:
-            p = parent[j]
-            ip = all_names.index(p)
-            out[j] = place(p) + scale[j][:, None] * (true_all[:, i] - true_all[:, ip])
-        return out[j]
-
-    perturbed = np.stack([place(j) for j in names], axis=1)  # (n, J, 3) ENU
+    perturbed, edges, eps = _bone_length_variation(rng, true_all, all_names, names, config, dt)
 
     R_wc, c = camera_pose(motion, config)
     noise_cam = rng.standard_normal((n, len(names), 3)) * np.asarray(config.noise_std_m)
     noisy_world = perturbed + noise_cam @ R_wc.T
 
-    occluded = np.stack(
-        [
-            _outages(
-                rng, n, config.rate_hz, config.occlusion_rate_per_min, config.occlusion_duration_s
-            )
-            for _ in names
-        ],
-        axis=1,
-    )
-    dropout = _outages(
-        rng, n, config.rate_hz, config.dropout_rate_per_min, config.dropout_duration_s
-    )
+    occluded, dropout = _outage_masks(rng, n, names, config)
     available = ~(occluded | dropout[:, None])
     J = len(names)
     track = np.zeros((n, J, 3))
     if config.tracking_error_std_m > 0:  # the last draw: skipping it changes nothing else
-        track = _gm_scale(
+        track = gauss_markov(
             rng, n, 3 * J, config.tracking_error_std_m, config.tracking_error_time_s, dt
         ).reshape(n, J, 3)
     noisy_world = noisy_world + track @ R_wc.T
@@ -352,3 +312,47 @@ def simulate_camera(
         "tracking_error_m": track @ R_wc.T,
     }
     return stream, truth
+
+
+def _bone_length_variation(rng, true_all, all_names, names, config: CameraConfig, dt: float):
+    """Joints ``names`` with every bone of the canonical tree scaled by ``1 + ε(t)`` (ENU).
+
+    Returns the perturbed positions (n, J, 3), the bones ``(parent, child)`` and ``ε`` (n, E).
+    """
+    n = true_all.shape[0]
+    edges = bone_edges(all_names)
+    eps = gauss_markov(rng, n, len(edges), config.bone_length_std, config.bone_length_corr_time_s, dt)
+    scale = {child: 1.0 + eps[:, e] for e, (_, child) in enumerate(edges)}
+    parent = dict((c, p) for p, c in edges)
+    out = {}
+
+    def place(j):
+        if j in out:
+            return out[j]
+        i = all_names.index(j)
+        if j not in parent:
+            out[j] = true_all[:, i]
+        else:
+            p = parent[j]
+            ip = all_names.index(p)
+            out[j] = place(p) + scale[j][:, None] * (true_all[:, i] - true_all[:, ip])
+        return out[j]
+
+    return np.stack([place(j) for j in names], axis=1), edges, eps
+
+
+def _outage_masks(rng, n: int, names, config: CameraConfig):
+    """Per-joint occlusion (n, J) and whole-body dropout (n,) masks (draw order fixed)."""
+    occluded = np.stack(
+        [
+            _outages(
+                rng, n, config.rate_hz, config.occlusion_rate_per_min, config.occlusion_duration_s
+            )
+            for _ in names
+        ],
+        axis=1,
+    )
+    dropout = _outages(
+        rng, n, config.rate_hz, config.dropout_rate_per_min, config.dropout_duration_s
+    )
+    return occluded, dropout

@@ -32,62 +32,13 @@ Accelerometer
     sample times this *is* the plain central difference of the mocap positions; at other times it
     is the same smoothing applied to the interpolant. (Near both ends the spline extrapolates.)
 
-Error model (each sensor draws its own, per axis)
--------------------------------------------------
-``y = (I + X) · diag(1 + s) · y_true + b_0 + b_gm(t) + b_rw(t) + n``, with cross-axis terms X
-(off-diagonal, uniform ±cross_axis), scale errors s (uniform ±scale_error), turn-on bias b_0
-(uniform ±turn_on_bias), bias instability b_gm (first-order Gauss-Markov, std and correlation
-time below), bias random walk b_rw and white noise n of std ``density · sqrt(rate_hz / 2)``
-(noise bandwidth = Nyquist). Datasheet "±" tolerances are used as uniform bounds.
-
-Defaults: TDK InvenSense ICM-20948 datasheet DS-000189 rev. 1.3 (the IMU of paper B) for the
-noise: gyroscope rate noise spectral density 0.015 °/s/√Hz (Table 1), accelerometer noise spectral
-density 230 µg/√Hz (Table 2). The datasheet's *uncalibrated* tolerances (gyro ZRO ±5 °/s, scale
-±1.5 %, cross-axis ±2 %; accelerometer zero-g ±50 mg, scale ±0.5 %, cross-axis ±2 %) are what a
-sensor has before anyone calibrates it; a user of body-worn IMUs calibrates them (factory or
-six-position calibration, start-up gyro offset), so the defaults are the *residuals* after that:
-gyro turn-on bias ±5 °/s removed at start-up (below), gyro scale and cross-axis ±0.5 %,
-accelerometer bias ±10 mg, scale and cross-axis ±0.2 %; magnetometer hard iron ±0.3 µT and soft
-iron ±1 % after a field calibration, field inhomogeneity 1 µT. These magnitudes were chosen so that
-VQF on virtual BROAD trials errs like VQF on the real ones (``kinefuse experiment realism``,
-BROAD tuning trials 01, 06, 10, 24 undisturbed/tapping; 28, 32 for the disturbance size; the
-other trials are only reported). The datasheet gives no bias instability or random walk: the
-defaults (gyro 0.003 °/s ≈ 10 °/h and accel 0.05 mg Gauss-Markov with 100 s correlation time;
-random walks 2e-4 °/s/√s and 2e-5 g/√s) are [J] typical consumer-MEMS Allan-variance figures.
-Mounting misalignment: 2° std per axis [J] (the segment axis is calibrated, see
-:func:`kinefuse.kinematics.calibrate`; the rest stays an error).
+Error model and defaults
+------------------------
+See :mod:`kinefuse.sim.imu_config` (ICM-20948 residuals after a user's calibration).
 
 Soft-tissue artefact (STA)
 --------------------------
-A body-worn sensor does not follow the bone: skin, fat and muscle let it slide and rotate
-relative to the bone, and the motion follows the movement (its frequency content is that of the
-movement, so filtering cannot remove it; Leardini et al. 2005, Cappozzo et al. 1996). kinefuse
-uses the linear STA model of Dumas, Camomilla, Bonci, Cheze and Cappozzo (J. Biomech. 47, 2014):
-the rigid cluster motion relative to the bone is a linear function of the angles of the joints
-the segment spans. Here the driving signal ``s(t)`` stacks the rotation vectors (rad) of the
-joints at both ends of the segment (the relative rotation to every neighbouring segment of the
-motion, minus its trial mean), and
-
-``δθ(t) = A_rot · M_rot s(t)``, ``δp(t) = A_tr · M_tr s(t)`` (segment frame),
-
-with ``M`` random matrices of spectral norm <= 1 (singular values uniform in [0.5, 1], random
-directions), so ``|δθ| <= A_rot |s|`` and ``|δp| <= A_tr |s|``: ``A`` is the artefact per radian
-of joint motion. The sensor pose is ``R_world_from_sensor = R_world_from_segment · exp(δθ) ·
-R_segment_from_sensor`` and its position is the bone point plus ``R_world_from_segment δp``;
-gyroscope and accelerometer are exact for that moving pose. Amplitudes :data:`STA_AMPLITUDE`
-(per radian of joint excursion, ≈ the peak over a gait cycle whose knee flexes by about 60°),
-times ``ImuConfig.soft_tissue_scale``:
-
-* thigh 18 mm, 10° and shank 17 mm, 7°: the rigid marker-cluster STA measured against
-  fluoroscopy during gait (Ancillao et al., Hum. Mov. Sci. 2021, CAMS-Knee), within the thigh
-  10-30 mm and shank 5-20 mm ranges of Cappozzo et al. (Clin. Biomech. 11, 1996), Leardini et al.
-  (Gait Posture 21, 2005, review) and Peters et al. (Gait Posture 31, 2010, review: thigh STA is
-  the largest of the lower limb);
-* upper arm 20 mm, 8° and forearm 10 mm, 5° [J]: humeral axial rotation is underestimated by
-  skin sensors by up to a third of its range (Cutti et al., Gait Posture 21, 2005) and the
-  upper-arm cluster moves by centimetres (Blache et al., J. Biomech. 62, 2017); the forearm STA
-  is mostly about its long axis (pronation-supination).
-* chest, pelvis, feet: none.
+See :mod:`kinefuse.sim.soft_tissue` (Dumas et al. 2014 linear model, literature amplitudes).
 
 Magnetometer
 ------------
@@ -129,7 +80,6 @@ tests, *not realistic*): the true sensor orientation times a world-frame error: 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -140,6 +90,15 @@ from kinefuse.conventions import GRAVITY_ENU_M_S2, GRAVITY_M_S2
 from kinefuse.exceptions import InputError
 from kinefuse.io.motion import SEGMENT_AXIS, Motion, _continuous_quat
 from kinefuse.io.recording import ImuStream
+from kinefuse.orientation import estimate
+from kinefuse.sim.imu_config import ORIENTATIONS, ImuConfig
+from kinefuse.sim.noise import (
+    disturbance_episodes,
+    gauss_markov,
+    norm_bounded_matrix,
+    sensor_errors,
+)
+from kinefuse.sim.soft_tissue import STA_AMPLITUDE, joint_drive, neighbours, sta_kind
 
 __all__ = [
     "ORIENTATIONS",
@@ -152,188 +111,6 @@ __all__ = [
 
 _DEG = math.pi / 180.0
 
-
-#: Orientation sources of a virtual IMU (module doc, "Orientation").
-ORIENTATIONS = ("vqf", "vqf-6d", "idealised-ahrs")
-
-#: Soft-tissue artefact per radian of joint motion: segment kind -> (translation mm, rotation
-#: deg); module doc "Soft-tissue artefact" for the sources.
-STA_AMPLITUDE = {
-    "thigh": (18.0, 10.0),
-    "shank": (17.0, 7.0),
-    "upper_arm": (20.0, 8.0),
-    "forearm": (10.0, 5.0),
-}
-
-
-def _sta_kind(segment: str) -> str | None:
-    kind = segment.rsplit("_", 1)[0] if segment.endswith(("_l", "_r")) else segment
-    return kind if kind in STA_AMPLITUDE else None
-
-
-@dataclass(frozen=True)
-class ImuConfig:
-    """Virtual IMU settings (datasheet units in the names; defaults: ICM-20948, see module doc).
-
-    Attributes
-    ----------
-    rate_hz : float
-        Output rate, Hz.
-    position_along_segment : float
-        Sensor position on the segment axis as a fraction of the bone length from the proximal
-        joint (0.5 = midpoint), in [0, 1].
-    gyr_noise_dps_sqrt_hz, acc_noise_ug_sqrt_hz : float
-        White-noise spectral densities, °/s/√Hz and µg/√Hz.
-    gyr_turn_on_bias_dps, acc_turn_on_bias_mg : float
-        Half-range of the uniform turn-on bias per axis, °/s and mg.
-    gyr_bias_instability_dps, acc_bias_instability_mg : float
-        Std of the Gauss-Markov bias, °/s and mg.
-    bias_correlation_time_s : float
-        Correlation time of the Gauss-Markov biases, s.
-    gyr_bias_random_walk_dps_sqrt_s, acc_bias_random_walk_mg_sqrt_s : float
-        Bias random-walk intensities, °/s/√s and mg/√s.
-    gyr_scale_error, acc_scale_error : float
-        Half-range of the uniform scale-factor error (0.015 = ±1.5 %).
-    gyr_cross_axis, acc_cross_axis : float
-        Half-range of the uniform cross-axis coupling (0.02 = ±2 %).
-    motion_lowpass_hz : float or None
-        Cut-off of the zero-phase low-pass applied to the mocap segment motion before
-        differentiation, Hz (module doc); ``None`` = raw mocap.
-    mounting_error_deg : float
-        Std per axis of the rotation vector of ``q_segment_from_sensor``, degrees.
-    soft_tissue_scale : float
-        Factor on :data:`STA_AMPLITUDE` (0 = sensor rigidly on the bone).
-    mag_field_ut, mag_inclination_deg : float
-        Undisturbed field strength, µT, and its inclination below the horizon (towards +y).
-    mag_noise_ut : float
-        White noise std per axis, µT.
-    mag_hard_iron_ut : float
-        Half-range of the uniform residual hard-iron offset per axis (after a user's
-        calibration), µT.
-    mag_soft_iron : float
-        Half-range of the uniform residual soft-iron scale and cross-axis terms.
-    mag_inhomogeneity_ut, mag_inhomogeneity_time_s : float
-        Std (µT, per world axis) and correlation time (s) of the slow indoor field changes.
-    mag_disturbance_per_min, mag_disturbance_ut, mag_disturbance_duration_s : float
-        Disturbance episodes: rate (per minute), largest magnitude (µT), mean duration (s).
-    orientation : {"vqf", "vqf-6d", "idealised-ahrs"}
-        Where ``q_world_from_sensor`` comes from (module doc).
-    warmup_s : float
-        VQF only: the sensor is switched on this long before the recording and lies still in the
-        first pose (module doc); 0 = VQF starts at the first recorded sample.
-    gyr_startup_calibration : bool
-        With a warm-up: the gyroscope offset is estimated as the mean over the warm-up rest and
-        removed from every output sample, as sensor drivers and on-board fusion do at start-up
-        (the residual is the noise of that mean plus the later bias drift).
-    ahrs_heading_drift_deg_per_min, ahrs_heading_noise_deg, ahrs_tilt_noise_deg, ahrs_initial_heading_deg : float
-        Error of the ``"idealised-ahrs"`` orientation (module doc), degrees.
-    """
-
-    rate_hz: float = 100.0
-    position_along_segment: float = 0.5
-    motion_lowpass_hz: float | None = 15.0
-    gyr_noise_dps_sqrt_hz: float = 0.015
-    acc_noise_ug_sqrt_hz: float = 230.0
-    gyr_turn_on_bias_dps: float = 5.0
-    acc_turn_on_bias_mg: float = 10.0
-    gyr_bias_instability_dps: float = 0.003
-    acc_bias_instability_mg: float = 0.05
-    bias_correlation_time_s: float = 100.0
-    gyr_bias_random_walk_dps_sqrt_s: float = 2e-4
-    acc_bias_random_walk_mg_sqrt_s: float = 0.02
-    gyr_scale_error: float = 0.005
-    acc_scale_error: float = 0.002
-    gyr_cross_axis: float = 0.005
-    acc_cross_axis: float = 0.002
-    mounting_error_deg: float = 2.0
-    soft_tissue_scale: float = 1.0
-    mag_field_ut: float = 44.0
-    mag_inclination_deg: float = 68.0
-    mag_noise_ut: float = 0.3
-    mag_hard_iron_ut: float = 0.3
-    mag_soft_iron: float = 0.01
-    mag_inhomogeneity_ut: float = 1.0
-    mag_inhomogeneity_time_s: float = 5.0
-    mag_disturbance_per_min: float = 1.0
-    mag_disturbance_ut: float = 20.0
-    mag_disturbance_duration_s: float = 5.0
-    orientation: str = "vqf"
-    warmup_s: float = 10.0
-    gyr_startup_calibration: bool = True
-    ahrs_heading_drift_deg_per_min: float = 0.5
-    ahrs_heading_noise_deg: float = 0.2
-    ahrs_tilt_noise_deg: float = 0.1
-    ahrs_initial_heading_deg: float = 0.0
-
-    def __post_init__(self):
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if f.name == "orientation":
-                if v not in ORIENTATIONS:
-                    raise InputError(
-                        f"ImuConfig.orientation: expected one of {ORIENTATIONS}, got {v!r}"
-                    )
-                continue
-            if f.name == "motion_lowpass_hz" and v is None:
-                continue
-            if f.name == "gyr_startup_calibration":
-                if not isinstance(v, bool):
-                    raise InputError(f"ImuConfig.{f.name}: expected a bool, got {v!r}")
-                continue
-            if (
-                not isinstance(v, (int, float))
-                or isinstance(v, bool)
-                or not math.isfinite(v)
-                or v < 0
-            ):
-                raise InputError(f"ImuConfig.{f.name}: expected a finite number >= 0, got {v!r}")
-        for name in ("rate_hz", "bias_correlation_time_s", "mag_inhomogeneity_time_s"):
-            if getattr(self, name) <= 0:
-                raise InputError(f"ImuConfig.{name}: expected > 0, got {getattr(self, name)!r}")
-        if self.motion_lowpass_hz is not None and self.motion_lowpass_hz <= 0:
-            raise InputError(
-                f"ImuConfig.motion_lowpass_hz: expected None or > 0, got {self.motion_lowpass_hz!r}"
-            )
-        if not 0.0 <= self.position_along_segment <= 1.0:
-            raise InputError(
-                f"ImuConfig.position_along_segment: expected in [0, 1], got {self.position_along_segment!r}"
-            )
-        if self.mag_inclination_deg > 90.0:
-            raise InputError(
-                f"ImuConfig.mag_inclination_deg: expected in [0, 90], got {self.mag_inclination_deg!r}"
-            )
-
-    @classmethod
-    def ideal(cls, rate_hz: float = 100.0, **overrides) -> ImuConfig:
-        """Noise-free, perfectly calibrated, rigidly and perfectly mounted sensors in an
-        undisturbed field, with the exact orientation (``"idealised-ahrs"`` without error).
-
-        ``overrides`` set other fields, e.g. ``motion_lowpass_hz=None`` for the raw mocap, or
-        ``orientation="vqf"`` for VQF on the noise-free signals.
-        """
-        keep = (
-            "rate_hz",
-            "position_along_segment",
-            "bias_correlation_time_s",
-            "motion_lowpass_hz",
-            "mag_field_ut",
-            "mag_inclination_deg",
-            "mag_inhomogeneity_time_s",
-            "orientation",
-        )
-        kwargs = {f.name: 0.0 for f in fields(cls) if f.name not in keep}
-        kwargs["gyr_startup_calibration"] = False
-        kwargs["orientation"] = "idealised-ahrs"
-        kwargs.update(overrides)
-        return cls(rate_hz=rate_hz, **kwargs)
-
-    @property
-    def mag_earth_ut(self) -> np.ndarray:
-        """Undisturbed field in ENU, µT, shape (3,): ``F · [0, cos I, −sin I]``."""
-        inc = self.mag_inclination_deg * _DEG
-        return self.mag_field_ut * np.array([0.0, math.cos(inc), -math.sin(inc)])
-
-
 def time_grid(t_s: np.ndarray, rate_hz: float) -> np.ndarray:
     """``t_0 + k / rate_hz`` for all k with the time inside ``[t_s[0], t_s[-1]]``, shape (n,)."""
     n = int(math.floor((t_s[-1] - t_s[0]) * rate_hz + 1e-9)) + 1
@@ -342,22 +119,6 @@ def time_grid(t_s: np.ndarray, rate_hz: float) -> np.ndarray:
             f"expected a motion spanning at least 2 samples at {rate_hz} Hz, got {t_s[-1] - t_s[0]:.4g} s"
         )
     return t_s[0] + np.arange(n) / rate_hz
-
-
-def _gauss_markov(
-    rng: np.random.Generator, n: int, dim: int, std: float, tau_s: float, dt: float
-) -> np.ndarray:
-    """Stationary first-order Gauss-Markov sequences, shape (n, dim)."""
-    w = rng.standard_normal((n, dim))
-    if std == 0.0:
-        return np.zeros((n, dim))
-    phi = math.exp(-dt / tau_s) if tau_s > 0 else 0.0
-    out = np.empty((n, dim))
-    out[0] = std * w[0]
-    c = std * math.sqrt(1.0 - phi * phi)
-    for k in range(1, n):
-        out[k] = phi * out[k - 1] + c * w[k]
-    return out
 
 
 def _lowpass(x: np.ndarray, cutoff_hz: float, rate_hz: float) -> np.ndarray:
@@ -369,72 +130,6 @@ def _lowpass(x: np.ndarray, cutoff_hz: float, rate_hz: float) -> np.ndarray:
         )
     b, a = butter(2, wn)
     return filtfilt(b, a, x, axis=0, padlen=min(3 * max(len(a), len(b)), x.shape[0] - 1))
-
-
-def _error_model(rng, y_true, *, scale, cross, bias0, bias_gm, tau_s, rw, noise, dt):
-    """Apply the per-sensor error model to ``y_true`` (n, 3); returns (y, parameters)."""
-    n = y_true.shape[0]
-    s = rng.uniform(-1.0, 1.0, 3) * scale
-    X = rng.uniform(-1.0, 1.0, (3, 3)) * cross
-    np.fill_diagonal(X, 0.0)
-    M = (np.eye(3) + X) @ np.diag(1.0 + s)
-    b0 = rng.uniform(-1.0, 1.0, 3) * bias0
-    b_gm = _gauss_markov(rng, n, 3, bias_gm, tau_s, dt)
-    b_rw = np.cumsum(rng.standard_normal((n, 3)) * (rw * math.sqrt(dt)), axis=0)
-    white = rng.standard_normal((n, 3)) * noise
-    y = y_true @ M.T + b0 + b_gm + b_rw + white
-    return y, {"sensitivity_matrix": M, "turn_on_bias": b0, "bias": b0 + b_gm + b_rw}
-
-
-def _norm_bounded_matrix(rng: np.random.Generator, rows: int, cols: int) -> np.ndarray:
-    """Random ``rows x cols`` matrix with singular values uniform in [0.5, 1] (spectral norm <= 1)."""
-    u, _, vt = np.linalg.svd(rng.standard_normal((rows, cols)), full_matrices=False)
-    return (u * rng.uniform(0.5, 1.0, min(rows, cols))) @ vt
-
-
-def _neighbours(motion: Motion, segment: str) -> list[str]:
-    """Segments of ``motion`` sharing a joint with ``segment`` (its proximal or distal joint)."""
-    prox, dist = motion.segment_joints[segment]
-    out = []
-    for s in motion.segments:
-        if s == segment:
-            continue
-        p2, d2 = motion.segment_joints[s]
-        if (d2 is not None and d2 == prox) or (dist is not None and p2 == dist):
-            out.append(s)
-    return out
-
-
-def _joint_drive(rot_seg: Rotation, rot_nbs: list[Rotation]) -> np.ndarray:
-    """Stacked rotation vectors (rad) of the joints to the neighbours, minus the trial mean, (T, 3m)."""
-    cols = []
-    for rn in rot_nbs:
-        rel = rn.inv() * rot_seg
-        cols.append((rel.mean().inv() * rel).as_rotvec())
-    return np.concatenate(cols, axis=1) if cols else np.zeros((len(rot_seg), 0))
-
-
-def _disturbance_episodes(
-    rng: np.random.Generator, t: np.ndarray, config: ImuConfig
-) -> tuple[np.ndarray, list[tuple[float, float]]]:
-    """World-frame disturbance field (n, 3), µT, and the episodes ``(start_s, end_s)``."""
-    n = t.size
-    span_min = (t[-1] - t[0]) / 60.0
-    k = int(rng.poisson(config.mag_disturbance_per_min * span_min))
-    starts = np.sort(rng.uniform(t[0], t[-1], k))
-    durations = config.mag_disturbance_duration_s * rng.uniform(0.5, 1.5, k)
-    dirs = rng.standard_normal((k, 3))
-    mags = config.mag_disturbance_ut * rng.uniform(0.25, 1.0, k)
-    field = np.zeros((n, 3))
-    episodes = []
-    ramp = 1.0
-    for t0, d, u, m in zip(starts, durations, dirs, mags, strict=True):
-        t1 = t0 + d
-        w = np.clip(np.minimum(t - t0, t1 - t) / ramp, 0.0, 1.0)
-        w = 0.5 - 0.5 * np.cos(np.pi * w)
-        field += w[:, None] * (m * u / np.linalg.norm(u))
-        episodes.append((float(t0), float(t1)))
-    return field, episodes
 
 
 def simulate_imu(
@@ -486,27 +181,18 @@ def simulate_imu(
             q = q / np.linalg.norm(q, axis=1, keepdims=True)
         return Rotation.from_quat(q, scalar_first=True)
 
-    rot_seg_raw = Rotation.from_quat(motion.q_world_from_segment[:, i], scalar_first=True)
-    prox, dist = motion.segment_joints[segment]
-    p = motion.position(prox).copy()
-    if dist is not None:
-        lever = config.position_along_segment * motion.segment_length_m[segment]
-        p = p + lever * rot_seg_raw.apply(SEGMENT_AXIS)
-    if config.motion_lowpass_hz is not None:
-        p = _lowpass(p, config.motion_lowpass_hz, motion.rate_hz)
+    p = _sensor_path(motion, segment, i, config)
     rot_seg = _smoothed_rot(i)
-
     mount = Rotation.from_rotvec(rng.standard_normal(3) * config.mounting_error_deg * _DEG)
-
-    kind = _sta_kind(segment)
-    nbs = _neighbours(motion, segment) if kind is not None else []
-    drive = _joint_drive(rot_seg, [_smoothed_rot(motion.segment_index(s)) for s in nbs])
+    kind = sta_kind(segment)
+    nbs = neighbours(motion, segment) if kind is not None else []
+    drive = joint_drive(rot_seg, [_smoothed_rot(motion.segment_index(s)) for s in nbs])
     a_tr, a_rot = (0.0, 0.0)
     if kind is not None:
         a_tr = STA_AMPLITUDE[kind][0] * 1e-3 * config.soft_tissue_scale
         a_rot = STA_AMPLITUDE[kind][1] * _DEG * config.soft_tissue_scale
-    m_tr = _norm_bounded_matrix(rng, 3, drive.shape[1]) if drive.shape[1] else np.zeros((3, 0))
-    m_rot = _norm_bounded_matrix(rng, 3, drive.shape[1]) if drive.shape[1] else np.zeros((3, 0))
+    m_tr = norm_bounded_matrix(rng, 3, drive.shape[1]) if drive.shape[1] else np.zeros((3, 0))
+    m_rot = norm_bounded_matrix(rng, 3, drive.shape[1]) if drive.shape[1] else np.zeros((3, 0))
     sta_rot = a_rot * drive @ m_rot.T
     sta_tr = a_tr * drive @ m_tr.T
     rot_sensor = rot_seg * Rotation.from_rotvec(sta_rot) * mount
@@ -526,6 +212,19 @@ def simulate_imu(
         sta_amplitude=(a_tr, a_rot),
     )
     return stream, truth
+
+
+def _sensor_path(motion: Motion, segment: str, i: int, config: ImuConfig) -> np.ndarray:
+    """Bone point carrying the sensor (``position_along_segment``), low-passed, (T, 3) m."""
+    rot_seg_raw = Rotation.from_quat(motion.q_world_from_segment[:, i], scalar_first=True)
+    prox, dist = motion.segment_joints[segment]
+    p = motion.position(prox).copy()
+    if dist is not None:
+        lever = config.position_along_segment * motion.segment_length_m[segment]
+        p = p + lever * rot_seg_raw.apply(SEGMENT_AXIS)
+    if config.motion_lowpass_hz is not None:
+        p = _lowpass(p, config.motion_lowpass_hz, motion.rate_hz)
+    return p
 
 
 def simulate_imu_from_pose(
@@ -580,129 +279,34 @@ def simulate_imu_from_pose(
     t = time_grid(t_src, config.rate_hz) if t_s is None else np.asarray(t_s, dtype=float)
     dt = 1.0 / config.rate_hz
     rot_ws = RotationSpline(t_src, Rotation.from_quat(q_world_from_sensor, scalar_first=True))(t)
-
-    # gyroscope: rate carrying sample k-1 to sample k
-    w = (rot_ws[:-1].inv() * rot_ws[1:]).as_rotvec() / dt
-    gyr_true = np.vstack([w[:1], w])
-
-    # accelerometer: second difference of a cubic spline through the sensor positions
     spline = CubicSpline(t_src, position_m, axis=0)
-    h = float(np.median(np.diff(t_src)))
-    a = (spline(t + h) - 2.0 * spline(t) + spline(t - h)) / (h * h)
-    acc_true = rot_ws.inv().apply(a - GRAVITY_ENU_M_S2)
-
+    gyr_true, acc_true = _true_inertial(rot_ws, spline, t, t_src, dt)
     # warm-up: the sensor at rest in the first pose before the recording (VQF only)
     n_warm = 0
     if config.orientation != "idealised-ahrs" and config.warmup_s > 0:
         n_warm = int(round(config.warmup_s * config.rate_hz))
-        gyr_true = np.vstack([np.zeros((n_warm, 3)), gyr_true])
-        acc_true = np.vstack(
-            [np.tile(rot_ws[0].inv().apply(-GRAVITY_ENU_M_S2), (n_warm, 1)), acc_true]
-        )
-        q_all = np.vstack([np.tile(rot_ws[0].as_quat(), (n_warm, 1)), rot_ws.as_quat()])
-        rot_ws = Rotation.from_quat(q_all)
-        t = np.concatenate([t[0] - dt * np.arange(n_warm, 0, -1), t])
+        gyr_true, acc_true, rot_ws, t = _prepend_rest(n_warm, gyr_true, acc_true, rot_ws, t, dt)
+    out, truth = _readings(rng, t, rot_ws, gyr_true, acc_true, config, dt, n_warm)
+    if n_warm:
+        t = t[n_warm:]
+        _drop_warmup(out, truth, n_warm)
+    truth["position_m"] = spline(t)
+    return ImuStream(t_s=t, name=name, **out), truth
 
-    g = GRAVITY_M_S2
-    gyr, gyr_err = _error_model(
-        rng,
-        gyr_true,
-        scale=config.gyr_scale_error,
-        cross=config.gyr_cross_axis,
-        bias0=config.gyr_turn_on_bias_dps * _DEG,
-        bias_gm=config.gyr_bias_instability_dps * _DEG,
-        tau_s=config.bias_correlation_time_s,
-        rw=config.gyr_bias_random_walk_dps_sqrt_s * _DEG,
-        noise=config.gyr_noise_dps_sqrt_hz * _DEG * math.sqrt(config.rate_hz / 2.0),
-        dt=dt,
-    )
-    acc, acc_err = _error_model(
-        rng,
-        acc_true,
-        scale=config.acc_scale_error,
-        cross=config.acc_cross_axis,
-        bias0=config.acc_turn_on_bias_mg * 1e-3 * g,
-        bias_gm=config.acc_bias_instability_mg * 1e-3 * g,
-        tau_s=config.bias_correlation_time_s,
-        rw=config.acc_bias_random_walk_mg_sqrt_s * 1e-3 * g,
-        noise=config.acc_noise_ug_sqrt_hz * 1e-6 * g * math.sqrt(config.rate_hz / 2.0),
-        dt=dt,
-    )
 
+def _readings(rng, t, rot_ws, gyr_true, acc_true, config: ImuConfig, dt: float, n_warm: int):
+    """The sensor's outputs (ImuStream fields) and the truth, warm-up included (draw order fixed)."""
+    gyr, gyr_err, acc, acc_err = _inertial_readings(rng, gyr_true, acc_true, config, dt)
     if n_warm and config.gyr_startup_calibration:
         offset = gyr[:n_warm].mean(axis=0)
         gyr = gyr - offset
         gyr_err["bias"] = gyr_err["bias"] - offset
         gyr_err["startup_offset"] = offset
-
-    # magnetometer: earth field + slow indoor inhomogeneity + disturbance episodes
-    n = t.size
-    m_inh = _gauss_markov(
-        rng, n, 3, config.mag_inhomogeneity_ut, config.mag_inhomogeneity_time_s, dt
-    )
-    m_dist, episodes = _disturbance_episodes(rng, t, config)
-    m_world = config.mag_earth_ut + m_inh + m_dist
-    mag_true = rot_ws.inv().apply(m_world)
-    mag, mag_err = _error_model(
-        rng,
-        mag_true,
-        scale=config.mag_soft_iron,
-        cross=config.mag_soft_iron,
-        bias0=config.mag_hard_iron_ut,
-        bias_gm=0.0,
-        tau_s=config.bias_correlation_time_s,
-        rw=0.0,
-        noise=config.mag_noise_ut,
-        dt=dt,
-    )
-
+    mag, mag_err, mag_true, m_world, episodes = _magnetometer(rng, t, rot_ws, config, dt)
     q_true = _continuous_quat(rot_ws.as_quat(scalar_first=True))
-    frame = "ENU"
-    psi = None
-    if config.orientation == "idealised-ahrs":
-        psi0 = rng.uniform(-1.0, 1.0) * config.ahrs_initial_heading_deg * _DEG
-        psi_rate = rng.standard_normal() * config.ahrs_heading_drift_deg_per_min * _DEG / 60.0
-        psi = (
-            psi0
-            + psi_rate * (t - t[0])
-            + rng.standard_normal(n) * config.ahrs_heading_noise_deg * _DEG
-        )
-        tilt = rng.standard_normal((n, 2)) * config.ahrs_tilt_noise_deg * _DEG
-        err = Rotation.from_rotvec(np.column_stack([np.zeros((n, 2)), psi])) * Rotation.from_rotvec(
-            np.column_stack([tilt, np.zeros(n)])
-        )
-        q_out = _continuous_quat((err * rot_ws).as_quat(scalar_first=True))
-    else:
-        from kinefuse.orientation import estimate
-
-        use_mag = config.orientation == "vqf"
-        q_out = estimate(acc, gyr, mag if use_mag else None, rate_hz=config.rate_hz)
-        if not use_mag:
-            frame = "VQF-6D"
-
-    if n_warm:
-        keep = slice(n_warm, None)
-        t, rot_ws, q_out, q_true = t[keep], rot_ws[keep], q_out[keep], q_true[keep]
-        acc, gyr, mag = acc[keep], gyr[keep], mag[keep]
-        acc_true, gyr_true, mag_true, m_world = (
-            acc_true[keep],
-            gyr_true[keep],
-            mag_true[keep],
-            m_world[keep],
-        )
-        for err in (acc_err, gyr_err, mag_err):
-            err["bias"] = err["bias"][keep]
-        if psi is not None:
-            psi = psi[keep]
-    stream = ImuStream(
-        t_s=t,
-        q_world_from_sensor=q_out,
-        acc_m_s2=acc,
-        gyr_rad_s=gyr,
-        mag=mag,
-        name=name,
-        frame=frame,
-    )
+    q_out, frame, psi = _output_orientation(rng, t, rot_ws, acc, gyr, mag, config)
+    out = {"q_world_from_sensor": q_out, "acc_m_s2": acc, "gyr_rad_s": gyr, "mag": mag}
+    out["frame"] = frame
     truth = {
         "q_world_from_sensor": q_true,
         "acc_m_s2": acc_true,
@@ -714,6 +318,115 @@ def simulate_imu_from_pose(
         "mag_world_ut": m_world,
         "mag_episodes": episodes,
         "ahrs_heading_error_rad": psi,
-        "position_m": spline(t),
     }
-    return stream, truth
+    return out, truth
+
+
+def _drop_warmup(out: dict, truth: dict, n_warm: int) -> None:
+    """Remove the ``n_warm`` warm-up samples from the outputs and the truth (in place)."""
+    keep = slice(n_warm, None)
+    for key in ("q_world_from_sensor", "acc_m_s2", "gyr_rad_s", "mag"):
+        out[key] = out[key][keep]
+    for key in ("q_world_from_sensor", "acc_m_s2", "gyr_rad_s", "mag_ut", "mag_world_ut"):
+        truth[key] = truth[key][keep]
+    for key in ("acc_error", "gyr_error", "mag_error"):
+        truth[key]["bias"] = truth[key]["bias"][keep]
+    if truth["ahrs_heading_error_rad"] is not None:
+        truth["ahrs_heading_error_rad"] = truth["ahrs_heading_error_rad"][keep]
+
+
+def _true_inertial(rot_ws: Rotation, spline: CubicSpline, t, t_src, dt: float):
+    """Noise-free gyroscope (n, 3) rad/s and specific force (n, 3) m/s² (module doc)."""
+    # gyroscope: rate carrying sample k-1 to sample k
+    w = (rot_ws[:-1].inv() * rot_ws[1:]).as_rotvec() / dt
+    gyr_true = np.vstack([w[:1], w])
+    # accelerometer: second difference of a cubic spline through the sensor positions
+    h = float(np.median(np.diff(t_src)))
+    a = (spline(t + h) - 2.0 * spline(t) + spline(t - h)) / (h * h)
+    acc_true = rot_ws.inv().apply(a - GRAVITY_ENU_M_S2)
+    return gyr_true, acc_true
+
+
+def _prepend_rest(n_warm: int, gyr_true, acc_true, rot_ws: Rotation, t, dt: float):
+    """``n_warm`` samples of the sensor at rest in its first pose before the recording."""
+    gyr_true = np.vstack([np.zeros((n_warm, 3)), gyr_true])
+    acc_true = np.vstack(
+        [np.tile(rot_ws[0].inv().apply(-GRAVITY_ENU_M_S2), (n_warm, 1)), acc_true]
+    )
+    q_all = np.vstack([np.tile(rot_ws[0].as_quat(), (n_warm, 1)), rot_ws.as_quat()])
+    rot_ws = Rotation.from_quat(q_all)
+    t = np.concatenate([t[0] - dt * np.arange(n_warm, 0, -1), t])
+    return gyr_true, acc_true, rot_ws, t
+
+
+def _inertial_readings(rng, gyr_true, acc_true, config: ImuConfig, dt: float):
+    """Gyroscope then accelerometer through their error models (draw order fixed)."""
+    g = GRAVITY_M_S2
+    gyr, gyr_err = sensor_errors(
+        rng,
+        gyr_true,
+        scale=config.gyr_scale_error,
+        cross=config.gyr_cross_axis,
+        bias0=config.gyr_turn_on_bias_dps * _DEG,
+        bias_gm=config.gyr_bias_instability_dps * _DEG,
+        tau_s=config.bias_correlation_time_s,
+        rw=config.gyr_bias_random_walk_dps_sqrt_s * _DEG,
+        noise=config.gyr_noise_dps_sqrt_hz * _DEG * math.sqrt(config.rate_hz / 2.0),
+        dt=dt,
+    )
+    acc, acc_err = sensor_errors(
+        rng,
+        acc_true,
+        scale=config.acc_scale_error,
+        cross=config.acc_cross_axis,
+        bias0=config.acc_turn_on_bias_mg * 1e-3 * g,
+        bias_gm=config.acc_bias_instability_mg * 1e-3 * g,
+        tau_s=config.bias_correlation_time_s,
+        rw=config.acc_bias_random_walk_mg_sqrt_s * 1e-3 * g,
+        noise=config.acc_noise_ug_sqrt_hz * 1e-6 * g * math.sqrt(config.rate_hz / 2.0),
+        dt=dt,
+    )
+    return gyr, gyr_err, acc, acc_err
+
+
+def _magnetometer(rng, t, rot_ws: Rotation, config: ImuConfig, dt: float):
+    """Earth field + slow indoor inhomogeneity + disturbance episodes, read by the sensor.
+
+    Returns the reading, its error parameters, the noise-free reading, the world field and the
+    episodes.
+    """
+    n = t.size
+    m_inh = gauss_markov(rng, n, 3, config.mag_inhomogeneity_ut, config.mag_inhomogeneity_time_s, dt)
+    m_dist, episodes = disturbance_episodes(rng, t, config)
+    m_world = config.mag_earth_ut + m_inh + m_dist
+    mag_true = rot_ws.inv().apply(m_world)
+    mag, mag_err = sensor_errors(
+        rng,
+        mag_true,
+        scale=config.mag_soft_iron,
+        cross=config.mag_soft_iron,
+        bias0=config.mag_hard_iron_ut,
+        bias_gm=0.0,
+        tau_s=config.bias_correlation_time_s,
+        rw=0.0,
+        noise=config.mag_noise_ut,
+        dt=dt,
+    )
+    return mag, mag_err, mag_true, m_world, episodes
+
+
+def _output_orientation(rng, t, rot_ws: Rotation, acc, gyr, mag, config: ImuConfig):
+    """``q_world_from_sensor`` the virtual IMU outputs, its frame and the AHRS heading error."""
+    if config.orientation != "idealised-ahrs":
+        use_mag = config.orientation == "vqf"
+        q_out = estimate(acc, gyr, mag if use_mag else None, rate_hz=config.rate_hz)
+        return q_out, "ENU" if use_mag else "VQF-6D", None
+    n = t.size
+    psi0 = rng.uniform(-1.0, 1.0) * config.ahrs_initial_heading_deg * _DEG
+    psi_rate = rng.standard_normal() * config.ahrs_heading_drift_deg_per_min * _DEG / 60.0
+    psi = psi0 + psi_rate * (t - t[0]) + rng.standard_normal(n) * config.ahrs_heading_noise_deg * _DEG
+    tilt = rng.standard_normal((n, 2)) * config.ahrs_tilt_noise_deg * _DEG
+    err = Rotation.from_rotvec(np.column_stack([np.zeros((n, 2)), psi])) * Rotation.from_rotvec(
+        np.column_stack([tilt, np.zeros(n)])
+    )
+    return _continuous_quat((err * rot_ws).as_quat(scalar_first=True)), "ENU", psi

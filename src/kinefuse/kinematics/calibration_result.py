@@ -1,0 +1,133 @@
+"""The result of a sensor-to-segment calibration and the recording look-ups its methods share.
+
+:class:`Calibration` is what :func:`kinefuse.kinematics.calibrate` (static, reference, vision),
+:func:`kinefuse.kinematics.functional_calibration` and
+:func:`kinefuse.kinematics.hinge.hinge_frames` return, and what
+:func:`kinefuse.kinematics.chain_positions` consumes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from kinefuse.exceptions import InputError
+from kinefuse.io.recording import ImuStream, JointStream, Recording
+from kinefuse.kinematics.forward import rotation_z
+from kinefuse.kinematics.skeleton import Skeleton, unit_axis
+from kinefuse.kinematics.still import StillWindow
+
+__all__ = ["Calibration", "joint_stream", "oriented_imu"]
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """Result of :func:`calibrate`.
+
+    Attributes
+    ----------
+    axes : dict of str -> ndarray, shape (3,)
+        Unit segment axis (proximal -> distal) in each segment's IMU frame, ``a_i``.
+    lengths_m : dict of str -> float
+        Segment lengths measured in the calibration window (reference/vision methods), m; empty
+        for the static method.
+    R_world_from_camera : ndarray, shape (3, 3), or None
+        Rotation taking vectors from the joint stream's frame (camera or reference) into the IMU
+        world frame; None when the frames are taken as shared (no alignment estimated).
+    method : str
+        ``"static"``, ``"reference"`` or ``"vision"``.
+    window_s : tuple of float
+        ``(start, end)`` of the calibration window, s.
+    residual_deg : dict of str -> float
+        RMS angle in the window between the modelled segment direction ``R_i a_i`` and the
+        observed one (reference/vision) or ``d0`` (static), deg.
+    align : str
+        Alignment used: ``"none"``, ``"heading"`` or ``"rotation"``.
+    frames : dict of str -> ndarray, shape (3, 3)
+        Static and functional: ``R_sensor_from_segment`` of each segment, columns = the
+        segment's ISB axes (X anterior, Y superior, Z right) in the sensor frame; used for joint
+        angles (functional: only segments next to an elbow or knee).
+    world_heading_deg : dict of str -> float
+        Static with ``heading="static"``: rotation about the vertical that this calibration
+        applies to each sensor's world frame, deg (``R_world_from_sensor <- R_z(ψ)
+        R_world_from_sensor``, in :func:`chain_positions` and :func:`segment_orientations`).
+    still : StillWindow or None
+        Static only: the window and how still it was.
+    pose_residual_deg : dict of str -> float
+        Static with ``mounting``: RMS angle between the declared sensor axis and the assumed
+        pose direction in the window, deg.
+    hinge_residual_rad_s : dict of str -> float
+        Hinge joints whose segment frames come from the measured flexion axis
+        (:func:`kinefuse.kinematics.hinge.hinge_frames`): RMS residual of the joint's
+        angular-rate constraint, rad/s (0 for an ideal joint).
+    """
+
+    axes: Mapping[str, np.ndarray]
+    lengths_m: Mapping[str, float] = field(default_factory=dict)
+    R_world_from_camera: np.ndarray | None = None
+    method: str = "static"
+    window_s: tuple[float, float] = (0.0, 0.0)
+    residual_deg: Mapping[str, float] = field(default_factory=dict)
+    align: str = "none"
+    frames: Mapping[str, np.ndarray] = field(default_factory=dict)
+    world_heading_deg: Mapping[str, float] = field(default_factory=dict)
+    still: StillWindow | None = None
+    pose_residual_deg: Mapping[str, float] = field(default_factory=dict)
+    hinge_residual_rad_s: Mapping[str, float] = field(default_factory=dict)
+
+    def heading_matrix(self, segment: str) -> np.ndarray:
+        """``R_z(ψ)`` applied to ``segment``'s sensor world frame (identity if none), (3, 3)."""
+        return rotation_z(np.radians(self.world_heading_deg.get(segment, 0.0)))
+
+    def q_sensor_from_segment(self, segment: str, segment_axis="+e2") -> np.ndarray:
+        """The shortest rotation taking ``segment_axis`` (segment frame) onto ``a_i`` (sensor frame).
+
+        Only the axis is calibrated; the rotation about it is the minimal one (``wxyz``, (4,)).
+        """
+        if segment not in self.axes:
+            raise InputError(
+                f"unknown segment {segment!r}; calibrated segments are {sorted(self.axes)}"
+            )
+        e = unit_axis(segment_axis, "segment_axis")
+        rot = Rotation.align_vectors(self.axes[segment][None], e[None])[0]
+        return rot.as_quat(scalar_first=True)
+
+    def apply(self, skeleton: Skeleton, *, lengths: bool = True) -> Skeleton:
+        """``skeleton`` with the calibrated axes (and, if ``lengths``, the measured lengths)."""
+        sk = skeleton.with_axes({s: a for s, a in self.axes.items() if s in skeleton.segments})
+        if lengths and self.lengths_m:
+            sk = sk.with_lengths(
+                {s: v for s, v in self.lengths_m.items() if s in skeleton.segments}
+            )
+        return sk
+
+
+def oriented_imu(recording: Recording, segment: str, purpose: str) -> ImuStream:
+    """``recording.imu[segment]``, which must carry ``q_world_from_sensor`` (``purpose`` names the use)."""
+    if segment not in recording.imu:
+        raise InputError(
+            f"missing IMU for segment {segment!r} ({purpose}); expected it among the recording's IMUs "
+            f"{sorted(recording.imu)}"
+        )
+    s = recording.imu[segment]
+    if s.q_world_from_sensor is None:
+        raise InputError(
+            f"IMU {segment!r} has raw data but no orientation; estimate it first, e.g. "
+            "kinefuse.orientation.estimate(acc, gyr, mag, rate_hz=...)"
+        )
+    return s
+
+
+def joint_stream(recording: Recording, source: str) -> JointStream:
+    """``recording.reference`` or ``recording.vision`` (``source``), which must be present."""
+    if source not in ("reference", "vision"):
+        raise InputError(f"expected source in ('reference', 'vision'), got {source!r}")
+    st = getattr(recording, source)
+    if st is None:
+        raise InputError(
+            f"the recording has no {source} joint stream (needed for {source!r} calibration or root)"
+        )
+    return st
