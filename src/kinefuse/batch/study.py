@@ -3,7 +3,7 @@
 A study is a TOML file (or, without one, a folder or glob of session files). It lists the
 recordings and what to run on each; :func:`load_study` validates it into a :class:`Study` whose
 :attr:`Study.tasks` are the (recording, method) pairs ``kinefuse batch`` schedules. Each task's
-session is validated by :func:`kinefuse.session.load_session`, exactly as ``kinefuse run``
+session is validated by :func:`kinefuse.session_file.load_session`, exactly as ``kinefuse run``
 validates a session file. Example::
 
     [study]
@@ -74,12 +74,12 @@ class Task:
     recording : str
         Recording name (the session's ``[session] name``, made file-name safe).
     method : str
-        A :data:`kinefuse.session.METHODS` name, or ``""`` when the session itself is invalid.
+        A :data:`kinefuse.session_file.METHODS` name, or ``""`` when the session itself is invalid.
     source : Path
         The session file (or the study file for a templated recording); named in messages and
         the base of relative paths.
     document : dict
-        The merged session document (:func:`kinefuse.session.load_session` validates it).
+        The merged session document (:func:`kinefuse.session_file.load_session` validates it).
     error : str or None
         Why the session cannot be built (the task is then recorded as failed, not run).
     """
@@ -157,7 +157,7 @@ def _absolute_paths(doc: dict, base: Path) -> dict:
 def _check_sections(c: _Ctx, doc: Mapping, where: str, *, extra: tuple[str, ...] = ()) -> None:
     """Refuse unknown sections / keys in a study's defaults or overrides ("did you mean").
 
-    The keys are checked by :func:`kinefuse.session.load_session` itself, on a probe session
+    The keys are checked by :func:`kinefuse.session_file.load_session` itself, on a probe session
     made of ``doc`` over a minimal valid one, so the allowed keys have one source of truth;
     only its "unknown ..." errors are reported here (everything else is checked per recording).
     """
