@@ -234,22 +234,6 @@ class PaperBState:
         return tuple(out)
 
 
-class PaperBStep(NamedTuple):
-    """Output of :meth:`PaperBCore.advance` for a block, joint-major.
-
-    ``position (J, L, 3)`` m, ``cov (J, L, 3, 3)`` m² (NaN where position is NaN), ``source
-    (J, L)`` int8, ``imu_fallback``, ``elm2_skipped (J, L)`` bool, ``imm`` the block's
-    :class:`~kinefuse.filters.IMMResult` (filtered: the offline form smooths it).
-    """
-
-    position: np.ndarray
-    cov: np.ndarray
-    source: np.ndarray
-    imu_fallback: np.ndarray
-    elm2_skipped: np.ndarray
-    imm: IMMResult
-
-
 @dataclass(frozen=True, eq=False)
 class PaperBCore:
     """Paper B's causal pipeline as ``init`` / ``advance`` (configuration only).
@@ -484,6 +468,23 @@ class PaperBCore:
         if okc.any():
             corr[okc] = b.elm2.predict(e2_in[okc], clip_factor=self.params.clip_factor)
         return p3 + corr, c
+
+
+class PaperBStep(NamedTuple):
+    """Output of :meth:`PaperBCore.advance` for a block of L frames, joint-major."""
+
+    position: np.ndarray
+    """(J, L, 3) m; NaN where there is no estimate."""
+    cov: np.ndarray
+    """(J, L, 3, 3) m²; NaN where ``position`` is NaN."""
+    source: np.ndarray
+    """(J, L) int8 :data:`~kinefuse.conventions.SOURCE_NAMES` code, or ``SOURCE_NONE``."""
+    imu_fallback: np.ndarray
+    """(J, L) bool: an episode without enough training data output FIR-1."""
+    elm2_skipped: np.ndarray
+    """(J, L) bool: a bridged episode without ELM-2 (FIR-3 alone)."""
+    imm: IMMResult
+    """The block's IMM filtered output (the offline form smooths it)."""
 
 
 def _run_filter(flt, z: np.ndarray, state):

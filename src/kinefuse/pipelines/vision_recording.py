@@ -4,6 +4,23 @@
 aligns the camera to the IMU world (Kabsch on segment directions), builds the chain (lengths and
 offsets from the camera over a calibration window unless given) and runs
 :func:`~kinefuse.pipelines.vision_assisted`; the result is a :class:`RecordingFusion`.
+
+Steps
+-----
+1. IMU orientations are SLERP-resampled to the camera timestamps (SPEC §12.2).
+2. Camera alignment [J, SPEC §2.2]: ``R_world_from_camera`` by Kabsch between the camera
+   segment directions ``unit(p_distal − p_proximal)`` and the IMU segment directions
+   ``R_i a_i`` over the window, pooled over the eight segments (no offsets or lengths
+   needed). The camera joints are taken relative to its ``spine_shoulder``:
+   ``z^V = R (p_cam − p_cam,spine_shoulder)``.
+3. Default offsets: window mean of ``R_chestᵀ R (p_cam,joint − p_cam,spine_shoulder)`` for
+   the shoulders and hips; default lengths: window median camera bone lengths.
+4. ``z^I`` = forward kinematics from the chest origin (0) in the IMU world (ENU).
+
+Deviations from the paper
+-------------------------
+Paper B computes positions in the chest IMU frame and never
+aligns the camera (SPEC §2.2-2); here both live in ENU, chest-relative.
 """
 
 from __future__ import annotations
@@ -103,18 +120,7 @@ def vision_assisted_from_recording(
 
     Notes
     -----
-    1. IMU orientations are SLERP-resampled to the camera timestamps (SPEC §12.2).
-    2. Camera alignment [J, SPEC §2.2]: ``R_world_from_camera`` by Kabsch between the camera
-       segment directions ``unit(p_distal − p_proximal)`` and the IMU segment directions
-       ``R_i a_i`` over the window, pooled over the eight segments (no offsets or lengths
-       needed). The camera joints are taken relative to its ``spine_shoulder``:
-       ``z^V = R (p_cam − p_cam,spine_shoulder)``.
-    3. Default offsets: window mean of ``R_chestᵀ R (p_cam,joint − p_cam,spine_shoulder)`` for
-       the shoulders and hips; default lengths: window median camera bone lengths.
-    4. ``z^I`` = forward kinematics from the chest origin (0) in the IMU world (ENU).
-
-    Deviations from the paper: paper B computes positions in the chest IMU frame and never
-    aligns the camera (SPEC §2.2-2); here both live in ENU, chest-relative.
+    The steps and the deviations from the paper are in the module docstring.
     """
     rate, t, cam = _check_recording(recording, rate_hz)
     out_joints = tuple(PAPER_B_JOINTS if joints is None else joints)

@@ -131,21 +131,14 @@ class VisionAssistedProcessor:
 
     def restore(self, checkpoint: dict) -> None:
         """Return to a snapshot from :meth:`checkpoint` (same method and parameters)."""
-        if not isinstance(checkpoint, dict) or checkpoint.get("type") != type(self).__name__:
-            got = (
-                checkpoint.get("type")
-                if isinstance(checkpoint, dict)
-                else type(checkpoint).__name__
-            )
-            raise InputError(f"expected a checkpoint of a {type(self).__name__}, got {got!r}")
-        if checkpoint.get("version") != _CHECKPOINT_VERSION:
-            raise InputError(
-                f"expected checkpoint version {_CHECKPOINT_VERSION}, got {checkpoint.get('version')!r}"
-            )
-        if checkpoint.get("method") != self.method:
-            raise InputError(
-                f"expected a checkpoint of method {self.method!r}, got {checkpoint.get('method')!r}"
-            )
+        got = checkpoint if isinstance(checkpoint, dict) else {"type": type(checkpoint).__name__}
+        for key, want, text in (
+            ("type", type(self).__name__, "a checkpoint of a {}"),
+            ("version", _CHECKPOINT_VERSION, "checkpoint version {}"),
+            ("method", self.method, "a checkpoint of method {!r}"),
+        ):
+            if got.get(key) != want:
+                raise InputError(f"expected {text.format(want)}, got {got.get(key)!r}")
         state, mu = copy.deepcopy(checkpoint["state"])
         if state is None:
             self.reset()
