@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from kinefuse.pipelines import VisionParams, vision_assisted
+from kinefuse.pipelines._outages import find_episodes
 from kinefuse.pipelines.paper_b import PaperBCore
 from kinefuse.streaming.paper_b import VisionAssistedProcessor
 from test_streaming_paper_b import DT, PARAMS, TOL, make_scenario
@@ -52,3 +53,13 @@ def test_batch_and_stream_are_the_core():
     assert state.episodes() == res.episodes
     proc = VisionAssistedProcessor("elm-fir", params, DT, joints=5)
     assert isinstance(proc.core, PaperBCore) and proc.core.params is params
+
+
+def test_episodes_follow_the_closed_form_recovery_rule():
+    """The step-wise episode machine gives the episodes of the closed-form rule (find_episodes)."""
+    z_imu, z_cam, av = make_scenario()
+    params = PARAMS["default"]
+    state, _ = _advance_in_blocks(PaperBCore("elm-fir", params, DT), z_imu, z_cam, av, [(0, 1200)])
+    for j, eps in enumerate(state.episodes()):
+        expected = find_episodes(av[:, j] & np.isfinite(z_cam[:, j]).all(-1), params.horizon)
+        assert [(e.start, e.stop, e.recovery_start, e.recovered) for e in eps] == expected
