@@ -18,7 +18,6 @@ __all__ = [
     "interpolate_gaps",
     "outage_intervals",
     "segment_start",
-    "training_window",
 ]
 
 #: Source code of a sample without any estimate (camera-only before the first camera sample).
@@ -108,12 +107,6 @@ def find_episodes(available: np.ndarray, horizon: int) -> list[tuple[int, int, i
             out.append((a, T, T, False))
             break
     return out
-
-
-def training_window(available: np.ndarray, onset: int, size: int) -> np.ndarray:
-    """Indices of the last ``size`` available samples strictly before ``onset`` (causal)."""
-    idx = np.flatnonzero(available[:onset])
-    return idx[-size:] if size > 0 else idx[:0]
 
 
 def segment_start(available: np.ndarray, onset: int) -> int:

@@ -115,9 +115,30 @@ def prequential_bridge(
     onsets = onsets[n_seen[onsets - 1] >= min_history]
     if onsets.size == 0:
         return pos, var, []
-    h_all = np.arange(1, horizon + 1)
     errs = [np.where(seen[:, None], z_cam - b, np.nan) for b in bases]
     smooth = [{ts: _ewma(e, seen, ts) for ts in BRIDGE_SMOOTH_SAMPLES} for e in errs]
+    cands, cum_sse, cum_n = _cumulative_scores(errs, smooth, seen, horizon)
+    choices = []
+    for a in onsets:
+        score = cum_sse[:, a - 1] / np.maximum(cum_n[:, a - 1], 1.0)
+        score[cum_n[:, a - 1] == 0] = np.inf
+        i, ts, td = cands[int(np.argmin(score))]
+        nxt = np.flatnonzero(seen[a:])
+        end = a + (int(nxt[0]) if nxt.size else T - a)
+        hh = np.arange(1, end - a + 1)
+        e, eb = errs[i], smooth[i][ts]
+        pos[a:end] = bases[i][a:end] + _weights(td, hh)[:, None] * eb[a - 1]
+        mse = _horizon_mse(e, eb, td, int(a), horizon)
+        var[a:end] = mse[np.minimum(hh, horizon) - 1]
+        choices.append((int(a), int(i), float(ts), float(td)))
+    return pos, var, choices
+
+
+def _cumulative_scores(errs, smooth, seen, horizon: int):
+    """Candidates ``(base, τ_s, τ_d)`` and, per candidate, the cumulative squared prediction
+    error and pair count over time: ``(cands, cum_sse (C, T), cum_n (C, T))``."""
+    T = seen.shape[0]
+    h_all = np.arange(1, horizon + 1)
     # |e_{s+h} − w_h ē_s|² = |e_{s+h}|² − 2 w_h e_{s+h}·ē_s + w_h² |ē_s|²: the three terms per h
     # once per (base, τ_s) and h, weighted for all decays at once
     decays = [td for td in BRIDGE_DECAY_SAMPLES if td != 0]
@@ -151,32 +172,25 @@ def prequential_bridge(
                 cands.append((i, ts, td))
                 cum_sse.append(np.cumsum(sse[d]))
                 cum_n.append(n)
-    cum_sse, cum_n = np.array(cum_sse), np.array(cum_n)
-    choices = []
-    for a in onsets:
-        score = cum_sse[:, a - 1] / np.maximum(cum_n[:, a - 1], 1.0)
-        score[cum_n[:, a - 1] == 0] = np.inf
-        i, ts, td = cands[int(np.argmin(score))]
-        nxt = np.flatnonzero(seen[a:])
-        end = a + (int(nxt[0]) if nxt.size else T - a)
-        hh = np.arange(1, end - a + 1)
-        e, eb = errs[i], smooth[i][ts]
-        pos[a:end] = bases[i][a:end] + _weights(td, hh)[:, None] * eb[a - 1]
-        # predictive variance per horizon from the history of the chosen candidate
-        w = _weights(td, h_all)
-        mse = np.full((horizon, 3), np.nan)
-        lo = max(a - BRIDGE_VAR_WINDOW, 0)
-        for k, h in enumerate(h_all):
-            if h >= a - lo:
-                break
-            r = e[lo + h : a] - w[k] * eb[lo : a - h]
-            ok = np.all(np.isfinite(r), axis=-1)
-            if np.any(ok):
-                mse[k] = np.mean(r[ok] ** 2, axis=0)
-        mse = _fill_forward(mse)
-        var[a:end] = mse[np.minimum(hh, horizon) - 1]
-        choices.append((int(a), int(i), float(ts), float(td)))
-    return pos, var, choices
+    return cands, np.array(cum_sse), np.array(cum_n)
+
+
+def _horizon_mse(e, eb, td: float, a: int, horizon: int) -> np.ndarray:
+    """Predictive variance per horizon ``(H, 3)`` of candidate ``(ē, τ_d)`` from the history
+    before onset ``a`` (the last :data:`BRIDGE_VAR_WINDOW` samples); unscored horizons take
+    the last scored one."""
+    h_all = np.arange(1, horizon + 1)
+    w = _weights(td, h_all)
+    mse = np.full((horizon, 3), np.nan)
+    lo = max(a - BRIDGE_VAR_WINDOW, 0)
+    for k, h in enumerate(h_all):
+        if h >= a - lo:
+            break
+        r = e[lo + h : a] - w[k] * eb[lo : a - h]
+        ok = np.all(np.isfinite(r), axis=-1)
+        if np.any(ok):
+            mse[k] = np.mean(r[ok] ** 2, axis=0)
+    return _fill_forward(mse)
 
 
 def _fill_forward(m: np.ndarray) -> np.ndarray:

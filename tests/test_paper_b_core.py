@@ -1,0 +1,65 @@
+"""Paper B's step-wise core (PaperBCore): any split into blocks equals one block, and the batch
+and streaming forms are that core (so stream == causal batch follows from the split rule)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kinefuse.pipelines import VisionParams, vision_assisted
+from kinefuse.pipelines._outages import find_episodes
+from kinefuse.pipelines.paper_b import PaperBCore
+from kinefuse.streaming.paper_b import VisionAssistedProcessor
+from test_streaming_paper_b import DT, PARAMS, TOL, make_scenario
+
+
+def _advance_in_blocks(core, z_imu, z_cam, av, cuts):
+    zi, zc, a = (np.ascontiguousarray(np.swapaxes(x, 0, 1)) for x in (z_imu, z_cam, av))
+    state = core.init(zi.shape[0])
+    outs = [core.advance(state, zi[:, s:e], zc[:, s:e], a[:, s:e]) for s, e in cuts]
+    return state, [np.concatenate([getattr(o, f) for o in outs], axis=1)
+                   for f in ("position", "cov", "source", "imu_fallback", "elm2_skipped")]  # fmt: skip
+
+
+@pytest.mark.parametrize("method", ["elm-fir", "elm-kf"])
+@pytest.mark.parametrize("block", [1, 7, 250])
+def test_blocks_equal_one_block(method, block):
+    z_imu, z_cam, av = make_scenario(T=700)
+    core = PaperBCore(method, PARAMS["short-window"], DT)
+    T = z_imu.shape[0]
+    s1, one = _advance_in_blocks(core, z_imu, z_cam, av, [(0, T)])
+    edges = list(range(0, T, block)) + [T]
+    s2, split = _advance_in_blocks(
+        core, z_imu, z_cam, av, list(zip(edges[:-1], edges[1:], strict=True))
+    )
+    for a, b in zip(one, split, strict=True):
+        if a.dtype.kind == "f":
+            np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+            np.testing.assert_allclose(a, b, atol=TOL, rtol=0)
+        else:
+            np.testing.assert_array_equal(a, b)
+    assert s1.episodes() == s2.episodes() and s1.k == s2.k == T
+
+
+def test_batch_and_stream_are_the_core():
+    z_imu, z_cam, av = make_scenario(T=400)
+    params = VisionParams(train_window=120, min_train=40)
+    res = vision_assisted(z_imu, z_cam, av, DT, "elm-fir", causal=True, params=params)
+    state, (pos, cov, src, fb, sk) = _advance_in_blocks(
+        PaperBCore("elm-fir", params, DT), z_imu, z_cam, av, [(0, 400)]
+    )
+    np.testing.assert_array_equal(pos.swapaxes(0, 1), res.position)  # the batch form: one block
+    np.testing.assert_array_equal(src.T, res.source)
+    assert state.episodes() == res.episodes
+    proc = VisionAssistedProcessor("elm-fir", params, DT, joints=5)
+    assert isinstance(proc.core, PaperBCore) and proc.core.params is params
+
+
+def test_episodes_follow_the_closed_form_recovery_rule():
+    """The step-wise episode machine gives the episodes of the closed-form rule (find_episodes)."""
+    z_imu, z_cam, av = make_scenario()
+    params = PARAMS["default"]
+    state, _ = _advance_in_blocks(PaperBCore("elm-fir", params, DT), z_imu, z_cam, av, [(0, 1200)])
+    for j, eps in enumerate(state.episodes()):
+        expected = find_episodes(av[:, j] & np.isfinite(z_cam[:, j]).all(-1), params.horizon)
+        assert [(e.start, e.stop, e.recovery_start, e.recovered) for e in eps] == expected
