@@ -59,6 +59,7 @@ def test_ci_prints_verdict_and_duration_even_when_a_test_fails(tmp_path, passes)
     (fake_bin / "chromium").write_text("#!/bin/sh\nexit 0\n")
     (fake_bin / "chromium").chmod(0o755)
     env = {**os.environ, "PATH": f"{fake_bin}{os.pathsep}{os.environ['PATH']}"}
+    env["KINEFUSE_CI_LINT"] = "0"  # the lint steps are tested below
     res = subprocess.run(
         ["bash", str(tmp_path / ".ci" / "run")],
         capture_output=True,
@@ -69,6 +70,48 @@ def test_ci_prints_verdict_and_duration_even_when_a_test_fails(tmp_path, passes)
     verdict = "PASSED" if passes else "FAILED"
     assert re.search(rf"^ci: {verdict}.* in \d+ s$", res.stdout, flags=re.M), res.stdout
     assert (res.returncode == 0) == passes
+
+
+@pytest.mark.parametrize("fatal", ["0", "1"], ids=["format-reported", "format-fatal"])
+def test_ci_lints_after_the_tests(tmp_path, fatal):
+    # .ci/run: `ruff check` always fatal; `ruff format --check` and `lint-imports` fatal only
+    # when their switch says so (a fake tree: one unformatted file, no import contract)
+    import os
+    import shutil
+    import sys
+
+    (tmp_path / ".ci").mkdir()
+    shutil.copy(REPO_ROOT / ".ci" / "run", tmp_path / ".ci" / "run")
+    (tmp_path / "test_one.py").write_text("def test_one():\n    assert True\n")
+    (tmp_path / "unformatted.py").write_text("x=[1,\n2]\n")
+    cmd = f"{sys.executable} -m pytest -q -p no:cacheprovider test_one.py"
+    (tmp_path / "README.md").write_text(f"<!-- ci:test -->\n```bash\n{cmd}\n```\n")
+    fake_bin = tmp_path / "bin"
+    fake_bin.mkdir()
+    (fake_bin / "chromium").write_text("#!/bin/sh\nexit 0\n")
+    (fake_bin / "chromium").chmod(0o755)
+    env = {**os.environ, "PATH": f"{fake_bin}{os.pathsep}{os.environ['PATH']}"}
+    env.update(KINEFUSE_CI_FORMAT_FATAL=fatal, KINEFUSE_CI_IMPORTS_FATAL="0")
+    res = subprocess.run(
+        ["bash", str(tmp_path / ".ci" / "run")],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=env,
+    )
+    out = res.stdout
+    assert "ci: lint: ruff check passed" in out, out
+    assert re.search(r"^1 file would be reformatted", out, flags=re.M), out
+    assert "ci: lint: lint-imports found problems" in out, out  # no contract here: reported
+    assert re.search(r"^1 passed in [0-9.]+s$", out, flags=re.M), out  # the runner's closing line
+    if fatal == "1":
+        assert "ci: lint: ruff format --check FAILED" in out, out
+        assert re.search(r"^ci: FAILED: ruff format --check .* in \d+ s$", out, flags=re.M), out
+        assert res.returncode == 1
+    else:
+        assert "ci: lint: ruff format --check found problems" in out, out
+        assert re.search(r"^ci: PASSED .* in \d+ s$", out, flags=re.M), out
+        assert res.returncode == 0
 
 
 @pytest.mark.parametrize(
