@@ -41,16 +41,17 @@ def test_ci_runs_exactly_the_readme_test_command():
     assert out == _block_after("<!-- ci:test -->")
 
 
-@pytest.mark.parametrize("passes", [True, False], ids=["tests-pass", "tests-fail"])
-def test_ci_prints_verdict_and_duration_even_when_a_test_fails(tmp_path, passes):
-    # issue 12: with `set -e` a failing pytest used to end .ci/run before its summary line
+def _run_ci_on_a_fake_tree(tmp_path, test_body: str, env_extra: dict, files=None):
+    """.ci/run on a fake checkout whose README test command runs one test; returns the result."""
     import os
     import shutil
     import sys
 
     (tmp_path / ".ci").mkdir()
     shutil.copy(REPO_ROOT / ".ci" / "run", tmp_path / ".ci" / "run")
-    (tmp_path / "test_one.py").write_text(f"def test_one():\n    assert {passes}\n")
+    (tmp_path / "test_one.py").write_text(f"def test_one():\n    {test_body}\n")
+    for name, text in (files or {}).items():
+        (tmp_path / name).write_text(text)
     cmd = f"{sys.executable} -m pytest -q -p no:cacheprovider test_one.py"
     (tmp_path / "README.md").write_text(f"<!-- ci:test -->\n```bash\n{cmd}\n```\n")
     # a stand-in `chromium` on PATH: the script's browser install step is not under test here
@@ -58,15 +59,21 @@ def test_ci_prints_verdict_and_duration_even_when_a_test_fails(tmp_path, passes)
     fake_bin.mkdir()
     (fake_bin / "chromium").write_text("#!/bin/sh\nexit 0\n")
     (fake_bin / "chromium").chmod(0o755)
-    env = {**os.environ, "PATH": f"{fake_bin}{os.pathsep}{os.environ['PATH']}"}
-    env["KINEFUSE_CI_LINT"] = "0"  # the lint steps are tested below
-    res = subprocess.run(
+    env = {**os.environ, "PATH": f"{fake_bin}{os.pathsep}{os.environ['PATH']}", **env_extra}
+    return subprocess.run(
         ["bash", str(tmp_path / ".ci" / "run")],
         capture_output=True,
         text=True,
         cwd=tmp_path,
         env=env,
     )
+
+
+@pytest.mark.parametrize("passes", [True, False], ids=["tests-pass", "tests-fail"])
+def test_ci_prints_verdict_and_duration_even_when_a_test_fails(tmp_path, passes):
+    # issue 12: with `set -e` a failing pytest used to end .ci/run before its summary line
+    # (the lint steps are tested below)
+    res = _run_ci_on_a_fake_tree(tmp_path, f"assert {passes}", {"KINEFUSE_CI_LINT": "0"})
     verdict = "PASSED" if passes else "FAILED"
     assert re.search(rf"^ci: {verdict}.* in \d+ s$", res.stdout, flags=re.M), res.stdout
     assert (res.returncode == 0) == passes
@@ -76,28 +83,9 @@ def test_ci_prints_verdict_and_duration_even_when_a_test_fails(tmp_path, passes)
 def test_ci_lints_after_the_tests(tmp_path, fatal):
     # .ci/run: `ruff check` always fatal; `ruff format --check` and `lint-imports` fatal only
     # when their switch says so (a fake tree: one unformatted file, no import contract)
-    import os
-    import shutil
-    import sys
-
-    (tmp_path / ".ci").mkdir()
-    shutil.copy(REPO_ROOT / ".ci" / "run", tmp_path / ".ci" / "run")
-    (tmp_path / "test_one.py").write_text("def test_one():\n    assert True\n")
-    (tmp_path / "unformatted.py").write_text("x=[1,\n2]\n")
-    cmd = f"{sys.executable} -m pytest -q -p no:cacheprovider test_one.py"
-    (tmp_path / "README.md").write_text(f"<!-- ci:test -->\n```bash\n{cmd}\n```\n")
-    fake_bin = tmp_path / "bin"
-    fake_bin.mkdir()
-    (fake_bin / "chromium").write_text("#!/bin/sh\nexit 0\n")
-    (fake_bin / "chromium").chmod(0o755)
-    env = {**os.environ, "PATH": f"{fake_bin}{os.pathsep}{os.environ['PATH']}"}
-    env.update(KINEFUSE_CI_FORMAT_FATAL=fatal, KINEFUSE_CI_IMPORTS_FATAL="0")
-    res = subprocess.run(
-        ["bash", str(tmp_path / ".ci" / "run")],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        env=env,
+    switches = {"KINEFUSE_CI_FORMAT_FATAL": fatal, "KINEFUSE_CI_IMPORTS_FATAL": "0"}
+    res = _run_ci_on_a_fake_tree(
+        tmp_path, "assert True", switches, files={"unformatted.py": "x=[1,\n2]\n"}
     )
     out = res.stdout
     assert "ci: lint: ruff check passed" in out, out
