@@ -1,8 +1,11 @@
-"""Shared test fixtures: the location of ../shared/data, seeded RNGs, a machine-local LSL env."""
+"""Shared test fixtures: the location of ../shared/data, seeded RNGs, a machine-local LSL env;
+the grouping of tests for parallel runs (pytest-xdist, ``--dist loadgroup``)."""
 
 from __future__ import annotations
 
+import functools
 import os
+import re
 import uuid
 from pathlib import Path
 
@@ -69,3 +72,40 @@ def cli_stderr(result) -> str:
         return result.stderr
     except ValueError:
         return result.output
+
+
+# ---- parallel runs (pytest-xdist with --dist loadgroup) ---------------------------------------
+# Tests without a group go to whichever worker is free. A group runs on one worker, one test
+# after the other:
+# - "lsl": every test with a machine-local LSL configuration (``lsl_env``). Their child processes
+#   are isolated by a unique session ID, so two at once would be correct, but they wait on
+#   stream discovery with timeouts; one at a time keeps them far from those timeouts.
+# - a test module with a module- or session-scoped fixture (a demo run, a report, a study on a
+#   LocalCluster, ...): its own group, so that the fixture is built once, not once per worker.
+# Needed no group: the live view and the Dask cluster bind port 0 (a free port) on 127.0.0.1;
+# Chromium runs get a temporary profile each; numba writes each cache file atomically (a
+# kernel compiled by both workers at once is written twice, identically); tmp_path is per worker.
+_SHARED_FIXTURE = re.compile(r"scope\s*=\s*[\"'](module|session)[\"']")
+
+
+@functools.cache
+def _module_shares_a_fixture(path: Path) -> bool:
+    return bool(_SHARED_FIXTURE.search(path.read_text(encoding="utf-8")))
+
+
+def xdist_group_of(item) -> str | None:
+    """The xdist group of a collected test (None: any worker)."""
+    if "lsl_env" in getattr(item, "fixturenames", ()):
+        return "lsl"
+    path = Path(item.path)
+    if path.name != "conftest.py" and _module_shares_a_fixture(path):
+        return path.name
+    return None
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the marks (its hook adds @group to node ids)
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        group = xdist_group_of(item)
+        if group is not None and item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(group))

@@ -41,16 +41,17 @@ def test_ci_runs_exactly_the_readme_test_command():
     assert out == _block_after("<!-- ci:test -->")
 
 
-@pytest.mark.parametrize("passes", [True, False], ids=["tests-pass", "tests-fail"])
-def test_ci_prints_verdict_and_duration_even_when_a_test_fails(tmp_path, passes):
-    # issue 12: with `set -e` a failing pytest used to end .ci/run before its summary line
+def _run_ci_on_a_fake_tree(tmp_path, test_body: str, env_extra: dict, files=None):
+    """.ci/run on a fake checkout whose README test command runs one test; returns the result."""
     import os
     import shutil
     import sys
 
     (tmp_path / ".ci").mkdir()
     shutil.copy(REPO_ROOT / ".ci" / "run", tmp_path / ".ci" / "run")
-    (tmp_path / "test_one.py").write_text(f"def test_one():\n    assert {passes}\n")
+    (tmp_path / "test_one.py").write_text(f"def test_one():\n    {test_body}\n")
+    for name, text in (files or {}).items():
+        (tmp_path / name).write_text(text)
     cmd = f"{sys.executable} -m pytest -q -p no:cacheprovider test_one.py"
     (tmp_path / "README.md").write_text(f"<!-- ci:test -->\n```bash\n{cmd}\n```\n")
     # a stand-in `chromium` on PATH: the script's browser install step is not under test here
@@ -58,17 +59,47 @@ def test_ci_prints_verdict_and_duration_even_when_a_test_fails(tmp_path, passes)
     fake_bin.mkdir()
     (fake_bin / "chromium").write_text("#!/bin/sh\nexit 0\n")
     (fake_bin / "chromium").chmod(0o755)
-    env = {**os.environ, "PATH": f"{fake_bin}{os.pathsep}{os.environ['PATH']}"}
-    res = subprocess.run(
+    env = {**os.environ, "PATH": f"{fake_bin}{os.pathsep}{os.environ['PATH']}", **env_extra}
+    return subprocess.run(
         ["bash", str(tmp_path / ".ci" / "run")],
         capture_output=True,
         text=True,
         cwd=tmp_path,
         env=env,
     )
+
+
+@pytest.mark.parametrize("passes", [True, False], ids=["tests-pass", "tests-fail"])
+def test_ci_prints_verdict_and_duration_even_when_a_test_fails(tmp_path, passes):
+    # issue 12: with `set -e` a failing pytest used to end .ci/run before its summary line
+    # (the lint steps are tested below)
+    res = _run_ci_on_a_fake_tree(tmp_path, f"assert {passes}", {"KINEFUSE_CI_LINT": "0"})
     verdict = "PASSED" if passes else "FAILED"
     assert re.search(rf"^ci: {verdict}.* in \d+ s$", res.stdout, flags=re.M), res.stdout
     assert (res.returncode == 0) == passes
+
+
+@pytest.mark.parametrize("fatal", ["0", "1"], ids=["format-reported", "format-fatal"])
+def test_ci_lints_after_the_tests(tmp_path, fatal):
+    # .ci/run: `ruff check` always fatal; `ruff format --check` and `lint-imports` fatal only
+    # when their switch says so (a fake tree: one unformatted file, no import contract)
+    switches = {"KINEFUSE_CI_FORMAT_FATAL": fatal, "KINEFUSE_CI_IMPORTS_FATAL": "0"}
+    res = _run_ci_on_a_fake_tree(
+        tmp_path, "assert True", switches, files={"unformatted.py": "x=[1,\n2]\n"}
+    )
+    out = res.stdout
+    assert "ci: lint: ruff check passed" in out, out
+    assert re.search(r"^1 file would be reformatted", out, flags=re.M), out
+    assert "ci: lint: lint-imports found problems" in out, out  # no contract here: reported
+    assert re.search(r"^1 passed in [0-9.]+s$", out, flags=re.M), out  # the runner's closing line
+    if fatal == "1":
+        assert "ci: lint: ruff format --check FAILED" in out, out
+        assert re.search(r"^ci: FAILED: ruff format --check .* in \d+ s$", out, flags=re.M), out
+        assert res.returncode == 1
+    else:
+        assert "ci: lint: ruff format --check found problems" in out, out
+        assert re.search(r"^ci: PASSED .* in \d+ s$", out, flags=re.M), out
+        assert res.returncode == 0
 
 
 @pytest.mark.parametrize(
