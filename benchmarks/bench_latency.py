@@ -31,8 +31,8 @@ import time
 
 import numpy as np
 
-from kinefuse.evaluation.bench import engine_frame_times as engine_only
-from kinefuse.evaluation.bench import filterpy_frame_times as peer_filterpy
+from kinefuse.apps.bench import engine_frame_times as engine_only
+from kinefuse.apps.bench import filterpy_frame_times as peer_filterpy
 from kinefuse.streaming.config import ensure_local_lsl_config
 
 PROCESSOR_CHOICES = ("kf-fusion", "paper-a", "elm-fir")

@@ -4,7 +4,7 @@ Run from the repository root::
 
     python benchmarks/fusion_study.py [cmu] [utd] [neura] [--causal] [--report]
 
-On the declared tuning set (:data:`kinefuse.pipelines.experiments.TUNING_SET`: CMU subject 02,
+On the declared tuning set (:data:`kinefuse.apps.splits.TUNING_SET`: CMU subject 02,
 UTD-MHAD subjects 1-3) by default, the only set to develop on; ``--report`` runs the report set
 (CMU subject 03, UTD-MHAD subjects 4-6; the Neura walk belongs to it), never to choose anything.
 
@@ -342,7 +342,7 @@ def study(name, trials, causal):
 
 
 def main(argv):
-    from kinefuse.pipelines.experiments import REPORT_SET, TUNING_SET
+    from kinefuse.apps.splits import REPORT_SET, TUNING_SET
 
     causal = "--causal" in argv
     split = REPORT_SET if "--report" in argv else TUNING_SET

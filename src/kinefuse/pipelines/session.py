@@ -1694,7 +1694,7 @@ def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, ca
 def _baselines(chain, camera, dt, joints) -> dict[str, np.ndarray]:
     """The simple baselines (offset interp / hold, camera gap-fill) on one chain and camera."""
     from kinefuse.pipelines import vision_assisted
-    from kinefuse.pipelines.demo import BASELINE_METHODS
+    from kinefuse.pipelines.labels import BASELINE_METHODS
 
     avail = np.all(np.isfinite(camera), axis=-1)
     keep = [j for j in range(len(joints)) if np.any(np.all(np.isfinite(chain[:, j]), axis=-1))]
