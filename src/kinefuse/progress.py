@@ -9,15 +9,8 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable, Iterator
 
+from rich import progress as bars
 from rich.console import Console
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    SpinnerColumn,
-    TextColumn,
-    TimeElapsedColumn,
-)
 
 __all__ = ["progress"]
 
@@ -55,10 +48,10 @@ def progress(
     if quiet:
         yield lambda n=1: None
         return
-    columns = [SpinnerColumn(), TextColumn("{task.description}"), BarColumn()]
+    columns = [bars.SpinnerColumn(), bars.TextColumn("{task.description}"), bars.BarColumn()]
     if total is not None:
-        columns.append(MofNCompleteColumn())
-    columns.append(TimeElapsedColumn())
-    with Progress(*columns, console=_stderr(), transient=True) as bar:
+        columns.append(bars.MofNCompleteColumn())
+    columns.append(bars.TimeElapsedColumn())
+    with bars.Progress(*columns, console=_stderr(), transient=True) as bar:
         task = bar.add_task(description, total=total)
         yield lambda n=1: bar.advance(task, n)

@@ -150,17 +150,8 @@ def run_benchmarks(quick: bool = False) -> dict:
     return results
 
 
-def format_report(results: dict) -> str:
-    """Plain-text tables of :func:`run_benchmarks` output."""
-    lines = []
-    lines.append(
-        f"kinefuse filter benchmark ({'quick' if results['quick'] else 'full'}); numba threads = "
-        f"{results['numba_threads']}; timer: {results['timer']}"
-    )
-    la, lb = results.get("load_before"), results.get("load_after")
-    if la or lb:
-        lines.append(f"machine load (1/5/15 min): {la} before, {lb} after (2 cores shared)")
-    lines.append("")
+def _filter_lines(results: dict, lines: list[str]) -> None:
+    """KF / RTS, the online path and the other filters."""
     lines.append(
         "KF / RTS, µs per joint-step (kinefuse: all joints x steps; filterpy: subset, normalised);"
     )
@@ -193,6 +184,10 @@ def format_report(results: dict) -> str:
             lines.append(
                 f"{r['case']:<18} {r['kinefuse_us']:>9.4f} (wall {r['kinefuse_wall_us']:.4f}) at 8 x {r['steps']}"
             )
+
+
+def _engine_lines(results: dict, lines: list[str]) -> None:
+    """The online engine per camera frame and the whole pipelines per recorded hour."""
     lines.append("")
     lines.append(
         "Online engine (kinefuse stream), 8 joints of paper B, per camera frame: ms of thread CPU "
@@ -223,6 +218,10 @@ def format_report(results: dict) -> str:
                 f"{r['method']:<38} {r['s_per_hour']:>8.1f} s per recorded hour"
                 f"  {r['x_real_time']:>7.0f}x real time{mem}{note}"
             )
+
+
+def _summary_lines(results: dict, lines: list[str]) -> None:
+    """The second process, the targets and paper A's Table 6."""
     sp = results["second_process"]
     lines.append("")
     if "error" in sp:
@@ -246,6 +245,22 @@ def format_report(results: dict) -> str:
     lines.append(
         "Paper A Table 6 (MATLAB, per step per joint): KF 37 µs, FIR 237 µs, EM-KF/FIR 7954 µs."
     )
+
+
+def format_report(results: dict) -> str:
+    """Plain-text tables of :func:`run_benchmarks` output."""
+    lines = []
+    lines.append(
+        f"kinefuse filter benchmark ({'quick' if results['quick'] else 'full'}); numba threads = "
+        f"{results['numba_threads']}; timer: {results['timer']}"
+    )
+    la, lb = results.get("load_before"), results.get("load_after")
+    if la or lb:
+        lines.append(f"machine load (1/5/15 min): {la} before, {lb} after (2 cores shared)")
+    lines.append("")
+    _filter_lines(results, lines)
+    _engine_lines(results, lines)
+    _summary_lines(results, lines)
     return "\n".join(lines)
 
 

@@ -19,18 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.apps._common import finite_or_none, result_table
-from kinefuse.apps.splits import (
-    SEED,
-    DataSplit,
-    cmu_motions,
-    utd_recording,
-    utd_trials,
-    utd_wrist_chain,
-)
+from kinefuse.apps.splits import SEED, DataSplit, cmu_motions, each_utd_trial, utd_wrist_chain
 from kinefuse.conventions import MODE_NAMES
 from kinefuse.evaluation import evaluate
 from kinefuse.evaluation.tables import PAPER_A_RMSE_M, PAPER_A_TIME_PER_STEP_MS
-from kinefuse.exceptions import InputError
 from kinefuse.filters import KalmanFilter
 from kinefuse.filters.integrated import IntegratedFilter
 from kinefuse.filters.ufir import UFIRFilter
@@ -219,22 +211,15 @@ def _cmu_datasets(motions, quick: bool, notes: list[str], advance: Callable) -> 
     return datasets
 
 
+def _utd_part(rec, name: str) -> dict:
+    """One UTD-MHAD trial's wrist chain (real forearm IMU, Kinect elbow) and Kinect wrist."""
+    _, zw, rw, _, _, _ = utd_wrist_chain(rec)
+    return {"name": name, "z": {"wrist_r": zw}, "ref": {"wrist_r": rw}}
+
+
 def _utd_parts(data_dir: Path, quick: bool, split: DataSplit, notes: list[str]) -> list[dict]:
     """The UTD-MHAD wrist parts (real forearm IMU, Kinect elbow; Kinect wrist = reference)."""
-    utd = []
-    for inertial, skeleton in utd_trials(data_dir, quick, split):
-        try:
-            _, zw, rw, _, _, _ = utd_wrist_chain(utd_recording(inertial, skeleton))
-        except InputError as exc:
-            notes.append(f"UTD-MHAD {inertial.name}: skipped ({exc})")
-            continue
-        utd.append(
-            {
-                "name": inertial.name.replace("_inertial.mat", ""),
-                "z": {"wrist_r": zw},
-                "ref": {"wrist_r": rw},
-            }
-        )
+    utd = each_utd_trial(data_dir, quick, split, notes, _utd_part)
     if utd:
         notes.append(
             f"UTD-MHAD: {len(utd)} trials ({', '.join(u['name'] for u in utd)}); wrist = "

@@ -26,8 +26,7 @@ from kinefuse.apps.splits import (
     UTD_HIDDEN,
     DataSplit,
     cmu_motions,
-    utd_recording,
-    utd_trials,
+    each_utd_trial,
     utd_wrist_chain,
 )
 from kinefuse.evaluation import evaluate
@@ -141,13 +140,9 @@ def utd_scenario(rec, name: str, methods) -> dict:
 
 
 def _paper_b_utd(data_dir: Path, quick: bool, split, methods, advance, notes) -> list[dict]:
-    parts = []
-    for inertial, skeleton in utd_trials(data_dir, quick, split):
-        name = inertial.name.replace("_inertial.mat", "")
-        try:
-            parts.append(utd_scenario(utd_recording(inertial, skeleton), name, methods))
-        except InputError as exc:
-            notes.append(f"UTD-MHAD {inertial.name}: skipped ({exc})")
+    parts = each_utd_trial(
+        data_dir, quick, split, notes, lambda rec, name: utd_scenario(rec, name, methods)
+    )
     advance()
     if parts:
         a, n = UTD_HIDDEN

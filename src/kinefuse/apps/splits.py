@@ -8,7 +8,7 @@ packaged clip), UTD-MHAD trial pairs and the UTD-MHAD wrist chain with its simul
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -34,6 +34,7 @@ __all__ = [
     "utd_recording",
     "utd_trials",
     "utd_wrist_chain",
+    "each_utd_trial",
 ]
 
 #: Seed of every virtual sensor of the paper experiments (offset per scenario).
@@ -169,3 +170,18 @@ def utd_wrist_chain(rec, hidden: tuple[float, float] | None = None):
     )
     camera = np.where(hide[:, None], np.nan, out.camera[:, j])
     return out.t_s, out.chain[:, j], out.reference[:, j], camera, origin, hide
+
+
+def each_utd_trial(
+    data_dir: Path, quick: bool, split: DataSplit, notes: list[str], make: Callable
+) -> list:
+    """``make(recording, name)`` for each UTD-MHAD trial of the set (:func:`utd_trials`); a trial
+    whose loading or ``make`` raises :class:`InputError` is skipped with a note."""
+    out = []
+    for inertial, skeleton in utd_trials(data_dir, quick, split):
+        name = inertial.name.replace("_inertial.mat", "")
+        try:
+            out.append(make(utd_recording(inertial, skeleton), name))
+        except InputError as exc:
+            notes.append(f"UTD-MHAD {inertial.name}: skipped ({exc})")
+    return out

@@ -18,7 +18,15 @@ from kinefuse.session import load_session, read_toml
 
 __all__ = ["replay", "stream"]
 
-_Seconds = float | None
+
+def _flag(flag: str, help_text: str):
+    """The annotation of an on/off ``--flag`` option."""
+    return Annotated[bool, typer.Option(flag, help=help_text)]
+
+
+def _seconds(flag: str, help_text: str):
+    """The annotation of a ``--flag SECONDS`` option: a number of seconds, None if not given."""
+    return Annotated[float | None, typer.Option(flag, metavar="SECONDS", help=help_text)]
 
 
 def _positive(value: float | None, option: str) -> None:
@@ -118,31 +126,14 @@ _StreamSession = Annotated[
         "(`kinefuse init-session`).",
     ),
 ]
-_StreamDuration = Annotated[
-    _Seconds,
-    typer.Option(
-        "--duration",
-        metavar="SECONDS",
-        help="Stop after this wall time (default: Ctrl-C or --idle-timeout).",
-    ),
-]
-_StreamIdleTimeout = Annotated[
-    _Seconds,
-    typer.Option(
-        "--idle-timeout",
-        metavar="SECONDS",
-        help="Stop once no input sample arrived for this long.",
-    ),
-]
-_StreamResolveTimeout = Annotated[
-    _Seconds,
-    typer.Option(
-        "--resolve-timeout",
-        metavar="SECONDS",
-        help="How long to look for the input streams (default: the session's "
-        "resolve_timeout_s, 5 s).",
-    ),
-]
+_StreamDuration = _seconds(
+    "--duration", "Stop after this wall time (default: Ctrl-C or --idle-timeout)."
+)
+_StreamIdleTimeout = _seconds("--idle-timeout", "Stop once no input sample arrived for this long.")
+_StreamResolveTimeout = _seconds(
+    "--resolve-timeout",
+    "How long to look for the input streams (default: the session's resolve_timeout_s, 5 s).",
+)
 _StreamOut = Annotated[
     Path | None,
     typer.Option(
@@ -155,35 +146,23 @@ _StreamOut = Annotated[
 _StreamForce = Annotated[
     bool, typer.Option("--force", "-f", help="Overwrite existing --out files.")
 ]
-_StreamRecordInputs = Annotated[
-    bool,
-    typer.Option(
-        "--record-inputs",
-        help="Also store the accepted input samples in FILE.npz (re-run the session "
-        "offline with kinefuse.streaming.offline_causal); needs --out.",
-    ),
-]
-_StreamWaitForReader = Annotated[
-    _Seconds,
-    typer.Option(
-        "--wait-for-reader",
-        metavar="SECONDS",
-        help="Wait up to this long for a reader of the output stream before "
-        "starting (inputs are buffered meanwhile).",
-    ),
-]
-_StreamNoStatus = Annotated[
-    bool, typer.Option("--no-status", help="No live status table on stderr.")
-]
-_StreamView = Annotated[
-    bool,
-    typer.Option(
-        "--view",
-        help="Serve a live 3-D view (skeleton, source per joint, latency) on "
-        "http://127.0.0.1:PORT/ (loopback only; the address is printed). Viewers never "
-        "slow the stream down.",
-    ),
-]
+_StreamRecordInputs = _flag(
+    "--record-inputs",
+    "Also store the accepted input samples in FILE.npz (re-run the session "
+    "offline with kinefuse.streaming.offline_causal); needs --out.",
+)
+_StreamWaitForReader = _seconds(
+    "--wait-for-reader",
+    "Wait up to this long for a reader of the output stream before "
+    "starting (inputs are buffered meanwhile).",
+)
+_StreamNoStatus = _flag("--no-status", "No live status table on stderr.")
+_StreamView = _flag(
+    "--view",
+    "Serve a live 3-D view (skeleton, source per joint, latency) on "
+    "http://127.0.0.1:PORT/ (loopback only; the address is printed). Viewers never "
+    "slow the stream down.",
+)
 _StreamViewPort = Annotated[
     int,
     typer.Option("--view-port", metavar="PORT", help="Port of --view (0 = any free port)."),
@@ -251,31 +230,17 @@ def replay(
     prefix: Annotated[
         str, typer.Option("--prefix", metavar="TEXT", help="Stream name prefix.")
     ] = "kinefuse",
-    loop: Annotated[
-        bool,
-        typer.Option("--loop", help="Start again at the end (timestamps keep increasing)."),
-    ] = False,
-    duration: Annotated[
-        _Seconds,
-        typer.Option(
-            "--duration",
-            metavar="SECONDS",
-            help="Publish this much recording time (default: the recording once, or "
-            "until Ctrl-C with --loop).",
-        ),
-    ] = None,
-    no_raw: Annotated[
-        bool,
-        typer.Option("--no-raw", help="Publish the orientation channels only (no acc_*, gyr_*)."),
-    ] = False,
-    wait_for_consumers: Annotated[
-        _Seconds,
-        typer.Option(
-            "--wait-for-consumers",
-            metavar="SECONDS",
-            help="Before publishing, wait up to this long until every stream has a reader.",
-        ),
-    ] = None,
+    loop: _flag("--loop", "Start again at the end (timestamps keep increasing).") = False,
+    duration: _seconds(
+        "--duration",
+        "Publish this much recording time (default: the recording once, or "
+        "until Ctrl-C with --loop).",
+    ) = None,
+    no_raw: _flag("--no-raw", "Publish the orientation channels only (no acc_*, gyr_*).") = False,
+    wait_for_consumers: _seconds(
+        "--wait-for-consumers",
+        "Before publishing, wait up to this long until every stream has a reader.",
+    ) = None,
     quiet: Quiet = False,
     json_file: Json = None,
     force: JsonForce = False,
