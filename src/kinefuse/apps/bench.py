@@ -284,6 +284,7 @@ def run_bench(quick: bool = False) -> dict:
 
 
 def main(argv=None) -> int:
+    """``python benchmarks/bench_filters.py [--quick] [--json FILE]``: print the report."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small sizes (seconds, for CI)")
     parser.add_argument("--json", metavar="FILE", help="also write the results as JSON")

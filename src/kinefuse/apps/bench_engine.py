@@ -117,6 +117,7 @@ def filterpy_frame_times(n_frames: int = 600, n_joints: int = 8):
 
 
 def engine_rows(quick: bool) -> list[dict]:
+    """Per-frame thread CPU time (p50, p99, max) of each engine processor, next to filterpy."""
     rec = demo_recording()
     n = 300 if quick else 3_000
     rows = []

@@ -62,6 +62,7 @@ R_PAPER = 0.01
 
 
 def paper_model():
+    """Paper A's elbow test-1 model: constant velocity, dt = 1/30 s, q = 1, R = 0.01 I."""
     return constant_velocity(DT_S, q=Q_PAPER, r=R_PAPER)
 
 
@@ -119,6 +120,7 @@ def _filterpy_rts(model, filtered):
 
 
 def kf_rts_rows(quick: bool) -> list[dict]:
+    """KF (outputs mean + cov, and every output) and RTS per joint-step, next to filterpy."""
     model = paper_model()
     kf = KalmanFilter(model)
     n_steps_target = 2_000 if quick else 20_000
@@ -169,6 +171,7 @@ def kf_rts_rows(quick: bool) -> list[dict]:
 
 
 def online_rows(quick: bool) -> list[dict]:
+    """One ``step`` / ``OnlineFilter.update`` call for all joints, next to filterpy per joint."""
     from filterpy.kalman import KalmanFilter as FKF
 
     model = paper_model()
@@ -237,6 +240,7 @@ def _find_filter_class(kf_mod, cls_name: str):
 
 
 def other_filter_rows(quick: bool) -> list[dict]:
+    """UFIR, EM-KF and the integrated filter per joint-step (8 joints)."""
     model = paper_model()
     T = 2_000 if quick else 20_000
     z = make_data(8, T, seed=8)

@@ -34,6 +34,7 @@ PAPER_B_CDF_CLAIMS = {
 
 
 def cdf_table(ev, title: str):
+    """Paper B's CDF-0.9 claims: ELM/FIR vs ELM/KF per joint, overall and in outages."""
     rows = []
     res = {}
     for j in ev.joints:

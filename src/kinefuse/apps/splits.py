@@ -89,6 +89,7 @@ SPLITS = {"tuning": TUNING_SET, "report": REPORT_SET}
 
 
 def default_data_dir() -> Path | None:
+    """``../shared/data`` if it exists (the checkout's neighbour), else None."""
     p = Path("..") / "shared" / "data"
     return p if p.is_dir() else None
 
@@ -113,6 +114,7 @@ def cmu_motions(data_dir: Path | None, trials: Sequence[str], quick: bool, notes
 
 
 def utd_trials(data_dir: Path, quick: bool, split: DataSplit) -> list[tuple[Path, Path]]:
+    """``(inertial, skeleton)`` file pairs of the set's UTD-MHAD trials (trial 1 of each action)."""
     root = Path(data_dir) / "utd_mhad"
     pairs = []
     subjects = split.utd_subjects[:1] if quick else split.utd_subjects
