@@ -1,9 +1,9 @@
 """Filter benchmark vs filterpy: ``python benchmarks/bench_filters.py [--quick] [--json FILE]``.
 
-The same as ``kinefuse bench``; the code lives in :mod:`kinefuse.evaluation.bench`.
+The same as ``kinefuse bench``; the code lives in :mod:`kinefuse.apps.bench`.
 """
 
-from kinefuse.evaluation.bench import main
+from kinefuse.apps.bench import main
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -31,9 +31,11 @@ import time
 
 import numpy as np
 
-from kinefuse.evaluation.bench import engine_frame_times as engine_only
-from kinefuse.evaluation.bench import filterpy_frame_times as peer_filterpy
+from kinefuse.apps.bench import engine_frame_times as engine_only
+from kinefuse.apps.bench import filterpy_frame_times as peer_filterpy
+from kinefuse.streaming import StreamConfig, run_stream
 from kinefuse.streaming.config import ensure_local_lsl_config
+from kinefuse.streaming.replay import demo_recording
 
 PROCESSOR_CHOICES = ("kf-fusion", "paper-a", "elm-fir")
 
@@ -65,9 +67,6 @@ def main() -> None:
     ensure_local_lsl_config(
         tempfile.mkdtemp(prefix="kinefuse-bench-"), session_id=f"kinefuse-bench-{os.getpid()}"
     )
-
-    from kinefuse.streaming import StreamConfig, run_stream
-    from kinefuse.streaming.replay import demo_recording
 
     rec = demo_recording()
     print(f"load average {os.getloadavg()} on {os.cpu_count()} cores")

@@ -4,7 +4,7 @@ Run from the repository root::
 
     python benchmarks/fusion_study.py [cmu] [utd] [neura] [--causal] [--report]
 
-On the declared tuning set (:data:`kinefuse.pipelines.experiments.TUNING_SET`: CMU subject 02,
+On the declared tuning set (:data:`kinefuse.apps.splits.TUNING_SET`: CMU subject 02,
 UTD-MHAD subjects 1-3) by default, the only set to develop on; ``--report`` runs the report set
 (CMU subject 03, UTD-MHAD subjects 4-6; the Neura walk belongs to it), never to choose anything.
 
@@ -47,11 +47,26 @@ from pathlib import Path
 
 import numpy as np
 
+from kinefuse.apps.splits import REPORT_SET, TUNING_SET
 from kinefuse.evaluation.metrics import error_at
-from kinefuse.kinematics import as_rotation_matrices, calibrate, forward_kinematics, full_body
+from kinefuse.io.cmu import load_motion_asf_amc
+from kinefuse.io.neura import read_neura
+from kinefuse.io.recording import ImuStream, JointStream, Recording
+from kinefuse.io.utd_mhad import read_utd_mhad
+from kinefuse.kinematics import (
+    as_rotation_matrices,
+    calibrate,
+    forward_kinematics,
+    full_body,
+    lower_body,
+    upper_limb,
+)
+from kinefuse.orientation import estimate
 from kinefuse.orientation.resample import slerp_resample
+from kinefuse.pipelines import vision_assisted
 from kinefuse.pipelines.features import imu_features
 from kinefuse.pipelines.kinefuse_fusion import kinefuse_fusion
+from kinefuse.sim import CameraConfig, virtual_recording
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 JOINTS8 = ("elbow_l", "elbow_r", "wrist_l", "wrist_r", "knee_l", "knee_r", "ankle_l", "ankle_r")
@@ -78,9 +93,6 @@ def _rot(stream, t):
 
 
 def cmu_trial(name: str, seed: int = 0) -> dict:
-    from kinefuse.io.cmu import load_motion_asf_amc
-    from kinefuse.sim import CameraConfig, virtual_recording
-
     motion = load_motion_asf_amc(DATA / "cmu_mocap" / "asfamc" / name[:2] / f"{name}.amc")
     cam = CameraConfig(occlusion_rate_per_min=0.0, dropout_rate_per_min=0.0)
     rec = virtual_recording(motion, camera=cam, seed=seed)
@@ -120,8 +132,6 @@ def cmu_trial(name: str, seed: int = 0) -> dict:
 
 
 def utd_trial(action: int, subject: int, trial: int = 1, seed: int = 0) -> dict | None:
-    from kinefuse.io.utd_mhad import read_utd_mhad
-
     p = DATA / "utd_mhad" / "Inertial" / f"a{action}_s{subject}_t{trial}_inertial.mat"
     if not p.is_file():
         return None
@@ -130,10 +140,6 @@ def utd_trial(action: int, subject: int, trial: int = 1, seed: int = 0) -> dict 
 
 def utd_inputs(rec, action: int, subject: int, trial: int = 1, seed: int = 0) -> dict:
     """The UTD-MHAD scenario of one loaded trial (calibration on camera-seen frames only)."""
-    from kinefuse.io.recording import ImuStream
-    from kinefuse.kinematics import upper_limb
-    from kinefuse.orientation import estimate
-
     imu = rec.imu["forearm_r"]
     q = estimate(imu.acc_m_s2, imu.gyr_rad_s, rate_hz=imu.rate_hz)
     rec.imu["forearm_r"] = ImuStream(
@@ -153,7 +159,6 @@ def utd_inputs(rec, action: int, subject: int, trial: int = 1, seed: int = 0) ->
     av = np.ones((T, 1), dtype=bool)
     av[a : a + L, 0] = False
     # calibration (forearm axis + IMU-world -> Kinect rotation) on the camera-seen frames only
-    from kinefuse.io.recording import JointStream, Recording
 
     seen_v = JointStream(
         t_s=t,
@@ -194,9 +199,6 @@ def utd_inputs(rec, action: int, subject: int, trial: int = 1, seed: int = 0) ->
 
 
 def neura_trial(seed: int = 0) -> dict:
-    from kinefuse.io.neura import read_neura
-    from kinefuse.kinematics import lower_body
-
     rec = read_neura(DATA / "neura_sparse_sample")
     ref = rec.reference
     t_all = ref.t_s
@@ -255,7 +257,6 @@ def run_method(method: str, tr: dict, causal: bool) -> np.ndarray:
                 else:
                     out[t, j] = zi[t, j] + b
         return out
-    from kinefuse.pipelines import vision_assisted
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -342,8 +343,6 @@ def study(name, trials, causal):
 
 
 def main(argv):
-    from kinefuse.pipelines.experiments import REPORT_SET, TUNING_SET
-
     causal = "--causal" in argv
     split = REPORT_SET if "--report" in argv else TUNING_SET
     print(split.describe())

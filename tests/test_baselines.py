@@ -118,7 +118,7 @@ def test_baselines_ignore_the_camera_where_it_is_unavailable():
 
 
 def test_baselines_run_as_session_methods_and_appear_in_the_evaluation():
-    from kinefuse.pipelines.demo import demo_recording
+    from kinefuse.apps.demo import demo_recording
     from kinefuse.pipelines.run import process_recording
 
     rec = demo_recording()

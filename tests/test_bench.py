@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinefuse.evaluation.bench import ENGINE_PROCESSORS, engine_frame_times, filterpy_frame_times
+from kinefuse.apps.bench import ENGINE_PROCESSORS, engine_frame_times, filterpy_frame_times
 from kinefuse.streaming.replay import demo_recording
 
 

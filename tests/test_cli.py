@@ -113,14 +113,14 @@ def fake_backend(tmp_path, monkeypatch):
     def make(body: str, name: str = "kf_fake_backend") -> None:
         (tmp_path / f"{name}.py").write_text(textwrap.dedent(body), encoding="utf-8")
         sys.modules.pop(name, None)
-        monkeypatch.setitem(cli._BACKENDS, "bench", (name, "run_bench"))
+        monkeypatch.setitem(cli.BACKENDS, "bench", (name, "run_bench"))
 
     yield make
     sys.modules.pop("kf_fake_backend", None)
 
 
 def test_missing_backend_is_not_available_exit_1(monkeypatch):
-    monkeypatch.setitem(cli._BACKENDS, "bench", ("kinefuse.no_such_module", "run_bench"))
+    monkeypatch.setitem(cli.BACKENDS, "bench", ("kinefuse.no_such_module", "run_bench"))
     result = runner.invoke(cli.app, ["bench", "--quick"])
     _assert_one_line_error(
         result,
@@ -395,7 +395,7 @@ def test_run_refuses_existing_report_before_running(tmp_path, monkeypatch):
     out = tmp_path / "out"
     out.mkdir()
     (out / "report.html").write_text("old")
-    monkeypatch.setitem(cli._BACKENDS, "run", ("kinefuse.no_such_module", "run_session"))
+    monkeypatch.setitem(cli.BACKENDS, "run", ("kinefuse.no_such_module", "run_session"))
     _assert_one_line_error(
         runner.invoke(cli.app, ["run", str(p), "--out", str(out)]), 2, "report.html already exists"
     )
@@ -409,7 +409,7 @@ def test_demo_default_folder_never_overwrites(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "kinefuse-demo").mkdir()
     (tmp_path / "kinefuse-demo" / "report.html").write_text("old")
-    assert cli._fresh_dir("kinefuse-demo") == Path("kinefuse-demo-2")
+    assert cli._output.fresh_dir("kinefuse-demo") == Path("kinefuse-demo-2")
 
 
 # ------------------------------------------------------------------------------------------

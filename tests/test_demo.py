@@ -8,14 +8,9 @@ import numpy as np
 import pytest
 
 from _chromium import browser, canvas_stats, color_fraction
+from kinefuse.apps.demo import demo_recording, run_demo, run_scenario
 from kinefuse.conventions import PAPER_B_JOINTS, SOURCE_CAMERA, SOURCE_FUSED
-from kinefuse.pipelines.demo import (
-    PAPER_A_LABELS,
-    demo_recording,
-    paper_b_methods,
-    run_demo,
-    run_scenario,
-)
+from kinefuse.pipelines.labels import PAPER_A_LABELS, paper_b_methods
 
 
 @pytest.fixture(scope="module")

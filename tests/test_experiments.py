@@ -9,8 +9,8 @@ import pytest
 from typer.testing import CliRunner
 
 from kinefuse import cli
+from kinefuse.apps.experiments import PAPER_A_TESTS, run_experiment
 from kinefuse.exceptions import InputError
-from kinefuse.pipelines.experiments import PAPER_A_TESTS, run_experiment
 
 runner = CliRunner()
 
@@ -85,7 +85,7 @@ def test_unknown_experiment_and_missing_folder(tmp_path):
 
 
 def test_paper_b_quick_tuning_set_tables_name_the_set_and_baselines(shared_data):
-    from kinefuse.pipelines.experiments import REPORT_SET, TUNING_SET
+    from kinefuse.apps.experiments import REPORT_SET, TUNING_SET
 
     assert not set(TUNING_SET.utd_subjects) & set(REPORT_SET.utd_subjects)
     assert not {t[:2] for t in TUNING_SET.cmu_trials} & {t[:2] for t in REPORT_SET.cmu_trials}

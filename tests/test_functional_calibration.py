@@ -270,7 +270,7 @@ def test_neura_imu_only_experiment_through_cli(shared_data, tmp_path):
     # joint_angles (Grood & Suntay: flexion axis made perpendicular to the thigh axis); 3.35 with
     # the raw axis before the one knee-flexion computation
     assert func["flexion_r_deg"] == pytest.approx(3.23, abs=0.05)
-    from kinefuse.pipelines.experiments import run_experiment
+    from kinefuse.apps.experiments import run_experiment
 
     with pytest.raises(InputError, match="no neura_sparse_sample folder"):
         run_experiment("neura-imu-only", tmp_path, quiet=True)
@@ -332,9 +332,9 @@ def test_cmu_virtual_walk_tuning_set(shared_data):
 def test_functional_frames_give_knee_angles_on_the_neura_walk(shared_data):
     # follow-up of issue 10: functional calibration fills the segment frames (long axes from the
     # joint centres, flexion axes from the movement), so joint_angles works without a still pose
+    from kinefuse.apps.neura_imu_only import TAPE_LENGTHS_M, _reference_flexion
     from kinefuse.io import load
     from kinefuse.kinematics import joint_angles, segment_orientations
-    from kinefuse.pipelines.neura_imu_only import TAPE_LENGTHS_M, _reference_flexion
 
     rec = load(shared_data / "neura_sparse_sample", format="neura")
     fc = calibrate(rec, lower_body(lengths=TAPE_LENGTHS_M), "functional")
@@ -350,7 +350,7 @@ def test_functional_frames_give_knee_angles_on_the_neura_walk(shared_data):
 
 
 def test_knee_flexion_closed_form(rng):
-    from kinefuse.pipelines.neura_imu_only import _knee_flexion_deg as knee_flexion_deg
+    from kinefuse.apps.neura_imu_only import _knee_flexion_deg as knee_flexion_deg
 
     theta = np.radians(5.0 + 60.0 * rng.random(200))
     Rt = Rotation.random(200, random_state=1)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kinefuse.pipelines import experiments as X
+from kinefuse.apps import paper_a, paper_b, splits
 
 SHIFT_M = 0.10
 
@@ -45,16 +45,16 @@ def packaged_motion():
 
 
 def test_paper_a_cmu_chain_ignores_hidden_camera(packaged_motion):
-    rec = X._arm_recording(packaged_motion, 5)
-    _, z1, _ = X._arm_chain(rec)
-    _, z2, _ = X._arm_chain(replace(rec, vision=_shift_hidden(rec.vision)))
+    rec = paper_a.arm_recording(packaged_motion, 5)
+    _, z1, _ = paper_a.arm_chain(rec)
+    _, z2, _ = paper_a.arm_chain(replace(rec, vision=_shift_hidden(rec.vision)))
     _assert_same(z1, z2)  # paper A's filters read nothing else
 
 
 def test_paper_b_cmu_ignores_hidden_camera(packaged_motion):
-    rec = X._cmu_recording(packaged_motion, 0)
-    a = X._cmu_scenario(rec, "02_08")
-    b = X._cmu_scenario(replace(rec, vision=_shift_hidden(rec.vision)), "02_08")
+    rec = paper_b.cmu_recording(packaged_motion, 0)
+    a = paper_b.cmu_scenario(rec, "02_08")
+    b = paper_b.cmu_scenario(replace(rec, vision=_shift_hidden(rec.vision)), "02_08")
     assert {"offset interp", "kinefuse causal"} <= set(a["estimates"])
     _assert_same(a["estimates"], b["estimates"])
 
@@ -65,39 +65,39 @@ def _utd_pair(shared_data):
 
 
 def test_paper_b_utd_calibration_is_blind_to_the_hidden_wrist(shared_data):
-    from kinefuse.pipelines.demo import paper_b_methods
+    from kinefuse.pipelines.labels import paper_b_methods
 
-    rec = X._utd_recording(*_utd_pair(shared_data))
+    rec = splits.utd_recording(*_utd_pair(shared_data))
     v = rec.vision
     hide = np.zeros(v.available.shape, dtype=bool)
-    hide[X._utd_hidden(v.t_s, v.t_s), v.index("wrist_r")] = True
+    hide[splits.utd_hidden(v.t_s, v.t_s), v.index("wrist_r")] = True
     rec2 = replace(rec, vision=_shift_hidden(v, hide))
     methods = paper_b_methods()
-    a = X._utd_scenario(rec, "a1_s1_t1", methods)
-    b = X._utd_scenario(rec2, "a1_s1_t1", methods)
+    a = paper_b.utd_scenario(rec, "a1_s1_t1", methods)
+    b = paper_b.utd_scenario(rec2, "a1_s1_t1", methods)
     _assert_same(a["estimates"], b["estimates"])
     # the reference keeps the (moved) wrist: the perturbation reached the evaluation only
     assert not np.allclose(a["reference"][a["outage"]], b["reference"][b["outage"]])
     # sensitivity: a whole-trial calibration (the old protocol) does move the chain
-    _, c1, *_ = X._utd_wrist_chain(rec, None)
-    _, c2, *_ = X._utd_wrist_chain(rec2, None)
+    _, c1, *_ = splits.utd_wrist_chain(rec, None)
+    _, c2, *_ = splits.utd_wrist_chain(rec2, None)
     assert not np.allclose(c1, c2)
 
 
 def test_paper_b_neura_ignores_hidden_camera(shared_data):
-    from kinefuse.pipelines.demo import paper_b_methods
+    from kinefuse.pipelines.labels import paper_b_methods
 
-    rec, joints = X._neura_inputs(Path(shared_data))
+    rec, joints = paper_b.neura_inputs(Path(shared_data))
     methods = paper_b_methods()
-    a = X._neura_scenario(rec, joints, methods)
-    b = X._neura_scenario(replace(rec, vision=_shift_hidden(rec.vision)), joints, methods)
+    a = paper_b.neura_scenario(rec, joints, methods)
+    b = paper_b.neura_scenario(replace(rec, vision=_shift_hidden(rec.vision)), joints, methods)
     _assert_same(a["estimates"], b["estimates"])
 
 
 def test_evaluate_core_ignores_hidden_camera(packaged_motion):
     from kinefuse.pipelines.run import process_recording
 
-    rec = X._cmu_recording(packaged_motion, 1)
+    rec = paper_b.cmu_recording(packaged_motion, 1)
     a = process_recording(rec, "kinefuse", {})
     b = process_recording(replace(rec, vision=_shift_hidden(rec.vision)), "kinefuse", {})
     np.testing.assert_array_equal(a.position, b.position)

@@ -44,11 +44,11 @@ def test_registry_is_consistent():
 
 def test_implementation_tables_match_the_registry():
     """The implementation tables stay where they are; here they are checked against it."""
-    from kinefuse.evaluation.bench import ENGINE_PROCESSORS, PIPELINE_METHODS
+    from kinefuse.apps.bench_engine import ENGINE_PROCESSORS, PIPELINE_METHODS
     from kinefuse.pipelines import METHODS as FUSION_METHODS
     from kinefuse.pipelines import UPPER_LIMB_METHODS
-    from kinefuse.pipelines.demo import BASELINE_METHODS
-    from kinefuse.pipelines.experiments import _A_METHODS
+    from kinefuse.pipelines.labels import BASELINE_METHODS
+    from kinefuse.pipelines.labels import PAPER_A_LABELS as _A_METHODS
     from kinefuse.streaming.paper_b import _METHODS as PAPER_B_ONLINE
 
     # every registered method but paper A's filter runs through vision_assisted's table

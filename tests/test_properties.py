@@ -4,7 +4,7 @@ raises its own error.
 * Arbitrary bytes, and format headers followed by number-like noise, under every supported
   extension and every file format name: :func:`kinefuse.io.load` raises nothing but
   :class:`~kinefuse.exceptions.FormatError`.
-* Random session tables, valid and invalid: :func:`kinefuse.session.load_session` raises
+* Random session tables, valid and invalid: :func:`kinefuse.session_file.load_session` raises
   nothing but :class:`~kinefuse.exceptions.InputError`.
 * Random positive (semi-)definite models and measurements with NaN gaps: every filter gives
   finite means and symmetric PSD covariances.

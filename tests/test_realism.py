@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from kinefuse.apps.experiments import EXPERIMENTS, run_experiment
+from kinefuse.apps.realism import REPORT, TOLERANCE, TUNING, orientation_error_deg
 from kinefuse.exceptions import InputError
-from kinefuse.pipelines.experiments import EXPERIMENTS, run_experiment
-from kinefuse.pipelines.realism import REPORT, TOLERANCE, TUNING, orientation_error_deg
 
 
 def test_orientation_error_matches_scipy_angle():

@@ -182,7 +182,8 @@ def test_sigint_leaves_previous_or_complete_new_results(
 ):
     out = tmp_path / "out"
     _restore(previous, out)
-    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).parents[1])}
+    # cli is the package src/kinefuse/cli/: parents[2] is src
+    env = {**os.environ, "PYTHONPATH": str(Path(cli.__file__).parents[2])}
     proc = subprocess.Popen(
         [sys.executable, "-m", "kinefuse", "run", str(_good(synthetic_files)), "--out", str(out),
          "--force", "-q"],

@@ -70,7 +70,7 @@ it the gyroscope offset is estimated (mean at rest) and removed, as drivers and 
 do at start-up (``gyr_startup_calibration``); without that a ±5 °/s turn-on bias exceeds VQF's
 rest threshold (2 °/s) and bias clip (2 °/s) and the orientation drifts by tens of degrees. ``"vqf-6d"``: VQF
 without magnetometer (heading arbitrary; the stream's frame is then ``"VQF-6D"``, not ENU).
-``"idealised-ahrs"`` (kept for :data:`kinefuse.pipelines.experiments.DEGRADED_AHRS` and exact
+``"idealised-ahrs"`` (kept for :data:`kinefuse.apps.paper_a.DEGRADED_AHRS` and exact
 tests, *not realistic*): the true sensor orientation times a world-frame error: heading
 ``ψ(t) = ψ_0 + ψ̇ · (t − t_0) + N(0, heading_noise²)`` (ψ_0 uniform ±initial, ψ̇ normal with std
 ``ahrs_heading_drift_deg_per_min``) about ENU z, times a white tilt error about x and y

@@ -114,7 +114,7 @@ class VisionAssistedProcessor:
 
     @property
     def _episodes(self) -> list:
-        # read by kinefuse.evaluation.bench (episode count per frame, for the onset timings)
+        # read by kinefuse.apps.bench_engine (episode count per frame, for the onset timings)
         s = self.state
         if s is None:
             return []

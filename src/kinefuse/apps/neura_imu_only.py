@@ -23,7 +23,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from kinefuse.evaluation.tables import ResultTable, TableRow
 from kinefuse.exceptions import InputError
+from kinefuse.io import load
+from kinefuse.kinematics import calibrate, chain_positions, joint_angles, lower_body
+from kinefuse.kinematics.hinge import segment_frame
 
 __all__ = ["TAPE_LENGTHS_M", "run_neura_imu_only"]
 
@@ -48,9 +52,6 @@ def _knee_flexion_deg(R_thigh, R_shank, a_thigh, a_shank, hinge_thigh, side: str
     positive (the knee flexes, it does not hyperextend by tens of degrees): the flexion axes
     given here come without an anatomical sign.
     """
-    from kinefuse.kinematics import joint_angles
-    from kinefuse.kinematics.hinge import segment_frame
-
     h = np.asarray(hinge_thigh, dtype=float)
     h_shank = np.einsum("kji,kjl,l->i", R_shank, R_thigh, h)
     th, sh, knee = f"thigh_{side}", f"shank_{side}", f"knee_{side}"
@@ -78,8 +79,6 @@ def _reference_flexion(rec, side: str) -> np.ndarray:
 
 
 def _scores(rec, sk, cal, hinge: dict, tag: str, use_lengths: bool) -> dict:
-    from kinefuse.kinematics import chain_positions
-
     est = chain_positions(rec, sk, cal, root=("hip_l", "hip_r"), use_calibrated_lengths=use_lengths)
     ref = rec.reference
     out = {"label": tag}
@@ -101,36 +100,9 @@ def _scores(rec, sk, cal, hinge: dict, tag: str, use_lengths: bool) -> dict:
     return out
 
 
-def run_neura_imu_only(data_dir, advance=lambda: None, notes=None) -> dict:
-    """Back-end of ``kinefuse experiment neura-imu-only``.
-
-    Parameters
-    ----------
-    data_dir : str or Path
-        The shared data folder holding ``neura_sparse_sample/`` (or that folder itself).
-    advance : callable
-        Progress callback, called once per calibration.
-    notes : list of str, optional
-        Notes are appended here.
-
-    Returns
-    -------
-    dict
-        ``tables`` (one ResultTable) and ``results`` (every number per calibration row, plus the
-        functional fit's per-joint excitation, residual, heading and estimated lengths).
-    """
-    from kinefuse.evaluation.tables import ResultTable, TableRow
-    from kinefuse.io import load
-    from kinefuse.kinematics import calibrate, lower_body
-
-    notes = [] if notes is None else notes
-    root = Path(data_dir)
-    if not (root / "vicon").is_dir():
-        root = root / "neura_sparse_sample"
-    if not root.is_dir():
-        raise InputError(f"{data_dir}: no neura_sparse_sample folder")
-    rec = load(root, format="neura")
-    sk = lower_body(lengths=TAPE_LENGTHS_M)
+def _calibration_rows(rec, sk, advance):
+    """Scores of each calibration (functional, mean-vertical baseline, from the reference) and
+    the functional calibration."""
     rows = []
 
     # 1. IMU only: functional calibration from the whole walk
@@ -165,6 +137,11 @@ def run_neura_imu_only(data_dir, advance=lambda: None, notes=None) -> dict:
     )
     advance()
 
+    return rows, fc
+
+
+def _scores_table(rows: list[dict]) -> ResultTable:
+    """The 3-D RMSE and knee flexion RMSE of each calibration row."""
     trows = []
     for r in rows:
         pos = [100 * r[j] for j in _JOINTS]
@@ -182,7 +159,7 @@ def run_neura_imu_only(data_dir, advance=lambda: None, notes=None) -> dict:
                 ),
             )
         )
-    table = ResultTable(
+    return ResultTable(
         title="Neura walk (S02, 9.55 s), IMU only: knee/ankle 3-D RMSE (cm) and knee flexion RMSE (deg)",
         label_headers=("Calibration",),
         value_headers=(
@@ -211,7 +188,11 @@ def run_neura_imu_only(data_dir, advance=lambda: None, notes=None) -> dict:
             "flex-off <= 4 deg.",
         ),
     )
-    fit_table = ResultTable(
+
+
+def _fit_table(fc) -> ResultTable:
+    """The functional fit per joint: excitation, residual, heading, hinge rates."""
+    return ResultTable(
         title="Functional calibration from the walk: per joint (no Vicon sample used)",
         label_headers=("Joint", "Sensors"),
         value_headers=(
@@ -251,7 +232,11 @@ def run_neura_imu_only(data_dir, advance=lambda: None, notes=None) -> dict:
             "error (soft tissue) absorbed by the free heading.",
         ),
     )
-    fits = {
+
+
+def _fit_numbers(fc) -> dict:
+    """The functional fit per joint, as JSON-ready numbers."""
+    return {
         j: {
             "excitation_s2": f.excitation_s2,
             "residual_m_s2": f.residual_m_s2,
@@ -263,6 +248,35 @@ def run_neura_imu_only(data_dir, advance=lambda: None, notes=None) -> dict:
         }
         for j, f in fc.joints.items()
     }
+
+
+def run_neura_imu_only(data_dir, advance=lambda: None, notes=None) -> dict:
+    """Back-end of ``kinefuse experiment neura-imu-only``.
+
+    Parameters
+    ----------
+    data_dir : str or Path
+        The shared data folder holding ``neura_sparse_sample/`` (or that folder itself).
+    advance : callable
+        Progress callback, called once per calibration.
+    notes : list of str, optional
+        Notes are appended here.
+
+    Returns
+    -------
+    dict
+        ``tables`` (one ResultTable) and ``results`` (every number per calibration row, plus the
+        functional fit's per-joint excitation, residual, heading and estimated lengths).
+    """
+    notes = [] if notes is None else notes
+    root = Path(data_dir)
+    if not (root / "vicon").is_dir():
+        root = root / "neura_sparse_sample"
+    if not root.is_dir():
+        raise InputError(f"{data_dir}: no neura_sparse_sample folder")
+    rec = load(root, format="neura")
+    sk = lower_body(lengths=TAPE_LENGTHS_M)
+    rows, fc = _calibration_rows(rec, sk, advance)
     notes.append(
         "Functional calibration: whole walk, low-pass "
         f"{fc.cutoff_hz:g} Hz, heading {fc.heading}; estimated lengths (m) "
@@ -273,10 +287,10 @@ def run_neura_imu_only(data_dir, advance=lambda: None, notes=None) -> dict:
         + ", ".join(f"{j} {f.heading_deg:+.1f}" for j, f in fc.joints.items())
     )
     return {
-        "tables": [table, fit_table],
+        "tables": [_scores_table(rows), _fit_table(fc)],
         "results": {
             "rows": rows,
-            "functional_fit": fits,
+            "functional_fit": _fit_numbers(fc),
             "functional_lengths_m": dict(fc.lengths_m),
             "tape_lengths_m": dict(TAPE_LENGTHS_M),
         },

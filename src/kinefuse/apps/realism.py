@@ -34,15 +34,22 @@ evaluation-only (single trial): its row is a report row on both sides and nothin
 
 from __future__ import annotations
 
+import functools
 import re
-import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
+from kinefuse.apps._common import imu_only_output, result_table
 from kinefuse.exceptions import InputError
+from kinefuse.io import JointStream, load
+from kinefuse.io.broad import read_broad
+from kinefuse.io.cmu import load_motion_asf_amc
+from kinefuse.orientation import estimate
+from kinefuse.sim import CameraConfig, ImuConfig, simulate_imu_from_pose, virtual_recording
 
 __all__ = ["REPORT", "TOLERANCE", "TUNING", "run_realism"]
 
@@ -98,8 +105,6 @@ def _rms(x: np.ndarray) -> float:
 
 def _filled_orientation(t: np.ndarray, q: np.ndarray) -> np.ndarray:
     """``q`` with NaN rows filled by slerp between the valid ones (ends held)."""
-    from scipy.spatial.transform import Rotation, Slerp
-
     ok = np.all(np.isfinite(q), axis=1)
     tt = np.clip(t, t[ok][0], t[ok][-1])
     rot = Slerp(t[ok], Rotation.from_quat(q[ok], scalar_first=True))(tt)
@@ -123,10 +128,6 @@ def broad_trial(path: Path, seed: int, stop_s: float | None = None) -> dict:
 
     ``stop_s`` keeps only the first seconds of the trial (quick runs).
     """
-    from kinefuse.io.broad import read_broad
-    from kinefuse.orientation import estimate
-    from kinefuse.sim import ImuConfig, simulate_imu_from_pose
-
     rec = read_broad(path)
     st = rec.imu["imu"]
     n = st.t_s.size if stop_s is None else int(np.searchsorted(st.t_s, st.t_s[0] + stop_s))
@@ -160,8 +161,6 @@ def broad_trial(path: Path, seed: int, stop_s: float | None = None) -> dict:
 # ------------------------------------------------------------------------------ (ii) walking
 def _camera_from(ref, rng: np.random.Generator, names: Sequence[str]):
     """A 30 Hz camera from a joint stream: the joints plus 1 cm white noise per axis."""
-    from kinefuse.io import JointStream
-
     t = ref.t_s[0] + np.arange(int(np.floor((ref.t_s[-1] - ref.t_s[0]) * 30.0)) + 1) / 30.0
     pos = np.stack([_filled_at(ref.t_s, ref.position(j), t) for j in names], axis=1)
     pos = pos + 0.01 * rng.standard_normal(pos.shape)
@@ -186,19 +185,11 @@ def leg_chain_error_mm(rec, seed: int) -> float:
     first 3 s (``process_recording(..., "imu-only", calibration="vision")``); positions relative
     to the hip midpoint (camera for the chain, reference for the truth), as in ``paper-b``.
     """
-    from kinefuse.pipelines.run import process_recording
-
     ref = rec.reference
     cam = _camera_from(ref, np.random.default_rng([seed, 3]), ("hip_l", "hip_r", *_LEG_JOINTS))
     imu = {k: rec.imu[k] for k in _LEG_SEGMENTS}
     rec2 = replace(rec, imu=imu, vision=cam)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        out = process_recording(
-            rec2,
-            "imu-only",
-            {"calibration": "vision", "calibration_window_s": 3.0, "rate_hz": 30.0},
-        )
+    out = imu_only_output(rec2, 3.0)
     idx = [out.joints.index(j) for j in _LEG_JOINTS]
     o_cam = 0.5 * (cam.position("hip_l") + cam.position("hip_r"))
     mid = 0.5 * (ref.position("hip_l") + ref.position("hip_r"))
@@ -209,16 +200,12 @@ def leg_chain_error_mm(rec, seed: int) -> float:
 
 def neura_chain_error_mm(data_dir: Path) -> float:
     """Measure (ii) on the real Neura walk (evaluation only)."""
-    from kinefuse.io import load
-
     rec = load(data_dir / "neura_sparse_sample", format="neura")
     return leg_chain_error_mm(rec, _SEED)
 
 
 def cmu_walk_chain_error_mm(motion, seed: int) -> float:
     """Measure (ii) on a virtual recording of a CMU walk (VQF 9D thigh and shank IMUs)."""
-    from kinefuse.sim import virtual_recording
-
     rec = virtual_recording(
         motion, camera=None, segments=_LEG_SEGMENTS, seed=seed, reference_rate_hz=100.0
     )
@@ -248,15 +235,7 @@ def wrist_chain_figures(rec) -> tuple[float, float, float]:
     ``rec`` holds a ``forearm_r`` IMU and a camera with the elbow and wrist; the chain starts at
     the camera elbow and is calibrated against the camera over the whole recording.
     """
-    from kinefuse.pipelines.run import process_recording
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        out = process_recording(
-            rec,
-            "imu-only",
-            {"calibration": "vision", "calibration_window_s": 100.0, "rate_hz": 30.0},
-        )
+    out = imu_only_output(rec, 100.0)
     j = out.joints.index("wrist_r")
     diff = out.chain[:, j] - out.camera[:, j]
     d = np.linalg.norm(diff, axis=-1)
@@ -270,16 +249,12 @@ def wrist_chain_figures(rec) -> tuple[float, float, float]:
 
 def utd_wrist_figures(inertial: Path, skeleton: Path) -> tuple[float, float, float]:
     """Measure (iii) on one real UTD-MHAD trial."""
-    from kinefuse.io import load
-
     rec = load((inertial, skeleton))
     return wrist_chain_figures(replace(rec, reference=None))
 
 
 def cmu_arm_pieces(motion, seed: int) -> list[tuple[float, float, float]]:
     """Measure (iii) on consecutive 3.5 s pieces of a CMU motion (virtual wrist IMU + Kinect)."""
-    from kinefuse.sim import CameraConfig, ImuConfig, virtual_recording
-
     imu = ImuConfig(rate_hz=50.0, orientation="vqf-6d", position_along_segment=0.9)
     cam = CameraConfig(occlusion_rate_per_min=0.0, dropout_rate_per_min=0.0)
     out = []
@@ -311,8 +286,6 @@ def _row(measure: str, which: str, real: float, virtual: float, unit: str, n: st
 
 
 def _cmu(data_dir: Path, name: str):
-    from kinefuse.io.cmu import load_motion_asf_amc
-
     subj = name.split("_")[0]
     root = data_dir / "cmu_mocap" / "asfamc" / subj
     amc = root / f"{name}.amc"
@@ -321,42 +294,14 @@ def _cmu(data_dir: Path, name: str):
     return load_motion_asf_amc(amc, root / f"{subj}.asf")
 
 
-def run_realism(data_dir: Path | None, quick: bool, advance: Callable, notes: list[str]) -> dict:
-    """Back-end of ``kinefuse experiment realism`` (called by :func:`run_experiment`).
+def _take(x, quick: bool) -> tuple:
+    """One item of ``x`` when quick, else all."""
+    return tuple(x)[:1] if quick else tuple(x)
 
-    Parameters
-    ----------
-    data_dir : Path
-        The shared data folder (``broad/``, ``cmu_mocap/``, ``utd_mhad/``,
-        ``neura_sparse_sample/``); required.
-    quick : bool
-        One trial per set and measure (seconds): for tests only, the figures are not the check.
-    advance : callable
-        Progress callback.
-    notes : list of str
-        Receives the notes printed under the tables.
 
-    Returns
-    -------
-    dict
-        ``tables`` (one ResultTable) and ``results`` (per row: real, virtual, relative
-        difference, within tolerance, set).
-    """
-    from kinefuse.pipelines.experiments import _table
-
-    if data_dir is None:
-        raise InputError("experiment realism needs --data (BROAD, CMU, UTD-MHAD and Neura data)")
-    data_dir = Path(data_dir)
-    for sub in ("broad", "cmu_mocap", "utd_mhad", "neura_sparse_sample"):
-        if not (data_dir / sub).is_dir():
-            raise InputError(f"experiment realism: {data_dir / sub} not found")
-
-    def take(x):
-        return tuple(x)[:1] if quick else tuple(x)
-
-    rows, res = [], []
-
-    # (i) BROAD
+def _broad_rows(data_dir: Path, quick: bool, advance: Callable, rows: list, res: list) -> None:
+    """(i) BROAD: VQF 9D orientation error of the real and the virtual IMU, per group and set."""
+    take = functools.partial(_take, quick=quick)
     for which, ids in (("tuning", TUNING["broad"]), ("report", REPORT["broad"])):
         trials = [
             broad_trial(p, _SEED + int(p.name[:2]), 60.0 if quick else None)
@@ -385,7 +330,10 @@ def run_realism(data_dir: Path | None, quick: bool, advance: Callable, notes: li
             rows.append(r)
             res.append(d)
 
-    # (ii) walking chain
+
+def _walk_rows(data_dir: Path, quick: bool, advance: Callable, rows: list, res: list) -> None:
+    """(ii) walking: the leg chain error on the Neura walk (real) and on CMU walks (virtual)."""
+    take = functools.partial(_take, quick=quick)
     real_walk = neura_chain_error_mm(data_dir)
     advance()
     for which, names in (("tuning", TUNING["cmu_walk"]), ("report", REPORT["cmu_walk"])):
@@ -406,7 +354,13 @@ def run_realism(data_dir: Path | None, quick: bool, advance: Callable, notes: li
         rows.append(r)
         res.append(d)
 
-    # (iii) wrist
+
+def _wrist_rows(
+    data_dir, quick: bool, advance: Callable, notes: list, rows: list, res: list
+) -> None:
+    """(iii) wrist: chain-camera error, calibration residual and decorrelation time, UTD-MHAD
+    (real) vs CMU arm pieces (virtual)."""
+    take = functools.partial(_take, quick=quick)
     utd_root = data_dir / "utd_mhad"
     for which, subjects, names in (
         ("tuning", TUNING["utd_subjects"], TUNING["cmu_arm"]),
@@ -449,8 +403,11 @@ def run_realism(data_dir: Path | None, quick: bool, advance: Callable, notes: li
             rows.append(r)
             res.append(d)
 
+
+def _notes(res: list[dict]) -> list[str]:
+    """What the table's rows and columns mean."""
     n_out = sum(1 for d in res if not d["within_tolerance"])
-    notes += [
+    return [
         f"Diff. % = virtual / real − 1; 'yes' = within ±{100 * TOLERANCE:.0f} %; {n_out} of "
         f"{len(res)} rows outside.",
         "Set: 'tuning' = the simulator's error magnitudes were chosen on these rows (BROAD 01 06 "
@@ -477,9 +434,44 @@ def run_realism(data_dir: Path | None, quick: bool, advance: Callable, notes: li
         "artefact, mounting error, indoor magnetic inhomogeneity and disturbances, orientation "
         "from VQF on the raw virtual signals; Kinect with tracking error).",
     ]
+
+
+def run_realism(data_dir: Path | None, quick: bool, advance: Callable, notes: list[str]) -> dict:
+    """Back-end of ``kinefuse experiment realism`` (called by :func:`run_experiment`).
+
+    Parameters
+    ----------
+    data_dir : Path
+        The shared data folder (``broad/``, ``cmu_mocap/``, ``utd_mhad/``,
+        ``neura_sparse_sample/``); required.
+    quick : bool
+        One trial per set and measure (seconds): for tests only, the figures are not the check.
+    advance : callable
+        Progress callback.
+    notes : list of str
+        Receives the notes printed under the tables.
+
+    Returns
+    -------
+    dict
+        ``tables`` (one ResultTable) and ``results`` (per row: real, virtual, relative
+        difference, within tolerance, set).
+    """
+    if data_dir is None:
+        raise InputError("experiment realism needs --data (BROAD, CMU, UTD-MHAD and Neura data)")
+    data_dir = Path(data_dir)
+    for sub in ("broad", "cmu_mocap", "utd_mhad", "neura_sparse_sample"):
+        if not (data_dir / sub).is_dir():
+            raise InputError(f"experiment realism: {data_dir / sub} not found")
+
+    rows, res = [], []
+    _broad_rows(data_dir, quick, advance, rows, res)
+    _walk_rows(data_dir, quick, advance, rows, res)
+    _wrist_rows(data_dir, quick, advance, notes, rows, res)
+    notes += _notes(res)
     if quick:
         notes.append("QUICK run: one trial per set; figures are not the realism check")
-    table = _table(
+    table = result_table(
         "Realism: virtual sensors (kinefuse.sim) vs real, same measure, same procedure",
         ("Measure", "Set", "Trials (real / virtual)"),
         ("Real", "Virtual", "Diff. %", "±30 %"),

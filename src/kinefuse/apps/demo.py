@@ -10,55 +10,49 @@ drives nine virtual IMUs and a virtual Kinect with noise and outages
   on the eight joints (:func:`kinefuse.pipelines.vision_assisted_from_recording`).
 
 :func:`run_scenario` does this for any recording with the nine IMUs and a camera (the CMU-driven
-scenarios of :mod:`kinefuse.pipelines.experiments` use it too); :func:`run_demo` is the
+scenarios of :mod:`kinefuse.apps.experiments` use it too); :func:`run_demo` is the
 back-end of ``kinefuse demo``.
 """
 
 from __future__ import annotations
 
-import contextlib
 import time
-import warnings
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from kinefuse import _compile
+from kinefuse.apps._common import labelled_runs, timed_quietly
 from kinefuse.conventions import MODE_NAMES, PAPER_B_JOINTS, SOURCE_NAMES
+from kinefuse.data import demo_motion
+from kinefuse.evaluation import evaluate, tables
+from kinefuse.evaluation.report import REPORT_NAME, write_report
 from kinefuse.exceptions import InputError
+from kinefuse.io.output_folder import OutputFolder
+from kinefuse.io.recording import Recording
+from kinefuse.kinematics import calibrate, chain_positions, full_body
+from kinefuse.kinematics import upper_limb as upper_limb_skeleton
+from kinefuse.pipelines import upper_limb, vision_assisted_from_recording
+from kinefuse.pipelines.labels import PAPER_A_LABELS, paper_b_methods
+from kinefuse.progress import progress
+from kinefuse.sim import virtual_recording
+from kinefuse.sim.camera import bone_edges
 
 __all__ = [
-    "BASELINE_METHODS",
     "DEMO_SEED",
-    "PAPER_A_LABELS",
     "PAPER_A_TEST1",
-    "PAPER_B_LABELS",
     "ScenarioResult",
-    "paper_b_methods",
-    "progress",
+    "demo_recording",
+    "demo_tables",
     "run_demo",
     "run_scenario",
+    "whole_body",
 ]
 
 #: Seed of the demo's virtual sensors.
 DEMO_SEED = 3
-#: Paper A method names of :func:`kinefuse.pipelines.upper_limb` -> table labels (paper A's).
-PAPER_A_LABELS = {"kf": "KF", "fir": "FIR", "em-kf-fir": "EM-KF/FIR"}
-#: Paper B method names of :func:`kinefuse.pipelines.vision_assisted` -> table labels.
-PAPER_B_LABELS = {
-    "elm-fir": "ELM/FIR",
-    "elm-kf": "ELM/KF",
-    "imu-only": "IMU only",
-    "camera-only": "camera only",
-    "camera-gapfill": "camera gap-fill",
-    "offset-interp": "offset interp",
-    "offset-hold": "offset hold",
-    "kinefuse": "kinefuse",
-}
-#: The simple baselines every paper-B table shows (:mod:`kinefuse.pipelines.vision_assisted`).
-BASELINE_METHODS = ("camera-gapfill", "offset-interp", "offset-hold")
 #: Paper A test-1 settings ``joint kind -> (q, r)`` (SPEC §12.1: elbow q=1 R=0.01, wrist q=0.1 R=0.1).
 PAPER_A_TEST1 = {"elbow": (1.0, 0.01), "wrist": (0.1, 0.1)}
 
@@ -69,48 +63,6 @@ SKELETON_EDGES = (
     ("knee_l", "ankle_l"),
     ("knee_r", "ankle_r"),
 )
-
-
-@contextlib.contextmanager
-def progress(
-    description: str, total: float | None = None, *, quiet: bool = False
-) -> Iterator[Callable[..., None]]:
-    """The CLI's progress bar (:func:`kinefuse.cli.progress`) if importable, else a no-op.
-
-    Parameters
-    ----------
-    description : str
-        Shown left of the bar.
-    total : float, optional
-        Number of steps.
-    quiet : bool
-        Show nothing.
-
-    Yields
-    ------
-    callable
-        ``advance(n=1)``.
-    """
-    try:  # the CLI is above the pipelines; only its display helper is borrowed, lazily
-        from kinefuse.cli import progress as cli_progress
-    except Exception:  # pragma: no cover - CLI dependencies missing
-        cli_progress = None
-    if cli_progress is None or quiet:
-        yield lambda n=1: None
-        return
-    with cli_progress(description, total=total, quiet=quiet) as advance:
-        yield advance
-
-
-def paper_b_methods(include_kinefuse: bool = True) -> tuple[str, ...]:
-    """Paper B methods available in this installation, in table order: paper B's, the simple
-    baselines (:data:`BASELINE_METHODS`), then ``"kinefuse"``."""
-    from kinefuse.pipelines import METHODS
-
-    names = ["elm-fir", "elm-kf", "imu-only", "camera-only", *BASELINE_METHODS]
-    if include_kinefuse and "kinefuse" in METHODS:
-        names.append("kinefuse")
-    return tuple(n for n in names if n in METHODS)
 
 
 @dataclass(eq=False)
@@ -181,8 +133,6 @@ class ScenarioResult:
         -------
         EvaluationResult
         """
-        from kinefuse.evaluation import evaluate
-
         methods = list(self.estimates if methods is None else methods)
         idx = [self.joints.index(j) for j in (self.joints if joints is None else joints)]
         names = tuple(self.joints[i] for i in idx)
@@ -197,17 +147,11 @@ class ScenarioResult:
 
 def _calibrate(recording, window_s: float):
     """Vision calibration of the eight limb segments (axes, lengths) over the first window."""
-    from kinefuse.kinematics import calibrate, full_body
-
     return calibrate(recording, full_body(height_m=1.75), "vision", window_s=window_s)
 
 
 def _paper_a(recording, calibration, settings, methods, result: ScenarioResult) -> None:
     """Paper A on both arms: chain with the camera's shoulder (gap-filled), then each filter."""
-    from kinefuse.kinematics import chain_positions
-    from kinefuse.kinematics import upper_limb as upper_limb_skeleton
-    from kinefuse.pipelines import upper_limb
-
     t = result.t_s
     T, J = t.size, len(result.joints)
     chain = np.full((T, J, 3), np.nan)
@@ -250,6 +194,12 @@ def _paper_a(recording, calibration, settings, methods, result: ScenarioResult) 
         result.modes[label] = mode
     result.chain = chain - result.offset[:, None]
     result.paper_a = tuple(PAPER_A_LABELS[m] for m in methods)
+    (qe, re_), (qw, rw) = settings["elbow"], settings["wrist"]
+    result.notes.append(
+        f"Paper A (Sun 2024) filters on the IMU chain (shoulder from the camera, gaps "
+        f"interpolated): elbow q = {qe:g}, R = {re_:g} I; wrist q = {qw:g}, R = {rw:g} I; "
+        "dt = 1/30 s, N = 20, thresholds 2 and 2. Shown only at the elbows and wrists."
+    )
 
 
 def _paper_b(recording, calibration, methods, params, result: ScenarioResult, causal=()) -> None:
@@ -257,29 +207,52 @@ def _paper_b(recording, calibration, methods, params, result: ScenarioResult, ca
 
     ``causal``: methods also run causally, labelled ``"<label> causal"``.
     """
-    from kinefuse.pipelines import vision_assisted_from_recording
-
     done = []
-    runs = [(m, False) for m in methods] + [(m, True) for m in causal]
-    for m, is_causal in runs:
-        label = PAPER_B_LABELS.get(m, m) + (" causal" if is_causal else "")
-        t0 = time.perf_counter()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            fused = vision_assisted_from_recording(
-                recording,
-                calibration=calibration,
-                method=m,
-                joints=result.joints,
-                params=params,
-                causal=is_causal,
-            )
-        result.run_time_s[label] = time.perf_counter() - t0
+    for m, is_causal, label in labelled_runs(methods, causal):
+        fused, result.run_time_s[label] = timed_quietly(
+            vision_assisted_from_recording,
+            recording,
+            calibration=calibration,
+            method=m,
+            joints=result.joints,
+            params=params,
+            causal=is_causal,
+        )
         result.estimates[label] = fused.result.position
         result.sources[label] = fused.result.source.astype(np.int64)
         result.camera = fused.z_cam
         done.append(label)
     result.paper_b = tuple(done)
+    result.notes.append(
+        "Paper B (Xu 2023): IMU chain from the chest (offsets and lengths from the camera), "
+        "camera aligned by Kabsch; ELM/FIR and ELM/KF with IMM + RTS, ELM bridging during "
+        "camera outages; settings SPEC §12.2. All positions are relative to spine_shoulder."
+    )
+
+
+def _empty_result(recording, joints: tuple[str, ...]) -> ScenarioResult:
+    """A :class:`ScenarioResult` with the reference and the outages of ``joints`` only: positions
+    at the camera timestamps, relative to the true ``spine_shoulder``."""
+    cam = recording.vision
+    t = cam.t_s
+    ref = recording.reference
+    rs = ref.position("spine_shoulder")
+    cols = []
+    for j in joints:
+        pj = ref.position(j)
+        cols.append(np.stack([np.interp(t, ref.t_s, pj[:, k]) for k in range(3)], -1))
+    offset = np.stack([np.interp(t, ref.t_s, rs[:, k]) for k in range(3)], -1)
+    reference = np.stack(cols, axis=1) - offset[:, None]
+    avail = np.stack([cam.available[:, cam.index(j)] for j in joints], axis=1)
+    avail &= cam.available[:, cam.index("spine_shoulder")][:, None]
+    return ScenarioResult(
+        t_s=t,
+        joints=joints,
+        reference=reference,
+        camera=np.full(reference.shape, np.nan),
+        outage=~avail,
+        offset=offset,
+    )
 
 
 def run_scenario(
@@ -330,35 +303,13 @@ def run_scenario(
     estimates are shifted by the true ``spine_shoulder`` so that they share paper B's frame
     (a common translation: errors are unchanged).
     """
-    from kinefuse.io.recording import Recording
-
     if not isinstance(recording, Recording):
         raise InputError(f"expected recording as a Recording, got {type(recording).__name__}")
     if recording.vision is None or recording.reference is None:
         raise InputError("expected a recording with a camera (vision) and a reference")
     advance = advance or (lambda n=1: None)
     paper_b = paper_b_methods() if paper_b is None else tuple(paper_b)
-    joints = tuple(PAPER_B_JOINTS)
-    cam = recording.vision
-    t = cam.t_s
-    ref = recording.reference
-    rs = ref.position("spine_shoulder")
-    cols = []
-    for j in joints:
-        pj = ref.position(j)
-        cols.append(np.stack([np.interp(t, ref.t_s, pj[:, k]) for k in range(3)], -1))
-    offset = np.stack([np.interp(t, ref.t_s, rs[:, k]) for k in range(3)], -1)
-    reference = np.stack(cols, axis=1) - offset[:, None]
-    avail = np.stack([cam.available[:, cam.index(j)] for j in joints], axis=1)
-    avail &= cam.available[:, cam.index("spine_shoulder")][:, None]
-    result = ScenarioResult(
-        t_s=t,
-        joints=joints,
-        reference=reference,
-        camera=np.full(reference.shape, np.nan),
-        outage=~avail,
-        offset=offset,
-    )
+    result = _empty_result(recording, tuple(PAPER_B_JOINTS))
     calibration = _calibrate(recording, calibration_window_s)
     result.notes.append(
         f"Calibration: segment axes and lengths from the camera over the first "
@@ -368,21 +319,9 @@ def run_scenario(
     if paper_a:
         _paper_a(recording, calibration, paper_a_settings, tuple(paper_a), result)
         advance()
-        qe, re_ = paper_a_settings["elbow"]
-        qw, rw = paper_a_settings["wrist"]
-        result.notes.append(
-            f"Paper A (Sun 2024) filters on the IMU chain (shoulder from the camera, gaps "
-            f"interpolated): elbow q = {qe:g}, R = {re_:g} I; wrist q = {qw:g}, R = {rw:g} I; "
-            "dt = 1/30 s, N = 20, thresholds 2 and 2. Shown only at the elbows and wrists."
-        )
     if paper_b:
         _paper_b(recording, calibration, paper_b, paper_b_params, result, tuple(paper_b_causal))
         advance()
-        result.notes.append(
-            "Paper B (Xu 2023): IMU chain from the chest (offsets and lengths from the camera), "
-            "camera aligned by Kabsch; ELM/FIR and ELM/KF with IMM + RTS, ELM bridging during "
-            "camera outages; settings SPEC §12.2. All positions are relative to spine_shoulder."
-        )
     return result
 
 
@@ -398,9 +337,6 @@ def demo_recording(seed: int = DEMO_SEED):
     -------
     Recording
     """
-    from kinefuse.data import demo_motion
-    from kinefuse.sim import virtual_recording
-
     return virtual_recording(demo_motion(), seed=seed)
 
 
@@ -414,8 +350,6 @@ def whole_body(recording, scenario: ScenarioResult):
         and the bones along the canonical tree: the ``body`` of
         :func:`kinefuse.evaluation.write_report`.
     """
-    from kinefuse.sim.camera import bone_edges
-
     ref = recording.reference
     t = scenario.t_s
     names = tuple(ref.joints)
@@ -443,8 +377,6 @@ def demo_tables(scenario: ScenarioResult) -> tuple[object, list]:
         paper A's run time per step (Table 6), and paper B's layout (Tables 3-5) at the joints
         the paper tabulates, with its numbers.
     """
-    from kinefuse.evaluation import tables
-
     ev_b = scenario.evaluation(scenario.paper_b) if scenario.paper_b else None
     out = []
     if scenario.paper_a:
@@ -515,9 +447,6 @@ def run_demo(out_dir, force: bool = False, quiet: bool = False) -> dict:
     (:class:`kinefuse.io.output_folder.OutputFolder`): an interrupted demo leaves the
     previous results untouched.
     """
-    from kinefuse.evaluation.report import REPORT_NAME
-    from kinefuse.io.output_folder import OutputFolder
-
     out_dir = Path(out_dir)
     # every earlier result needs force; the new set is staged and moved in when complete
     stage = OutputFolder(out_dir, (REPORT_NAME, "metrics.json", "figures"), force=force)
@@ -532,7 +461,6 @@ def run_demo(out_dir, force: bool = False, quiet: bool = False) -> dict:
 
 
 def _run_demo(out_dir: Path, quiet: bool) -> dict:
-    from kinefuse.evaluation.report import write_report
 
     t0 = time.perf_counter()
     with progress("Demo", total=4, quiet=quiet) as advance:

@@ -1,0 +1,235 @@
+"""``kinefuse bench``: the online engine per camera frame and whole pipelines per recorded hour.
+
+:func:`engine_frame_times` times the engine ``kinefuse stream`` builds, fed a recording without
+LSL, next to filterpy's KF predict/update for the same joints; the pipeline rows run each session
+method on a long virtual recording in a fresh process (its own peak RSS).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import pickle
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from kinefuse.apps.bench_filters import filterpy_filter, make_data, measure, paper_model
+from kinefuse.data import demo_motion
+from kinefuse.models import constant_velocity
+from kinefuse.sim import virtual_recording
+from kinefuse.streaming.config import StreamConfig
+from kinefuse.streaming.replay import demo_recording
+from kinefuse.streaming.runner import build_engine, warm_up
+
+__all__ = [
+    "ENGINE_PROCESSORS",
+    "PIPELINE_METHODS",
+    "engine_frame_times",
+    "engine_rows",
+    "filterpy_frame_times",
+    "pipeline_recording",
+    "pipeline_rows",
+]
+
+#: Processors of the online engine timed per camera frame (``kinefuse stream`` choices).
+ENGINE_PROCESSORS = ("kf-fusion", "paper-a", "elm-fir")
+
+
+def engine_frame_times(rec, processor: str, n_frames: int = 600, loops: int = 1):
+    """Per-frame cost of :meth:`Engine.poll <kinefuse.streaming.Engine.poll>` (no LSL).
+
+    The engine ``kinefuse stream`` builds for ``processor`` (warmed up as it does) is fed the
+    samples of ``rec`` (replayed ``loops`` times back to back, timestamps shifted) in time
+    order; every poll that emits a frame is timed.
+
+    Returns
+    -------
+    wall_s, cpu_s : ndarray, shape (n,)
+        Wall-clock and this thread's CPU time per frame, s (the first 30 frames skipped).
+    onset : ndarray of bool, shape (n,)
+        Frames in which a bridging processor trained at an outage onset.
+    """
+    eng = build_engine(StreamConfig(processor=processor), camera=True, camera_rate_hz=30.0,
+                       imu_rate_hz=100.0)  # fmt: skip
+    v = rec.vision
+    span = float(v.t_s[-1] - v.t_s[0]) + 1.0 / 30.0
+    ev = []
+    for r in range(loops):
+        off = r * span
+        for seg, st in rec.imu.items():
+            ev += [(float(t) + off, 0, seg, q) for t, q in zip(st.t_s, st.q_world_from_sensor, strict=True)]  # fmt: skip
+        ev += [(float(t) + off, 1, k, None) for k, t in enumerate(v.t_s)]
+    ev.sort(key=lambda e: (e[0], e[1]))
+    idx = [v.joints.index(j) for j in eng.config.camera_joints]
+    proc = eng.processor
+    warm_up(eng)
+
+    def episodes():
+        return sum(len(e) for e in getattr(proc, "_episodes", None) or ())
+
+    times, cpu, onset = [], [], []
+    for t, kind, key, q in ev:
+        if kind == 0:
+            eng.push_imu(key, t, q)
+        else:
+            eng.push_camera(t, v.position_m[key][idx], v.available[key][idx])
+        n_ep = episodes()
+        a, c = time.perf_counter(), time.thread_time()
+        outs = eng.poll()
+        if outs:
+            times.append(time.perf_counter() - a)
+            cpu.append(time.thread_time() - c)
+            onset.append(episodes() > n_ep)
+        if len(times) >= n_frames:
+            break
+    return np.asarray(times[30:]), np.asarray(cpu[30:]), np.asarray(onset[30:], bool)
+
+
+def filterpy_frame_times(n_frames: int = 600, n_joints: int = 8):
+    """filterpy's KalmanFilter, ``n_joints`` x (predict + update) per frame: ``(wall_s, cpu_s)``
+    per frame (first 30 skipped), or None without filterpy."""
+    try:
+        from filterpy.kalman import KalmanFilter as FKF
+    except ImportError:
+        return None
+
+    m = constant_velocity(1 / 30, q=0.05, r=4e-4)
+    kfs = []
+    for _ in range(n_joints):
+        f = FKF(dim_x=6, dim_z=3)
+        f.F, f.Q, f.H, f.R = np.array(m.F), np.array(m.Q), np.array(m.H), np.array(m.R)
+        kfs.append(f)
+    z = np.random.default_rng(0).normal(0, 0.01, (n_frames, n_joints, 3))
+    out, cpu = [], []
+    for k in range(n_frames):
+        a, c = time.perf_counter(), time.thread_time()
+        for j, f in enumerate(kfs):
+            f.predict()
+            f.update(z[k, j])
+        out.append(time.perf_counter() - a)
+        cpu.append(time.thread_time() - c)
+    return np.asarray(out[30:]), np.asarray(cpu[30:])
+
+
+def engine_rows(quick: bool) -> list[dict]:
+    """Per-frame thread CPU time (p50, p99, max) of each engine processor, next to filterpy."""
+    rec = demo_recording()
+    n = 300 if quick else 3_000
+    rows = []
+    for name in ENGINE_PROCESSORS:
+        _, cpu, onset = engine_frame_times(rec, name, n_frames=n, loops=1 if quick else 8)
+        rows.append({"processor": name, "frames": int(cpu.size), "onset_frames": int(onset.sum()),
+                     "p50_ms": float(1e3 * np.median(cpu)), "p99_ms": float(1e3 * np.percentile(cpu, 99)),
+                     "max_ms": float(1e3 * cpu.max())})  # fmt: skip
+    peer = filterpy_frame_times(300 if quick else 600)
+    if peer is not None:
+        rows.append({"processor": "filterpy KF (peer)", "frames": int(peer[1].size),
+                     "onset_frames": 0, "p50_ms": float(1e3 * np.median(peer[1])),
+                     "p99_ms": float(1e3 * np.percentile(peer[1], 99)), "max_ms": float(1e3 * peer[1].max())})  # fmt: skip
+    return rows
+
+
+#: Session methods timed on a long recording (paper A, paper B, kinefuse fusion).
+PIPELINE_METHODS = ("paper-a", "elm-fir", "kinefuse")
+
+
+def pipeline_recording(duration_s: float, seed: int = 0):
+    """A virtual recording of ``duration_s`` seconds: 9 IMUs at 100 Hz, a camera at 30 Hz with
+    occlusions and dropouts, from the packaged CMU clip played forwards and backwards in turn
+    (continuous poses, no jumps at the seams)."""
+    m = demo_motion()
+    dt = float(np.median(np.diff(m.t_s)))
+    n = int(round(duration_s / dt))
+    period = 2 * (len(m.t_s) - 1)
+    k = np.arange(n) % period
+    idx = np.where(k < len(m.t_s), k, period - k)  # ping-pong through the clip
+    long = dataclasses.replace(
+        m,
+        t_s=m.t_s[0] + dt * np.arange(n),
+        q_world_from_segment=np.ascontiguousarray(m.q_world_from_segment[idx]),
+        position_m=np.ascontiguousarray(m.position_m[idx]),
+    )
+    return virtual_recording(long, seed=seed)
+
+
+_PIPELINE_WORKER = r"""
+import json, pickle, sys, time, warnings
+warnings.simplefilter("ignore")
+
+
+def hwm_mb():
+    # VmHWM: this process's peak RSS (ru_maxrss also carries the parent's peak across exec)
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+from kinefuse.apps.bench_engine import pipeline_recording
+from kinefuse.pipelines.run import process_recording
+method, path = sys.argv[1], sys.argv[2]
+process_recording(pipeline_recording(5.0, seed=1), method)  # load the kernels (cached)
+rss0 = hwm_mb()
+with open(path, "rb") as fh:
+    rec = pickle.load(fh)
+c0, w0 = time.thread_time(), time.perf_counter()
+out = process_recording(rec, method)
+cpu, wall = time.thread_time() - c0, time.perf_counter() - w0
+print(json.dumps({"cpu_s": cpu, "wall_s": wall, "peak_rss_mb": hwm_mb(),
+                  "rss_before_mb": rss0,
+                  "camera_frames": int(len(rec.vision)), "joints": len(out.joints)}))
+"""
+
+
+def pipeline_rows(quick: bool) -> list[dict]:
+    """Seconds of one core per recorded hour for each pipeline, next to filterpy's KF doing the
+    per-joint filtering of the same camera joints (measured on a subset, scaled)."""
+    duration = 30.0 if quick else 3600.0
+    rows = []
+    # the recording is simulated once (minutes for an hour: orientation filters on 9 IMUs) and
+    # handed to one fresh process per method, so that each peak RSS is that method's own
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "recording.pickle")
+        with open(path, "wb") as fh:
+            pickle.dump(pipeline_recording(duration), fh)
+        procs = [
+            (
+                m,
+                subprocess.run(
+                    [sys.executable, "-c", _PIPELINE_WORKER, m, path],
+                    capture_output=True,
+                    text=True,
+                    check=False,
+                ),
+            )  # fmt: skip
+            for m in PIPELINE_METHODS
+        ]
+    for method, proc in procs:
+        if proc.returncode != 0:
+            err = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed"
+            rows.append({"method": method, "error": err})
+            continue
+        d = json.loads(proc.stdout.strip().splitlines()[-1])
+        d["method"] = method
+        d["duration_s"] = duration
+        d["s_per_hour"] = d["cpu_s"] * 3600.0 / duration
+        d["x_real_time"] = duration / d["cpu_s"]
+        rows.append(d)
+    ok = [r for r in rows if "error" not in r]
+    if ok:
+        frames, joints = ok[0]["camera_frames"], max(r["joints"] for r in ok)
+        n = 300 if quick else 3000
+        z = make_data(1, n, seed=5)
+        fp_cpu, _ = measure(lambda: filterpy_filter(paper_model(), z), 1)
+        per_js = fp_cpu / n
+        s = per_js * frames * joints
+        rows.append({"method": "filterpy KF, per camera joint (peer)", "duration_s": duration,
+                     "cpu_s": s, "s_per_hour": s * 3600.0 / duration, "x_real_time": duration / s,
+                     "peak_rss_mb": None, "note": f"KF of {joints} output joints x {frames} camera frames, timed on 1 x {n}"})  # fmt: skip
+    return rows

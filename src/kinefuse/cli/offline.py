@@ -1,0 +1,304 @@
+"""Commands on recordings and built-in data: ``demo``, ``run``, ``init-session``, ``evaluate``,
+``experiment``, ``bench`` and ``warm-up``."""
+
+import importlib
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.text import Text
+
+from kinefuse.cli._app import backend, stderr, stdout
+from kinefuse.cli._output import (
+    Force,
+    Json,
+    JsonForce,
+    Quiet,
+    check_json,
+    check_report_free,
+    fresh_dir,
+    present,
+)
+from kinefuse.exceptions import InputError
+from kinefuse.progress import progress
+from kinefuse.session_file import CALIBRATIONS, METHODS, ROOTS, load_session, session_template
+
+__all__ = [
+    "EXPERIMENTS",
+    "bench",
+    "demo",
+    "evaluate",
+    "experiment",
+    "init_session",
+    "run",
+    "warm_up",
+]
+
+#: ``kinefuse experiment NAME`` choices (checked before the back-end is imported).
+EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only", "realism")
+
+
+def demo(
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            "-o",
+            metavar="DIR",
+            help="Output folder (default: ./kinefuse-demo, or -2, -3 ... if that has a report).",
+        ),
+    ] = None,
+    force: Force = False,
+    quiet: Quiet = False,
+    json_file: Json = None,
+) -> None:
+    """Run the demo on built-in data and write an HTML report (report.html) to DIR."""
+    out_dir = fresh_dir("kinefuse-demo") if out is None else out
+    check_report_free(out_dir, force)
+    check_json(json_file, force)
+    # lazy: imports numba, and must run before any kernel module is imported
+    from kinefuse import _compile
+
+    # A first run on this machine: interpreting the kernels on the demo's few hundred samples
+    # is much faster than compiling them (minutes on 2 cores). Results are identical.
+    if not _compile.kernels_cached() and _compile.interpret_kernels() and not quiet:
+        stderr().print(
+            "[yellow]First run on this machine: filter kernels run interpreted (identical "
+            "results; `kinefuse run/experiment/bench` compile them once).[/yellow]"
+        )
+    summary = backend("demo")(out_dir, force, quiet)
+    present(summary, quiet=quiet, json_file=json_file, force=force)
+
+
+def run(
+    session: Annotated[
+        Path,
+        typer.Argument(metavar="SESSION.toml", help="Session file (see `kinefuse init-session`)."),
+    ],
+    out: Annotated[
+        Path | None,
+        typer.Option(
+            "--out", "-o", metavar="DIR", help="Output folder (default: the session's out_dir)."
+        ),
+    ] = None,
+    force: Force = False,
+    quiet: Quiet = False,
+    json_file: Json = None,
+) -> None:
+    """Process a recording described by a session file; write the results and a report."""
+    cfg = load_session(session)
+    out_dir = cfg.out_dir if out is None else out
+    check_report_free(out_dir, force)
+    run_session = backend("run")
+    results = importlib.import_module(run_session.__module__).output_paths(cfg, out_dir)
+    check_json(json_file, force, (*cfg.inputs, *results))  # never an input nor a result
+    # the back-end checks every earlier result and writability before any processing
+    with progress(f"Processing {cfg.name}", quiet=quiet):
+        summary = run_session(cfg.path, out_dir, force)
+    present(summary, quiet=quiet, json_file=json_file, force=force)
+
+
+def init_session(
+    path: Annotated[
+        Path, typer.Argument(metavar="PATH", help="Where to write the template.")
+    ] = Path("session.toml"),
+    name: Annotated[
+        str | None, typer.Option("--name", help="Session name (default: from the file name).")
+    ] = None,
+    force: Annotated[
+        bool, typer.Option("--force", "-f", help="Overwrite an existing file.")
+    ] = False,
+) -> None:
+    """Write a commented session-file template to PATH (default: session.toml)."""
+    if path.exists() and not force:
+        raise FileExistsError(
+            f"{path} already exists; pass --force to overwrite it, or give another PATH"
+        )
+    if path.is_dir():
+        raise InputError(f"{path} is a folder; give a file name such as {path / 'session.toml'}")
+    if not path.parent.is_dir():
+        raise InputError(f"folder {path.parent} does not exist; create it first")
+    session_name = name or (path.stem if path.stem != "session" else "my-session")
+    path.write_text(session_template(session_name, filename=path.name), encoding="utf-8")
+    stdout().print(
+        Text.assemble(
+            "Wrote ",
+            (str(path), "bold"),
+            ". Edit the [imu] path and [imu.segments], then run: ",
+            (f"kinefuse run {path}", "bold"),
+        )
+    )
+
+
+_Recording = Annotated[
+    Path,
+    typer.Argument(
+        metavar="RECORDING",
+        help="Recording with a reference (ground truth): a file or a dataset folder, "
+        "anything kinefuse.io.load reads.",
+    ),
+]
+_Method = Annotated[
+    str,
+    typer.Option(
+        "--method",
+        "-m",
+        metavar="NAME",
+        help="Method to evaluate (see `kinefuse init-session` for the names).",
+    ),
+]
+_Format = Annotated[
+    str | None,
+    typer.Option(
+        "--format",
+        metavar="FORMAT",
+        help="Reader (a kinefuse.io.FORMATS name; default: detected).",
+    ),
+]
+_Calibration = Annotated[
+    str,
+    typer.Option(
+        "--calibration",
+        metavar="METHOD",
+        help="static (default, a still pose in the IMU data), functional, vision, or "
+        "reference (then every table is labelled 'calibrated on reference').",
+    ),
+]
+_Root = Annotated[
+    str,
+    typer.Option(
+        "--root",
+        metavar="ROOT",
+        help="Where the chain starts: reference (default: the root joints as the "
+        "reference measures them), vision, fixed or pelvis.",
+    ),
+]
+_Align = Annotated[
+    str,
+    typer.Option(
+        "--align",
+        metavar="none|rigid",
+        help="rigid: Kabsch-align the estimates to the reference before scoring (labelled).",
+    ),
+]
+_BodyHeight = Annotated[
+    float | None,
+    typer.Option(
+        "--body-height",
+        metavar="M",
+        help="Body height in m, for segment lengths from Winter (2009) ratios.",
+    ),
+]
+
+
+def _check_choice(option: str, value: str | None, choices, what: str) -> None:
+    """``value`` (None: not given) must be one of ``choices``; ``what`` names the kind."""
+    if value is not None and value not in choices:
+        raise InputError(
+            f"{option}: unknown {what} {value!r}; expected one of {', '.join(choices)}"
+        )
+
+
+def evaluate(
+    recording: _Recording,
+    method: _Method,
+    fmt: _Format = None,
+    calibration: _Calibration = "static",
+    root: _Root = "reference",
+    align: _Align = "none",
+    body_height: _BodyHeight = None,
+    quiet: Quiet = False,
+    json_file: Json = None,
+    force: JsonForce = False,
+) -> None:
+    """Run one method on a recording and print RMSE tables against its reference."""
+    from kinefuse.io import FORMATS  # lazy: SciPy, see kinefuse.cli._output
+
+    if not recording.exists():
+        raise InputError(f"RECORDING {recording}: file not found (a file or a dataset folder)")
+    check_json(json_file, force, (recording,))
+    _check_choice("--method", method, METHODS, "method")
+    _check_choice("--format", fmt, sorted(FORMATS), "format")
+    for opt, value, choices in (
+        ("--calibration", calibration, CALIBRATIONS),
+        ("--root", root, ROOTS),
+        ("--align", align, ("none", "rigid")),
+    ):
+        if value not in choices:
+            raise InputError(f"{opt}: expected one of {', '.join(choices)}, got {value!r}")
+    summary = backend("evaluate")(
+        recording,
+        method,
+        format=fmt,
+        calibration=calibration,
+        root=root,
+        align=align,
+        body_height_m=body_height,
+    )
+    present(summary, quiet=quiet, json_file=json_file, force=force)
+
+
+def experiment(
+    name: Annotated[
+        str,
+        typer.Argument(
+            metavar="paper-a|paper-b|neura-imu-only|realism",
+            help="Which experiment: a paper's, the Neura walk from its IMUs alone, or 'realism' "
+            "(virtual vs real sensors).",
+        ),
+    ],
+    data: Annotated[
+        Path | None,
+        typer.Option(
+            "--data", metavar="DIR", help="Data folder (default: the back-end's, ../shared/data)."
+        ),
+    ] = None,
+    quick: Annotated[
+        bool,
+        typer.Option("--quick", help="A reduced configuration (seconds) instead of the full run."),
+    ] = False,
+    data_set: Annotated[
+        str,
+        typer.Option(
+            "--set",
+            metavar="report|tuning",
+            help="paper-a/paper-b: declared set of recordings, 'report' (default; nothing is tuned on it) or "
+            "'tuning' (the only set kinefuse was developed on).",
+        ),
+    ] = "report",
+    quiet: Quiet = False,
+    json_file: Json = None,
+    force: JsonForce = False,
+) -> None:
+    """Reproduce a paper's experiment and compare with the paper's tables."""
+    if name not in EXPERIMENTS:
+        raise InputError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
+    if data is not None and not data.is_dir():
+        raise InputError(f"--data {data}: folder not found")
+    if data_set not in ("report", "tuning"):
+        raise InputError(f"--set: expected 'report' or 'tuning', got {data_set!r}")
+    check_json(json_file, force, () if data is None else (data,))
+    summary = backend("experiment")(name, data, quick=quick or None, quiet=quiet, split=data_set)
+    present(summary, quiet=quiet, json_file=json_file, force=force)
+
+
+def bench(
+    quick: Annotated[
+        bool, typer.Option("--quick", help="A short run (seconds) instead of the full benchmark.")
+    ] = False,
+    quiet: Quiet = False,
+    json_file: Json = None,
+    force: JsonForce = False,
+) -> None:
+    """Measure per-step latency and batch throughput of the filters, next to peer libraries."""
+    check_json(json_file, force)
+    summary = backend("bench")(quick)
+    present(summary, quiet=quiet, json_file=json_file, force=force)
+
+
+def warm_up(quiet: Quiet = False) -> None:
+    """Compile the numba kernels once (minutes on a small machine), with progress; later runs load them."""
+    from kinefuse.filters.warm_up import warm_up as compile_kernels  # lazy: numba
+
+    console = stdout()
+    compile_kernels(report=None if quiet else (lambda line: console.print(line)))

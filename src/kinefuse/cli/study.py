@@ -1,0 +1,90 @@
+"""``kinefuse batch``: a whole study on Dask (:mod:`kinefuse.batch`; needs the ``batch`` extra)."""
+
+import dataclasses
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from kinefuse import batch as kb
+from kinefuse.batch.runner import compare_table, summary_tables
+from kinefuse.cli._app import BackendUnavailable
+from kinefuse.cli._output import Json, Quiet, present
+from kinefuse.exceptions import InputError
+
+__all__ = ["batch"]
+
+
+def batch(
+    study: Annotated[
+        str,
+        typer.Argument(
+            metavar="STUDY",
+            help="Study TOML, or a folder / glob of session files (quote the glob).",
+        ),
+    ],
+    method: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--method", "-m", metavar="NAME", help="Folder/glob: methods to run (repeat)."
+        ),
+    ] = None,
+    out: Annotated[
+        Path | None, typer.Option("--out", "-o", metavar="DIR", help="Output folder.")
+    ] = None,
+    workers: Annotated[
+        int | None,
+        typer.Option("--workers", "-w", min=1, help="LocalCluster workers (default: cores)."),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            "--scheduler",
+            metavar="tcp://HOST:PORT",
+            envvar="DASK_SCHEDULER_ADDRESS",
+            help="An existing Dask scheduler instead of a LocalCluster.",
+        ),
+    ] = None,
+    dashboard: Annotated[
+        bool, typer.Option("--dashboard", help="Serve the Dask dashboard on 127.0.0.1.")
+    ] = False,
+    compare: Annotated[
+        str | None,
+        typer.Option(
+            "--compare-workers", metavar="N,M", help="Time the whole study with N, then M workers."
+        ),
+    ] = None,
+    force: Annotated[bool, typer.Option("--force", "-f", help="Redo finished recordings.")] = False,
+    quiet: Quiet = False,
+    json_file: Json = None,
+) -> None:
+    """Run a whole study (recordings x methods) on Dask: one table, per-recording outputs, a report."""
+    if kb.missing_packages():
+        raise BackendUnavailable(
+            f"`kinefuse batch` needs {', '.join(kb.missing_packages())}: "
+            "pip install 'kinefuse[batch]'"
+        )
+    if Path(study).suffix == ".toml" and Path(study).is_file():
+        if method:
+            raise InputError(
+                "--method: only for a folder or glob; a study file has [study] methods"
+            )
+        st = kb.load_study(study)
+        if out is not None:
+            st = dataclasses.replace(st, out_dir=out.resolve())
+    else:
+        st = kb.study_from_sessions(study, method, out)
+    if compare:
+        try:
+            counts = [int(n) for n in compare.split(",")]
+        except ValueError:
+            raise InputError(f"--compare-workers: expected e.g. 1,2, got {compare!r}") from None
+        runs = kb.compare_workers(st, counts, quiet=quiet)
+        present({"tables": [compare_table(runs)], "runs": runs}, quiet=quiet, json_file=json_file)
+        return
+    s = kb.run_study(st, force=force, workers=workers, scheduler=scheduler, dashboard=dashboard,
+                     quiet=quiet)  # fmt: skip
+    s["tables"] = summary_tables(s)
+    if s["failed"]:
+        s["passed"], s["reason"] = False, f"{len(s['failed'])} of {len(st.tasks)} tasks failed"
+    present(s, quiet=quiet, json_file=json_file)

@@ -1,0 +1,57 @@
+"""Progress bars for long work: one rich bar on stderr, or nothing when quiet.
+
+Bottom layer (imports no other kinefuse module): the pipelines, the apps and the CLI all show
+progress through :func:`progress`, so nothing below the CLI imports :mod:`kinefuse.cli`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+
+from rich import progress as bars
+from rich.console import Console
+
+__all__ = ["progress"]
+
+
+def _stderr() -> Console:
+    return Console(stderr=True, highlight=False, soft_wrap=True)
+
+
+@contextlib.contextmanager
+def progress(
+    description: str, total: float | None = None, *, quiet: bool = False
+) -> Iterator[Callable[..., None]]:
+    """A rich progress bar on stderr for long work; yields ``advance(n=1)``.
+
+    Parameters
+    ----------
+    description : str
+        Shown left of the bar.
+    total : float, optional
+        Number of steps (None: an indeterminate spinner).
+    quiet : bool
+        Show nothing (``advance`` is a no-op).
+
+    Yields
+    ------
+    callable
+        ``advance(n=1)``: n more steps done.
+
+    Examples
+    --------
+    >>> with progress("Filtering joints", total=3, quiet=True) as advance:
+    ...     for _ in range(3):
+    ...         advance()
+    """
+    if quiet:
+        yield lambda n=1: None
+        return
+    columns = [bars.SpinnerColumn(), bars.TextColumn("{task.description}"), bars.BarColumn()]
+    if total is not None:
+        columns.append(bars.MofNCompleteColumn())
+    columns.append(bars.TimeElapsedColumn())
+    with bars.Progress(*columns, console=_stderr(), transient=True) as bar:
+        task = bar.add_task(description, total=total)
+        yield lambda n=1: bar.advance(task, n)
