@@ -49,7 +49,7 @@ def test_implementation_tables_match_the_registry():
     from kinefuse.pipelines import UPPER_LIMB_METHODS
     from kinefuse.pipelines.labels import BASELINE_METHODS
     from kinefuse.pipelines.labels import PAPER_A_LABELS as _A_METHODS
-    from kinefuse.streaming.paper_b import _METHODS as PAPER_B_ONLINE
+    from kinefuse.pipelines.paper_b import PAPER_B_METHODS as PAPER_B_ONLINE
 
     # every registered method but paper A's filter runs through vision_assisted's table
     assert set(FUSION_METHODS) >= set(methods.names()) - {"paper-a"}
