@@ -302,6 +302,15 @@ class IMM:
         """Measurement dimension (per model)."""
         return self.models[0].n_z
 
+    @property
+    def step_measurement_shape(self) -> tuple[int, int]:
+        """Trailing shape ``(M, n_z)`` of one batch element's measurement in :meth:`step`.
+
+        :class:`~kinefuse.filters.OnlineFilter` reads it to tell the batch axes from the
+        per-model rows (the other filters take ``(n_z,)`` and do not need it).
+        """
+        return (self.n_models, self.n_z)
+
     # ------------------------------------------------------------------ state
     def init(self, batch_shape=(), mean=None, cov=None, mu=None) -> IMMState:
         """Initial state.
