@@ -379,8 +379,6 @@ class UFIRFilter:
             o_mean, o_cov, o_obs, o_nu, o_ready,
         )  # fmt: skip
         if n_fail:
-            import warnings
-
             warnings.warn(
                 f"UFIRFilter: KF update skipped on {n_fail} step(s): S could not be factorised (SPEC §13)",
                 NumericalWarning,
@@ -433,8 +431,6 @@ class UFIRFilter:
             o_mean, o_covb, o_obs, o_nu, o_ready,
         )  # fmt: skip
         if n_fail:
-            import warnings
-
             warnings.warn(
                 f"UFIRFilter: KF update skipped on {n_fail} step(s): S could not be factorised (SPEC §13)",
                 NumericalWarning,
