@@ -5,16 +5,33 @@ No numerics here beyond initialisation; kernels live in ``_kernels*.py``.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 from kinefuse._validation import as_float_array
-from kinefuse.exceptions import InputError
+from kinefuse.exceptions import InputError, NumericalWarning
 
 #: Initial velocity standard deviation, m/s (SPEC §4.2 and §12.2).
 SIGMA_V0_M_S = 1.0
+
+
+def warn_regularised(n_steps: int, what: str, matrix: str = "innovation covariance S") -> None:
+    """ONE :class:`NumericalWarning` per call when a kernel had to regularise ``matrix``.
+
+    ``n_steps`` is the count a kernel returns (steps whose Cholesky factorisation needed the
+    SPEC §13 ladder ``+ ε·tr/n·I``); nothing happens when it is 0.
+    """
+    n = int(n_steps)
+    if n:
+        warnings.warn(
+            f"{what}: {matrix} was not positive definite on {n} step(s) and was regularised "
+            "(+ eps*tr/n*I, SPEC §13)",
+            NumericalWarning,
+            stacklevel=3,
+        )
 
 
 class GaussianState(NamedTuple):

@@ -23,10 +23,11 @@ from __future__ import annotations
 import numpy as np
 
 # njit_inline: inlined at the numba IR level into its callers, so no per-call reference counting
-# of the array arguments (see :mod:`._kernels_em`)
+# of the array arguments (see :mod:`._kernels_common`)
 from kinefuse._compile import njit, njit_inline
 from kinefuse.filters._kernels import kf_predict, kf_update, symmetrize
 from kinefuse.filters._kernels_blocks import _cov_step
+from kinefuse.filters._kernels_linalg import chol_shifted
 
 #: Relative pivot below which ``CᵀC`` is declared rank deficient (SPEC §6.3).
 RANK_TOL = 1e-10
@@ -78,23 +79,6 @@ def ufir_gains(F, Finv, H, Q, R, N, K):
         P = A @ P @ A.T + Kg @ R @ Kg.T  # Eq. 28 (Joseph)
         P = 0.5 * (P + P.T)
     return W.reshape(n_x, N, n_z).copy(), P
-
-
-@njit
-def _chol(A, L, n):
-    """Lower Cholesky of ``A[:n, :n]`` into ``L``; False if not positive definite."""
-    for i in range(n):
-        for j in range(i + 1):
-            s = A[i, j]
-            for p in range(j):
-                s -= L[i, p] * L[j, p]
-            if i == j:
-                if not (s > 0.0):
-                    return False
-                L[i, i] = np.sqrt(s)
-            else:
-                L[i, j] = s / L[j, j]
-    return True
 
 
 @njit
@@ -161,7 +145,7 @@ def ufir_horizon(zr, k, N, K, F, Finv, H, Q, R, xs, Ps, stored, x_out, P_out):
                 C[q * n_z + r, c] = HPhi[r, c]  # C = [H F^-(s-i1); ...; H]
     Om = C.T @ C  # G_s⁻¹ = CᵀC
     L = np.zeros((n_x, n_x))
-    if not _chol(Om, L, n_x):
+    if not chol_shifted(Om, L, n_x, 0.0):
         return False
     for i in range(n_x):
         if L[i, i] * L[i, i] < RANK_TOL * Om[i, i]:

@@ -21,6 +21,7 @@ from kinefuse.filters._base import (
     check_step_measurement,
     initial_covariance,
     positions,
+    warn_regularised,
 )
 from kinefuse.filters._kernels_imm import imm_run
 from kinefuse.models import LinearGaussianModel
@@ -511,12 +512,13 @@ class IMM:
         out_nu = np.empty((B, T, M, n_z))
         out_nis = np.empty((B, T, M))
         if B > 0 and T > 0:
-            imm_run(
+            n_reg = imm_run(
                 zf, has_prev, px, pP, self._F, self._Q, self._H, self._R, self._Hpinv, self._P_init,
                 self.transition,
                 self.mu_floor, xs, Ps, mu, init,
                 out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis,
             )  # fmt: skip
+            warn_regularised(n_reg, "IMM")
         new_state = IMMState(
             xs.reshape(*batch, M, n_x),
             Ps.reshape(*batch, M, n_x, n_x),
