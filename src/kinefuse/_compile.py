@@ -59,13 +59,14 @@ KERNEL_MODULES = (
     "kinefuse.filters._kernels_integrated",
     "kinefuse.filters._kernels_linalg",
     "kinefuse.filters._kernels_ufir",
+    "kinefuse.filters._kernels_ufir_run",
     "kinefuse.pipelines.kinefuse_fusion",
     "kinefuse.streaming._kernels",
 )
 # A kernel of each heavy module: if their cache index files exist, the kernels were compiled.
 _SENTINELS = (
     ("filters", "_kernels_integrated.integrated_run-*.nbi"),
-    ("filters", "_kernels_ufir.ufir_run-*.nbi"),
+    ("filters", "_kernels_ufir_run.ufir_run-*.nbi"),
     ("filters", "_kernels_imm.imm_run-*.nbi"),
 )
 

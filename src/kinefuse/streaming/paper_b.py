@@ -23,7 +23,7 @@ from kinefuse.filters import IMM, KalmanFilter, rts_smooth
 from kinefuse.filters._base import FilterResult
 from kinefuse.filters._kernels_axis import kf_filter_axis, kf_filter_dense
 from kinefuse.filters._kernels_imm import imm_run
-from kinefuse.filters._kernels_ufir import ufir_run
+from kinefuse.filters._kernels_ufir_run import ufir_run
 from kinefuse.filters.ufir import UFIRFilter
 from kinefuse.learning import ELMRegressor
 from kinefuse.pipelines._outages import SOURCE_NONE
