@@ -310,6 +310,23 @@ step_arrays_jit = njit_inline(step_arrays)
 
 
 @njit_inline
+def copy_matrix(src, dst, n):
+    """``dst[:n, :n] = src[:n, :n]``."""
+    for i in range(n):
+        for j in range(n):
+            dst[i, j] = src[i, j]
+
+
+@njit_inline
+def copy_state(xs, Ps, xd, Pd, n):
+    """``xd = xs``, ``Pd = Ps`` (e.g. predict only: the posterior is the prediction)."""
+    for i in range(n):
+        xd[i] = xs[i]
+        for j in range(n):
+            Pd[i, j] = Ps[i, j]
+
+
+@njit_inline
 def load_element(x, P, b, xb, Pb, tx):
     """Element ``b`` of the batched state into the local ``xb``, ``Pb``."""
     n = len(tx)

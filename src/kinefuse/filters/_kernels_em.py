@@ -32,6 +32,8 @@ from kinefuse._compile import interpreting, njit, njit_inline
 from kinefuse.filters._kernels_common import (
     CVStructure,
     add_times_sparse_t,
+    copy_matrix,
+    copy_state,
     init_from,
     load_element,
     predict,
@@ -512,6 +514,40 @@ def _fill_nan(out, b, t, tz):
     out.distance[b, t] = np.nan
 
 
+@njit_inline
+def _prior_predict(regularized, rho, ub, Ub, n_z):
+    """Option B time update of the inverse-Wishart ``(û, Û)`` (SPEC §5.3); returns ``û⁻``."""
+    if not regularized:
+        return 0.0
+    nz3 = n_z + 1.0
+    for r1 in range(n_z):
+        for r2 in range(n_z):
+            Ub[r1, r2] *= rho
+    return rho * (ub - nz3) + nz3
+
+
+@njit_inline
+def _initial_R(regularized, Ub, u_pr, Rnom, R0, n_z):
+    """``R^{(0)}``: nominal (option A) or the IW prior mean ``Û⁻/(û⁻ − n_z − 1)`` (option B)."""
+    nz3 = n_z + 1.0
+    for r1 in range(n_z):
+        for r2 in range(n_z):
+            if regularized:
+                R0[r1, r2] = Ub[r1, r2] / (u_pr - nz3)
+            else:
+                R0[r1, r2] = Rnom[r1, r2]
+
+
+@njit_inline
+def _put_update(out, b, t, sc, nis, n_z):
+    """Diagnostics of an update: ``ν``, ``R^{(N_EM)}``, NIS."""
+    for r1 in range(n_z):
+        out.innovation[b, t, r1] = sc.nu[r1]
+        for r2 in range(n_z):
+            out.R_em[b, t, r1, r2] = sc.Rj[r1, r2]
+    out.distance[b, t] = nis
+
+
 # ---------------------------------------------------------------------------------------------
 # The EM-KF run loop
 # ---------------------------------------------------------------------------------------------
@@ -539,7 +575,7 @@ def em_kf_run(m, opt, z, x, P, init, u, U, out):
     """
     tx, tz, struct, Q, Rnom, Hpinv, P0 = m
     n_iter, regularized, tau, rho, floor_c = opt
-    o_mean, o_cov, o_obs, o_nu, o_dist, o_Rem = out
+    o_mean, o_cov, o_obs = out.mean, out.cov, out.observed
     B, T = z.shape[0], z.shape[1]
     n = len(tx)
     n_a = len(tz)
@@ -549,13 +585,10 @@ def em_kf_run(m, opt, z, x, P, init, u, U, out):
     R0 = np.empty((n_a, n_a))
     Ub = np.empty((n_a, n_a))
     counts = np.zeros(4, np.int64)
-    nz3 = n_a + 1.0
     for b in range(B):
         load_element(x, P, b, xb, Pb, tx)
         ub = u[b]
-        for r1 in range(n_a):
-            for r2 in range(n_a):
-                Ub[r1, r2] = U[b, r1, r2]
+        copy_matrix(U[b], Ub, n_a)
         initialized = init[b]
         for t in range(T):
             valid = read_row(z, b, t, zt, tz)
@@ -568,20 +601,10 @@ def em_kf_run(m, opt, z, x, P, init, u, U, out):
                 _fill_nan(out, b, t, tz)
             else:
                 predict(struct, tx, tz, xb, Pb, Q, xp, Pp, FP)  # Eqs. 5-6
-                u_pr = 0.0
-                if regularized:  # option B time update of (û, Û) (SPEC §5.3)
-                    u_pr = rho * (ub - nz3) + nz3
-                    for r1 in range(n_a):
-                        for r2 in range(n_a):
-                            Ub[r1, r2] *= rho
+                u_pr = _prior_predict(regularized, rho, ub, Ub, n_a)  # option B (û⁻, Û⁻)
                 nis = np.nan
                 if valid:
-                    for r1 in range(n_a):
-                        for r2 in range(n_a):
-                            if regularized:  # R^{(0)} = IW prior mean Û⁻/(û⁻ − n_z − 1)
-                                R0[r1, r2] = Ub[r1, r2] / (u_pr - nz3)
-                            else:
-                                R0[r1, r2] = Rnom[r1, r2]
+                    _initial_R(regularized, Ub, u_pr, Rnom, R0, n_a)  # R^{(0)}
                     status, nis = em_update(
                         struct, tx, tz, xp, Pp, zt, R0, Rnom, Ub, u_pr, it, xb, Pb, sc
                     )
@@ -593,16 +616,9 @@ def em_kf_run(m, opt, z, x, P, init, u, U, out):
                         for r1 in range(n_a):
                             for r2 in range(n_a):
                                 Ub[r1, r2] += sc.Om1[r1, r2]
-                    for r1 in range(n_a):
-                        o_nu[b, t, r1] = sc.nu[r1]
-                        for r2 in range(n_a):
-                            o_Rem[b, t, r1, r2] = sc.Rj[r1, r2]
-                    o_dist[b, t] = nis
+                    _put_update(out, b, t, sc, nis, n_a)
                 else:  # predict only
-                    for i in range(n):
-                        xb[i] = xp[i]
-                        for j in range(n):
-                            Pb[i, j] = Pp[i, j]
+                    copy_state(xp, Pp, xb, Pb, n)
                     if regularized:
                         ub = u_pr
                     _fill_nan(out, b, t, tz)
@@ -610,8 +626,6 @@ def em_kf_run(m, opt, z, x, P, init, u, U, out):
             o_obs[b, t] = ok
         store_element(x, P, b, xb, Pb, tx)
         u[b] = ub
-        for r1 in range(n_a):
-            for r2 in range(n_a):
-                U[b, r1, r2] = Ub[r1, r2]
+        copy_matrix(Ub, U[b], n_a)
         init[b] = initialized
     return counts

@@ -24,6 +24,7 @@ import numpy as np
 
 from kinefuse._compile import njit, njit_inline
 from kinefuse.filters._kernels_common import (
+    copy_state,
     init_from,
     innovation,
     innovation_cov,
@@ -118,6 +119,51 @@ def _fir(zr, k, fir, Q, R, K, idx, xx, xs, Ps, xf, Pf):
     )  # fmt: skip
 
 
+@njit_inline
+def _nan_diagnostics(out, b, t, n_z):
+    """D₁, D₂ and ν of a sample before they are known (NaN: no update)."""
+    out.d1[b, t] = np.nan
+    out.d2[b, t] = np.nan
+    for r in range(n_z):
+        out.innovation[b, t, r] = np.nan
+
+
+@njit_inline
+def _mahalanobis(M, L, nu, tmp, n_z):
+    """``νᵀ M⁻¹ ν`` through the Cholesky factor of ``M`` (into ``L``); inf if not PD."""
+    if chol_shifted(M, L, n_z, 0.0):
+        return quad_inv(L, nu, tmp, n_z)
+    return np.inf
+
+
+@njit_inline
+def _distance1(struct, tz, gate_S, Pp, R, LR, S, L, nu, tmp):
+    """D₁ = νᵀ R⁻¹ ν (Eq. 29, ``LR`` = chol(R)), or νᵀ S⁻¹ ν with S = H P⁻ Hᵀ + R (SPEC §7.2-2)."""
+    n_z = len(tz)
+    if gate_S:
+        innovation_cov(struct, tz, Pp, R, S)
+        return _mahalanobis(S, L, nu, tmp, n_z)
+    return quad_inv(LR, nu, tmp, n_z)
+
+
+def _scratch(n, n_z, fir):
+    """FIR estimate ``xf, Pf``; ``L``, ``S`` of the distances; empty stored-posterior rings and
+    the index / per-axis work arrays of the FIR kernels."""
+    return (
+        np.empty(n),
+        np.empty((n, n)),
+        np.empty((n_z, n_z)),
+        np.empty((n_z, n_z)),
+        np.empty((0, n)),
+        np.empty((0, n, n)),
+        np.empty(fir.K, np.int64),
+        np.empty((2, fir.Fa.shape[0])),
+    )
+
+
+_scratch_jit = njit_inline(_scratch)
+
+
 @njit
 def integrated_run(m, fir, opt, z, x, P, init, zring, k0, out):
     """Run the EM-KF/FIR integrated filter over ``z (B, T, n_z)`` (SPEC §7.3); state in place.
@@ -129,10 +175,8 @@ def integrated_run(m, fir, opt, z, x, P, init, zring, k0, out):
     opt : IntegratedOptions
     z : ndarray, shape (B, T, n_z)
         NaN rows are missing (predict only).
-    x, P, init : ndarray, shapes (B, n_x), (B, n_x, n_x), (B,)
-        State (updated in place).
-    zring : ndarray, shape (B, N, n_z)
-        Measurement ring (slot ``k % N``), updated in place.
+    x, P, init, zring : ndarray, shapes (B, n_x), (B, n_x, n_x), (B,), (B, N, n_z)
+        State (updated in place); ``zring`` is the measurement ring (slot ``k % N``).
     k0 : int
         Time index of ``z[:, 0]``.
     out : IntegratedOutputs
@@ -154,14 +198,7 @@ def integrated_run(m, fir, opt, z, x, P, init, zring, k0, out):
     kf_it = EMIteration(1, False, 0.0, floor_c, False, False)  # Eqs. 7-9
     em_it = EMIteration(n_em, False, 0.0, floor_c, True, feedback)
     xb, Pb, zt, xp, Pp, FP = step_arrays_jit(n, n_a)
-    xf = np.empty(n)
-    Pf = np.empty((n, n))
-    LRj = np.empty((n_a, n_a))
-    Sg = np.empty((n_a, n_a))
-    xs = np.empty((0, n))
-    Ps = np.empty((0, n, n))
-    idx = np.empty(fir.K, np.int64)
-    xx = np.empty((2, fir.Fa.shape[0]))
+    xf, Pf, LRj, Sg, xs, Ps, idx, xx = _scratch_jit(n, n_a, fir)
     counts = np.zeros(4, np.int64)
     for b in range(B):
         load_element(x, P, b, xb, Pb, tx)
@@ -172,10 +209,7 @@ def integrated_run(m, fir, opt, z, x, P, init, zring, k0, out):
             valid = read_row(z, b, t, zt, tz)
             for c in range(n_a):
                 zr[k % N, c] = zt[c] if valid else np.nan
-            out.d1[b, t] = np.nan
-            out.d2[b, t] = np.nan
-            for r in range(n_a):
-                out.innovation[b, t, r] = np.nan
+            _nan_diagnostics(out, b, t, n_a)
             use_fir = False
             if not initialized:
                 if valid:  # SPEC §4.2 initialisation
@@ -191,14 +225,7 @@ def integrated_run(m, fir, opt, z, x, P, init, zring, k0, out):
                     innovation(struct, tz, zt, xp, nu)
                     for r in range(n_a):
                         out.innovation[b, t, r] = nu[r]
-                    if gate_S:  # SPEC §7.2-2 option: νᵀ S⁻¹ ν with S = H P⁻ Hᵀ + R
-                        innovation_cov(struct, tz, Pp, Rnom, Sg)
-                        if chol_shifted(Sg, LRj, n_a, 0.0):
-                            d1 = quad_inv(LRj, nu, tmp, n_a)
-                        else:
-                            d1 = np.inf
-                    else:  # Eq. 29: D₁ = νᵀ R⁻¹ ν
-                        d1 = quad_inv(LR, nu, tmp, n_a)
+                    d1 = _distance1(struct, tz, gate_S, Pp, Rnom, LR, Sg, LRj, nu, tmp)
                     out.d1[b, t] = d1
                     mode = 0 if d1 < th1 else 1  # KF update, else EM-KF from P̄⁻^{(0)} = P⁻
                     status, _nis = em_update(
@@ -207,19 +234,12 @@ def integrated_run(m, fir, opt, z, x, P, init, zring, k0, out):
                     )  # fmt: skip
                     count_status(counts, status)
                 if status & S_FAILED:  # missing z or S not factorisable: predict only
-                    for i in range(n):
-                        xb[i] = xp[i]
-                        for j in range(n):
-                            Pb[i, j] = Pp[i, j]
+                    copy_state(xp, Pp, xb, Pb, n)
                     out.observed[b, t] = False
                     out.mode[b, t] = 3
                 else:
-                    if mode == 1:
-                        # D₂ = νᵀ R_em⁻¹ ν (Eq. 29 with the EM-updated R, SPEC §7.2-1)
-                        if chol_shifted(sc.Rj, LRj, n_a, 0.0):
-                            d2 = quad_inv(LRj, nu, tmp, n_a)
-                        else:
-                            d2 = np.inf
+                    if mode == 1:  # D₂ = νᵀ R_em⁻¹ ν (Eq. 29 with the EM R, SPEC §7.2-1)
+                        d2 = _mahalanobis(sc.Rj, LRj, nu, tmp, n_a)
                         out.d2[b, t] = d2
                         if not (d2 < th2) and k >= N - 1:  # no FIR while k < N−1 (SPEC §7.2-5)
                             use_fir = _fir(zr, k, fir, Q, Rnom, fir.K, idx, xx, xs, Ps, xf, Pf)
@@ -230,10 +250,7 @@ def integrated_run(m, fir, opt, z, x, P, init, zring, k0, out):
             if use_fir:
                 put_sample(out.mean, out.cov, b, t, xf, Pf, tx)
                 if feedback:  # SPEC §7.2-4: the KF recursion continues from the FIR estimate
-                    for i in range(n):
-                        xb[i] = xf[i]
-                        for j in range(n):
-                            Pb[i, j] = Pf[i, j]
+                    copy_state(xf, Pf, xb, Pb, n)
             else:
                 put_sample(out.mean, out.cov, b, t, xb, Pb, tx)
         store_element(x, P, b, xb, Pb, tx)

@@ -15,6 +15,7 @@ from kinefuse._validation import as_float_array
 from kinefuse.exceptions import InputError
 from kinefuse.filters._base import (
     FilterResult,
+    broadcast_copy,
     check_batch_shape,
     check_measurements,
     check_not_all_missing,
@@ -337,12 +338,7 @@ class IMM:
         M, n_x = self.n_models, self.n_x
         mu_arr = self.mu0 if mu is None else as_float_array(mu, "mu", last_dim=M)
         _check_mu(mu_arr, M, "mu")
-        try:
-            mu_b = np.array(np.broadcast_to(mu_arr, (*batch_shape, M)), order="C")
-        except ValueError:
-            raise InputError(
-                f"expected mu broadcastable to {(*batch_shape, M)}, got {mu_arr.shape}"
-            ) from None
+        mu_b = broadcast_copy(mu_arr, (*batch_shape, M), "mu", order="C")
         if mean is None:
             if cov is not None:
                 raise InputError("cov given without mean: pass both or neither")
@@ -350,23 +346,9 @@ class IMM:
             P = np.full((*batch_shape, M, n_x, n_x), np.nan)
             return IMMState(x, P, mu_b, np.zeros(batch_shape, dtype=bool), 0)
         m = as_float_array(mean, "mean", last_dim=n_x)
-        try:
-            x = np.array(np.broadcast_to(m, (*batch_shape, M, n_x)), order="C")
-        except ValueError:
-            raise InputError(
-                f"expected mean broadcastable to {(*batch_shape, M, n_x)}, got {m.shape}"
-            ) from None
-        if not np.all(np.isfinite(x)):
-            raise InputError("expected a finite initial mean")
+        x = broadcast_copy(m, (*batch_shape, M, n_x), "mean", finite=True, order="C")
         c = self._P_init if cov is None else as_float_array(cov, "cov")
-        try:
-            P = np.array(np.broadcast_to(c, (*batch_shape, M, n_x, n_x)), order="C")
-        except ValueError:
-            raise InputError(
-                f"expected cov broadcastable to {(*batch_shape, M, n_x, n_x)}, got {c.shape}"
-            ) from None
-        if not np.all(np.isfinite(P)):
-            raise InputError("expected a finite initial cov")
+        P = broadcast_copy(c, (*batch_shape, M, n_x, n_x), "cov", finite=True, order="C")
         return IMMState(x, P, mu_b, np.ones(batch_shape, dtype=bool), 0)
 
     # ------------------------------------------------------------------ running
