@@ -12,7 +12,7 @@ import pytest
 from kinefuse.exceptions import InputError
 from kinefuse.filters import KalmanFilter, UFIRFilter, rts_smooth
 from kinefuse.filters._base import expand_cov_blocks
-from kinefuse.filters._kernels_em import floor_clip, floor_clip_lapack
+from kinefuse.filters._kernels_linalg import floor_clip, floor_clip_lapack
 from kinefuse.models import constant_velocity
 from test_kalman import random_cv, simulate, with_gaps
 

@@ -1,8 +1,8 @@
 """Specialised fast paths equal the general kernels bit for bit (EM-KF, integrated filter, UFIR).
 
-The EM-KF and the integrated filter have a constant-velocity kernel (``*_run_cv``, selected when
-``F`` is per-axis block-diagonal and ``H`` selects positions) next to the general sparse-triplet
-kernel; the UFIR evaluates horizons with missing samples with shared per-axis gains when the
+The EM-KF and the integrated filter kernels have a constant-velocity form (``CVStructure``,
+selected when ``F`` is per-axis block-diagonal and ``H`` selects positions) next to the general
+sparse-triplet form (``SparseStructure``); the UFIR evaluates horizons with missing samples with shared per-axis gains when the
 axes have identical blocks. Each fast path is written to perform the same floating-point
 operations in the same order, so results must be identical, not merely close.
 """
@@ -14,7 +14,7 @@ import warnings
 import numpy as np
 import pytest
 
-from kinefuse.filters._kernels_em import cv_structure
+from kinefuse.filters._kernels_common import cv_structure, sparse_structure
 from kinefuse.filters._kernels_ufir import ufir_horizon_axes, ufir_horizon_axis
 from kinefuse.filters.em_kalman import EMKalmanFilter
 from kinefuse.filters.integrated import IntegratedFilter
@@ -37,8 +37,9 @@ def data(seed=0, B=3, T=400, missing=0.05):
 
 
 def general(filt):
-    """The same filter forced onto the general kernel."""
-    filt._arrays["fb"] = None
+    """The same filter forced onto the general (sparse-structure) kernel."""
+    a = filt._arrays
+    a["em"] = a["em"]._replace(struct=sparse_structure(a["F"], a["H"]))
     return filt
 
 

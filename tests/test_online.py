@@ -9,7 +9,7 @@ from typing import NamedTuple
 import numpy as np
 import pytest
 
-from kinefuse.filters import KalmanFilter, OnlineFilter
+from kinefuse.filters import IMM, KalmanFilter, OnlineFilter
 from kinefuse.models import constant_velocity
 
 
@@ -114,3 +114,23 @@ def test_online_bad_input():
         online.restore({"version": 99, "filter_type": "KalmanFilter", "state": None})
     with pytest.raises(ValueError, match=r"expected z with shape \(\.\.\., n_z\)"):
         OnlineFilter(kf).update(1.0)
+
+
+def test_imm_update_takes_one_row_per_model(rng):
+    """OnlineFilter(IMM(m, m)).update(z (M, n_z)) is one element (issue #14), == IMM.filter."""
+    m = constant_velocity(1 / 30, q=0.5, r=1e-3)
+    imm = IMM(m, constant_velocity(1 / 30, q=0.5, r=4e-4))
+    online = OnlineFilter(imm)
+    out = online.update(np.zeros((2, 3)))
+    assert online.state.initialized.shape == ()
+    assert out.mean.shape == (6,)
+    z = np.cumsum(rng.normal(scale=0.02, size=(4, 40, 2, 3)), axis=1)  # (B, T, M, n_z)
+    z[1, 5:9, 0] = np.nan
+    _, res = imm.filter(z)
+    online = OnlineFilter(imm)
+    outs = [online.update(z[:, t]) for t in range(z.shape[1])]
+    assert online.state.initialized.shape == (4,)
+    np.testing.assert_array_equal(np.stack([o.mean for o in outs], axis=1), res.mean)
+    np.testing.assert_array_equal(np.stack([o.mu for o in outs], axis=1), res.mu)
+    with pytest.raises(ValueError, match=r"\(\.\.\., 2, 3\)"):
+        OnlineFilter(imm).update(np.zeros(3))

@@ -19,7 +19,9 @@ identical results, no compile cost, slower per step. ``kinefuse demo`` uses it w
 
 from __future__ import annotations
 
+import glob
 import os
+import sys
 from pathlib import Path
 
 
@@ -51,16 +53,20 @@ KERNEL_MODULES = (
     "kinefuse.filters._kernels",
     "kinefuse.filters._kernels_axis",
     "kinefuse.filters._kernels_blocks",
+    "kinefuse.filters._kernels_common",
     "kinefuse.filters._kernels_em",
     "kinefuse.filters._kernels_imm",
+    "kinefuse.filters._kernels_integrated",
+    "kinefuse.filters._kernels_linalg",
     "kinefuse.filters._kernels_ufir",
+    "kinefuse.filters._kernels_ufir_run",
     "kinefuse.pipelines.kinefuse_fusion",
     "kinefuse.streaming._kernels",
 )
 # A kernel of each heavy module: if their cache index files exist, the kernels were compiled.
 _SENTINELS = (
-    ("filters", "_kernels_em.integrated_run_cv-*.nbi"),
-    ("filters", "_kernels_ufir.ufir_run-*.nbi"),
+    ("filters", "_kernels_integrated.integrated_run-*.nbi"),
+    ("filters", "_kernels_ufir_run.ufir_run-*.nbi"),
     ("filters", "_kernels_imm.imm_run-*.nbi"),
 )
 
@@ -78,6 +84,15 @@ def njit_inline(func):
     return func if _interpret else _numba_njit_inline(func)
 
 
+def interpreting() -> bool:
+    """True after :func:`interpret_kernels`: kernels run as plain Python in this process.
+
+    Kernel modules that choose an implementation by argument type (``numba.extending.overload``)
+    read it at import time and then dispatch in Python instead.
+    """
+    return _interpret
+
+
 def interpret_kernels() -> bool:
     """Run the kernels as plain Python in this process (no compilation).
 
@@ -85,8 +100,6 @@ def interpret_kernels() -> bool:
     one already is.
     """
     global _interpret
-    import sys
-
     if any(m in sys.modules for m in KERNEL_MODULES):
         return False
     _interpret = True
@@ -95,8 +108,6 @@ def interpret_kernels() -> bool:
 
 def kernels_cached() -> bool:
     """True when this machine's numba cache holds the compiled kernels (checked without importing)."""
-    import glob
-
     pkg = Path(__file__).resolve().parent
     user_dir = os.environ.get("NUMBA_CACHE_DIR")  # numba looks there first when it is set
     for sub, pattern in _SENTINELS:

@@ -5,16 +5,33 @@ No numerics here beyond initialisation; kernels live in ``_kernels*.py``.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 from kinefuse._validation import as_float_array
-from kinefuse.exceptions import InputError
+from kinefuse.exceptions import InputError, NumericalWarning
 
 #: Initial velocity standard deviation, m/s (SPEC §4.2 and §12.2).
 SIGMA_V0_M_S = 1.0
+
+
+def warn_regularised(n_steps: int, what: str, matrix: str = "innovation covariance S") -> None:
+    """ONE :class:`NumericalWarning` per call when a kernel had to regularise ``matrix``.
+
+    ``n_steps`` is the count a kernel returns (steps whose Cholesky factorisation needed the
+    SPEC §13 ladder ``+ ε·tr/n·I``); nothing happens when it is 0.
+    """
+    n = int(n_steps)
+    if n:
+        warnings.warn(
+            f"{what}: {matrix} was not positive definite on {n} step(s) and was regularised "
+            "(+ eps*tr/n*I, SPEC §13)",
+            NumericalWarning,
+            stacklevel=3,
+        )
 
 
 class GaussianState(NamedTuple):
@@ -232,6 +249,21 @@ def check_batch_shape(batch_shape) -> tuple[int, ...]:
     return batch_shape
 
 
+def broadcast_copy(a, shape, name: str, *, finite: bool = False, order: str = "K") -> np.ndarray:
+    """A copy of ``a`` broadcast to ``shape`` (an initial mean, covariance or μ).
+
+    Raises InputError saying the expected and the actual shape, and (``finite``) when an entry
+    is not finite.
+    """
+    try:
+        out = np.array(np.broadcast_to(a, shape), order=order)
+    except ValueError:
+        raise InputError(f"expected {name} broadcastable to {shape}, got {a.shape}") from None
+    if finite and not np.all(np.isfinite(out)):
+        raise InputError(f"expected a finite initial {name}")
+    return out
+
+
 def make_initial_state(model, batch_shape=(), mean=None, cov=None) -> GaussianState:
     """Build the state returned by ``init``: uninitialised (NaN) unless ``mean`` is given.
 
@@ -252,21 +284,7 @@ def make_initial_state(model, batch_shape=(), mean=None, cov=None) -> GaussianSt
         P = np.full((*batch_shape, n_x, n_x), np.nan)
         return GaussianState(x, P, np.zeros(batch_shape, dtype=bool), 0)
     m = as_float_array(mean, "mean", last_dim=n_x)
-    try:
-        x = np.array(np.broadcast_to(m, (*batch_shape, n_x)))
-    except ValueError:
-        raise InputError(
-            f"expected mean broadcastable to {(*batch_shape, n_x)}, got {m.shape}"
-        ) from None
-    if not np.all(np.isfinite(x)):
-        raise InputError("expected a finite initial mean")
+    x = broadcast_copy(m, (*batch_shape, n_x), "mean", finite=True)
     c = initial_covariance(model) if cov is None else as_float_array(cov, "cov")
-    try:
-        P = np.array(np.broadcast_to(c, (*batch_shape, n_x, n_x)))
-    except ValueError:
-        raise InputError(
-            f"expected cov broadcastable to {(*batch_shape, n_x, n_x)}, got {c.shape}"
-        ) from None
-    if not np.all(np.isfinite(P)):
-        raise InputError("expected a finite initial cov")
+    P = broadcast_copy(c, (*batch_shape, n_x, n_x), "cov", finite=True)
     return GaussianState(x, P, np.ones(batch_shape, dtype=bool), 0)

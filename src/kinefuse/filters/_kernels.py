@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit, njit_inline
+from kinefuse.filters._kernels_linalg import CHOL_FAILED, chol_status
 
 
 @njit
@@ -87,42 +88,10 @@ def kf_predict(x, P, F, Q):
 def chol_lower_into(S, L, n):
     """Lower Cholesky factor of SPD ``S[:n, :n]`` into ``L[:n, :n]`` (no allocation); returns ok.
 
-    SPEC §13: on failure add ``ε·tr(S)/n·I`` with ε = 1e-12, ×10 up to 1e-6. Every kernel that
-    factorises an innovation covariance uses this ladder (through this function or
-    :func:`chol_lower`), so gains and likelihoods agree.
+    :func:`~._kernels_linalg.chol_status` (SPEC §13: on failure add ``ε·tr(S)/n·I`` with
+    ε = 1e-12, ×10 up to 1e-6), so gains and likelihoods of every kernel agree.
     """
-    tr = 0.0
-    for i in range(n):
-        tr += S[i, i]
-    scale = max(tr / n, 1e-300)
-    eps = 0.0
-    for _attempt in range(8):
-        for i in range(n):
-            for j in range(n):
-                L[i, j] = 0.0
-        good = True
-        for i in range(n):
-            for j in range(i + 1):
-                s = S[i, j]
-                if i == j:
-                    s += eps * scale  # SPEC §13: S + ε·tr(S)/n·I
-                for k in range(j):
-                    s -= L[i, k] * L[j, k]
-                if i == j:
-                    if s <= 0.0 or not np.isfinite(s):
-                        good = False
-                        break
-                    L[i, i] = np.sqrt(s)
-                else:
-                    L[i, j] = s / L[j, j]
-            if not good:
-                break
-        if good:
-            return True
-        eps = 1e-12 if eps == 0.0 else eps * 10.0
-        if eps > 1e-6 * 1.0000001:
-            break
-    return False
+    return chol_status(S, L, n) != CHOL_FAILED
 
 
 @njit
@@ -137,17 +106,19 @@ def chol_lower(S):
 
 @njit
 def chol_solve_spd(S, B):
-    """Solve ``S X = B`` for SPD ``S`` via :func:`chol_lower` (SPEC §13 regularisation).
+    """Solve ``S X = B`` for SPD ``S`` via :func:`~._kernels_linalg.chol_status` (SPEC §13).
 
-    Returns ``(X, ok)``; ``ok`` is False (and ``X`` NaN) when ``S`` stayed indefinite.
+    Returns ``(X, status)``: a ``CHOL_*`` status of :mod:`._kernels_linalg`; ``X`` is NaN when
+    ``S`` stayed indefinite (``CHOL_FAILED``).
     """
-    L, ok = chol_lower(S)
-    if not ok:
-        return np.full_like(B, np.nan), False
     n = S.shape[0]
+    L = np.zeros_like(S)
+    status = chol_status(S, L, n)
+    if status == CHOL_FAILED:
+        return np.full_like(B, np.nan), status
     X = np.empty_like(B)
     chol_solve_into(L, B, X, np.empty(n), n, B.shape[1])
-    return X, True
+    return X, status
 
 
 @njit_inline
@@ -168,32 +139,41 @@ def chol_solve_into(L, B, X, y, n, m):
 
 
 @njit
-def kf_update(x_pred, P_pred, z, H, R):
+def kf_update_status(x_pred, P_pred, z, H, R):
     """KF update with the Joseph form, SPEC §4.2 ``kf_update``.
 
-    Returns ``(x, P, nu, S, ok)``. The caller handles missing ``z`` (predict only); ``ok`` is
-    False when ``S`` could not be factorised, in which case ``(x_pred, P_pred)`` is returned.
+    Returns ``(x, P, nu, S, status)`` with the ``CHOL_*`` status of the factorisation of ``S``
+    (:mod:`._kernels_linalg`). The caller handles missing ``z`` (predict only); when ``S`` could
+    not be factorised (``CHOL_FAILED``) ``(x_pred, P_pred)`` is returned.
     """
     nu = z - matvec(H, x_pred)  # SPEC §4.2: ν = z − H x⁻
     HP = matmul(H, P_pred)  # H P⁻ = (P⁻ Hᵀ)ᵀ
     S = matmul_bt(HP, H) + R  # SPEC §4.2: S = H P⁻ Hᵀ + R
-    Kt, ok = chol_solve_spd(S, HP)  # SPEC §4.2: K = solve(S, H P⁻)ᵀ
-    if not ok:
-        return x_pred.copy(), P_pred.copy(), nu, S, False
+    Kt, status = chol_solve_spd(S, HP)  # SPEC §4.2: K = solve(S, H P⁻)ᵀ
+    if status == CHOL_FAILED:
+        return x_pred.copy(), P_pred.copy(), nu, S, status
     K = Kt.T.copy()
     x = x_pred + matvec(K, nu)  # SPEC §4.2: x = x⁻ + K ν
     A = -matmul(K, H)
     for i in range(A.shape[0]):
         A[i, i] += 1.0
     P = matmul_bt(matmul(A, P_pred), A) + matmul_bt(matmul(K, R), K)  # SPEC §4.2 Joseph form
-    return x, symmetrize(P), nu, S, True
+    return x, symmetrize(P), nu, S, status
+
+
+@njit
+def kf_update(x_pred, P_pred, z, H, R):
+    """:func:`kf_update_status` returning ``(x, P, nu, S, ok)``, ``ok`` False when ``S`` could
+    not be factorised (then ``(x_pred, P_pred)`` is returned)."""
+    x, P, nu, S, status = kf_update_status(x_pred, P_pred, z, H, R)
+    return x, P, nu, S, status != CHOL_FAILED
 
 
 @njit
 def mahalanobis(nu, M):
     """``νᵀ M⁻¹ ν`` via Cholesky; NaN if ``M`` cannot be factorised."""
-    X, ok = chol_solve_spd(M, nu.reshape(-1, 1).copy())
-    if not ok:
+    X, status = chol_solve_spd(M, nu.reshape(-1, 1).copy())
+    if status == CHOL_FAILED:
         return np.nan
     s = 0.0
     for i in range(nu.shape[0]):

@@ -22,7 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit
-from kinefuse.filters._kernels import chol_solve_spd, kf_predict, kf_update, mahalanobis
+from kinefuse.filters._kernels import chol_solve_spd, kf_predict, kf_update_status, mahalanobis
+from kinefuse.filters._kernels_linalg import CHOL_FAILED, CHOL_REGULARISED
 
 __all__ = [
     "axis_block_params",
@@ -269,9 +270,11 @@ def kf_filter_axis(z, x, P, init, Fb, Qb, Hb, r, P0b, mean, cov, pos, obs, nu, d
 def kf_filter_dense(z, x, P, init, F, Q, H, R, P0, Hpinv, mean, cov, pos, obs, nu, dist):
     """Dense reference KF over ``z (B, T, n_z)`` (SPEC §4.2); same in/out contract as the axis form.
 
-    ``Hpinv (n_x, n_z)`` is the pseudo-inverse of H used for ``x₀ = H⁺ z``.
+    ``Hpinv (n_x, n_z)`` is the pseudo-inverse of H used for ``x₀ = H⁺ z``. Returns the number
+    of updates whose ``S`` had to be regularised (SPEC §13; the caller warns).
     """
     B, T, n_z = z.shape
+    n_reg = 0
     for b in range(B):
         xb = x[b].copy()
         Pb = P[b].copy()
@@ -293,7 +296,9 @@ def kf_filter_dense(z, x, P, init, F, Q, H, R, P0, Hpinv, mean, cov, pos, obs, n
                 xb, Pb = kf_predict(xb, Pb, F, Q)  # paper A Eqs. 5-6 (SPEC §4.1 form)
                 ok = False
                 if valid:
-                    xn, Pn, v, S, ok = kf_update(xb, Pb, zt, H, R)  # Eqs. 7-9, Joseph
+                    xn, Pn, v, S, status = kf_update_status(xb, Pb, zt, H, R)  # Eqs. 7-9, Joseph
+                    ok = status != CHOL_FAILED
+                    n_reg += status == CHOL_REGULARISED
                     if ok:
                         xb = xn
                         Pb = Pn
@@ -309,6 +314,7 @@ def kf_filter_dense(z, x, P, init, F, Q, H, R, P0, Hpinv, mean, cov, pos, obs, n
         x[b, :] = xb
         P[b, :, :] = Pb
         init[b] = ini
+    return n_reg
 
 
 # --------------------------------------------------------------------------------------------
@@ -490,22 +496,26 @@ def rts_axis(mean, cov, mask, Fb, Qb, lag, sm_mean, sm_cov):
 
 @njit
 def _rts_dense_step(F, Q, m, Pf, s, Ps):
-    """One backward RTS step (SPEC §9), dense; returns ``(x̃_t, P̃_t, ok)``."""
+    """One backward RTS step (SPEC §9), dense; returns ``(x̃_t, P̃_t, CHOL_* status of P⁻)``."""
     Pp = F @ Pf @ F.T + Q  # P⁻_{t+1} = F P̂_t Fᵀ + Q
     Pp = 0.5 * (Pp + Pp.T)
-    Ct, ok = chol_solve_spd(Pp, F @ Pf)  # Cᵀ = (P⁻)⁻¹ F P̂_t, i.e. C = P̂_t Fᵀ (P⁻)⁻¹
-    if not ok:
-        return m.copy(), Pf.copy(), False
+    Ct, status = chol_solve_spd(Pp, F @ Pf)  # Cᵀ = (P⁻)⁻¹ F P̂_t, i.e. C = P̂_t Fᵀ (P⁻)⁻¹
+    if status == CHOL_FAILED:
+        return m.copy(), Pf.copy(), status
     C = Ct.T.copy()
     x = m + C @ (s - F @ m)  # x̃_t = x̂_t + C (x̃_{t+1} − F x̂_t)
     Pn = Pf + C @ (Ps - Pp) @ C.T  # P̃_t = P̂_t + C (P̃_{t+1} − P⁻) Cᵀ
-    return x, 0.5 * (Pn + Pn.T), True
+    return x, 0.5 * (Pn + Pn.T), status
 
 
 @njit
 def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
-    """Dense reference RTS; same contract as :func:`rts_axis`."""
+    """Dense reference RTS; same contract as :func:`rts_axis`.
+
+    Returns the number of backward steps whose ``P⁻`` had to be regularised (SPEC §13).
+    """
     B, T, n_x = mean.shape
+    n_reg = 0
     for b in range(B):
         end = _segment_ends(mean, mask, b)
         s = np.empty(n_x)
@@ -519,7 +529,8 @@ def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
                     s = mean[b, t].copy()  # x̃_{t_end} = x̂_{t_end}
                     Ps = cov[b, t].copy()
                 else:
-                    s, Ps, _ok = _rts_dense_step(F, Q, mean[b, t].copy(), cov[b, t].copy(), s, Ps)
+                    s, Ps, st = _rts_dense_step(F, Q, mean[b, t].copy(), cov[b, t].copy(), s, Ps)
+                    n_reg += st == CHOL_REGULARISED
                 sm_mean[b, t, :] = s
                 sm_cov[b, t, :, :] = Ps
         else:
@@ -531,6 +542,8 @@ def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
                 s = mean[b, e].copy()
                 Ps = cov[b, e].copy()
                 for u in range(e - 1, t - 1, -1):
-                    s, Ps, _ok = _rts_dense_step(F, Q, mean[b, u].copy(), cov[b, u].copy(), s, Ps)
+                    s, Ps, st = _rts_dense_step(F, Q, mean[b, u].copy(), cov[b, u].copy(), s, Ps)
+                    n_reg += st == CHOL_REGULARISED
                 sm_mean[b, t, :] = s
                 sm_cov[b, t, :, :] = Ps
+    return n_reg

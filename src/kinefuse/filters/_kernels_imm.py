@@ -23,7 +23,13 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit, njit_inline
-from kinefuse.filters._kernels import chol_lower, chol_lower_into, chol_solve_into
+from kinefuse.filters._kernels import chol_lower, chol_solve_into
+from kinefuse.filters._kernels_linalg import (
+    CHOL_FAILED,
+    CHOL_REGULARISED,
+    chol_status,
+    symmetrize_into,
+)
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -32,16 +38,6 @@ LOG_2PI = float(np.log(2.0 * np.pi))
 # Allocation-free single-element kernels (outputs and scratch passed in, written in place).
 # Each one reproduces the operation order of its allocating reference in :mod:`._kernels`.
 # --------------------------------------------------------------------------------------------
-
-
-@njit_inline
-def _symmetrize_into(P, n):
-    """``P ← (P + Pᵀ)/2`` in place for ``P (n, n)`` (as :func:`._kernels.symmetrize`)."""
-    for i in range(n):
-        for j in range(i, n):
-            v = 0.5 * (P[i, j] + P[j, i])
-            P[i, j] = v
-            P[j, i] = v
 
 
 @njit
@@ -83,7 +79,7 @@ def _kf_predict_into(x, P, F, Q, x_pred, P_pred, FP, n):
             for p in range(n):
                 s += FP[i, p] * F[j, p]
             P_pred[i, j] = s + Q[i, j]  # SPEC §4.2: P⁻ = F P Fᵀ + Q
-    _symmetrize_into(P_pred, n)
+    symmetrize_into(P_pred, n)
 
 
 @njit_inline
@@ -91,7 +87,7 @@ def _kf_update_into(x_pred, P_pred, z, H, R, x, P, nu, S, L, HP, Kt, A, AP, KR, 
     """KF update with the Joseph form, SPEC §4.2 (as :func:`._kernels.kf_update`).
 
     Writes ``x, P`` (only when ok), ``nu, S`` and the Cholesky factor ``L`` of ``S``; returns
-    ok (False: ``S`` could not be factorised, ``x, P`` untouched). Scratch: ``HP (n_z, n_x)``,
+    the ``CHOL_*`` status of ``S`` (``CHOL_FAILED``: not factorised, ``x, P`` untouched). Scratch: ``HP (n_z, n_x)``,
     ``Kt (n_z, n_x)`` (= Kᵀ), ``A, AP (n_x, n_x)``, ``KR (n_x, n_z)``, ``y (n_z,)``.
     """
     for i in range(n_z):
@@ -113,8 +109,9 @@ def _kf_update_into(x_pred, P_pred, z, H, R, x, P, nu, S, L, HP, Kt, A, AP, KR, 
             for p in range(n_x):
                 s += HP[i, p] * H[j, p]
             S[i, j] = s + R[i, j]  # SPEC §4.2: S = H P⁻ Hᵀ + R
-    if not chol_lower_into(S, L, n_z):
-        return False
+    status = chol_status(S, L, n_z)
+    if status == CHOL_FAILED:
+        return status
     chol_solve_into(L, HP, Kt, y, n_z, n_x)  # SPEC §4.2: Kᵀ = solve(S, H P⁻), column by column
     for i in range(n_x):
         s = 0.0
@@ -157,8 +154,8 @@ def _kf_update_into(x_pred, P_pred, z, H, R, x, P, nu, S, L, HP, Kt, A, AP, KR, 
             for p in range(n_z):
                 s2 += KR[i, p] * Kt[p, j]
             P[i, j] = s + s2  # SPEC §4.2 Joseph form: P = A P⁻ Aᵀ + K R Kᵀ
-    _symmetrize_into(P, n_x)
-    return True
+    symmetrize_into(P, n_x)
+    return status
 
 
 @njit
@@ -245,7 +242,7 @@ def _imm_mix_into(mu, Gamma, xs, Ps, cbar, x0, P0, w, d, M, n_x):
                 for k in range(n_x):
                     P0[m, j, k] += wi * Ps[i, j, k]  # Eq. 28: P0_m = Σ_i μ_{i|m}(P_i + d dᵀ)
                     P0[m, j, k] += wd * d[k]
-        _symmetrize_into(P0[m], n_x)
+        symmetrize_into(P0[m], n_x)
 
 
 @njit
@@ -322,7 +319,7 @@ def _imm_combine_into(mu, xs, Ps, x, P, d, M, n_x):
             for k in range(n_x):
                 P[j, k] += wm * Ps[m, j, k]  # Eq. 48
                 P[j, k] += wd * d[k]
-    _symmetrize_into(P, n_x)
+    symmetrize_into(P, n_x)
 
 
 # --------------------------------------------------------------------------------------------
@@ -428,8 +425,12 @@ def _imm_loop(
     z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
     out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis, M, n_x, n_z
 ):  # fmt: skip
-    """Body of :func:`imm_run` for ``M`` models, ``n_x`` states, ``n_z`` measurements."""
+    """Body of :func:`imm_run` for ``M`` models, ``n_x`` states, ``n_z`` measurements.
+
+    Returns the number of model updates whose ``S`` had to be regularised (SPEC §13).
+    """
     B, T = z.shape[0], z.shape[1]
+    n_reg = 0
     valid = np.zeros(M, dtype=np.bool_)
     updated = np.zeros(M, dtype=np.bool_)
     loglik = np.zeros(M)
@@ -522,11 +523,12 @@ def _imm_loop(
                 xm[m] = x_pred
                 Pm[m] = P_pred
                 if valid[m]:
-                    ok = _kf_update_into(
+                    status = _kf_update_into(
                         x_pred, P_pred, z[b, t, m], H[m], R[m], xm[m], Pm[m], nu, S, L, HP, Kt,
                         A, AP, KR, y, n_x, n_z,
                     )  # Eqs. 33-38  # fmt: skip
-                    if ok:
+                    n_reg += status == CHOL_REGULARISED
+                    if status != CHOL_FAILED:
                         ll, nis = _loglik_chol(nu, L, y, n_z)  # Eqs. 39-44 (log form)
                         out_nu[b, t, m] = nu
                         out_nis[b, t, m] = nis
@@ -549,6 +551,7 @@ def _imm_loop(
                 if out_mobs[b, t, m]:
                     any_obs = True
             out_obs[b, t] = n_valid > 0 and any_obs
+    return n_reg
 
 
 @njit
@@ -586,7 +589,8 @@ def imm_run(
     place. ``prev_x (B, T, M, n_x)``, ``prev_P (B, T, M, n_x, n_x)`` (read only if
     ``has_prev``): externally supplied posteriors at t−1 used for mixing at step t (reading R2);
     a non-finite entry for model i means "use the IMM's own posterior of model i".
-    Outputs are written into the ``out_*`` arrays (leading axes ``(B, T)``).
+    Outputs are written into the ``out_*`` arrays (leading axes ``(B, T)``). Returns the number
+    of model updates whose ``S`` had to be regularised (SPEC §13; the caller warns).
 
     Every temporary is allocated once per call (no allocation inside the loops); the arithmetic
     is that of :func:`imm_mix`, :func:`._kernels.kf_predict`, :func:`._kernels.kf_update`,
@@ -599,12 +603,11 @@ def imm_run(
     M, n_z = z.shape[2], z.shape[3]
     n_x = F.shape[1]
     if M == 2 and n_x == 6 and n_z == 3:
-        _imm_loop(
+        return _imm_loop(
             z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
             out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis, 2, 6, 3
         )  # fmt: skip
-    else:
-        _imm_loop(
-            z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
-            out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis, M, n_x, n_z
-        )  # fmt: skip
+    return _imm_loop(
+        z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
+        out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis, M, n_x, n_z
+    )  # fmt: skip

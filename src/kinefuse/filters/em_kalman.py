@@ -19,13 +19,8 @@ from kinefuse.filters._base import (
     make_initial_state,
     positions,
 )
-from kinefuse.filters._kernels_em import (
-    cv_structure,
-    em_kf_run,
-    em_kf_run_cv,
-    size_tuple,
-    sparse_triplets,
-)
+from kinefuse.filters._kernels_common import EMModel, model_structure, size_tuple
+from kinefuse.filters._kernels_em import EMOptions, EMOutputs, em_kf_run
 from kinefuse.models import LinearGaussianModel
 
 __all__ = ["EMKalmanFilter", "EMKalmanResult", "EMKalmanState"]
@@ -127,26 +122,21 @@ def model_arrays(model: LinearGaussianModel) -> dict:
     """Contiguous arrays the kernels need (computed once per filter object)."""
     F = np.ascontiguousarray(model.F)
     H = np.ascontiguousarray(model.H)
-    Fr, Fc, Fv = sparse_triplets(F)
-    Hr, Hc, Hv = sparse_triplets(H)
-    return {
+    a = {
         "F": F,
         "H": H,
         "Q": np.ascontiguousarray(model.Q),
         "R": np.ascontiguousarray(model.R),
         "LR": np.ascontiguousarray(np.linalg.cholesky(model.R)),
-        "Fr": Fr,
-        "Fc": Fc,
-        "Fv": Fv,
-        "Hr": Hr,
-        "Hc": Hc,
-        "Hv": Hv,
         "Hpinv": np.ascontiguousarray(np.linalg.pinv(H)),
         "P0": np.ascontiguousarray(initial_covariance(model)),
-        "tx": size_tuple(model.n_x),
-        "tz": size_tuple(model.n_z),
-        "fb": cv_structure(F, H),  # per-axis F blocks, or None: general kernels
     }
+    # the kernels' model bundle; struct: CV blocks when (F, H) has that structure, else sparse
+    a["em"] = EMModel(
+        size_tuple(model.n_x), size_tuple(model.n_z), model_structure(F, H), a["Q"], a["R"],
+        a["Hpinv"], a["P0"],
+    )  # fmt: skip
+    return a
 
 
 def batch_shape_of(state) -> tuple[int, ...]:
@@ -384,18 +374,9 @@ class EMKalmanFilter:
         o_nu = np.empty((B, T, n_z))
         o_dist = np.empty((B, T))
         o_Rem = np.empty((B, T, n_z, n_z))
-        if a["fb"] is not None:  # constant-velocity structure: specialised kernel, same results
-            counts = em_kf_run_cv(
-                a["tz"], a["tx"], zf, x, P, init, u, U, a["fb"], a["Q"], a["R"], a["Hpinv"], a["P0"],
-                self.n_iter, self.regularized, self.tau, self.rho, FLOOR_FRACTION,
-                o_mean, o_cov, o_obs, o_nu, o_dist, o_Rem,
-            )  # fmt: skip
-        else:
-            counts = em_kf_run(
-                a["tx"], a["tz"], zf, x, P, init, u, U, a["Fr"], a["Fc"], a["Fv"], a["Hr"], a["Hc"], a["Hv"], a["Q"], a["R"], a["Hpinv"],
-                a["P0"], self.n_iter, self.regularized, self.tau, self.rho, FLOOR_FRACTION,
-                o_mean, o_cov, o_obs, o_nu, o_dist, o_Rem,
-            )  # fmt: skip
+        opt = EMOptions(self.n_iter, self.regularized, self.tau, self.rho, FLOOR_FRACTION)
+        out = EMOutputs(o_mean, o_cov, o_obs, o_nu, o_dist, o_Rem)
+        counts = em_kf_run(a["em"], opt, zf, x, P, init, u, U, out)
         warn_counts(counts, "EMKalmanFilter")
         new_state = EMKalmanState(
             x.reshape(*bs, n_x),

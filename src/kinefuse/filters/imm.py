@@ -15,12 +15,14 @@ from kinefuse._validation import as_float_array
 from kinefuse.exceptions import InputError
 from kinefuse.filters._base import (
     FilterResult,
+    broadcast_copy,
     check_batch_shape,
     check_measurements,
     check_not_all_missing,
     check_step_measurement,
     initial_covariance,
     positions,
+    warn_regularised,
 )
 from kinefuse.filters._kernels_imm import imm_run
 from kinefuse.models import LinearGaussianModel
@@ -302,6 +304,15 @@ class IMM:
         """Measurement dimension (per model)."""
         return self.models[0].n_z
 
+    @property
+    def step_measurement_shape(self) -> tuple[int, int]:
+        """Trailing shape ``(M, n_z)`` of one batch element's measurement in :meth:`step`.
+
+        :class:`~kinefuse.filters.OnlineFilter` reads it to tell the batch axes from the
+        per-model rows (the other filters take ``(n_z,)`` and do not need it).
+        """
+        return (self.n_models, self.n_z)
+
     # ------------------------------------------------------------------ state
     def init(self, batch_shape=(), mean=None, cov=None, mu=None) -> IMMState:
         """Initial state.
@@ -327,12 +338,7 @@ class IMM:
         M, n_x = self.n_models, self.n_x
         mu_arr = self.mu0 if mu is None else as_float_array(mu, "mu", last_dim=M)
         _check_mu(mu_arr, M, "mu")
-        try:
-            mu_b = np.array(np.broadcast_to(mu_arr, (*batch_shape, M)), order="C")
-        except ValueError:
-            raise InputError(
-                f"expected mu broadcastable to {(*batch_shape, M)}, got {mu_arr.shape}"
-            ) from None
+        mu_b = broadcast_copy(mu_arr, (*batch_shape, M), "mu", order="C")
         if mean is None:
             if cov is not None:
                 raise InputError("cov given without mean: pass both or neither")
@@ -340,23 +346,9 @@ class IMM:
             P = np.full((*batch_shape, M, n_x, n_x), np.nan)
             return IMMState(x, P, mu_b, np.zeros(batch_shape, dtype=bool), 0)
         m = as_float_array(mean, "mean", last_dim=n_x)
-        try:
-            x = np.array(np.broadcast_to(m, (*batch_shape, M, n_x)), order="C")
-        except ValueError:
-            raise InputError(
-                f"expected mean broadcastable to {(*batch_shape, M, n_x)}, got {m.shape}"
-            ) from None
-        if not np.all(np.isfinite(x)):
-            raise InputError("expected a finite initial mean")
+        x = broadcast_copy(m, (*batch_shape, M, n_x), "mean", finite=True, order="C")
         c = self._P_init if cov is None else as_float_array(cov, "cov")
-        try:
-            P = np.array(np.broadcast_to(c, (*batch_shape, M, n_x, n_x)), order="C")
-        except ValueError:
-            raise InputError(
-                f"expected cov broadcastable to {(*batch_shape, M, n_x, n_x)}, got {c.shape}"
-            ) from None
-        if not np.all(np.isfinite(P)):
-            raise InputError("expected a finite initial cov")
+        P = broadcast_copy(c, (*batch_shape, M, n_x, n_x), "cov", finite=True, order="C")
         return IMMState(x, P, mu_b, np.ones(batch_shape, dtype=bool), 0)
 
     # ------------------------------------------------------------------ running
@@ -502,12 +494,13 @@ class IMM:
         out_nu = np.empty((B, T, M, n_z))
         out_nis = np.empty((B, T, M))
         if B > 0 and T > 0:
-            imm_run(
+            n_reg = imm_run(
                 zf, has_prev, px, pP, self._F, self._Q, self._H, self._R, self._Hpinv, self._P_init,
                 self.transition,
                 self.mu_floor, xs, Ps, mu, init,
                 out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis,
             )  # fmt: skip
+            warn_regularised(n_reg, "IMM")
         new_state = IMMState(
             xs.reshape(*batch, M, n_x),
             Ps.reshape(*batch, M, n_x, n_x),

@@ -14,7 +14,12 @@ from kinefuse.filters._base import (
     make_initial_state,
     positions,
 )
-from kinefuse.filters._kernels_em import integrated_run, integrated_run_cv
+from kinefuse.filters._kernels_integrated import (
+    FIRModel,
+    IntegratedOptions,
+    IntegratedOutputs,
+    integrated_run,
+)
 from kinefuse.filters.em_kalman import (
     FLOOR_FRACTION,
     check_bool,
@@ -220,21 +225,16 @@ class IntegratedFilter:
         o_d2 = np.empty((B, T))
         o_mode = np.empty((B, T), np.int8)
         th1 = self.threshold1 if math.isfinite(self.threshold1) else np.inf
-        if a["fb"] is not None:  # constant-velocity structure: specialised kernel, same results
-            counts = integrated_run_cv(
-                a["tz"], a["tx"], zf, x, P, init, zring, int(state.k), N, a["K"], a["fb"], a["Q"], a["R"], a["LR"],
-                a["Hpinv"], a["P0"], self.n_em_iter, th1, self.threshold2, self.gate == "S", self.fir_feedback,
-                FLOOR_FRACTION, bool(self.model.axis_blocks), a["W"], a["P_full"], a["F"], a["Finv"], a["H"],
-                a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"], o_mean, o_cov, o_obs, o_nu, o_d1, o_d2, o_mode,
-            )  # fmt: skip
-        else:
-            counts = integrated_run(
-                a["tx"], a["tz"], zf, x, P, init, zring, int(state.k), N, a["K"], a["Fr"], a["Fc"], a["Fv"], a["Hr"], a["Hc"], a["Hv"],
-                a["Q"], a["R"], a["LR"], a["Hpinv"], a["P0"], self.n_em_iter, th1, self.threshold2,
-                self.gate == "S", self.fir_feedback, FLOOR_FRACTION, bool(self.model.axis_blocks), a["W"],
-                a["P_full"], a["F"], a["Finv"], a["H"], a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"],
-                o_mean, o_cov, o_obs, o_nu, o_d1, o_d2, o_mode,
-            )  # fmt: skip
+        fir = FIRModel(
+            N, a["K"], bool(self.model.axis_blocks), a["W"], a["P_full"], a["F"], a["Finv"],
+            a["H"], a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"],
+        )  # fmt: skip
+        opt = IntegratedOptions(
+            self.n_em_iter, th1, self.threshold2, self.gate == "S", self.fir_feedback,
+            FLOOR_FRACTION, a["LR"],
+        )  # fmt: skip
+        out = IntegratedOutputs(o_mean, o_cov, o_obs, o_nu, o_d1, o_d2, o_mode)
+        counts = integrated_run(a["em"], fir, opt, zf, x, P, init, zring, int(state.k), out)
         warn_counts(counts, "IntegratedFilter")
         new_state = IntegratedState(
             x.reshape(*bs, n_x),

@@ -22,6 +22,7 @@ from kinefuse.filters._base import (
     check_step_measurement,
     initial_covariance,
     make_initial_state,
+    warn_regularised,
 )
 from kinefuse.filters._kernels_axis import (
     axis_block_params,
@@ -416,10 +417,11 @@ class KalmanFilter:
             nu_d = nu if "innovation" in w else np.empty((B, T, n_z))
             dist_d = dist if "distance" in w else np.empty((B, T))
             cov_d = np.empty((B, T, n_x, n_x))
-            kf_filter_dense(
+            n_reg = kf_filter_dense(
                 z3, x, P, init, m.F, m.Q, m.H, m.R, self._P0, self._Hpinv,
                 mean_d, cov_d, pos_d, obs_d, nu_d, dist_d,
             )  # fmt: skip
+            warn_regularised(n_reg, "KalmanFilter")
             mean, pos, obs, nu, dist = mean_d, pos_d, obs_d, nu_d, dist_d
             if "cov" in w:
                 cov = cov_d.reshape(*batch, T, n_x, n_x)

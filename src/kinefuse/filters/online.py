@@ -77,7 +77,8 @@ class OnlineFilter:
         ----------
         z : array_like of float, shape (..., n_z)
             Measurement at this step (batch shape fixed by the first call or by the state);
-            a row containing NaN is missing (predict only).
+            a row containing NaN is missing (predict only). For the :class:`IMM`, one row per
+            model: shape ``(..., M, n_z)`` (its ``step_measurement_shape``).
 
         Returns
         -------
@@ -87,9 +88,12 @@ class OnlineFilter:
         """
         if self._state is None:
             arr = np.asarray(z)
-            if arr.ndim < 1:
-                raise InputError(f"expected z with shape (..., n_z), got {arr.shape}")
-            self._state = self._filter.init(batch_shape=arr.shape[:-1])
+            # trailing axes of one element's measurement: (n_z,), or (M, n_z) for the IMM
+            event = tuple(getattr(self._filter, "step_measurement_shape", (None,)))
+            if arr.ndim < len(event):
+                names = ", ".join("n_z" if e is None else str(e) for e in event)
+                raise InputError(f"expected z with shape (..., {names}), got {arr.shape}")
+            self._state = self._filter.init(batch_shape=arr.shape[: arr.ndim - len(event)])
         state, out = self._filter.step(self._state, z)
         self._state = state
         self._n_updates += 1

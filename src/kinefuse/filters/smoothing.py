@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse.exceptions import InputError
-from kinefuse.filters._base import FilterResult, initial_covariance
+from kinefuse.filters._base import FilterResult, initial_covariance, warn_regularised
 from kinefuse.filters._kernels_axis import axis_block_params, pack_axis_params, rts_axis, rts_dense
 from kinefuse.filters._kernels_blocks import rts_blocks
 from kinefuse.models import LinearGaussianModel
@@ -144,7 +144,8 @@ def _smooth(model, result, mask, lag: int, position: bool = True) -> FilterResul
         done = rts_axis(mean3, cov3, m2, Fb, Qb, lag, sm_mean, sm_cov)
     if not done:
         sm_cov = np.empty((B, T, n_x, n_x))
-        rts_dense(mean3, cov3, m2, model.F, model.Q, lag, sm_mean, sm_cov)
+        n_reg = rts_dense(mean3, cov3, m2, model.F, model.Q, lag, sm_mean, sm_cov)
+        warn_regularised(n_reg, "RTS smoother", "predicted covariance P⁻")
     sm_mean = sm_mean.reshape(*lead, n_x)
     return FilterResult(
         mean=sm_mean,

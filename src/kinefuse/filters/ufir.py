@@ -18,7 +18,8 @@ from kinefuse.filters._base import (
     positions,
 )
 from kinefuse.filters._kernels_axis import pack_axis_params, state_blocks_shared
-from kinefuse.filters._kernels_ufir import ufir_gains, ufir_run, ufir_run_cv
+from kinefuse.filters._kernels_ufir import ufir_gains
+from kinefuse.filters._kernels_ufir_run import ufir_run, ufir_run_cv
 from kinefuse.filters.em_kalman import (
     check_int,
     check_model,
@@ -62,6 +63,16 @@ class UFIRState(NamedTuple):
     z_buf: np.ndarray
     x_buf: np.ndarray
     P_buf: np.ndarray
+
+
+def _warn_failed(n_fail: int) -> None:
+    """ONE warning per call when the stored-init KF update could not factorise S."""
+    if n_fail:
+        warnings.warn(
+            f"UFIRFilter: KF update skipped on {n_fail} step(s): S could not be factorised (SPEC §13)",
+            NumericalWarning,
+            stacklevel=4,  # the caller of UFIRFilter.filter / step, as before
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -378,14 +389,7 @@ class UFIRFilter:
             a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"], a["Hpinv"], a["P0"],
             o_mean, o_cov, o_obs, o_nu, o_ready,
         )  # fmt: skip
-        if n_fail:
-            import warnings
-
-            warnings.warn(
-                f"UFIRFilter: KF update skipped on {n_fail} step(s): S could not be factorised (SPEC §13)",
-                NumericalWarning,
-                stacklevel=3,
-            )
+        _warn_failed(n_fail)
         new_state = UFIRState(
             x.reshape(*bs, n_x),
             P.reshape(*bs, n_x, n_x),
@@ -407,7 +411,7 @@ class UFIRFilter:
         return new_state, res
 
     def _run_cv(self, z: np.ndarray, state: UFIRState, outputs):
-        """The O(1)-per-step constant-velocity route (:func:`._kernels_ufir.ufir_run_cv`)."""
+        """The O(1)-per-step constant-velocity route (:func:`._kernels_ufir_run.ufir_run_cv`)."""
         a = self._arrays
         cv = a["cv"]
         w = check_outputs(None) if outputs is None else outputs
@@ -432,14 +436,7 @@ class UFIRFilter:
             cv["p0"], cv["pfull"], a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"],
             o_mean, o_covb, o_obs, o_nu, o_ready,
         )  # fmt: skip
-        if n_fail:
-            import warnings
-
-            warnings.warn(
-                f"UFIRFilter: KF update skipped on {n_fail} step(s): S could not be factorised (SPEC §13)",
-                NumericalWarning,
-                stacklevel=3,
-            )
+        _warn_failed(n_fail)
         ns = self._n_stored
         new_state = UFIRState(
             x.reshape(*bs, n_x),

@@ -4,6 +4,8 @@
 not wait for numba in silence; the pipelines' own first call then only loads cached machine
 code. Each step runs a public filter on a tiny input of the shapes the pipelines use (float64,
 C-contiguous, batch of joints), which compiles exactly the specialisations a run needs.
+Importing this module imports the kernel modules (``kinefuse.cli`` imports it only for
+``kinefuse warm-up``, after the interpreted-mode decision of :mod:`kinefuse._compile`).
 """
 
 from __future__ import annotations
@@ -14,12 +16,22 @@ from collections.abc import Callable
 
 import numpy as np
 
+from kinefuse.filters import (
+    IMM,
+    EMKalmanFilter,
+    IntegratedFilter,
+    KalmanFilter,
+    UFIRFilter,
+    fixed_lag_smooth,
+    rts_smooth,
+    rts_smooth_segments,
+)
+from kinefuse.models import constant_velocity
+
 __all__ = ["WARM_UP_STEPS", "warm_up"]
 
 
 def _model():
-    from kinefuse.models import constant_velocity
-
     return constant_velocity(1 / 30, q=0.5, r=1e-3)
 
 
@@ -30,8 +42,6 @@ def _z(B: int = 2, T: int = 48) -> np.ndarray:
 
 
 def _kf():
-    from kinefuse.filters import KalmanFilter, fixed_lag_smooth, rts_smooth, rts_smooth_segments
-
     m = _model()
     kf = KalmanFilter(m)
     st, res = kf.filter(_z())
@@ -43,8 +53,6 @@ def _kf():
 
 
 def _ufir():
-    from kinefuse.filters import UFIRFilter
-
     for init in ("batch", "stored"):
         f = UFIRFilter(_model(), horizon=20, init=init)
         st, _ = f.filter(_z())
@@ -52,8 +60,6 @@ def _ufir():
 
 
 def _em():
-    from kinefuse.filters import EMKalmanFilter, IntegratedFilter
-
     f = EMKalmanFilter(_model(), n_iter=3)
     st, _ = f.filter(_z())
     f.step(st, np.zeros((2, 3)))
@@ -63,9 +69,6 @@ def _em():
 
 
 def _imm():
-    from kinefuse.filters import IMM
-    from kinefuse.models import constant_velocity
-
     imm = IMM(_model(), constant_velocity(1 / 30, q=0.5, r=4e-4))
     z = _z()
     st, _ = imm.filter(np.stack([z, z + 0.01], axis=-2))  # (B, T, sources, 3)

@@ -1,0 +1,371 @@
+"""UFIR filter run loops (numba): the general form and the O(1)-per-step constant-velocity form.
+
+Paper A §3.3 (Eqs. 24-28, Algorithm 3) as corrected by SPEC §6.2-§6.3. Textbook symbols, no
+validation. Both loops keep the time-major measurement ring of :mod:`._kernels_ufir` (slot
+``t % N``; a row holding any NaN is a missing sample) and get each horizon estimate from it:
+
+* :func:`ufir_run` — any model: :func:`~._kernels_ufir.fir_estimate` per step (precomputed
+  taps on a complete horizon, the per-axis or dense iterative UFIR otherwise), the KF in the
+  dead zone and as the fallback when the horizon is not usable.
+* :func:`ufir_run_cv` — the constant-velocity model with batch initialisation: the estimate is
+  the least-squares line through the valid samples of the horizon, kept as window sums (O(1)
+  per step for any horizon, the same numbers as the iterative form to rounding).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from kinefuse._compile import njit
+from kinefuse.filters._kernels import kf_predict, kf_update
+from kinefuse.filters._kernels_blocks import _cov_step
+from kinefuse.filters._kernels_ufir import RANK_TOL, fir_estimate, ufir_horizon_axes, ufir_taps
+
+
+@njit
+def ufir_run(
+    z,
+    x,
+    P,
+    init,
+    zring,
+    xring,
+    Pring,
+    k0,
+    N,
+    K,
+    stored,
+    fast,
+    axis_blocks,
+    W,
+    P_full,
+    F,
+    Finv,
+    H,
+    Q,
+    R,
+    Fa,
+    Finva,
+    Ha,
+    Qa,
+    Ra,
+    Hpinv,
+    P0,
+    o_mean,
+    o_cov,
+    o_obs,
+    o_nu,
+    o_ready,
+):
+    """Run the UFIR (with dead-zone KF) over ``z (B, T, n_z)``; state arrays updated in place.
+
+    Returns the number of KF updates skipped because ``S`` could not be factorised.
+    """
+    B, T, n_z = z.shape
+    n_x = x.shape[1]
+    xf = np.empty(n_x)
+    Pf = np.empty((n_x, n_x))
+    xb = np.empty(n_x)
+    Pb = np.empty((n_x, n_x))
+    zt = np.empty(n_z)
+    HF = H @ F
+    idx = np.empty(K, np.int64)
+    xx = np.empty((2, Fa.shape[0]))
+    n_fail = 0
+    for b in range(B):
+        zr = zring[b]
+        xs = xring[b]
+        Ps = Pring[b]
+        for i in range(n_x):
+            xb[i] = x[b, i]
+            for j in range(n_x):
+                Pb[i, j] = P[b, i, j]
+        initialized = init[b]
+        for t in range(T):
+            k = k0 + t
+            valid = True
+            for c in range(n_z):
+                zt[c] = z[b, t, c]
+                if not np.isfinite(zt[c]):
+                    valid = False
+            sl = k % N
+            for c in range(n_z):
+                zr[sl, c] = zt[c] if valid else np.nan
+            # innovation against the one-step prediction of the previous output: z − H F x̂_{k−1}
+            for r in range(n_z):
+                acc = zt[r]
+                for c in range(n_x):
+                    acc -= HF[r, c] * xb[c]
+                o_nu[b, t, r] = acc if (valid and initialized) else np.nan
+            ready = False
+            if k >= N - 1 and fast and not stored and ufir_taps(zr, k, N, W, axis_blocks, xf):
+                for i in range(n_x):  # complete horizon: taps inlined (as in fir_estimate)
+                    for j in range(n_x):
+                        Pf[i, j] = P_full[i, j]
+                ready = True
+            elif k >= N - 1:
+                code = 0
+                if fast and not stored and axis_blocks:  # missing samples: shared axis gains
+                    code = ufir_horizon_axes(zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, xf, Pf)
+                ready = code == 1
+                if code == 0:
+                    ready = fir_estimate(
+                        zr, k, N, K, fast, axis_blocks, W, P_full, F, Finv, H, Q, R, Fa, Finva, Ha, Qa, Ra, xs,
+                        Ps, stored, xf, Pf,
+                    )  # fmt: skip
+            if ready:
+                for i in range(n_x):
+                    xb[i] = xf[i]
+                    for j in range(n_x):
+                        Pb[i, j] = Pf[i, j]
+                initialized = True
+            elif not initialized:
+                if valid:  # SPEC §4.2 initialisation: positions from z, zero velocity, P₀
+                    xb[:] = Hpinv @ zt
+                    Pb[:, :] = P0
+                    initialized = True
+            else:  # dead zone / fallback: KF step (SPEC §6.2-5, §6.3)
+                xp, Pp = kf_predict(xb, Pb, F, Q)
+                if valid:
+                    xu, Pu, _nu, _S, ok = kf_update(xp, Pp, zt, H, R)
+                    if not ok:
+                        n_fail += 1
+                    xb[:] = xu
+                    Pb[:, :] = Pu
+                else:
+                    xb[:] = xp
+                    Pb[:, :] = Pp
+            if stored:
+                xs[sl] = xb
+                Ps[sl] = Pb
+            for i in range(n_x):
+                o_mean[b, t, i] = xb[i]
+                for j in range(n_x):
+                    o_cov[b, t, i, j] = Pb[i, j]
+            o_obs[b, t] = valid and initialized
+            o_ready[b, t] = ready
+        for i in range(n_x):
+            x[b, i] = xb[i]
+            for j in range(n_x):
+                P[b, i, j] = Pb[i, j]
+        init[b] = initialized
+    return n_fail
+
+
+# --------------------------------------------------------------------------------------------
+# O(1) per step for the constant-velocity model: the batch-initialised UFIR as sliding sums
+# --------------------------------------------------------------------------------------------
+
+
+@njit
+def _suffix_sums(zr, j, N, n_a, Qs):
+    """Suffix sums over block ``j - 1`` (times ``(j-1)N .. jN-1``) of the valid ring rows.
+
+    ``Qs[i] (N + 1, 3 + 2 n_a)`` for local index ``i`` (time ``(j-1)N + i``) holds
+    ``[n, Σu, Σu², Σz_a, Σu z_a]`` over valid ``t >= (j-1)N + i`` of the block, ``u`` the local
+    index; row ``N`` is zero. Rows below the oldest time still in the ring are not needed and
+    not filled. Accumulated from the block's end, so the numbers depend on the samples only
+    (the same whether computed in one run or after a split).
+    """
+    W = Qs.shape[1]
+    for c in range(W):
+        Qs[N, c] = 0.0
+    # a window ending in block j starts at local index >= 1 of block j - 1 (local 0 is never
+    # needed); rows for times no longer in the ring come out wrong but are never read
+    lo = 1 if j > 0 else N
+    for i in range(N - 1, lo - 1, -1):
+        for c in range(W):
+            Qs[i, c] = Qs[i + 1, c]
+        t = (j - 1) * N + i
+        sl = t % N
+        if not np.isnan(zr[sl, 0]):
+            u = float(i)
+            Qs[i, 0] += 1.0
+            Qs[i, 1] += u
+            Qs[i, 2] += u * u
+            for a in range(n_a):
+                zv = zr[sl, a]
+                Qs[i, 3 + 2 * a] += zv
+                Qs[i, 4 + 2 * a] += u * zv
+
+
+@njit
+def ufir_run_cv(
+    z, x, P, init, zring, k0, N, K, dt, q00, q01, q11, r, p0, pfull, Fa, Finva, Ha, Qa, Ra,
+    o_mean, o_covb, o_obs, o_nu, o_ready,
+):  # fmt: skip
+    """Batch-initialised UFIR for the constant-velocity model in O(1) per step (SPEC §6.3).
+
+    Every axis has the block ``F = [[1, dt], [0, 1]]``, ``H = [1, 0]``, ``Q = [[q00, q01],
+    [q01, q11]]``, ``R = r``; a missing row is missing on every axis. With batch
+    initialisation the UFIR estimate at ``k`` is the least-squares line through the valid
+    samples of the horizon (the recursion of :func:`ufir_horizon` is recursive least squares),
+    so per axis ``x̂_k = (Σ c cᵀ)⁻¹ Σ c z`` with ``c_t = H F^{-(k-t)} = [1, −(k−t) dt]``: five
+    window sums (``n, Σd, Σd², Σz, Σd z`` with ``d = k − t``). They are kept as a prefix over the
+    current block of N samples plus a suffix over the previous block (recomputed every N steps
+    and at the start of each call from the ring, so results do not depend on how the series is
+    split); no sum is carried over more than 2N samples (no drift).
+
+    Covariance: a complete horizon has the data-independent ``P_full``; with missing samples
+    ``P̂_k`` depends on where they are and is computed by :func:`ufir_horizon_axes` (O(N)) only
+    when wanted: for the ``o_covb`` output, at the last step (the state) and where the horizon
+    holds exactly K valid samples (the next step may fall back to the KF, which needs it).
+    Dead zone and fallback: the per-axis KF step (Joseph form). State ``x (B, 6)``, ``P``,
+    ``init``, ``zring (B, N, n_z)`` updated in place; ``o_covb (B, T, 1, 3)`` (one block for all
+    axes) may have a zero-length first axis (not wanted). Returns the count of KF updates with
+    ``S`` not factorisable.
+    """
+    B, T, n_a = z.shape
+    n_x = 2 * n_a
+    w_cov = o_covb.shape[0] > 0
+    Wd = 3 + 2 * n_a
+    Qs = np.empty((N + 1, Wd))
+    Ps_ = np.empty(Wd)  # prefix sums of the current block
+    idx = np.empty(K, np.int64)
+    xx = np.empty((2, n_a))
+    xf = np.empty(n_x)
+    Pf = np.empty((n_x, n_x))
+    xs = np.empty((n_a, 2))
+    n_fail = 0
+    for b in range(B):
+        zr = zring[b]
+        for a in range(n_a):
+            xs[a, 0] = x[b, 2 * a]
+            xs[a, 1] = x[b, 2 * a + 1]
+        p00 = P[b, 0, 0]
+        p01 = 0.5 * (P[b, 0, 1] + P[b, 1, 0])
+        p11 = P[b, 1, 1]
+        ini = init[b]
+        # sums for the block of k0 from the ring (samples k0-N .. k0-1 are there)
+        j = k0 // N
+        _suffix_sums(zr, j, N, n_a, Qs)
+        for c in range(Wd):
+            Ps_[c] = 0.0
+        for t in range(j * N, k0):
+            sl = t % N
+            if not np.isnan(zr[sl, 0]):
+                u = float(t - j * N)
+                Ps_[0] += 1.0
+                Ps_[1] += u
+                Ps_[2] += u * u
+                for a in range(n_a):
+                    Ps_[3 + 2 * a] += zr[sl, a]
+                    Ps_[4 + 2 * a] += u * zr[sl, a]
+        for t in range(T):
+            k = k0 + t
+            valid = True
+            for a in range(n_a):
+                if not np.isfinite(z[b, t, a]):
+                    valid = False
+            sl = k % N
+            for a in range(n_a):
+                zr[sl, a] = z[b, t, a] if valid else np.nan
+            if k % N == 0 and k > 0:  # new block: suffixes of the finished one, empty prefix
+                j = k // N
+                _suffix_sums(zr, j, N, n_a, Qs)
+                for c in range(Wd):
+                    Ps_[c] = 0.0
+            u_k = float(k - j * N)
+            if valid:
+                Ps_[0] += 1.0
+                Ps_[1] += u_k
+                Ps_[2] += u_k * u_k
+                for a in range(n_a):
+                    Ps_[3 + 2 * a] += z[b, t, a]
+                    Ps_[4 + 2 * a] += u_k * z[b, t, a]
+            for a in range(n_a):  # innovation z − H F x̂_{k−1}
+                o_nu[b, t, a] = (
+                    z[b, t, a] - (xs[a, 0] + dt * xs[a, 1]) if (valid and ini) else np.nan
+                )
+            ready = False
+            need_p = False
+            if k >= N - 1:
+                im = int(u_k) + 1  # local index of m = k−N+1 in block j−1 (N: empty suffix)
+                e = u_k + N
+                n = Qs[im, 0] + Ps_[0]
+                if n >= K:
+                    # Σd, Σd² with d = k − t: block j part d = u_k − u, block j−1 part e − u
+                    D1 = u_k * Ps_[0] - Ps_[1] + e * Qs[im, 0] - Qs[im, 1]
+                    D2 = (u_k * u_k * Ps_[0] - 2.0 * u_k * Ps_[1] + Ps_[2]
+                          + e * e * Qs[im, 0] - 2.0 * e * Qs[im, 1] + Qs[im, 2])  # fmt: skip
+                    # normal equations in (position p, change per sample β): z_t = p − β d
+                    det = n * D2 - D1 * D1
+                    if det > RANK_TOL * n * D2:
+                        ready = True
+                        for a in range(n_a):
+                            Z0 = Ps_[3 + 2 * a] + Qs[im, 3 + 2 * a]
+                            Z1 = (
+                                u_k * Ps_[3 + 2 * a]
+                                - Ps_[4 + 2 * a]
+                                + e * Qs[im, 3 + 2 * a]
+                                - Qs[im, 4 + 2 * a]
+                            )
+                            pos = (D2 * Z0 - D1 * Z1) / det  # x̂ = (CᵀC)⁻¹ Cᵀ Z
+                            beta = (D1 * Z0 - n * Z1) / det
+                            xs[a, 0] = pos
+                            xs[a, 1] = beta / dt
+                        if n == N:  # complete horizon: data-independent covariance
+                            p00 = pfull[0]
+                            p01 = pfull[1]
+                            p11 = pfull[2]
+                        else:
+                            need_p = w_cov or n == K or t == T - 1
+                            if need_p:
+                                code = ufir_horizon_axes(
+                                    zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, xf, Pf
+                                )
+                                if code == 1:
+                                    p00 = Pf[0, 0]
+                                    p01 = Pf[0, 1]
+                                    p11 = Pf[1, 1]
+                                else:
+                                    p00 = p01 = p11 = np.nan
+                            else:
+                                p00 = p01 = p11 = np.nan  # not needed: not computed
+                        ini = True
+            if not ready:
+                if not ini:
+                    if valid:  # SPEC §4.2 initialisation: positions from z, zero velocity, P₀
+                        for a in range(n_a):
+                            xs[a, 0] = z[b, t, a]
+                            xs[a, 1] = 0.0
+                        p00 = p0[0]
+                        p01 = p0[1]
+                        p11 = p0[2]
+                        ini = True
+                else:  # dead zone / fallback: per-axis KF step (SPEC §6.2-5, §6.3)
+                    p00, p01, p11, g0, g1, iS, upd = _cov_step(
+                        p00, p01, p11, valid, True, 1.0, dt, 0.0, 1.0, q00, q01, q11, 1.0, 0.0, r
+                    )
+                    if valid and not upd:
+                        n_fail += 1
+                    for a in range(n_a):
+                        xp0 = xs[a, 0] + dt * xs[a, 1]
+                        xp1 = xs[a, 1]
+                        if upd:
+                            v = z[b, t, a] - xp0
+                            xp0 += g0 * v
+                            xp1 += g1 * v
+                        xs[a, 0] = xp0
+                        xs[a, 1] = xp1
+            for a in range(n_a):
+                o_mean[b, t, 2 * a] = xs[a, 0] if ini else np.nan
+                o_mean[b, t, 2 * a + 1] = xs[a, 1] if ini else np.nan
+            if w_cov:
+                o_covb[b, t, 0, 0] = p00 if ini else np.nan
+                o_covb[b, t, 0, 1] = p01 if ini else np.nan
+                o_covb[b, t, 0, 2] = p11 if ini else np.nan
+            o_obs[b, t] = valid and ini
+            o_ready[b, t] = ready
+        init[b] = ini
+        if ini:
+            P[b, :, :] = 0.0
+            for a in range(n_a):
+                i = 2 * a
+                x[b, i] = xs[a, 0]
+                x[b, i + 1] = xs[a, 1]
+                P[b, i, i] = p00
+                P[b, i, i + 1] = p01
+                P[b, i + 1, i] = p01
+                P[b, i + 1, i + 1] = p11
+    return n_fail
