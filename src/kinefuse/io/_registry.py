@@ -49,10 +49,10 @@ _REGISTRY: dict[str, _Format] = {
     "c3d": _Format("c3d", "read_c3d", "C3D optical motion capture points (via ezc3d)"),
     "trc": _Format("trc", "read_trc", "TRC marker file (OpenSim / Motion Analysis)"),
     "kinect_v2": _Format(
-        "kinect", "read_kinect_v2_csv", "Kinect v2 joint CSV: 25 joints + TrackingState"
+        "kinect_v2", "read_kinect_v2_csv", "Kinect v2 joint CSV: 25 joints + TrackingState"
     ),
     "azure_kinect": _Format(
-        "kinect", "read_azure_kinect_json", "Azure Kinect body-tracking JSON: 32 joints"
+        "azure_kinect", "read_azure_kinect_json", "Azure Kinect body-tracking JSON: 32 joints"
     ),
     "mediapipe": _Format(
         "mediapipe",

@@ -8,7 +8,7 @@ import numpy as np
 import scipy.io
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import check_units, make_metadata
+from kinefuse.io._checks import check_units, make_metadata
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["read_broad"]

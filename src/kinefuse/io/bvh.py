@@ -51,7 +51,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import FormatError, InputError, UnitWarning
-from kinefuse.io._common import KINECT_LIMB_JOINTS
+from kinefuse.io._names import KINECT_LIMB_JOINTS
 from kinefuse.io.motion import CANONICAL_SEGMENT_JOINTS, Motion, _build_motion
 from kinefuse.io.recording import Recording
 

@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError, FormatWarning, InputError
-from kinefuse.io._common import ZERO_RULE, check_units, make_metadata, map_joints, zero_is_missing
+from kinefuse.io._checks import ZERO_RULE, check_units, make_metadata, zero_is_missing
+from kinefuse.io._names import map_joints
 from kinefuse.io.recording import JointStream, Recording
 
 __all__ = ["C3D_NON_MARKER_GROUPS", "read_c3d"]

@@ -33,21 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError, InputError
-from kinefuse.io._common import (
-    DEG2RAD,
-    TIME_COLUMNS,
-    G,
-    Table,
-    check_time,
-    check_units,
-    fmt_float,
-    make_metadata,
-    map_joints,
-    map_segments,
-    read_table,
-    table_time,
-    write_text_safely,
-)
+from kinefuse.io._checks import DEG2RAD, G, check_units, make_metadata
+from kinefuse.io._names import map_joints, map_segments
+from kinefuse.io._text import Table, check_time, read_table, table_time, time_column_s
+from kinefuse.io._write import fmt_float, write_text_safely
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["read_generic_csv", "read_imu_csv", "read_joint_csv", "write_imu_csv", "write_joint_csv"]
@@ -129,7 +118,7 @@ def read_imu_csv(
             field="gyr_unit",
         )
     frame = hdr.get("frame", "ENU")
-    t_all, tcol = _time_any_order(tab)
+    t_all, tcol = time_column_s(tab)
     groups = {}
     for name, cols in IMU_GROUPS.items():
         present = [c for c in cols if tab.has(c)]
@@ -183,20 +172,6 @@ def read_imu_csv(
     rec = Recording(imu=imu, metadata=md)
     check_units(rec, where=str(path))
     return rec
-
-
-def _time_any_order(tab: Table) -> tuple[np.ndarray, str]:
-    """Time column of a table whose rows interleave sensors (monotonicity checked per sensor)."""
-    lower = {c.lower(): c for c in tab.columns}
-    for name, factor in TIME_COLUMNS.items():
-        if name in lower:
-            return tab.floats(lower[name], allow_empty=False) * factor, lower[name]
-    raise FormatError(
-        tab.path,
-        f"missing time column: expected one of {sorted(TIME_COLUMNS)}",
-        line=tab.header_line,
-        field="t_s",
-    )
 
 
 def _joint_columns(tab: Table, declared: list[str] | None) -> list[str]:

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import InputError
-from kinefuse.io._common import write_text_safely
+from kinefuse.io._write import write_text_safely
 
 __all__ = ["write_mot"]
 

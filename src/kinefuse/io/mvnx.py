@@ -27,7 +27,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import check_units, make_metadata, map_segments
+from kinefuse.io._checks import check_units, make_metadata
+from kinefuse.io._names import map_segments
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 from kinefuse.io.xsens_dot import specific_force_from_free_acc
 

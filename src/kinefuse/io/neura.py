@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import zero_is_missing
+from kinefuse.io._checks import zero_is_missing
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["IMU_SEGMENTS", "VICON_JOINTS", "VICON_SEGMENTS", "read_neura"]

@@ -18,15 +18,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import FormatError, FormatWarning, InputError
-from kinefuse.io._common import (
-    Table,
-    canonical_segment,
-    check_time,
-    check_units,
-    make_metadata,
-    map_segments,
-    read_table,
-)
+from kinefuse.io._checks import check_units, make_metadata
+from kinefuse.io._names import canonical_segment, map_segments
+from kinefuse.io._text import Table, check_time, read_table
 from kinefuse.io.recording import ImuStream, Recording
 from kinefuse.io.xsens_dot import specific_force_from_free_acc
 

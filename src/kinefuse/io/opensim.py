@@ -29,13 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError, FormatWarning, InputError
-from kinefuse.io._common import (
-    _read_text,
-    check_time,
-    make_metadata,
-    map_segments,
-    write_text_safely,
-)
+from kinefuse.io._checks import make_metadata
+from kinefuse.io._names import map_segments
+from kinefuse.io._text import check_time, read_text
+from kinefuse.io._write import write_text_safely
 from kinefuse.io.recording import ImuStream, Recording
 
 __all__ = [
@@ -222,7 +219,7 @@ def read_opensim_table(path) -> OpenSimTable:
         read, as OpenSim does).
     """
     path = Path(path)
-    lines = _read_text(path).splitlines()
+    lines = read_text(path).splitlines()
     end = next((i for i, ln in enumerate(lines) if ln.strip().lower() == "endheader"), None)
     if end is None:
         raise FormatError(

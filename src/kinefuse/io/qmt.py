@@ -9,7 +9,9 @@ import numpy as np
 import scipy.io
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import check_time, check_units, make_metadata, map_segments
+from kinefuse.io._checks import check_units, make_metadata
+from kinefuse.io._names import map_segments
+from kinefuse.io._text import check_time
 from kinefuse.io.recording import ImuStream, Recording
 
 __all__ = ["read_qmt"]

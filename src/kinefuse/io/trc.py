@@ -21,17 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError, FormatWarning, InputError
-from kinefuse.io._common import (
-    ZERO_RULE,
-    _read_text,
-    check_time,
-    check_units,
-    fmt_float,
-    make_metadata,
-    map_joints,
-    write_text_safely,
-)
-from kinefuse.io._common import zero_is_missing as _zero_mask
+from kinefuse.io._checks import ZERO_RULE, check_units, make_metadata
+from kinefuse.io._checks import zero_is_missing as _zero_mask
+from kinefuse.io._names import map_joints
+from kinefuse.io._text import check_time, read_text
+from kinefuse.io._write import fmt_float, write_text_safely
 from kinefuse.io.recording import JointStream, Recording
 
 __all__ = ["read_trc", "write_trc"]
@@ -89,7 +83,7 @@ def read_trc(
     path = Path(path)
     if role not in ("reference", "vision"):
         raise InputError(f"expected role 'reference' or 'vision', got {role!r}")
-    lines = _read_text(path).splitlines()
+    lines = read_text(path).splitlines()
     if len(lines) < 5:
         raise FormatError(
             path,

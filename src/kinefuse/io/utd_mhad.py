@@ -15,15 +15,8 @@ import numpy as np
 import scipy.io
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import (
-    DEG2RAD,
-    KINECT_LIMB_JOINTS,
-    ZERO_RULE,
-    G,
-    check_units,
-    make_metadata,
-    zero_is_missing,
-)
+from kinefuse.io._checks import DEG2RAD, ZERO_RULE, G, check_units, make_metadata, zero_is_missing
+from kinefuse.io._names import KINECT_LIMB_JOINTS
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["KINECT_V1_JOINTS", "KINECT_V1_TO_CANONICAL", "read_utd_mhad", "utd_mhad_partner"]

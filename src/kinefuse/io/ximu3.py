@@ -15,16 +15,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import FormatError, InputError
-from kinefuse.io._common import (
-    DEG2RAD,
-    G,
-    Table,
-    check_time,
-    check_units,
-    make_metadata,
-    map_segments,
-    read_table,
-)
+from kinefuse.io._checks import DEG2RAD, G, check_units, make_metadata
+from kinefuse.io._names import map_segments
+from kinefuse.io._text import Table, check_time, read_table
 from kinefuse.io.align import resample_orientation, resample_positions
 from kinefuse.io.recording import ImuStream, Recording
 

@@ -17,15 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import (
-    DEG2RAD,
-    G,
-    _read_text,
-    check_time,
-    check_units,
-    make_metadata,
-    read_table,
-)
+from kinefuse.io._checks import DEG2RAD, G, check_units, make_metadata
+from kinefuse.io._text import check_time, read_table, read_text
 from kinefuse.io.recording import ImuStream, Recording
 from kinefuse.io.ximu3 import _triplet
 
@@ -75,7 +68,7 @@ def read_xio_csv(path, *, segment: str = "imu") -> Recording:
         with the same time but different values, decreasing time.
     """
     path = Path(path)
-    first = next((ln for ln in _read_text(path).splitlines() if ln.strip()), "")
+    first = next((ln for ln in read_text(path).splitlines() if ln.strip()), "")
     if not is_xio_csv(first.split(",")):
         raise FormatError(
             path,

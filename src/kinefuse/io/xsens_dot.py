@@ -23,16 +23,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import FormatError, FormatWarning
-from kinefuse.io._common import (
-    DEG2RAD,
-    G,
-    Table,
-    _read_text,
-    check_time,
-    check_units,
-    make_metadata,
-    map_segments,
-)
+from kinefuse.io._checks import DEG2RAD, G, check_units, make_metadata
+from kinefuse.io._names import map_segments
+from kinefuse.io._text import Table, check_time, read_text
 from kinefuse.io.recording import ImuStream, Recording
 
 __all__ = ["is_xsens_dot_csv", "read_xsens_dot", "specific_force_from_free_acc"]
@@ -83,7 +76,7 @@ def is_xsens_dot_csv(path) -> bool:
 
 
 def _parse(path: Path) -> tuple[Table, dict[str, str]]:
-    lines = _read_text(path).splitlines()
+    lines = read_text(path).splitlines()
     k = next(
         (i for i, ln in enumerate(lines) if ln.startswith("PacketCounter") and "," in ln), None
     )
