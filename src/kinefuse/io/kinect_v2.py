@@ -194,17 +194,16 @@ def read_kinect_v2_csv(
         A joint is available iff its TrackingState >= this and its coordinates are finite.
         Default 2 (Tracked only, SPEC §2.2). ``None``: finiteness only (no state columns needed).
     body : str or int or None
-        Body to read when the file has several; default the one with the most rows.
+        Body to read; default the one with the most rows.
     rate_hz : float or None
-        Needed when the file has a frame column instead of times (then ``t = frame / rate``).
+        Needed with a frame column instead of times (``t = frame / rate``).
     units : {"m", "mm"}
         Unit of the coordinates (CameraSpacePoint is metres).
     time_column : str or None
         Name of the time column; default the first known one.
     time_unit : {"s", "ms", "us", "100ns"} or None
         Unit of ``time_column`` (required with it, unless it is a known column). Times above
-        1e8 s are absolute (Unix) times: shifted to start at 0, the first kept in
-        ``metadata["t0_unix_s"]``.
+        1e8 s are Unix times: shifted to start at 0, the first in ``metadata["t0_unix_s"]``.
     confidence_states : mapping of float -> int or None
         Confidence -> TrackingState for ``<Joint>_Conf`` columns (used without a TrackingState
         column). Default :data:`LSL_KINECT_CONFIDENCE`.
@@ -221,8 +220,7 @@ def read_kinect_v2_csv(
     Raises
     ------
     FormatError
-        Missing time/coordinate/state column, unknown joint name, bad state value,
-        non-monotonic time, duplicate (time, joint) rows.
+        Missing time/coordinate/state column, unknown joint, bad state, time out of order.
     """
     path = Path(path)
     factor = _check_options(units, time_unit)
@@ -230,22 +228,14 @@ def read_kinect_v2_csv(
     tab = read_table(path, is_header=_is_v2_header)
     rows_mask, body_id, notes = _pick_body(tab, body)
     preamble = _preamble(tab.comments)
-    if "joint" in {c.lower() for c in tab.columns}:
-        t, pos, state, idx = _read_long(tab, rows_mask, min_tracking_state)
-        tcol = None
-    else:
-        _keep_rows(tab, rows_mask)
-        t, tcol = _wide_time(tab, rate_hz, time_column, time_unit)
-        pos, state, idx, conf_used = _read_wide(tab, min_tracking_state, conf_map)
-        if conf_used:
-            notes.append(f"TrackingState from the confidence columns via {conf_map}")
+    t, tcol, pos, state, idx = _read_points(
+        tab, rows_mask, min_tracking_state, conf_map, (rate_hz, time_column, time_unit), notes
+    )
     t, t0_unix = _from_unix(t)
     notes += _nominal_rate_notes(preamble, t)
     pos *= factor
     zero = zero_is_missing(pos)
-    avail = np.all(np.isfinite(pos), axis=-1) & ~zero
-    if min_tracking_state is not None:
-        avail &= state >= min_tracking_state
+    avail = _available(pos, zero, state, min_tracking_state)
     joints = tuple(KINECT_V2_TO_CANONICAL[i] for i in idx)
     js = JointStream(t_s=t, position_m=pos, available=avail, joints=joints, frame="kinect_camera")
     md = make_metadata(
@@ -264,6 +254,19 @@ def read_kinect_v2_csv(
         notes=notes,
     )
     return finish_recording(path, md, vision=js)
+
+
+def _read_points(tab: Table, rows_mask, min_state, conf_map, timing, notes: list[str]):
+    """(t, time column, positions (T, J, 3), states (T, J), joint indices) of either layout."""
+    if "joint" in {c.lower() for c in tab.columns}:
+        t, pos, state, idx = _read_long(tab, rows_mask, min_state)
+        return t, None, pos, state, idx
+    _keep_rows(tab, rows_mask)
+    t, tcol = _wide_time(tab, *timing)
+    pos, state, idx, conf_used = _read_wide(tab, min_state, conf_map)
+    if conf_used:
+        notes.append(f"TrackingState from the confidence columns via {conf_map}")
+    return t, tcol, pos, state, idx
 
 
 def _check_options(units: str, time_unit: str | None) -> float:
@@ -306,6 +309,14 @@ def _nominal_rate_notes(preamble: dict[str, str], t: np.ndarray) -> list[str]:
             "(median step); the timestamps are used"
         ]
     return []
+
+
+def _available(pos: np.ndarray, zero: np.ndarray, state: np.ndarray, min_state) -> np.ndarray:
+    """Finite, not all zero and (unless ``min_state`` is None) TrackingState >= ``min_state``."""
+    avail = np.all(np.isfinite(pos), axis=-1) & ~zero
+    if min_state is not None:
+        avail &= state >= min_state
+    return avail
 
 
 def _availability_rule(min_state: int | None) -> str:
