@@ -23,6 +23,7 @@ __all__ = [
     "finish_recording",
     "make_metadata",
     "zero_is_missing",
+    "zero_samples",
 ]
 
 G = GRAVITY_M_S2
@@ -51,6 +52,14 @@ def zero_is_missing(position: np.ndarray) -> np.ndarray:
         True where all three coordinates are exactly 0.
     """
     return np.all(np.asarray(position) == 0.0, axis=-1)
+
+
+def zero_samples(position: np.ndarray, enabled: bool = True) -> tuple[np.ndarray, int]:
+    """(:func:`zero_is_missing` mask, its count) when ``enabled``, else (all False, 0)."""
+    if not enabled:
+        return np.zeros(np.shape(position)[:-1], dtype=bool), 0
+    zero = zero_is_missing(position)
+    return zero, int(zero.sum())
 
 
 def make_metadata(path, fmt: str, *, subject=None, units_converted=(), **extra) -> dict:

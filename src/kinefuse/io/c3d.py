@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError, FormatWarning, InputError
-from kinefuse.io._checks import ZERO_RULE, finish_recording, make_metadata, zero_is_missing
+from kinefuse.io._checks import ZERO_RULE, finish_recording, make_metadata, zero_samples
 from kinefuse.io._names import map_joints
 from kinefuse.io.recording import JointStream, Recording
 
@@ -209,9 +209,8 @@ def read_c3d(
     Returns
     -------
     Recording
-        ``reference`` (or ``vision``): marker positions (T, P, 3) in m (converted from
-        ``POINT:UNITS``), frame ``"c3d_lab"`` (the lab frame of the file; often z up), times
-        ``n / POINT:RATE``, labels as :data:`LABEL_RULES` says. ``available`` = finite,
+        ``reference`` (or ``vision``): marker positions (T, P, 3) in m, frame ``"c3d_lab"`` (the
+        file's lab frame; often z up), times ``n / POINT:RATE``, labels as :data:`LABEL_RULES`. ``available`` = finite,
         residual >= 0 (C3D marks invalid points with a negative residual) and not all zero.
         ``metadata["c3d_other_points"]``: ``{group: {"labels", "values" (T, K, 3), "unit"}}``
         (file units, e.g. deg, N, N.mm, W), not joints. ``metadata["analog"]`` (when
@@ -229,21 +228,16 @@ def read_c3d(
     if role not in ("reference", "vision"):
         raise InputError(f"expected role 'reference' or 'vision', got {role!r}")
     c, pts, notes = _open(path)
-    point = c["parameters"]["POINT"]
-    original, labels = _point_labels(path, point, pts.shape[1], notes)
+    original, labels = _point_labels(path, point := c["parameters"]["POINT"], pts.shape[1], notes)
     unit, factor = _point_unit(path, point, units)
     rate = _point_rate(path, point)
     raw = np.transpose(pts[:3], (2, 1, 0))  # (T, P, 3), file units
     valid = _valid_points(c, raw)
     other, non_marker = _non_marker_points(point, original, labels, raw, valid, notes)
     keep = np.flatnonzero(~non_marker)
-    pos = raw[:, keep] * factor
-    avail = valid[:, keep]
-    n_zero = 0
-    if zero_is_missing_points:
-        zero = zero_is_missing(pos)
-        n_zero = int(zero.sum())
-        avail &= ~zero
+    pos = raw[:, keep] * factor  # the markers, m
+    zero, n_zero = zero_samples(pos, zero_is_missing_points)
+    avail = valid[:, keep] & ~zero
     joints, jmap = map_joints([labels[i] for i in keep])
     js = JointStream(
         t_s=np.arange(len(raw)) / rate,

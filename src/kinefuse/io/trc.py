@@ -22,8 +22,7 @@ from typing import NamedTuple
 import numpy as np
 
 from kinefuse.exceptions import FormatError, FormatWarning, InputError
-from kinefuse.io._checks import ZERO_RULE, finish_recording, make_metadata
-from kinefuse.io._checks import zero_is_missing as _zero_mask
+from kinefuse.io._checks import ZERO_RULE, finish_recording, make_metadata, zero_samples
 from kinefuse.io._names import map_joints
 from kinefuse.io._text import check_time, read_text
 from kinefuse.io._write import fmt_float, write_text_safely
@@ -95,11 +94,8 @@ def read_trc(
         h.notes.append(msg)
     t = check_time(path, data[:, 1], np.asarray(line_no), "Time")
     pos = data[:, 2:].reshape(-1, len(h.markers), 3) * h.factor
-    n_zero = 0
-    if zero_is_missing:
-        zero = _zero_mask(pos)
-        n_zero = int(zero.sum())
-        pos[zero] = np.nan
+    zero, n_zero = zero_samples(pos, zero_is_missing)
+    pos[zero] = np.nan
     if map_names:
         joints, jmap = map_joints(h.markers)
     else:
