@@ -7,6 +7,7 @@ Private module. Readers validate at their boundary and raise
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +26,7 @@ __all__ = [
     "read_text",
     "table_time",
     "time_column_s",
+    "unit_triplet",
 ]
 
 
@@ -364,3 +366,35 @@ def header_number(path, value, field: str, *, cast=float, what: str = "a number"
         return cast(value)
     except (TypeError, ValueError):
         raise FormatError(path, f"expected {what}, got {value!r}", field=field) from None
+
+
+_UNIT_SUFFIX = re.compile(r"\(([^)]*)\)\s*$")
+
+
+def unit_triplet(tab: Table, prefix: str) -> tuple[np.ndarray, str]:
+    """Columns ``<prefix> X (unit)``, ``<prefix> Y (unit)``, ``<prefix> Z (unit)`` as (n, 3), and the unit.
+
+    The x-io style of naming columns (x-IMU3 logs, x-io's plain CSV); the unit must be the same
+    for the three axes.
+    """
+    names = []
+    units = set()
+    for ax in "XYZ":
+        hit = [c for c in tab.columns if c.startswith(f"{prefix} {ax}")]
+        if not hit:
+            raise FormatError(
+                tab.path,
+                f"missing column '{prefix} {ax} (...)'; found {tab.columns}",
+                line=tab.header_line,
+                field=f"{prefix} {ax}",
+            )
+        names.append(hit[0])
+        m = _UNIT_SUFFIX.search(hit[0])
+        units.add(m.group(1).strip().lower() if m else "")
+    if len(units) != 1:
+        raise FormatError(
+            tab.path,
+            f"expected one unit for {prefix} X/Y/Z, found {sorted(units)}",
+            line=tab.header_line,
+        )
+    return np.stack([tab.floats(n) for n in names], axis=1), units.pop()

@@ -18,9 +18,8 @@ import numpy as np
 
 from kinefuse.exceptions import FormatError
 from kinefuse.io._checks import DEG2RAD, G, check_units, make_metadata
-from kinefuse.io._text import check_time, read_table, read_text
+from kinefuse.io._text import check_time, read_table, read_text, unit_triplet
 from kinefuse.io.recording import ImuStream, Recording
-from kinefuse.io.ximu3 import _triplet
 
 __all__ = ["is_xio_csv", "read_xio_csv"]
 
@@ -86,8 +85,8 @@ def read_xio_csv(path, *, segment: str = "imu") -> Recording:
         )
     tcol = tab.columns[0]
     t = tab.floats(tcol, allow_empty=False) * _TIME_FACTOR[_TIME.match(tcol).group(1).lower()]
-    gyr, gu = _triplet(tab, "Gyroscope")
-    acc, au = _triplet(tab, "Accelerometer")
+    gyr, gu = unit_triplet(tab, "Gyroscope")
+    acc, au = unit_triplet(tab, "Accelerometer")
     if gu not in _GYR_FACTOR or au not in _ACC_FACTOR:
         bad, known = (
             ("Gyroscope", sorted(_GYR_FACTOR))
@@ -100,7 +99,7 @@ def read_xio_csv(path, *, segment: str = "imu") -> Recording:
             line=tab.header_line,
         )
     has_mag = any(c.lower().startswith("magnetometer x") for c in tab.columns)
-    mag = _triplet(tab, "Magnetometer")[0] if has_mag else None
+    mag = unit_triplet(tab, "Magnetometer")[0] if has_mag else None
     data = np.column_stack([t, gyr, acc] + ([mag] if mag is not None else []))
     same_t = np.concatenate([[False], np.diff(t) == 0])
     dup = same_t & np.concatenate([[False], np.all(data[1:] == data[:-1], axis=1)])
