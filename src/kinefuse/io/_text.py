@@ -110,6 +110,24 @@ class Table:
         self._check_no_inf(out, raw, name)
         return out
 
+    def column_group(self, names: Sequence[str]) -> np.ndarray | None:
+        """Columns ``names`` as (n, len(names)) floats; None when none is there.
+
+        Raises
+        ------
+        FormatError
+            Some but not all of ``names`` are there (naming the first missing one).
+        """
+        present = [self.has(n) for n in names]
+        if not any(present):
+            return None
+        if not all(present):
+            missing = next(n for n, p in zip(names, present, strict=True) if not p)
+            raise self.header_error(
+                f"missing column {missing!r} (found {names[present.index(True)]!r})", missing
+            )
+        return np.stack([self.floats(n) for n in names], axis=1)
+
     def error_at(self, k: int, message: str, field: str) -> FormatError:
         """A FormatError naming row ``k``'s line and column ``field`` (raise it)."""
         return FormatError(self.path, message, line=int(self.lines[k]), field=field)

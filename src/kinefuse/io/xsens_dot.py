@@ -115,19 +115,7 @@ def _parse(path: Path) -> tuple[Table, dict[str, str]]:
 
 
 def _group(tab: Table, prefix: str, axes: str) -> np.ndarray | None:
-    names = [f"{prefix}_{a}" for a in axes]
-    present = [tab.has(n) for n in names]
-    if not any(present):
-        return None
-    if not all(present):
-        missing = next(n for n, p in zip(names, present, strict=True) if not p)
-        raise FormatError(
-            tab.path,
-            f"missing column {missing!r} (found {names[present.index(True)]!r})",
-            line=tab.header_line,
-            field=missing,
-        )
-    return np.stack([tab.floats(n) for n in names], axis=1)
+    return tab.column_group([f"{prefix}_{a}" for a in axes])
 
 
 def _read_one(path: Path) -> dict:
