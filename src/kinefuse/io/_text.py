@@ -208,15 +208,32 @@ def read_table(
         (naming the line, the expected and found counts).
     """
     path = Path(path)
-    text = read_text(path)
-    lines = text.splitlines()
+    lines = read_text(path).splitlines()
+    k, comments = _preamble(path, lines, tuple(comment_prefixes), is_header)
+    header = lines[k]
+    if delimiter is None:
+        delimiter = (
+            "\t" if "\t" in header else ("," if "," in header else (";" if ";" in header else ","))
+        )
+    columns = [c.strip() for c in header.split(delimiter)]
+    while columns and not columns[-1]:
+        columns.pop()
+    header_line = k + 1
+    rows, line_no = _rows(path, lines, k + 1, len(columns), delimiter, tuple(comment_prefixes))
+    if len(rows) < min_rows:
+        raise FormatError(
+            path, f"expected at least {min_rows} data rows after the header, found {len(rows)}"
+        )
+    return Table(path, columns, rows, np.asarray(line_no, dtype=int), comments, header_line)
+
+
+def _preamble(path: Path, lines: list[str], prefixes: tuple, is_header) -> tuple[int, list[str]]:
+    """(index of the header line, the comment/preamble lines before it without their prefix)."""
     comments: list[str] = []
     k = 0
-    while k < len(lines) and (
-        not lines[k].strip() or lines[k].lstrip().startswith(tuple(comment_prefixes))
-    ):
+    while k < len(lines) and (not lines[k].strip() or lines[k].lstrip().startswith(prefixes)):
         s = lines[k].strip()
-        for p in comment_prefixes:
+        for p in prefixes:
             if s.startswith(p):
                 s = s[len(p) :].strip()
                 break
@@ -239,21 +256,16 @@ def read_table(
             path,
             "expected a header line with column names, found no data (empty or truncated file)",
         )
-    header = lines[k]
-    if delimiter is None:
-        delimiter = (
-            "\t" if "\t" in header else ("," if "," in header else (";" if ";" in header else ","))
-        )
-    columns = [c.strip() for c in header.split(delimiter)]
-    while columns and not columns[-1]:
-        columns.pop()
-    header_line = k + 1
-    n = len(columns)
+    return k, comments
+
+
+def _rows(path: Path, lines: list[str], start: int, n: int, delimiter: str, prefixes: tuple):
+    """Fields of the data rows from line index ``start`` (each ``n`` fields) and their line numbers."""
     rows: list[list[str]] = []
     line_no: list[int] = []
-    for j in range(k + 1, len(lines)):
+    for j in range(start, len(lines)):
         ln = lines[j]
-        if not ln.strip() or ln.lstrip().startswith(tuple(comment_prefixes)):
+        if not ln.strip() or ln.lstrip().startswith(prefixes):
             continue
         f = ln.split(delimiter)
         if len(f) > n and not any(x.strip() for x in f[n:]):
@@ -265,11 +277,7 @@ def read_table(
             )
         rows.append(f)
         line_no.append(j + 1)
-    if len(rows) < min_rows:
-        raise FormatError(
-            path, f"expected at least {min_rows} data rows after the header, found {len(rows)}"
-        )
-    return Table(path, columns, rows, np.asarray(line_no, dtype=int), comments, header_line)
+    return rows, line_no
 
 
 def check_time(path, t: np.ndarray, lines: np.ndarray | None, field: str) -> np.ndarray:
