@@ -185,7 +185,9 @@ def read_kinect_v2_csv(
     time_unit: str | None = None,
     confidence_states: dict | None = None,
 ) -> Recording:
-    """Read Kinect v2 joints from a CSV file (wide or long layout, see the module docstring).
+    """Read Kinect v2 joints from a CSV file.
+
+    The wide and the long layout are read (see the module docstring and ``docs/formats.md``).
 
     Parameters
     ----------
@@ -205,8 +207,7 @@ def read_kinect_v2_csv(
         Unit of ``time_column`` (required with it, unless it is a known column). Times above
         1e8 s are Unix times: shifted to start at 0, the first in ``metadata["t0_unix_s"]``.
     confidence_states : mapping of float -> int or None
-        Confidence -> TrackingState for ``<Joint>_Conf`` columns (used without a TrackingState
-        column). Default :data:`LSL_KINECT_CONFIDENCE`.
+        Confidence -> TrackingState of ``<Joint>_Conf``; default :data:`LSL_KINECT_CONFIDENCE`.
 
     Returns
     -------

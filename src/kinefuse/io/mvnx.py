@@ -22,6 +22,7 @@ import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -209,7 +210,8 @@ def read_mvnx(
         not match the segment/sensor count, non-increasing time.
     """
     path = Path(path)
-    subject, segs, sensor_labels, poses, frames = _parse_checked(path)
+    mvnx = _parse_checked(path)
+    subject, segs, sensor_labels, poses, frames = mvnx
     seg_names = list(segs)
     rate = _frame_rate(path, subject)
     t = _frame_times(path, frames, rate)
@@ -232,21 +234,8 @@ def read_mvnx(
     imu, units = _sensor_streams(
         t, sensor_labels, seg_names, sblocks, blocks["angularVelocity"], derive_raw, mapping, notes
     )
-    md = _metadata(
-        path,
-        subject,
-        segs,
-        sensor_labels,
-        poses,
-        frames,
-        blocks,
-        sblocks["sensorFreeAcceleration"],
-        mapping,
-        joints,
-        rate,
-        units,
-        notes,
-    )
+    free = sblocks["sensorFreeAcceleration"]
+    md = _metadata(path, mvnx, blocks, free, mapping, joints, rate, units, notes)
     return finish_recording(path, md, imu=imu, reference=reference, reference_orientation=ref_ori)
 
 
@@ -267,7 +256,15 @@ METADATA = (
 )
 
 
-def _parse_checked(path: Path):
+class _Mvnx(NamedTuple):
+    subject: dict
+    segments: dict
+    sensors: list
+    poses: dict
+    frames: list
+
+
+def _parse_checked(path: Path) -> _Mvnx:
     """:func:`_parse` of an ``.mvnx`` file that has segments and recorded frames."""
     if path.is_dir():
         found = sorted(p.name for p in path.glob("*.mvnx"))
@@ -281,7 +278,7 @@ def _parse_checked(path: Path):
             f"expected MVNX <segments> and <frame type='normal'> elements, found {len(segs)} "
             f"segments and {len(frames)} frames",
         )
-    return subject, segs, sensor_labels, poses, frames
+    return _Mvnx(subject, segs, sensor_labels, poses, frames)
 
 
 def _frame_times(path: Path, frames: list[dict], rate: float) -> np.ndarray:
@@ -390,21 +387,8 @@ def _other_frame_arrays(frames: list[dict], blocks: dict) -> dict:
     return other
 
 
-def _metadata(
-    path,
-    subject,
-    segs,
-    sensor_labels,
-    poses,
-    frames,
-    blocks,
-    free,
-    mapping,
-    joints,
-    rate,
-    units,
-    notes,
-) -> dict:
+def _metadata(path, mvnx: _Mvnx, blocks, free, mapping, joints, rate, units, notes) -> dict:
+    subject, segs, sensor_labels, poses, frames = mvnx
     t0_ms = frames[0]["@ms"]
     return make_metadata(
         path,
