@@ -187,7 +187,7 @@ def read_kinect_v2_csv(
 ) -> Recording:
     """Read Kinect v2 joints from a CSV file.
 
-    The wide and the long layout are read (see the module docstring and ``docs/formats.md``).
+    Wide and long layouts, see the module docstring and ``docs/formats.md``.
 
     Parameters
     ----------
@@ -212,11 +212,10 @@ def read_kinect_v2_csv(
     Returns
     -------
     Recording
-        ``vision``: positions (T, J, 3) in m in the Kinect camera frame (x toward the sensor's
-        left, y up, z away from the sensor), canonical joint names (``hand_tip_l`` etc. for the
-        non-canonical ones); ``metadata["tracking_state"]`` (T, J); ``available`` =
-        TrackingState >= ``min_tracking_state``, finite and not all zero
-        (:data:`kinefuse.io._checks.ZERO_RULE`).
+        ``vision``: positions (T, J, 3) m, Kinect camera frame (x toward the sensor's left, y
+        up, z away from it), canonical joint names (``hand_tip_l`` ... for the others);
+        ``metadata["tracking_state"]`` (T, J); ``available`` = TrackingState >=
+        ``min_tracking_state``, finite and not all zero (:data:`~kinefuse.io._checks.ZERO_RULE`).
 
     Raises
     ------
