@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 
-from kinefuse.io._registry import FORMATS, detect_format, load
+from kinefuse.io._registry import _REGISTRY, FORMATS, detect_format, load
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 _LAZY = {
@@ -49,6 +49,9 @@ _LAZY = {
     "read_xsens_dot": "xsens_dot",
     "read_xio_csv": "xio_csv",
 }
+
+# every registered reader is exported too (a new format needs no line here)
+_LAZY |= {spec.function: spec.module for spec in _REGISTRY.values() if spec.function not in _LAZY}
 
 __all__ = ["FORMATS", "ImuStream", "JointStream", "Recording", "detect_format", "load", *_LAZY]
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import scipy.io
 
 from kinefuse.exceptions import FormatError, InputError
+from kinefuse.io._unsupported import unsupported_message
 from kinefuse.io.recording import Recording
 
 __all__ = ["FORMATS", "detect_format", "load"]
@@ -21,9 +22,18 @@ __all__ = ["FORMATS", "detect_format", "load"]
 
 @dataclass(frozen=True)
 class _Format:
+    """One format :func:`load` reads: ``kinefuse.io.<module>.<function>``.
+
+    ``extensions`` and ``sniff`` (a function of that module, ``sniff(head: str) -> bool`` on the
+    file's first 8 KiB of text) let a format be detected without a rule in this module: they
+    are tried after the built-in rules found nothing.
+    """
+
     module: str
     function: str
     description: str
+    extensions: tuple[str, ...] = ()
+    sniff: str | None = None
 
 
 _REGISTRY: dict[str, _Format] = {
@@ -253,11 +263,27 @@ def detect_format(path) -> str:
             fmt = "opensense"
         elif ext in (".csv", ".txt", ".tsv"):
             fmt = _detect_csv(path)
+    if fmt is None and path.is_file():
+        fmt = _sniff(path)
     if fmt is None:
-        from kinefuse.io._unsupported import unsupported_message
-
-        raise FormatError(path, unsupported_message(path, FORMATS))
+        raise FormatError(path, unsupported_message(path, FORMATS, _detect_entry))
     return fmt
+
+
+def _sniff(path: Path) -> str | None:
+    """The first registered format whose extensions include ``path``'s and whose sniff accepts it."""
+    ext = path.suffix.lower()
+    for fmt, spec in _REGISTRY.items():
+        if spec.sniff and ext in spec.extensions:
+            sniff = getattr(importlib.import_module(f"kinefuse.io.{spec.module}"), spec.sniff)
+            if sniff(_head(path)):
+                return fmt
+    return None
+
+
+def _detect_entry(p: Path) -> str | None:
+    """Format of one entry of a folder (sub-folders by layout only), for the unsupported message."""
+    return _detect_dir(p) if p.is_dir() else detect_format(p)
 
 
 def _detect_json(path: Path) -> str | None:
