@@ -97,6 +97,13 @@ _REGISTRY: dict[str, _Format] = {
     "xio_csv": _Format(
         "xio_csv", "read_xio_csv", "x-io plain CSV: Time (s), Gyroscope, Accelerometer"
     ),
+    "qualisys_tsv": _Format(
+        "qualisys",
+        "read_qualisys_tsv",
+        "Qualisys QTM TSV export: 3D marker trajectories (mm)",
+        extensions=(".tsv",),
+        sniff="sniff",
+    ),
 }
 
 #: Format name -> one-line description of every format :func:`load` knows.
