@@ -77,3 +77,7 @@ def test_qualisys_errors(tmp_path):
     p.write_text(_HEADER.replace("NO_OF_MARKERS\t3", "NO_OF_MARKERS\t4") + "0\t" * 8 + "0\n")
     with pytest.raises(FormatError, match="expected 4 MARKER_NAMES"):
         kio.read_qualisys_tsv(p)
+    p = tmp_path / "inf.tsv"
+    p.write_text(_HEADER + "\t".join(["1.0"] * 8 + ["inf"]) + "\n")
+    with pytest.raises(FormatError, match="line 12: expected finite numbers"):
+        kio.read_qualisys_tsv(p)

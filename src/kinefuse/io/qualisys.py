@@ -155,6 +155,12 @@ def _rows(path: Path, lines: list[str], start: int, n_fields: int):
         except ValueError as e:  # "could not convert string to float: 'x'"
             found = str(e).rsplit(": ", 1)[-1]
             raise FormatError(path, f"expected a number, found {found}", line=j + 1) from None
+        if any(np.isinf(v) for v in rows[-1]):
+            raise FormatError(
+                path,
+                "expected finite numbers, found an infinite one (leave missing empty)",
+                line=j + 1,
+            )
         line_no.append(j + 1)
     if not rows:
         raise FormatError(path, "expected data rows after the header, found none")
