@@ -14,7 +14,8 @@ import pytest
 
 import kinefuse.io as kio
 from kinefuse.exceptions import FormatError, FormatWarning, UnitWarning
-from kinefuse.io.kinect import AZURE_JOINTS, KINECT_V2_JOINTS, KINECT_V2_TO_CANONICAL
+from kinefuse.io.azure_kinect import AZURE_JOINTS
+from kinefuse.io.kinect_v2 import KINECT_V2_JOINTS, KINECT_V2_TO_CANONICAL
 from kinefuse.io.mediapipe import MEDIAPIPE_LANDMARKS
 from kinefuse.io.recording import JointStream
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import importlib
 
-from kinefuse.io._registry import FORMATS, detect_format, load
+from kinefuse.io._registry import _REGISTRY, FORMATS, detect_format, load
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 _LAZY = {
@@ -23,8 +23,8 @@ _LAZY = {
     "read_trc": "trc",
     "write_trc": "trc",
     "write_mot": "mot",
-    "read_kinect_v2_csv": "kinect",
-    "read_azure_kinect_json": "kinect",
+    "read_kinect_v2_csv": "kinect_v2",
+    "read_azure_kinect_json": "azure_kinect",
     "read_mediapipe": "mediapipe",
     "read_generic_csv": "generic_csv",
     "read_imu_csv": "generic_csv",
@@ -37,7 +37,7 @@ _LAZY = {
     "common_timeline": "align",
     "estimate_clock_offset": "align",
     "ClockOffset": "align",
-    "check_units": "_common",
+    "check_units": "_checks",
     # other engineers' readers (resolved when their modules are present)
     "read_neura": "neura",
     "read_asf_amc": "cmu",
@@ -49,6 +49,9 @@ _LAZY = {
     "read_xsens_dot": "xsens_dot",
     "read_xio_csv": "xio_csv",
 }
+
+# every registered reader is exported too (a new format needs no line here)
+_LAZY |= {spec.function: spec.module for spec in _REGISTRY.values() if spec.function not in _LAZY}
 
 __all__ = ["FORMATS", "ImuStream", "JointStream", "Recording", "detect_format", "load", *_LAZY]
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import scipy.io
 
 from kinefuse.exceptions import FormatError, InputError
+from kinefuse.io._unsupported import unsupported_message
 from kinefuse.io.recording import Recording
 
 __all__ = ["FORMATS", "detect_format", "load"]
@@ -21,9 +22,18 @@ __all__ = ["FORMATS", "detect_format", "load"]
 
 @dataclass(frozen=True)
 class _Format:
+    """One format :func:`load` reads: ``kinefuse.io.<module>.<function>``.
+
+    ``extensions`` and ``sniff`` (a function of that module, ``sniff(head: str) -> bool`` on the
+    file's first 8 KiB of text) let a format be detected without a rule in this module: they
+    are tried after the built-in rules found nothing.
+    """
+
     module: str
     function: str
     description: str
+    extensions: tuple[str, ...] = ()
+    sniff: str | None = None
 
 
 _REGISTRY: dict[str, _Format] = {
@@ -49,10 +59,10 @@ _REGISTRY: dict[str, _Format] = {
     "c3d": _Format("c3d", "read_c3d", "C3D optical motion capture points (via ezc3d)"),
     "trc": _Format("trc", "read_trc", "TRC marker file (OpenSim / Motion Analysis)"),
     "kinect_v2": _Format(
-        "kinect", "read_kinect_v2_csv", "Kinect v2 joint CSV: 25 joints + TrackingState"
+        "kinect_v2", "read_kinect_v2_csv", "Kinect v2 joint CSV: 25 joints + TrackingState"
     ),
     "azure_kinect": _Format(
-        "kinect", "read_azure_kinect_json", "Azure Kinect body-tracking JSON: 32 joints"
+        "azure_kinect", "read_azure_kinect_json", "Azure Kinect body-tracking JSON: 32 joints"
     ),
     "mediapipe": _Format(
         "mediapipe",
@@ -86,6 +96,13 @@ _REGISTRY: dict[str, _Format] = {
     ),
     "xio_csv": _Format(
         "xio_csv", "read_xio_csv", "x-io plain CSV: Time (s), Gyroscope, Accelerometer"
+    ),
+    "qualisys_tsv": _Format(
+        "qualisys",
+        "read_qualisys_tsv",
+        "Qualisys QTM TSV export: 3D marker trajectories (mm)",
+        extensions=(".tsv",),
+        sniff="sniff",
     ),
 }
 
@@ -253,11 +270,27 @@ def detect_format(path) -> str:
             fmt = "opensense"
         elif ext in (".csv", ".txt", ".tsv"):
             fmt = _detect_csv(path)
+    if fmt is None and path.is_file():
+        fmt = _sniff(path)
     if fmt is None:
-        from kinefuse.io._unsupported import unsupported_message
-
-        raise FormatError(path, unsupported_message(path, FORMATS))
+        raise FormatError(path, unsupported_message(path, FORMATS, _detect_entry))
     return fmt
+
+
+def _sniff(path: Path) -> str | None:
+    """The first registered format whose extensions include ``path``'s and whose sniff accepts it."""
+    ext = path.suffix.lower()
+    for fmt, spec in _REGISTRY.items():
+        if spec.sniff and ext in spec.extensions:
+            sniff = getattr(importlib.import_module(f"kinefuse.io.{spec.module}"), spec.sniff)
+            if sniff(_head(path)):
+                return fmt
+    return None
+
+
+def _detect_entry(p: Path) -> str | None:
+    """Format of one entry of a folder (sub-folders by layout only), for the unsupported message."""
+    return _detect_dir(p) if p.is_dir() else detect_format(p)
 
 
 def _detect_json(path: Path) -> str | None:

@@ -11,6 +11,8 @@ from collections import Counter
 from collections.abc import Mapping
 from pathlib import Path
 
+import scipy.io
+
 __all__ = ["looks_like", "unsupported_message"]
 
 _BY_EXTENSION = {
@@ -40,14 +42,12 @@ _BY_EXTENSION = {
 }
 
 
-def _readable_files(folder: Path, limit: int = 50) -> list[tuple[str, str]]:
-    """(name, format) of the first ``limit`` entries of ``folder`` that a reader recognises."""
-    from kinefuse.io._registry import _detect_dir, detect_format
-
+def _readable_files(folder: Path, detect, limit: int = 50) -> list[tuple[str, str]]:
+    """(name, format) of the first ``limit`` entries of ``folder`` that ``detect`` recognises."""
     out = []
     for p in sorted(folder.iterdir())[:limit]:
         try:  # sub-folders by layout only: no recursion into their own messages
-            fmt = _detect_dir(p) if p.is_dir() else detect_format(p)
+            fmt = detect(p)
         except (ValueError, OSError):
             continue
         if fmt:
@@ -72,15 +72,19 @@ def _columns(text: str) -> list[str]:
     return []
 
 
-def looks_like(path) -> str:
-    """A short description of what ``path`` appears to be (never raises)."""
+def looks_like(path, detect=None) -> str:
+    """A short description of what ``path`` appears to be (never raises).
+
+    ``detect(p) -> format or None`` recognises the entries of a folder (the registry's
+    detection, passed in so that this module does not import the registry).
+    """
     path = Path(path)
     if path.is_dir():
         kinds = Counter(p.suffix.lower() or "(no extension)" for p in path.iterdir() if p.is_file())
         if not kinds:
             return "a folder without files kinefuse recognises (pass one file or a sensor folder)"
         top = ", ".join(f"{n} {ext}" for ext, n in kinds.most_common(4))
-        readable = _readable_files(path)
+        readable = _readable_files(path, detect) if detect is not None else []
         if readable:
             shown = ", ".join(f"{name}: {fmt}" for name, fmt in readable[:4])
             more = f" and {len(readable) - 4} more" if len(readable) > 4 else ""
@@ -103,8 +107,6 @@ def looks_like(path) -> str:
         return "a Qualisys TSV export; export C3D from QTM instead"
     if ext == ".mat":
         try:
-            import scipy.io
-
             names = [n for n, _s, _c in scipy.io.whosmat(path)]
         except Exception:
             names = None
@@ -122,10 +124,10 @@ def looks_like(path) -> str:
     return f"a text file without a recognisable header ({ext or 'no extension'})"
 
 
-def unsupported_message(path, formats: Mapping[str, str]) -> str:
+def unsupported_message(path, formats: Mapping[str, str], detect=None) -> str:
     """``"unsupported format: this looks like X; kinefuse reads: ..."`` for ``path``."""
     reads = "; ".join(f"{k} ({v})" for k, v in sorted(formats.items()))
     return (
-        f"unsupported format: this looks like {looks_like(path)}; kinefuse reads: {reads}. "
+        f"unsupported format: this looks like {looks_like(path, detect)}; kinefuse reads: {reads}. "
         "Pass format= to force one of them"
     )

@@ -8,7 +8,7 @@ import numpy as np
 import scipy.io
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import check_units, make_metadata
+from kinefuse.io._checks import finish_recording, make_metadata
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["read_broad"]
@@ -50,6 +50,42 @@ def read_broad(path, *, sensor_name: str = "imu") -> Recording:
         Unreadable file, missing variable, wrong shape.
     """
     path = Path(path)
+    d, fs, arrays = _load(path)
+    n = arrays["imu_gyr"].shape[0]
+    t = np.arange(n) / fs
+    imu = ImuStream(
+        t_s=t,
+        acc_m_s2=arrays["imu_acc"],
+        gyr_rad_s=arrays["imu_gyr"],
+        mag=arrays["imu_mag"],
+        name=sensor_name,
+    )
+    q = arrays["opt_quat"].copy()
+    q[~np.all(np.isfinite(q), axis=1)] = np.nan
+    ref_q = ImuStream(t_s=t, q_world_from_sensor=q, name="optitrack", frame="ENU")
+    pos = arrays["opt_pos"][:, None, :]
+    ref = JointStream(t_s=t, position_m=pos, joints=(sensor_name,), frame="ENU")
+    movement = np.asarray(d.get("movement", np.ones(n)), dtype=bool).reshape(-1)
+    md = make_metadata(
+        path,
+        "broad",
+        subject=None,
+        units_converted=[],
+        trial=path.stem,
+        info=str(d.get("info", "")),
+        rate_hz=fs,
+        movement=movement,
+        segment_map={"imu": sensor_name},
+        optical_valid_fraction=float(np.isfinite(q).all(axis=1).mean()),
+        notes=["rigid box moved by hand, not a body-worn sensor", "mag in uT"],
+    )
+    return finish_recording(
+        path, md, imu={sensor_name: imu}, reference=ref, reference_orientation={sensor_name: ref_q}
+    )
+
+
+def _load(path: Path):
+    """(the .mat variables, sampling rate, the arrays of :data:`_REQUIRED` as float64, checked)."""
     try:
         d = scipy.io.loadmat(path, squeeze_me=True)
     except Exception as e:
@@ -82,38 +118,4 @@ def read_broad(path, *, sensor_name: str = "imu") -> Recording:
                 field=k,
             )
         arrays[k] = a.astype(np.float64)
-    t = np.arange(n) / fs
-    imu = ImuStream(
-        t_s=t,
-        acc_m_s2=arrays["imu_acc"],
-        gyr_rad_s=arrays["imu_gyr"],
-        mag=arrays["imu_mag"],
-        name=sensor_name,
-    )
-    q = arrays["opt_quat"].copy()
-    q[~np.all(np.isfinite(q), axis=1)] = np.nan
-    ref_q = ImuStream(t_s=t, q_world_from_sensor=q, name="optitrack", frame="ENU")
-    pos = arrays["opt_pos"][:, None, :]
-    ref = JointStream(t_s=t, position_m=pos, joints=(sensor_name,), frame="ENU")
-    movement = np.asarray(d.get("movement", np.ones(n)), dtype=bool).reshape(-1)
-    md = make_metadata(
-        path,
-        "broad",
-        subject=None,
-        units_converted=[],
-        trial=path.stem,
-        info=str(d.get("info", "")),
-        rate_hz=fs,
-        movement=movement,
-        segment_map={"imu": sensor_name},
-        optical_valid_fraction=float(np.isfinite(q).all(axis=1).mean()),
-        notes=["rigid box moved by hand, not a body-worn sensor", "mag in uT"],
-    )
-    rec = Recording(
-        imu={sensor_name: imu},
-        reference=ref,
-        reference_orientation={sensor_name: ref_q},
-        metadata=md,
-    )
-    check_units(rec, where=str(path))
-    return rec
+    return d, fs, arrays

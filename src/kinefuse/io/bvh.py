@@ -51,7 +51,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import FormatError, InputError, UnitWarning
-from kinefuse.io._common import KINECT_LIMB_JOINTS
+from kinefuse.io._names import KINECT_LIMB_JOINTS
 from kinefuse.io.motion import CANONICAL_SEGMENT_JOINTS, Motion, _build_motion
 from kinefuse.io.recording import Recording
 
@@ -435,6 +435,59 @@ def _length_unit(path: Path, size: float, given: float | None) -> tuple[float, s
     return unit, f"detected {name} (figure {size:.4g} units = {size * unit:.3g} m)"
 
 
+def _forward_kinematics(joints, values: np.ndarray):
+    """Per joint: global rotation (T, 3, 3), position (T, 3) and local translation (T, 3), file units."""
+    T = values.shape[0]
+    rot: list[np.ndarray] = []
+    pos: list[np.ndarray] = []  # file units
+    trans: list[np.ndarray] = []  # local translation (T, 3), file units
+    for j in joints:
+        ch = values[:, j.first_channel : j.first_channel + len(j.channels)]
+        local_t = np.broadcast_to(j.offset, (T, 3)).copy()
+        rcols = [c for c, name in enumerate(j.channels) if name.endswith("rotation")]
+        for c, name in enumerate(j.channels):
+            if name.endswith("position"):
+                a = "xyz".index(name[0])
+                local_t[:, a] = ch[:, c] + (j.offset[a] if j.parent < 0 else 0.0)
+        if rcols:
+            seq = "".join(j.channels[c][0].upper() for c in rcols)  # intrinsic, listed order
+            R_local = Rotation.from_euler(seq, ch[:, rcols], degrees=True).as_matrix()
+        else:
+            R_local = np.broadcast_to(np.eye(3), (T, 3, 3))
+        if j.parent < 0:
+            p = local_t
+            R = np.array(R_local)
+        else:
+            R_p, p_p = rot[j.parent], pos[j.parent]
+            p = p_p + np.einsum("tij,tj->ti", R_p, local_t)
+            R = R_p @ R_local
+        rot.append(R)
+        pos.append(p)
+        trans.append(local_t)
+
+    return rot, pos, trans
+
+
+def _segments(joints, index: dict, joint_source: dict, trans: list, unit: float):
+    """Canonical segment -> BVH joint carrying it, with each bone's direction and length (m)."""
+    segment_source, bone_dir, bone_len = {}, {}, {}
+    for seg, (prox, dist) in CANONICAL_SEGMENT_JOINTS.items():
+        if prox not in joint_source or (dist is not None and dist not in joint_source):
+            continue
+        b = joint_source[prox]
+        if dist is not None:
+            child = index[joint_source[dist]]
+            if joints[child].parent != index[b]:
+                continue
+            off = np.median(trans[child], axis=0) * unit
+            length = float(np.linalg.norm(off))
+            if length == 0.0:
+                continue
+            bone_dir[b], bone_len[b] = off / length, length
+        segment_source[seg] = b
+    return segment_source, bone_dir, bone_len
+
+
 def load_motion_bvh(
     path, *, length_unit_m: float | None = None, joint_map: Mapping[str, str] | None = None
 ) -> Motion:
@@ -474,33 +527,7 @@ def load_motion_bvh(
         raise InputError(f"expected length_unit_m finite and > 0, got {length_unit_m!r}")
     joints, _end_sites, values, dt = _parse_bvh(path)
     T = values.shape[0]
-    rot: list[np.ndarray] = []
-    pos: list[np.ndarray] = []  # file units
-    trans: list[np.ndarray] = []  # local translation (T, 3), file units
-    for j in joints:
-        ch = values[:, j.first_channel : j.first_channel + len(j.channels)]
-        local_t = np.broadcast_to(j.offset, (T, 3)).copy()
-        rcols = [c for c, name in enumerate(j.channels) if name.endswith("rotation")]
-        for c, name in enumerate(j.channels):
-            if name.endswith("position"):
-                a = "xyz".index(name[0])
-                local_t[:, a] = ch[:, c] + (j.offset[a] if j.parent < 0 else 0.0)
-        if rcols:
-            seq = "".join(j.channels[c][0].upper() for c in rcols)  # intrinsic, listed order
-            R_local = Rotation.from_euler(seq, ch[:, rcols], degrees=True).as_matrix()
-        else:
-            R_local = np.broadcast_to(np.eye(3), (T, 3, 3))
-        if j.parent < 0:
-            p = local_t
-            R = np.array(R_local)
-        else:
-            R_p, p_p = rot[j.parent], pos[j.parent]
-            p = p_p + np.einsum("tij,tj->ti", R_p, local_t)
-            R = R_p @ R_local
-        rot.append(R)
-        pos.append(p)
-        trans.append(local_t)
-
+    rot, pos, trans = _forward_kinematics(joints, values)
     names = [j.name for j in joints]
     index = {n: i for i, n in enumerate(names)}
     joint_source, naming = _pick_joint_map(path, names, joint_map)
@@ -512,21 +539,7 @@ def load_motion_bvh(
         notes.append(msg)
     size = _figure_size([pos[index[b]] for b in set(joint_source.values())] or pos)
     unit, unit_note = _length_unit(path, size, length_unit_m)
-    segment_source, bone_dir, bone_len = {}, {}, {}
-    for seg, (prox, dist) in CANONICAL_SEGMENT_JOINTS.items():
-        if prox not in joint_source or (dist is not None and dist not in joint_source):
-            continue
-        b = joint_source[prox]
-        if dist is not None:
-            child = index[joint_source[dist]]
-            if joints[child].parent != index[b]:
-                continue
-            off = np.median(trans[child], axis=0) * unit
-            length = float(np.linalg.norm(off))
-            if length == 0.0:
-                continue
-            bone_dir[b], bone_len[b] = off / length, length
-        segment_source[seg] = b
+    segment_source, bone_dir, bone_len = _segments(joints, index, joint_source, trans, unit)
     point = {n: pos[i] * unit for n, i in index.items()}
     metadata = {
         "source": str(path),

@@ -17,10 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError, FormatWarning, InputError
-from kinefuse.io._common import ZERO_RULE, check_units, make_metadata, map_joints, zero_is_missing
+from kinefuse.io._checks import ZERO_RULE, finish_recording, make_metadata, zero_samples
+from kinefuse.io._names import map_joints
 from kinefuse.io.recording import JointStream, Recording
 
-__all__ = ["C3D_NON_MARKER_GROUPS", "read_c3d"]
+__all__ = ["C3D_NON_MARKER_GROUPS", "LABEL_RULES", "read_c3d"]
 
 _TO_M = {"mm": 1e-3, "cm": 1e-2, "m": 1.0, "dm": 0.1}
 
@@ -201,28 +202,20 @@ def read_c3d(
         Override of the ``POINT:UNITS`` parameter (``mm``, ``cm``, ``m``).
     zero_is_missing_points : bool
         Treat a marker whose three coordinates are all exactly 0 as missing
-        (:data:`kinefuse.io._common.ZERO_RULE`).
+        (:data:`kinefuse.io._checks.ZERO_RULE`).
     analog : bool
         Keep the analog channels in ``metadata["analog"]``.
 
     Returns
     -------
     Recording
-        ``reference`` (or ``vision``): marker positions (T, P, 3) in m (converted from
-        ``POINT:UNITS``), frame ``"c3d_lab"`` (the lab frame of the file; often z up), times
-        ``n / POINT:RATE``. Labels: the first ``POINT:USED`` of ``POINT:LABELS`` (continued in
-        ``LABELS2``...); an empty label becomes ``point_<n>`` (1-based), the 2nd, 3rd ...
-        occurrence of a repeated label ``<label>_2``, ``<label>_3``. Labels that name a joint
-        (canonical names, Kinect-style ``ShoulderLeft``, Plug-in-Gait joint centres ``LFEO``...)
-        become canonical joint names; others are kept (``metadata["joint_map"]``).
-        ``available`` = finite, residual >= 0 (C3D marks invalid points with a negative
-        residual) and not all zero.
-
+        ``reference`` (or ``vision``): marker positions (T, P, 3) in m, frame ``"c3d_lab"`` (the
+        file's lab frame; often z up), times ``n / POINT:RATE``, labels as :data:`LABEL_RULES`. ``available`` = finite,
+        residual >= 0 (C3D marks invalid points with a negative residual) and not all zero.
         ``metadata["c3d_other_points"]``: ``{group: {"labels", "values" (T, K, 3), "unit"}}``
-        for the labels listed in ``POINT:ANGLES/FORCES/MOMENTS/POWERS/SCALARS/REACTIONS`` (file
-        units, e.g. deg, N, N.mm, W), not joints. ``metadata["analog"]`` (when ``analog``):
-        ``{"t_s" (N,), "values" (N, C), "labels", "units", "rate_hz"}``, values as ezc3d scales
-        them (``ANALOG:SCALE``, ``GEN_SCALE``, ``OFFSET`` applied).
+        (file units, e.g. deg, N, N.mm, W), not joints. ``metadata["analog"]`` (when
+        ``analog``): ``{"t_s" (N,), "values" (N, C), "labels", "units", "rate_hz"}``, values
+        as ezc3d scales them (``ANALOG:SCALE``, ``GEN_SCALE``, ``OFFSET`` applied).
 
     Raises
     ------
@@ -234,17 +227,65 @@ def read_c3d(
     path = Path(path)
     if role not in ("reference", "vision"):
         raise InputError(f"expected role 'reference' or 'vision', got {role!r}")
+    c, pts, notes = _open(path)
+    original, labels = _point_labels(path, point := c["parameters"]["POINT"], pts.shape[1], notes)
+    unit, factor = _point_unit(path, point, units)
+    rate = _point_rate(path, point)
+    raw = np.transpose(pts[:3], (2, 1, 0))  # (T, P, 3), file units
+    valid = _valid_points(c, raw)
+    other, non_marker = _non_marker_points(point, original, labels, raw, valid, notes)
+    keep = np.flatnonzero(~non_marker)
+    pos = raw[:, keep] * factor  # the markers, m
+    zero, n_zero = zero_samples(pos, zero_is_missing_points)
+    avail = valid[:, keep] & ~zero
+    joints, jmap = map_joints([labels[i] for i in keep])
+    js = JointStream(
+        t_s=np.arange(len(raw)) / rate,
+        position_m=pos,
+        available=avail,
+        joints=joints,
+        frame="c3d_lab",
+    )
+    md = make_metadata(
+        path,
+        "c3d",
+        units_converted=[f"points {unit} -> m"] if factor != 1.0 else [],
+        joint_map=jmap,
+        rate_hz=rate,
+        first_frame=int(c["header"]["points"]["first_frame"]),
+        availability_rule="finite and residual >= 0"
+        + (f"; {ZERO_RULE}" if zero_is_missing_points else ""),
+        n_zero_samples=n_zero,
+        c3d_other_points=other,
+        notes=notes,
+    )
+    if analog:
+        md["analog"] = _analog(c, path)
+    return finish_recording(path, md, **{role: js})
+
+
+#: How :func:`read_c3d` names the points: the first ``POINT:USED`` of ``POINT:LABELS``
+#: (continued in ``LABELS2``...); an empty label becomes ``point_<n>`` (1-based), the 2nd, 3rd
+#: ... occurrence of a repeated label ``<label>_2``, ``<label>_3``. Labels that name a joint
+#: (canonical names, Kinect-style ``ShoulderLeft``, Plug-in-Gait joint centres ``LFEO``...)
+#: become canonical joint names; others are kept (``metadata["joint_map"]``).
+LABEL_RULES = (
+    "first POINT:USED labels; empty -> point_<n>; repeated -> <label>_2 ...; joints mapped"
+)
+
+
+def _open(path: Path):
+    """(ezc3d object, points (4, P, T), notes) after checking the header and the file length."""
     layout = _check_header(path)
     whole = _check_size(path, layout)
     try:
-        import ezc3d
+        import ezc3d  # optional dependency (kinefuse[c3d])
     except ImportError as e:  # pragma: no cover - depends on the environment
         raise ImportError("reading C3D needs ezc3d: pip install 'kinefuse[c3d]'") from e
     try:
         c = ezc3d.c3d(str(path))
     except Exception as e:
         raise FormatError(path, f"ezc3d could not parse the file: {e}") from None
-    point = c["parameters"]["POINT"]
     pts = np.asarray(c["data"]["points"], dtype=float)  # (4, P, T)
     if pts.ndim != 3 or pts.shape[0] != 4:
         raise FormatError(path, f"expected points (4, P, T), found {pts.shape}", field="POINT")
@@ -260,14 +301,19 @@ def read_c3d(
             f"{path}: {layout['frames_from']} announces {layout['frames']} frames but the data section holds "
             f"{whole} whole frames; read them (as ezc3d does)"
         )
-        warnings.warn(msg, FormatWarning, stacklevel=2)
+        warnings.warn(msg, FormatWarning, stacklevel=3)
         notes.append(msg)
-    used = int(_first(point, "USED", pts.shape[1]))
+    return c, pts, notes
+
+
+def _point_labels(path: Path, point, n_points: int, notes: list[str]):
+    """(the first USED labels as in the file, the same made unique) of the ``POINT`` group."""
+    used = int(_first(point, "USED", n_points))
     all_labels = _strings(point, "LABELS")
-    if used != pts.shape[1] or len(all_labels) < used:
+    if used != n_points or len(all_labels) < used:
         raise FormatError(
             path,
-            f"expected POINT:USED = {pts.shape[1]} points with at least as many labels, found "
+            f"expected POINT:USED = {n_points} points with at least as many labels, found "
             f"USED = {used} and {len(all_labels)} labels",
             field="POINT:LABELS",
         )
@@ -275,6 +321,10 @@ def read_c3d(
         notes.append(f"POINT:LABELS has {len(all_labels)} entries; the first USED = {used} read")
     labels, label_notes = _unique_labels(all_labels[:used], "point_")
     notes += label_notes
+    return all_labels[:used], labels
+
+
+def _point_unit(path: Path, point, units: str | None) -> tuple[str, float]:
     unit = units
     if unit is None:
         unit = str(_first(point, "UNITS", "mm")).strip() or "mm"
@@ -285,20 +335,30 @@ def read_c3d(
             f"expected POINT:UNITS one of {sorted(_TO_M)}, found {unit!r}",
             field="POINT:UNITS",
         )
+    return unit, factor
+
+
+def _point_rate(path: Path, point) -> float:
     rate = float(_first(point, "RATE", 0.0))
     if not rate > 0:
         raise FormatError(path, f"expected a positive POINT:RATE, found {rate}", field="POINT:RATE")
-    T = pts.shape[2]
-    t = np.arange(T) / rate
-    raw = np.transpose(pts[:3], (2, 1, 0))  # (T, P, 3), file units
+    return rate
+
+
+def _valid_points(c, raw: np.ndarray) -> np.ndarray:
+    """Finite samples with a residual >= 0 where the file has residuals, (T, P)."""
+    T, P = raw.shape[:2]
     valid = np.all(np.isfinite(raw), axis=-1)
     res = c["data"]["meta_points"].get("residuals") if "meta_points" in c["data"] else None
-    if res is not None and np.asarray(res).shape == (1, pts.shape[1], T):
+    if res is not None and np.asarray(res).shape == (1, P, T):
         valid &= np.asarray(res)[0].T >= 0
-    # which points are markers
-    original = all_labels[:used]
+    return valid
+
+
+def _non_marker_points(point, original, labels, raw, valid, notes: list[str]):
+    """The points of :data:`C3D_NON_MARKER_GROUPS` by group, and the mask of those points."""
     other: dict[str, dict] = {}
-    non_marker = np.zeros(used, dtype=bool)
+    non_marker = np.zeros(len(original), dtype=bool)
     for grp, unit_key in C3D_NON_MARKER_GROUPS.items():
         names = {s for s in _strings(point, grp) if s}
         idx = [i for i, s in enumerate(original) if s in names and not non_marker[i]]
@@ -316,35 +376,7 @@ def read_c3d(
             "not joints (kept in metadata['c3d_other_points']): "
             + ", ".join(f"{len(v['labels'])} {g.lower()}" for g, v in other.items())
         )
-    keep = np.flatnonzero(~non_marker)
-    pos = raw[:, keep] * factor
-    avail = valid[:, keep]
-    n_zero = 0
-    if zero_is_missing_points:
-        zero = zero_is_missing(pos)
-        n_zero = int(zero.sum())
-        avail &= ~zero
-    joints, jmap = map_joints([labels[i] for i in keep])
-    js = JointStream(t_s=t, position_m=pos, available=avail, joints=joints, frame="c3d_lab")
-    first = int(c["header"]["points"]["first_frame"])
-    md = make_metadata(
-        path,
-        "c3d",
-        units_converted=[f"points {unit} -> m"] if factor != 1.0 else [],
-        joint_map=jmap,
-        rate_hz=rate,
-        first_frame=first,
-        availability_rule="finite and residual >= 0"
-        + (f"; {ZERO_RULE}" if zero_is_missing_points else ""),
-        n_zero_samples=n_zero,
-        c3d_other_points=other,
-        notes=notes,
-    )
-    if analog:
-        md["analog"] = _analog(c, path)
-    rec = Recording(**{role: js}, metadata=md)
-    check_units(rec, where=str(path))
-    return rec
+    return other, non_marker
 
 
 def _analog(c, path: Path) -> dict | None:

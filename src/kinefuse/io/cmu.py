@@ -399,6 +399,44 @@ def _find_asf(amc_path: Path) -> Path:
     )
 
 
+def _forward_kinematics(skel, vals: dict, angle_deg: bool, scale: float, T: int):
+    """Bone -> global rotation (T, 3, 3) and end point (T, 3) in m, from the root breadth-first."""
+    # root
+    order = skel.root_order
+    root_vals = vals["root"]
+    trans = np.zeros((T, 3))
+    for c, name in enumerate(order):
+        if name.startswith("t"):
+            trans[:, "xyz".index(name[1])] = root_vals[:, c]
+    rot_cols = [c for c, name in enumerate(order) if name.startswith("r")]
+    C = _euler_matrix(skel.root_orientation, skel.root_axis_order, skel.angle_deg)
+    if rot_cols:
+        M = _euler_matrix(root_vals[:, rot_cols], "".join(order[c][1] for c in rot_cols), angle_deg)
+    else:
+        M = np.broadcast_to(np.eye(3), (T, 3, 3))
+    rot = {"root": C @ M @ C.T}
+    end = {"root": (skel.root_position + trans) * scale}
+
+    # bones, breadth-first from the root
+    queue = list(skel.children.get("root", []))
+    parent = {k: "root" for k in queue}
+    while queue:
+        name = queue.pop(0)
+        bone = skel.bones[name]
+        C = _euler_matrix(bone.axis, bone.axis_order, skel.angle_deg)
+        if bone.dof:
+            M = _euler_matrix(vals[name], "".join(d[1] for d in bone.dof), angle_deg)
+            local = C @ M @ C.T
+            rot[name] = rot[parent[name]] @ local
+        else:
+            rot[name] = rot[parent[name]]
+        end[name] = end[parent[name]] + (bone.length * scale) * (rot[name] @ bone.direction)
+        for kid in skel.children.get(name, []):
+            parent[kid] = name
+            queue.append(kid)
+    return rot, end
+
+
 def load_motion_asf_amc(amc_path, asf_path=None, *, rate_hz: float = CMU_RATE_HZ) -> Motion:
     """Read an ASF/AMC pair and run forward kinematics: segment orientations and joint positions.
 
@@ -437,40 +475,7 @@ def load_motion_asf_amc(amc_path, asf_path=None, *, rate_hz: float = CMU_RATE_HZ
     scale = _INCH_M / skel.length_unit  # metres per ASF length unit
     T = frames.size
 
-    # root
-    order = skel.root_order
-    root_vals = vals["root"]
-    trans = np.zeros((T, 3))
-    for c, name in enumerate(order):
-        if name.startswith("t"):
-            trans[:, "xyz".index(name[1])] = root_vals[:, c]
-    rot_cols = [c for c, name in enumerate(order) if name.startswith("r")]
-    C = _euler_matrix(skel.root_orientation, skel.root_axis_order, skel.angle_deg)
-    if rot_cols:
-        M = _euler_matrix(root_vals[:, rot_cols], "".join(order[c][1] for c in rot_cols), angle_deg)
-    else:
-        M = np.broadcast_to(np.eye(3), (T, 3, 3))
-    rot = {"root": C @ M @ C.T}
-    end = {"root": (skel.root_position + trans) * scale}
-
-    # bones, breadth-first from the root
-    queue = list(skel.children.get("root", []))
-    parent = {k: "root" for k in queue}
-    while queue:
-        name = queue.pop(0)
-        bone = skel.bones[name]
-        C = _euler_matrix(bone.axis, bone.axis_order, skel.angle_deg)
-        if bone.dof:
-            M = _euler_matrix(vals[name], "".join(d[1] for d in bone.dof), angle_deg)
-            local = C @ M @ C.T
-            rot[name] = rot[parent[name]] @ local
-        else:
-            rot[name] = rot[parent[name]]
-        end[name] = end[parent[name]] + (bone.length * scale) * (rot[name] @ bone.direction)
-        for kid in skel.children.get(name, []):
-            parent[kid] = name
-            queue.append(kid)
-
+    rot, end = _forward_kinematics(skel, vals, angle_deg, scale, T)
     joint_source = {j: b for j, b in _CMU_JOINTS.items() if b in end}
     segment_source = {s: b for s, b in _CMU_SEGMENTS.items() if b in rot}
     # a segment needs both its joints

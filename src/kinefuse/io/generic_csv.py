@@ -33,21 +33,10 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError, InputError
-from kinefuse.io._common import (
-    DEG2RAD,
-    TIME_COLUMNS,
-    G,
-    Table,
-    check_time,
-    check_units,
-    fmt_float,
-    make_metadata,
-    map_joints,
-    map_segments,
-    read_table,
-    table_time,
-    write_text_safely,
-)
+from kinefuse.io._checks import DEG2RAD, G, finish_recording, make_metadata
+from kinefuse.io._names import map_joints, map_segments
+from kinefuse.io._text import Table, check_time, read_table, table_time, time_column_s
+from kinefuse.io._write import fmt_float, write_text_safely
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["read_generic_csv", "read_imu_csv", "read_joint_csv", "write_imu_csv", "write_joint_csv"]
@@ -114,58 +103,15 @@ def read_imu_csv(
     path = Path(path)
     tab = read_table(path)
     hdr = tab.comment_dict()
-    acc_unit = acc_unit or hdr.get("acc_unit", "m/s^2")
-    gyr_unit = gyr_unit or hdr.get("gyr_unit", "rad/s")
-    if acc_unit not in _ACC_UNITS:
-        raise FormatError(
-            path,
-            f"expected acc_unit one of {sorted(_ACC_UNITS)}, found {acc_unit!r}",
-            field="acc_unit",
-        )
-    if gyr_unit not in _GYR_UNITS:
-        raise FormatError(
-            path,
-            f"expected gyr_unit one of {sorted(_GYR_UNITS)}, found {gyr_unit!r}",
-            field="gyr_unit",
-        )
-    frame = hdr.get("frame", "ENU")
-    t_all, tcol = _time_any_order(tab)
-    groups = {}
-    for name, cols in IMU_GROUPS.items():
-        present = [c for c in cols if tab.has(c)]
-        if present and len(present) != len(cols):
-            miss = next(c for c in cols if not tab.has(c))
-            raise FormatError(
-                path,
-                f"missing column {miss!r} (the group {cols} is all-or-nothing)",
-                line=tab.header_line,
-                field=miss,
-            )
-        if present:
-            groups[name] = np.stack([tab.floats(c) for c in cols], axis=1)
-    if not groups:
-        raise FormatError(
-            path,
-            f"expected IMU columns (qw..qz and/or acc_x.. gyr_x..), found {tab.columns}",
-            line=tab.header_line,
-        )
+    acc_unit, gyr_unit = _imu_units(path, hdr, acc_unit, gyr_unit)
+    times = time_column_s(tab)
+    groups = _imu_groups(tab)
     sensors = tab.strings("sensor") if tab.has("sensor") else ["imu"] * len(tab)
     order = list(dict.fromkeys(sensors))
     mapping, notes = map_segments(order, sensor_map)
-    imu = {}
-    sensors_arr = np.asarray(sensors)
-    for s in order:
-        m = sensors_arr == s
-        t = check_time(path, t_all[m], tab.lines[m], tcol)
-        kw = {k: v[m] for k, v in groups.items() if np.any(np.isfinite(v[m]))}
-        if "acc_m_s2" in kw:
-            kw["acc_m_s2"] = kw["acc_m_s2"] * _ACC_UNITS[acc_unit]
-        if "gyr_rad_s" in kw:
-            kw["gyr_rad_s"] = kw["gyr_rad_s"] * _GYR_UNITS[gyr_unit]
-        try:
-            imu[mapping[s]] = ImuStream(t_s=t, name=s, frame=frame, **kw)
-        except InputError as e:
-            raise FormatError(path, f"sensor {s!r}: {e}") from None
+    imu = _imu_streams(
+        tab, times, groups, np.asarray(sensors), order, mapping, (acc_unit, gyr_unit), hdr
+    )
     units = []
     if acc_unit == "g" and any(g == "acc_m_s2" for g in groups):
         units.append("acc g -> m/s^2")
@@ -180,23 +126,68 @@ def read_imu_csv(
         header=hdr,
         notes=notes,
     )
-    rec = Recording(imu=imu, metadata=md)
-    check_units(rec, where=str(path))
-    return rec
+    return finish_recording(path, md, imu=imu)
 
 
-def _time_any_order(tab: Table) -> tuple[np.ndarray, str]:
-    """Time column of a table whose rows interleave sensors (monotonicity checked per sensor)."""
-    lower = {c.lower(): c for c in tab.columns}
-    for name, factor in TIME_COLUMNS.items():
-        if name in lower:
-            return tab.floats(lower[name], allow_empty=False) * factor, lower[name]
-    raise FormatError(
-        tab.path,
-        f"missing time column: expected one of {sorted(TIME_COLUMNS)}",
-        line=tab.header_line,
-        field="t_s",
-    )
+def _imu_units(path: Path, hdr: dict, acc_unit, gyr_unit) -> tuple[str, str]:
+    """The acc and gyr units: given, else the header's, else SI; checked."""
+    acc_unit = acc_unit or hdr.get("acc_unit", "m/s^2")
+    gyr_unit = gyr_unit or hdr.get("gyr_unit", "rad/s")
+    if acc_unit not in _ACC_UNITS:
+        raise FormatError(
+            path,
+            f"expected acc_unit one of {sorted(_ACC_UNITS)}, found {acc_unit!r}",
+            field="acc_unit",
+        )
+    if gyr_unit not in _GYR_UNITS:
+        raise FormatError(
+            path,
+            f"expected gyr_unit one of {sorted(_GYR_UNITS)}, found {gyr_unit!r}",
+            field="gyr_unit",
+        )
+    return acc_unit, gyr_unit
+
+
+def _imu_groups(tab: Table) -> dict[str, np.ndarray]:
+    """ImuStream field -> (n, k) values of the :data:`IMU_GROUPS` present (each all-or-nothing)."""
+    groups = {}
+    for name, cols in IMU_GROUPS.items():
+        present = [c for c in cols if tab.has(c)]
+        if present and len(present) != len(cols):
+            miss = next(c for c in cols if not tab.has(c))
+            raise tab.header_error(
+                f"missing column {miss!r} (the group {cols} is all-or-nothing)", miss
+            )
+        if present:
+            groups[name] = np.stack([tab.floats(c) for c in cols], axis=1)
+    if not groups:
+        raise tab.header_error(
+            f"expected IMU columns (qw..qz and/or acc_x.. gyr_x..), found {tab.columns}"
+        )
+    return groups
+
+
+def _imu_streams(
+    tab: Table, times, groups, sensors, order, mapping, units, hdr
+) -> dict[str, ImuStream]:
+    """One ImuStream per sensor (rows of that sensor; time checked per sensor), SI units."""
+    acc_unit, gyr_unit = units
+    frame = hdr.get("frame", "ENU")
+    t_all, tcol = times
+    imu = {}
+    for s in order:
+        m = sensors == s
+        t = check_time(tab.path, t_all[m], tab.lines[m], tcol)
+        kw = {k: v[m] for k, v in groups.items() if np.any(np.isfinite(v[m]))}
+        if "acc_m_s2" in kw:
+            kw["acc_m_s2"] = kw["acc_m_s2"] * _ACC_UNITS[acc_unit]
+        if "gyr_rad_s" in kw:
+            kw["gyr_rad_s"] = kw["gyr_rad_s"] * _GYR_UNITS[gyr_unit]
+        try:
+            imu[mapping[s]] = ImuStream(t_s=t, name=s, frame=frame, **kw)
+        except InputError as e:
+            raise FormatError(tab.path, f"sensor {s!r}: {e}") from None
+    return imu
 
 
 def _joint_columns(tab: Table, declared: list[str] | None) -> list[str]:
@@ -269,45 +260,18 @@ def read_joint_csv(
     path = Path(path)
     tab = read_table(path)
     hdr = tab.comment_dict()
-    role = role or hdr.get("role", "vision")
-    if role not in ("vision", "reference"):
-        raise FormatError(
-            path, f"expected role 'vision' or 'reference', found {role!r}", field="role"
-        )
-    units = units or hdr.get("units", "m")
-    if units not in _POS_UNITS:
-        raise FormatError(
-            path, f"expected units one of {sorted(_POS_UNITS)}, found {units!r}", field="units"
-        )
+    role, units = _joint_options(path, hdr, role, units)
     t, tcol = table_time(tab, rate_hz=rate_hz)
     declared = (
         [j.strip() for j in hdr["joints"].split(",") if j.strip()] if "joints" in hdr else None
     )
     joints = _joint_columns(tab, declared)
     if not joints:
-        raise FormatError(
-            path,
-            f"expected joint columns '<joint>_x,<joint>_y,<joint>_z', found {tab.columns}",
-            line=tab.header_line,
+        raise tab.header_error(
+            f"expected joint columns '<joint>_x,<joint>_y,<joint>_z', found {tab.columns}"
         )
-    used = {tcol}
-    pos = np.empty((len(tab), len(joints), 3))
-    avail = np.ones((len(tab), len(joints)), dtype=bool)
-    for j, name in enumerate(joints):
-        for a, ax in enumerate("xyz"):
-            pos[:, j, a] = tab.floats(f"{name}_{ax}")
-            used.add(f"{name}_{ax}")
-        ac = f"{name}_available"
-        if tab.has(ac):
-            v = tab.floats(ac)
-            bad = ~np.isin(v, (0.0, 1.0))
-            if np.any(bad):
-                k = int(np.flatnonzero(bad)[0])
-                raise FormatError(
-                    path, f"expected 0 or 1, found {v[k]!r}", line=int(tab.lines[k]), field=ac
-                )
-            avail[:, j] = v == 1.0
-            used.add(ac)
+    pos, avail, used = _joint_values(tab, joints)
+    used.add(tcol)
     pos *= _POS_UNITS[units]
     extras = _read_extras(tab, joints, used)
     names = tuple(joints)
@@ -326,9 +290,43 @@ def read_joint_csv(
         header=hdr,
         extra_columns=extras,
     )
-    rec = Recording(**{role: js}, metadata=md)
-    check_units(rec, where=str(path))
-    return rec
+    return finish_recording(path, md, **{role: js})
+
+
+def _joint_options(path: Path, hdr: dict, role, units) -> tuple[str, str]:
+    """Role and position unit: given, else the header's, else vision and m; checked."""
+    role = role or hdr.get("role", "vision")
+    if role not in ("vision", "reference"):
+        raise FormatError(
+            path, f"expected role 'vision' or 'reference', found {role!r}", field="role"
+        )
+    units = units or hdr.get("units", "m")
+    if units not in _POS_UNITS:
+        raise FormatError(
+            path, f"expected units one of {sorted(_POS_UNITS)}, found {units!r}", field="units"
+        )
+    return role, units
+
+
+def _joint_values(tab: Table, joints: list[str]):
+    """Positions (n, J, 3) in the file's unit, availability (n, J) and the columns read."""
+    used = set()
+    pos = np.empty((len(tab), len(joints), 3))
+    avail = np.ones((len(tab), len(joints)), dtype=bool)
+    for j, name in enumerate(joints):
+        for a, ax in enumerate("xyz"):
+            pos[:, j, a] = tab.floats(f"{name}_{ax}")
+            used.add(f"{name}_{ax}")
+        ac = f"{name}_available"
+        if tab.has(ac):
+            v = tab.floats(ac)
+            bad = ~np.isin(v, (0.0, 1.0))
+            if np.any(bad):
+                k = int(np.flatnonzero(bad)[0])
+                raise tab.error_at(k, f"expected 0 or 1, found {v[k]!r}", ac)
+            avail[:, j] = v == 1.0
+            used.add(ac)
+    return pos, avail, used
 
 
 def _column_values(tab: Table, c: str) -> np.ndarray:
@@ -447,41 +445,12 @@ def write_joint_csv(
         raise InputError(f"expected units one of {sorted(_POS_UNITS)}, got {units!r}")
     if decimals is None:
         decimals = {"m": 6, "mm": 3, "cm": 4}[units]
-    T, J = len(stream), len(stream.joints)
+    T = len(stream)
     for j in stream.joints:
         _check_name(j, "joint name")
-    header = ["t_s"]
-    cols: list[np.ndarray] = [stream.t_s.astype(object)]
-    p = stream.position_m / _POS_UNITS[units]
-    for j, name in enumerate(stream.joints):
-        for a, ax in enumerate("xyz"):
-            header.append(f"{name}_{ax}")
-            cols.append(p[:, j, a])
-        header.append(f"{name}_available")
-        cols.append(stream.available[:, j])
+    header, cols = _position_columns(stream, units)
     for name, val in (extra_columns or {}).items():
-        _check_name(name, "extra column")
-        if name.endswith(("_x", "_y", "_z")) or name in ("available", "t_s"):
-            raise InputError(
-                f"extra column {name!r}: names ending in _x/_y/_z, 'available' and 't_s' are reserved"
-            )
-        v = np.asarray(val)
-        if v.shape == (T,):
-            header.append(name)
-            cols.append(v)
-        elif v.shape == (T, J):
-            for j, jn in enumerate(stream.joints):
-                header.append(f"{jn}_{name}")
-                cols.append(v[:, j])
-        elif v.shape == (T, J, 3):
-            for j, jn in enumerate(stream.joints):
-                for a, ax in enumerate("xyz"):
-                    header.append(f"{jn}_{name}_{ax}")
-                    cols.append(v[:, j, a])
-        else:
-            raise InputError(
-                f"extra column {name!r}: expected shape ({T},), ({T}, {J}) or ({T}, {J}, 3), got {v.shape}"
-            )
+        _extra_columns(name, np.asarray(val), stream, header, cols)
     if len(set(header)) != len(header):
         dup = next(h for h in header if header.count(h) > 1)
         raise InputError(f"duplicate column {dup!r}; rename the extra column")
@@ -500,6 +469,46 @@ def write_joint_csv(
         row += [_cell(c[i], decimals) for c in cols[1:]]
         lines.append(",".join(row))
     return write_text_safely(path, "\n".join(lines) + "\n", force=force)
+
+
+def _position_columns(stream: JointStream, units: str) -> tuple[list[str], list[np.ndarray]]:
+    """Header names and values of ``t_s`` and every joint's ``_x/_y/_z`` and ``_available``."""
+    header = ["t_s"]
+    cols: list[np.ndarray] = [stream.t_s.astype(object)]
+    p = stream.position_m / _POS_UNITS[units]
+    for j, name in enumerate(stream.joints):
+        for a, ax in enumerate("xyz"):
+            header.append(f"{name}_{ax}")
+            cols.append(p[:, j, a])
+        header.append(f"{name}_available")
+        cols.append(stream.available[:, j])
+    return header, cols
+
+
+def _extra_columns(name: str, v: np.ndarray, stream: JointStream, header: list, cols: list) -> None:
+    """Append the columns of one extra: (T,) -> ``name``, (T, J) -> ``<joint>_name``, (T, J, 3)."""
+    T, J = len(stream), len(stream.joints)
+    _check_name(name, "extra column")
+    if name.endswith(("_x", "_y", "_z")) or name in ("available", "t_s"):
+        raise InputError(
+            f"extra column {name!r}: names ending in _x/_y/_z, 'available' and 't_s' are reserved"
+        )
+    if v.shape == (T,):
+        header.append(name)
+        cols.append(v)
+    elif v.shape == (T, J):
+        for j, jn in enumerate(stream.joints):
+            header.append(f"{jn}_{name}")
+            cols.append(v[:, j])
+    elif v.shape == (T, J, 3):
+        for j, jn in enumerate(stream.joints):
+            for a, ax in enumerate("xyz"):
+                header.append(f"{jn}_{name}_{ax}")
+                cols.append(v[:, j, a])
+    else:
+        raise InputError(
+            f"extra column {name!r}: expected shape ({T},), ({T}, {J}) or ({T}, {J}, 3), got {v.shape}"
+        )
 
 
 def write_imu_csv(

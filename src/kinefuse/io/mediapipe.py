@@ -8,16 +8,8 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import (
-    ZERO_RULE,
-    check_time,
-    check_units,
-    make_metadata,
-    read_table,
-    table_time,
-    zero_is_missing,
-)
-from kinefuse.io.kinect import _load_json
+from kinefuse.io._checks import ZERO_RULE, check_units, make_metadata, zero_is_missing
+from kinefuse.io._text import check_time, read_json, read_table, table_time
 from kinefuse.io.recording import JointStream, Recording
 
 __all__ = ["MEDIAPIPE_LANDMARKS", "MEDIAPIPE_TO_CANONICAL", "read_mediapipe"]
@@ -225,7 +217,7 @@ def _lm_array(path: Path, k: int, lms) -> np.ndarray:
 
 
 def _read_json(path: Path, rate_hz):
-    d = _load_json(path)
+    d = read_json(path)
     frames = d.get("frames") if isinstance(d, dict) else d
     if not isinstance(frames, list) or not frames:
         raise FormatError(

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import InputError
-from kinefuse.io._common import write_text_safely
+from kinefuse.io._write import write_text_safely
 
 __all__ = ["write_mot"]
 
@@ -86,6 +86,28 @@ def write_mot(
         ``path`` exists and ``force`` is False.
     """
     path = Path(path)
+    t, names, data = _check_series(t_s, columns)
+    if missing not in ("drop", "nan"):
+        raise InputError(f"write_mot: expected missing in ('drop', 'nan'), got {missing!r}")
+    M = np.column_stack([t, *data]) if data else t[:, None]
+    keep = np.all(np.isfinite(M), axis=1) if missing == "drop" else np.ones(t.size, dtype=bool)
+    M = M[keep]
+    head = [name or path.stem, "version=1", f"nRows={M.shape[0]}", f"nColumns={1 + len(names)}"]
+    head += _header_lines(in_degrees, rate_hz, int(np.sum(~keep)), metadata)
+    head += ["endheader", "\t".join(["time", *names])]
+    dt = max(int(decimals), 9)
+    body = [
+        "\t".join(
+            f"{x:.{dt if k == 0 else decimals}f}" if np.isfinite(x) else "NaN"
+            for k, x in enumerate(row)
+        )
+        for row in M
+    ]
+    return write_text_safely(path, "\n".join(head + body) + "\n", force=force)
+
+
+def _check_series(t_s, columns: Mapping[str, object]):
+    """(t (T,), column names, column values (T,) each) after checking names and shapes."""
     t = np.asarray(t_s, dtype=float)
     if t.ndim != 1 or t.size == 0 or not np.all(np.isfinite(t)):
         raise InputError(f"write_mot: expected finite t_s with shape (T,), got {t.shape}")
@@ -104,32 +126,20 @@ def write_mot(
                 f"write_mot: expected column {c!r} with shape (T,) = {t.shape}, got {v.shape}"
             )
         data.append(v)
-    if missing not in ("drop", "nan"):
-        raise InputError(f"write_mot: expected missing in ('drop', 'nan'), got {missing!r}")
-    M = np.column_stack([t, *data]) if data else t[:, None]
-    keep = np.all(np.isfinite(M), axis=1) if missing == "drop" else np.ones(t.size, dtype=bool)
-    M = M[keep]
-    head = [name or path.stem, "version=1", f"nRows={M.shape[0]}", f"nColumns={1 + len(names)}"]
-    head.append(f"inDegrees={'yes' if in_degrees else 'no'}")
+    return t, names, data
+
+
+def _header_lines(in_degrees: bool, rate_hz, n_omitted: int, metadata) -> list[str]:
+    """``inDegrees``, ``DataRate``, ``rows_omitted`` and the metadata ``key=value`` lines."""
+    head = [f"inDegrees={'yes' if in_degrees else 'no'}"]
     if rate_hz is not None:
         if not (np.isfinite(rate_hz) and rate_hz > 0):
             raise InputError(f"write_mot: expected rate_hz > 0, got {rate_hz!r}")
         head.append(f"DataRate={float(rate_hz):.6f}")
-    if not np.all(keep):
-        head.append(
-            f"rows_omitted={int(np.sum(~keep))} (a NaN value; OpenSim's Storage stops at one)"
-        )
+    if n_omitted:
+        head.append(f"rows_omitted={n_omitted} (a NaN value; OpenSim's Storage stops at one)")
     for k, v in (metadata or {}).items():
         if "=" in k or "\n" in k or "\n" in str(v) or not k:
             raise InputError(f"write_mot: metadata {k!r}={v!r} must be one key=value line")
         head.append(f"{k}={v}")
-    head += ["endheader", "\t".join(["time", *names])]
-    dt = max(int(decimals), 9)
-    body = [
-        "\t".join(
-            f"{x:.{dt if k == 0 else decimals}f}" if np.isfinite(x) else "NaN"
-            for k, x in enumerate(row)
-        )
-        for row in M
-    ]
-    return write_text_safely(path, "\n".join(head + body) + "\n", force=force)
+    return head

@@ -36,7 +36,7 @@ from scipy.spatial.transform import Rotation
 
 from kinefuse.conventions import JOINTS, SEGMENTS
 from kinefuse.exceptions import InputError
-from kinefuse.io.recording import ImuStream, JointStream, Recording
+from kinefuse.io.recording import ImuStream, JointStream, Recording, name_index
 
 __all__ = ["CANONICAL_SEGMENT_JOINTS", "R_ENU_FROM_YUP", "SEGMENT_AXIS", "Motion"]
 
@@ -167,21 +167,11 @@ class Motion:
 
     def segment_index(self, segment: str) -> int:
         """Index of ``segment`` along axis 1 of :attr:`q_world_from_segment`."""
-        try:
-            return self.segments.index(segment)
-        except ValueError:
-            raise InputError(
-                f"unknown segment {segment!r}; this motion has {list(self.segments)}"
-            ) from None
+        return name_index(self.segments, segment, "segment", "this motion")
 
     def joint_index(self, joint: str) -> int:
         """Index of ``joint`` along axis 1 of :attr:`position_m`."""
-        try:
-            return self.joints.index(joint)
-        except ValueError:
-            raise InputError(
-                f"unknown joint {joint!r}; this motion has {list(self.joints)}"
-            ) from None
+        return name_index(self.joints, joint, "joint", "this motion")
 
     def orientation(self, segment: str) -> np.ndarray:
         """``q_world_from_segment`` of one segment, shape (T, 4), ``wxyz``."""

@@ -22,12 +22,14 @@ import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import check_units, make_metadata, map_segments
+from kinefuse.io._checks import finish_recording, make_metadata
+from kinefuse.io._names import map_segments
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 from kinefuse.io.xsens_dot import specific_force_from_free_acc
 
@@ -187,25 +189,19 @@ def read_mvnx(
         accelerometer and gyroscope. With ``derive_raw`` (default) ``acc_m_s2`` is
         ``R_sensorᵀ (a_free + g e_z)`` (:func:`~kinefuse.io.xsens_dot.specific_force_from_free_acc`)
         and ``gyr_rad_s`` is the carrying segment's angular velocity rotated into the sensor
-        frame (a rigidly attached sensor turns with its segment); both derived from MVN's output,
-        listed in ``metadata["units_converted"]``. ``sensorAcceleration`` /
-        ``sensorAngularVelocity``, where a file has them, are used as they are.
+        frame (a rigidly attached sensor turns with its segment), listed in
+        ``metadata["units_converted"]``. ``sensorAcceleration`` / ``sensorAngularVelocity``,
+        where a file has them, are used as they are.
 
     Returns
     -------
     Recording
         ``reference``: joint positions (T, J, 3) m, frame :data:`MVNX_FRAME`, joints of
-        :data:`MVN_JOINTS` (segment origins = MVN joints; hand = palm point; head = midpoint of
-        the ears) -- MVN's own biomechanical-model estimate from the same IMUs, not an
-        independent optical truth. ``reference_orientation[key]``: every segment's orientation
-        (``q_world_from_sensor`` holds ``q_world_from_segment``). ``imu[key]``: each sensor's
-        ``q_world_from_sensor``, ``acc_m_s2``, ``gyr_rad_s`` (see ``derive_raw``), ``mag``.
-        Time ``t = index / frameRate`` (checked against each frame's ``time`` in ms).
-        ``metadata``: ``rate_hz``, ``segments`` (point ``pos_b`` per segment, m),
-        ``calibration_poses`` (``identity``/``npose``/``tpose``/``tpose-isb``: ``joints``,
-        ``position_m`` (J, 3), ``segments``, ``q_world_from_segment`` (S, 4)),
-        ``free_acc_world_m_s2`` per sensor, ``frames`` (the other per-frame arrays: velocity,
-        acceleration, jointAngle (deg), centerOfMass, footContacts ...), ``t0_unix_ms``.
+        :data:`MVN_JOINTS` -- MVN's own body-model estimate from the same IMUs, not an
+        independent optical truth. ``reference_orientation[key]``: every segment's orientation.
+        ``imu[key]``: each sensor's ``q_world_from_sensor``, ``acc_m_s2``, ``gyr_rad_s``,
+        ``mag``. Time ``t = index / frameRate`` (checked against each frame's ``time`` in ms).
+        ``metadata``: see :data:`METADATA`.
 
     Raises
     ------
@@ -214,26 +210,79 @@ def read_mvnx(
         not match the segment/sensor count, non-increasing time.
     """
     path = Path(path)
+    mvnx = _parse_checked(path)
+    subject, segs, sensor_labels, poses, frames = mvnx
+    seg_names = list(segs)
+    rate = _frame_rate(path, subject)
+    t = _frame_times(path, frames, rate)
+    blocks = {n: _block(path, frames, n, len(seg_names), k) for n, k in _PER_SEGMENT.items()}
+    sblocks = {n: _block(path, frames, n, len(sensor_labels), k) for n, k in _PER_SENSOR.items()}
+    q_seg, pos = blocks.pop("orientation"), blocks.pop("position")
+    if q_seg is None or pos is None:
+        raise FormatError(
+            path, "expected <orientation> and <position> in every frame", field="position"
+        )
+    names = list(dict.fromkeys(seg_names + sensor_labels))
+    overrides = {n: (sensor_map or {}).get(n) or MVN_SEGMENTS.get(n) for n in names}
+    mapping, notes = map_segments(names, {n: v for n, v in overrides.items() if v})
+    joints, jpos = _joint_positions(segs, seg_names, pos, q_seg)
+    reference = JointStream(t_s=t, position_m=jpos, joints=joints, frame=MVNX_FRAME)
+    ref_ori = {
+        mapping[s]: ImuStream(t_s=t, q_world_from_sensor=q_seg[:, i], name=s, frame=MVNX_FRAME)
+        for i, s in enumerate(seg_names)
+    }
+    imu, units = _sensor_streams(
+        t, sensor_labels, seg_names, sblocks, blocks["angularVelocity"], derive_raw, mapping, notes
+    )
+    free = sblocks["sensorFreeAcceleration"]
+    md = _metadata(path, mvnx, blocks, free, mapping, joints, rate, units, notes)
+    return finish_recording(path, md, imu=imu, reference=reference, reference_orientation=ref_ori)
+
+
+#: What :func:`read_mvnx` puts in ``metadata`` besides the standard keys: ``rate_hz``,
+#: ``segments`` (point ``pos_b`` per segment, m), ``calibration_poses``
+#: (``identity``/``npose``/``tpose``/``tpose-isb``: ``joints``, ``position_m`` (J, 3),
+#: ``segments``, ``q_world_from_segment`` (S, 4)), ``free_acc_world_m_s2`` per sensor,
+#: ``frames`` (the other per-frame arrays: velocity, acceleration, jointAngle (deg),
+#: centerOfMass, footContacts ...), ``t0_unix_ms``. Joints: segment origins are MVN joints,
+#: hand = palm point, head = midpoint of the ears.
+METADATA = (
+    "rate_hz",
+    "segments",
+    "calibration_poses",
+    "free_acc_world_m_s2",
+    "frames",
+    "t0_unix_ms",
+)
+
+
+class _Mvnx(NamedTuple):
+    subject: dict
+    segments: dict
+    sensors: list
+    poses: dict
+    frames: list
+
+
+def _parse_checked(path: Path) -> _Mvnx:
+    """:func:`_parse` of an ``.mvnx`` file that has segments and recorded frames."""
     if path.is_dir():
         found = sorted(p.name for p in path.glob("*.mvnx"))
         raise FormatError(
             path, f"expected an .mvnx file, found a folder (with .mvnx files {found})"
         )
     subject, segs, sensor_labels, poses, frames = _parse(path)
-    seg_names = list(segs)
-    if not seg_names or not frames:
+    if not segs or not frames:
         raise FormatError(
             path,
-            f"expected MVNX <segments> and <frame type='normal'> elements, found {len(seg_names)} "
+            f"expected MVNX <segments> and <frame type='normal'> elements, found {len(segs)} "
             f"segments and {len(frames)} frames",
         )
-    try:
-        rate = float(subject["frameRate"])
-    except (KeyError, ValueError):
-        raise FormatError(
-            path, "expected <subject frameRate=...>, found none", field="frameRate"
-        ) from None
-    S, N = len(seg_names), len(sensor_labels)
+    return _Mvnx(subject, segs, sensor_labels, poses, frames)
+
+
+def _frame_times(path: Path, frames: list[dict], rate: float) -> np.ndarray:
+    """``index / frameRate`` from 0 (the frames' ``time`` in ms where it disagrees by > 1 ms)."""
     idx = [r["@index"] for r in frames]
     ms = np.array([float(r["@time"]) if r["@time"] is not None else np.nan for r in frames])
     if all(i is not None for i in idx):
@@ -245,78 +294,72 @@ def read_mvnx(
                 f"{path}: frame index/frameRate disagrees with the frame's time attribute by "
                 f"{off[k]:.3g} ms at frame {k}; using time",
                 UserWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
             t = ms / 1e3
     else:
         t = ms / 1e3
-    t = t - t[0]
+    return t - t[0]
 
-    blocks = {n: _block(path, frames, n, S, k) for n, k in _PER_SEGMENT.items()}
-    sblocks = {n: _block(path, frames, n, N, k) for n, k in _PER_SENSOR.items()}
-    q_seg, pos = blocks.pop("orientation"), blocks.pop("position")
-    if q_seg is None or pos is None:
+
+def _frame_rate(path: Path, subject: dict) -> float:
+    try:
+        return float(subject["frameRate"])
+    except (KeyError, ValueError):
         raise FormatError(
-            path, "expected <orientation> and <position> in every frame", field="position"
-        )
+            path, "expected <subject frameRate=...>, found none", field="frameRate"
+        ) from None
 
-    names = list(dict.fromkeys(seg_names + sensor_labels))
-    overrides = {n: (sensor_map or {}).get(n) or MVN_SEGMENTS.get(n) for n in names}
-    mapping, notes = map_segments(names, {n: v for n, v in overrides.items() if v})
 
-    joints, jpos = _joint_positions(segs, seg_names, pos, q_seg)
-    reference = JointStream(t_s=t, position_m=jpos, joints=joints, frame=MVNX_FRAME)
-    ref_ori = {
-        mapping[s]: ImuStream(t_s=t, q_world_from_sensor=q_seg[:, i], name=s, frame=MVNX_FRAME)
-        for i, s in enumerate(seg_names)
-    }
-
-    units = []
-    imu = {}
-    q_sen = sblocks["sensorOrientation"]
-    free = sblocks["sensorFreeAcceleration"]
-    omega = blocks["angularVelocity"]
+def _sensor_streams(t, sensor_labels, seg_names, sblocks, omega, derive_raw, mapping, notes):
+    """ImuStream per sensor key and the derivations done (a note for each sensor not read)."""
+    imu, units = {}, []
     for i, s in enumerate(sensor_labels):
-        q = None if q_sen is None else q_sen[:, i]
-        acc = None if sblocks["sensorAcceleration"] is None else sblocks["sensorAcceleration"][:, i]
-        gyr = (
-            None
-            if sblocks["sensorAngularVelocity"] is None
-            else sblocks["sensorAngularVelocity"][:, i]
-        )
-        if derive_raw and q is not None:
-            if acc is None and free is not None:
-                acc = specific_force_from_free_acc(q, free[:, i])
-                units.append(
-                    f"{s}: acc_m_s2 derived = R_sensor^T (sensorFreeAcceleration + 9.80665 e_z)"
-                )
-            if gyr is None and omega is not None and s in seg_names:
-                gyr = (
-                    Rotation.from_quat(q, scalar_first=True)
-                    .inv()
-                    .apply(omega[:, seg_names.index(s)])
-                )
-                units.append(f"{s}: gyr_rad_s derived = R_sensor^T angularVelocity of segment {s}")
-        if q is None and (acc is None or gyr is None):
+        stream = _sensor_stream(t, s, i, seg_names, sblocks, omega, derive_raw, units)
+        if stream is None:
             notes.append(f"sensor {s!r}: no orientation or raw data in the file; not read")
-            continue
-        mag = (
-            None if sblocks["sensorMagneticField"] is None else sblocks["sensorMagneticField"][:, i]
-        )
-        imu[mapping[s]] = ImuStream(
-            t_s=t,
-            q_world_from_sensor=q,
-            acc_m_s2=acc,
-            gyr_rad_s=gyr,
-            mag=mag,
-            name=s,
-            frame=MVNX_FRAME,
-        )
+        else:
+            imu[mapping[s]] = stream
+    return imu, units
 
+
+def _sensor_stream(t, s, i, seg_names, sblocks, omega, derive_raw, units) -> ImuStream | None:
+    """Sensor ``s`` (column ``i``) as an ImuStream (None without orientation or raw data)."""
+
+    def col(name):
+        return None if sblocks[name] is None else sblocks[name][:, i]
+
+    q, acc, gyr = col("sensorOrientation"), col("sensorAcceleration"), col("sensorAngularVelocity")
+    free = col("sensorFreeAcceleration")
+    if derive_raw and q is not None:
+        if acc is None and free is not None:
+            acc = specific_force_from_free_acc(q, free)
+            units.append(
+                f"{s}: acc_m_s2 derived = R_sensor^T (sensorFreeAcceleration + 9.80665 e_z)"
+            )
+        if gyr is None and omega is not None and s in seg_names:
+            gyr = Rotation.from_quat(q, scalar_first=True).inv().apply(omega[:, seg_names.index(s)])
+            units.append(f"{s}: gyr_rad_s derived = R_sensor^T angularVelocity of segment {s}")
+    if q is None and (acc is None or gyr is None):
+        return None
+    return ImuStream(
+        t_s=t,
+        q_world_from_sensor=q,
+        acc_m_s2=acc,
+        gyr_rad_s=gyr,
+        mag=col("sensorMagneticField"),
+        name=s,
+        frame=MVNX_FRAME,
+    )
+
+
+def _calibration_poses(path: Path, segs, poses: dict) -> dict:
+    """Joint positions and segment orientations of each calibration pose in the file."""
+    seg_names = list(segs)
     calib = {}
     for kind, rec in poses.items():
-        pq = _block(path, [rec], "orientation", S, 4)
-        pp = _block(path, [rec], "position", S, 3)
+        pq = _block(path, [rec], "orientation", len(seg_names), 4)
+        pp = _block(path, [rec], "position", len(seg_names), 3)
         if pq is None or pp is None:
             continue
         pj, pjp = _joint_positions(segs, seg_names, pp, pq)
@@ -326,6 +369,11 @@ def read_mvnx(
             "segments": tuple(seg_names),
             "q_world_from_segment": pq[0],
         }
+    return calib
+
+
+def _other_frame_arrays(frames: list[dict], blocks: dict) -> dict:
+    """The per-frame arrays not read into streams (velocity, jointAngle, centerOfMass ...)."""
     other = {}
     for n in frames[0]:
         if n.startswith("@") or n in _PER_SEGMENT or n in _PER_SENSOR:
@@ -336,8 +384,13 @@ def read_mvnx(
     for n, v in blocks.items():
         if v is not None:
             other[n] = v
+    return other
+
+
+def _metadata(path, mvnx: _Mvnx, blocks, free, mapping, joints, rate, units, notes) -> dict:
+    subject, segs, sensor_labels, poses, frames = mvnx
     t0_ms = frames[0]["@ms"]
-    md = make_metadata(
+    return make_metadata(
         path,
         "mvnx",
         subject=subject.get("label"),
@@ -347,11 +400,11 @@ def read_mvnx(
         rate_hz=rate,
         segments=segs,
         sensors=tuple(sensor_labels),
-        calibration_poses=calib,
+        calibration_poses=_calibration_poses(path, segs, poses),
         free_acc_world_m_s2={}
         if free is None
         else {mapping[s]: free[:, i] for i, s in enumerate(sensor_labels)},
-        frames=other,
+        frames=_other_frame_arrays(frames, blocks),
         t0_unix_ms=float(t0_ms) if t0_ms is not None and math.isfinite(float(t0_ms)) else None,
         configuration=subject.get("configuration"),
         frame_notes=(
@@ -360,6 +413,3 @@ def read_mvnx(
         ),
         notes=notes,
     )
-    rec = Recording(imu=imu, reference=reference, reference_orientation=ref_ori, metadata=md)
-    check_units(rec, where=str(path))
-    return rec

@@ -23,7 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import zero_is_missing
+from kinefuse.io._checks import zero_is_missing
+from kinefuse.io._names import PLUG_IN_GAIT_JOINTS
+from kinefuse.io._text import header_number
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["IMU_SEGMENTS", "VICON_JOINTS", "VICON_SEGMENTS", "read_neura"]
@@ -43,17 +45,7 @@ IMU_SEGMENTS = {
 }
 
 #: Vicon (Plug-in-Gait-style) point -> canonical joint. ``foot_*`` is the toe point (LTOE/RTOE).
-VICON_JOINTS = {
-    "PELV": "pelvis",
-    "LFEP": "hip_l",
-    "RFEP": "hip_r",
-    "LFEO": "knee_l",
-    "RFEO": "knee_r",
-    "LTIO": "ankle_l",
-    "RTIO": "ankle_r",
-    "LTOE": "foot_l",
-    "RTOE": "foot_r",
-}
+VICON_JOINTS = {"PELV": "pelvis", **PLUG_IN_GAIT_JOINTS, "LTOE": "foot_l", "RTOE": "foot_r"}
 _REQUIRED_JOINTS = ("PELV", "LFEP", "RFEP", "LFEO", "RFEO", "LTIO", "RTIO")
 
 #: Vicon segment orientation -> canonical segment.
@@ -110,12 +102,7 @@ def _read_table(path: Path) -> tuple[dict[str, str], list[str], np.ndarray]:
         raise FormatError(path, "expected at least one data row, got none")
     data = np.array(rows, dtype=float)
     if "nSamples" in meta:
-        try:
-            n = int(meta["nSamples"])
-        except ValueError:
-            raise FormatError(
-                path, f"expected an integer, got {meta['nSamples']!r}", field="nSamples"
-            ) from None
+        n = header_number(path, meta["nSamples"], "nSamples", cast=int, what="an integer")
         if n != data.shape[0]:
             raise FormatError(
                 path, f"header says nSamples={n}, got {data.shape[0]} data rows", field="nSamples"
@@ -126,12 +113,7 @@ def _read_table(path: Path) -> tuple[dict[str, str], list[str], np.ndarray]:
 def _rate(path: Path, meta: dict[str, str]) -> float:
     if "fs" not in meta:
         raise FormatError(path, "expected a '// fs=<Hz>' header line, got none", field="fs")
-    try:
-        fs = float(meta["fs"])
-    except ValueError:
-        raise FormatError(
-            path, f"expected a sampling rate in Hz, got {meta['fs']!r}", field="fs"
-        ) from None
+    fs = header_number(path, meta["fs"], "fs", what="a sampling rate in Hz")
     if not np.isfinite(fs) or fs <= 0:
         raise FormatError(path, f"expected a positive sampling rate, got {fs}", field="fs")
     return fs
@@ -196,6 +178,64 @@ def _resolve(path: Path, trial: str | None) -> tuple[Path, str]:
     )
 
 
+def _vicon(vpath: Path, vcols, v: np.ndarray, t: np.ndarray):
+    """Vicon joint centres (:data:`VICON_JOINTS`) and segment orientations of the trial."""
+    jnames, jpos = [], []
+    for code, joint in VICON_JOINTS.items():
+        p = _columns(vpath, vcols, v, code, 3, required=code in _REQUIRED_JOINTS)
+        if p is not None:
+            jnames.append(joint)
+            jpos.append(p)
+    jp = np.stack(jpos, axis=1)
+    reference = JointStream(
+        t_s=t, position_m=jp, available=~zero_is_missing(jp), joints=tuple(jnames), frame="vicon"
+    )
+    ref_ori = {}
+    for code, seg in VICON_SEGMENTS.items():
+        q = _columns(vpath, vcols, v, code, 4, required=False)
+        if q is not None:
+            ref_ori[seg] = ImuStream(
+                t_s=t,
+                q_world_from_sensor=_unit_quaternions(vpath, q, code),
+                name=code,
+                frame="vicon",
+            )
+    return reference, ref_ori
+
+
+def _imus(root: Path, trial: str, vpath: Path, fs: float, t: np.ndarray):
+    """The trial's IMU streams by segment (same rate and length as the Vicon file), and names."""
+    T = t.size
+    imu = {}
+    sensor_names = {}
+    for sensor, seg in IMU_SEGMENTS.items():
+        ipath = root / "imu" / f"{trial}-{sensor}.csv"
+        if not ipath.is_file():
+            continue
+        imeta, icols, d = _read_table(ipath)
+        ifs = _rate(ipath, imeta)
+        if abs(ifs - fs) > 1e-9 or d.shape[0] != T:
+            raise FormatError(
+                ipath,
+                f"expected {T} samples at {fs} Hz like {vpath.name}, got {d.shape[0]} at {ifs} Hz",
+                field="fs",
+            )
+        q = _unit_quaternions(ipath, _columns(ipath, icols, d, "ori", 4, required=True), "ori")
+        imu[seg] = ImuStream(
+            t_s=t,
+            q_world_from_sensor=q,
+            acc_m_s2=_columns(ipath, icols, d, "acc", 3, required=False),
+            gyr_rad_s=_columns(ipath, icols, d, "gyr", 3, required=False),
+            mag=_columns(ipath, icols, d, "mag", 3, required=False),
+            name=sensor,
+            frame="vicon",
+        )
+        sensor_names[seg] = sensor
+    if not imu:
+        raise FormatError(root / "imu", f"expected IMU files {trial}-<sensor>.csv, found none")
+    return imu, sensor_names
+
+
 def read_neura(path, *, trial: str | None = None) -> Recording:
     """Read one Neura sparse (gaittoolbox) trial: Xsens IMUs + Vicon joint centres.
 
@@ -235,57 +275,9 @@ def read_neura(path, *, trial: str | None = None) -> Recording:
         raise FormatError(
             vpath, f"expected positions in metres (posUnit=m), got posUnit={unit}", field="posUnit"
         )
-    T = v.shape[0]
-    t = np.arange(T) / fs
-
-    jnames, jpos = [], []
-    for code, joint in VICON_JOINTS.items():
-        p = _columns(vpath, vcols, v, code, 3, required=code in _REQUIRED_JOINTS)
-        if p is not None:
-            jnames.append(joint)
-            jpos.append(p)
-    jp = np.stack(jpos, axis=1)
-    reference = JointStream(
-        t_s=t, position_m=jp, available=~zero_is_missing(jp), joints=tuple(jnames), frame="vicon"
-    )
-    ref_ori = {}
-    for code, seg in VICON_SEGMENTS.items():
-        q = _columns(vpath, vcols, v, code, 4, required=False)
-        if q is not None:
-            ref_ori[seg] = ImuStream(
-                t_s=t,
-                q_world_from_sensor=_unit_quaternions(vpath, q, code),
-                name=code,
-                frame="vicon",
-            )
-
-    imu = {}
-    sensor_names = {}
-    for sensor, seg in IMU_SEGMENTS.items():
-        ipath = root / "imu" / f"{trial}-{sensor}.csv"
-        if not ipath.is_file():
-            continue
-        imeta, icols, d = _read_table(ipath)
-        ifs = _rate(ipath, imeta)
-        if abs(ifs - fs) > 1e-9 or d.shape[0] != T:
-            raise FormatError(
-                ipath,
-                f"expected {T} samples at {fs} Hz like {vpath.name}, got {d.shape[0]} at {ifs} Hz",
-                field="fs",
-            )
-        q = _unit_quaternions(ipath, _columns(ipath, icols, d, "ori", 4, required=True), "ori")
-        imu[seg] = ImuStream(
-            t_s=t,
-            q_world_from_sensor=q,
-            acc_m_s2=_columns(ipath, icols, d, "acc", 3, required=False),
-            gyr_rad_s=_columns(ipath, icols, d, "gyr", 3, required=False),
-            mag=_columns(ipath, icols, d, "mag", 3, required=False),
-            name=sensor,
-            frame="vicon",
-        )
-        sensor_names[seg] = sensor
-    if not imu:
-        raise FormatError(root / "imu", f"expected IMU files {trial}-<sensor>.csv, found none")
+    t = np.arange(v.shape[0]) / fs
+    reference, ref_ori = _vicon(vpath, vcols, v, t)
+    imu, sensor_names = _imus(root, trial, vpath, fs, t)
     subject, _, act = trial.partition("-")
     return Recording(
         imu=imu,

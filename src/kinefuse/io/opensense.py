@@ -18,15 +18,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import FormatError, FormatWarning, InputError
-from kinefuse.io._common import (
-    Table,
-    canonical_segment,
-    check_time,
-    check_units,
-    make_metadata,
-    map_segments,
-    read_table,
-)
+from kinefuse.io._checks import finish_recording, make_metadata
+from kinefuse.io._names import canonical_segment, map_segments
+from kinefuse.io._text import Table, check_time, read_table
 from kinefuse.io.recording import ImuStream, Recording
 from kinefuse.io.xsens_dot import specific_force_from_free_acc
 
@@ -81,56 +75,15 @@ def read_xsens_txt(path, *, rate_hz: float | None = None) -> dict:
     """
     path = Path(path)
     tab: Table = read_table(path, delimiter="\t", comment_prefixes=("//",))
-    rate = rate_hz
-    if rate is None:
-        for c in tab.comments:
-            m = _RATE.search(c)
-            if m:
-                rate = float(m.group(1))
-        if rate is None:
-            raise FormatError(
-                path, "missing '// Update Rate: <x>Hz' header line; pass rate_hz=", line=1
-            )
+    rate = _update_rate(tab) if rate_hz is None else rate_hz
     counter = _unwrap(tab.floats("PacketCounter", allow_empty=False), _COUNTER_WRAP)
     check_time(path, counter, tab.lines, "PacketCounter")
     fine_s, fine_note = _sample_time_fine(tab, rate)
 
-    def group(names):
-        present = [tab.has(n) for n in names]
-        if not any(present):
-            return None
-        if not all(present):
-            missing = [n for n, p in zip(names, present, strict=True) if not p]
-            raise FormatError(
-                path,
-                f"missing column {missing[0]!r} (found {names[0]!r})",
-                line=tab.header_line,
-                field=missing[0],
-            )
-        return np.stack([tab.floats(n) for n in names], axis=1)
-
-    acc = group(["Acc_X", "Acc_Y", "Acc_Z"])
-    gyr = group(["Gyr_X", "Gyr_Y", "Gyr_Z"])
-    mag = group(["Mag_X", "Mag_Y", "Mag_Z"])
-    q = None
-    mat = group(_MAT_COLS)
-    if mat is not None:
-        R = mat.reshape(-1, 3, 3).transpose(0, 2, 1)  # listed column by column -> R[n][row][col]
-        q = np.full((R.shape[0], 4), np.nan)
-        ok = np.all(np.isfinite(mat), axis=1)
-        if np.any(ok):
-            dev = np.abs(R[ok] @ R[ok].transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
-            if np.any(dev > 1e-2):
-                i = int(np.flatnonzero(ok)[int(np.argmax(dev))])
-                raise FormatError(
-                    path,
-                    f"expected an orthonormal orientation matrix, found |R R^T - I| = {dev.max():.3g}",
-                    line=int(tab.lines[i]),
-                    field="Mat[1][1]",
-                )
-            q[ok] = Rotation.from_matrix(R[ok]).as_quat(scalar_first=True)
-    else:
-        q = group(["Quat_q0", "Quat_q1", "Quat_q2", "Quat_q3"])
+    acc = tab.column_group(["Acc_X", "Acc_Y", "Acc_Z"])
+    gyr = tab.column_group(["Gyr_X", "Gyr_Y", "Gyr_Z"])
+    mag = tab.column_group(["Mag_X", "Mag_Y", "Mag_Z"])
+    q = _orientation(tab)
     if q is None and (acc is None or gyr is None):
         raise FormatError(
             path,
@@ -148,6 +101,41 @@ def read_xsens_txt(path, *, rate_hz: float | None = None) -> dict:
         "q": q,
         "lines": tab.lines,
     }
+
+
+def _update_rate(tab: Table) -> float:
+    """The rate of the last ``// Update Rate: <x>Hz`` header line."""
+    rate = None
+    for c in tab.comments:
+        m = _RATE.search(c)
+        if m:
+            rate = float(m.group(1))
+    if rate is None:
+        raise FormatError(
+            tab.path, "missing '// Update Rate: <x>Hz' header line; pass rate_hz=", line=1
+        )
+    return rate
+
+
+def _orientation(tab: Table) -> np.ndarray | None:
+    """Quaternions (N, 4) wxyz from ``Mat[i][j]`` (checked orthonormal) or ``Quat_q0..3``."""
+    mat = tab.column_group(_MAT_COLS)
+    if mat is None:
+        return tab.column_group(["Quat_q0", "Quat_q1", "Quat_q2", "Quat_q3"])
+    R = mat.reshape(-1, 3, 3).transpose(0, 2, 1)  # listed column by column -> R[n][row][col]
+    q = np.full((R.shape[0], 4), np.nan)
+    ok = np.all(np.isfinite(mat), axis=1)
+    if np.any(ok):
+        dev = np.abs(R[ok] @ R[ok].transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+        if np.any(dev > 1e-2):
+            i = int(np.flatnonzero(ok)[int(np.argmax(dev))])
+            raise tab.error_at(
+                i,
+                f"expected an orthonormal orientation matrix, found |R R^T - I| = {dev.max():.3g}",
+                "Mat[1][1]",
+            )
+        q[ok] = Rotation.from_matrix(R[ok]).as_quat(scalar_first=True)
+    return q
 
 
 def _unwrap(v: np.ndarray, period: float) -> np.ndarray:
@@ -275,55 +263,41 @@ def read_opensense(
         raise InputError(
             f"expected acceleration 'auto', 'specific_force' or 'free', got {acceleration!r}"
         )
-    if path.is_dir():
-        files = sorted(p for p in path.glob("*.txt") if _is_xsens(p))
-        if not files:
-            raise FormatError(
-                path,
-                "expected Xsens MT Manager .txt exports (with a PacketCounter column), found none",
-            )
-        folder = path
-    else:
-        files = [path]
-        folder = path.parent
+    files, folder = _files(path)
     parsed = {_sensor_id(f): (f, read_xsens_txt(f, rate_hz=rate_hz)) for f in files}
-    xml_map = _xml_mapping(folder)
-    overrides = {}
-    for sid in parsed:
-        target = None
-        if sensor_map is not None and sid in sensor_map:
-            target = sensor_map[sid]
-        elif sensor_map is None and sid in xml_map:
-            target = xml_map[sid]
-        elif sensor_map is None and sid in OPENSENSE_EXAMPLE_SENSORS:
-            target = OPENSENSE_EXAMPLE_SENSORS[sid]
-        if target is not None:
-            overrides[sid] = canonical_segment(target) or target
-    mapping, notes = map_segments(list(parsed), overrides)
-    c0 = min(p["counter"][0] for _, p in parsed.values())
-    rates = {p["rate_hz"] for _, p in parsed.values()}
-    if len(rates) > 1:
-        notes.append(f"sensors report different update rates {sorted(rates)}")
-    use_fine = all(p["sample_time_s"] is not None for _, p in parsed.values())
-    for sid, (f, p) in parsed.items():
-        note = p["sample_time_note"]
-        if not use_fine and note and "not increasing" in note:
-            notes.append(f"{sid}: {note}")
-        if use_fine and note and "Update Rate" in note:
-            warnings.warn(f"{f}: {note}", FormatWarning, stacklevel=2)
-            notes.append(f"{sid}: {note}")
-    fine0 = min(p["sample_time_s"][0] for _, p in parsed.values()) if use_fine else 0.0
-    imu = {}
-    free_acc = {}
-    units = ["orientation matrix -> quaternion wxyz"]
+    mapping, notes = map_segments(list(parsed), _overrides(parsed, sensor_map, folder))
+    use_fine, t0, c0 = _time_base(parsed, notes)
+    imu, free_acc, units = _streams(parsed, mapping, (use_fine, t0, c0), acceleration, notes)
+    md = make_metadata(
+        path,
+        "opensense",
+        subject=None,
+        units_converted=units,
+        segment_map=mapping,
+        time_source="SampleTimeFine" if use_fine else "PacketCounter / Update Rate",
+        free_acc_m_s2=free_acc,
+        files=[str(f) for f, _ in parsed.values()],
+        packet_counter_origin=int(c0),
+        frame_notes=(
+            "orientation frame: Xsens global, z up (R @ acc = +g z at rest); heading axes as set in MT Manager "
+            "(ENU default in 4.x), not converted"
+        ),
+        notes=notes,
+    )
+    return finish_recording(path, md, imu=imu)
+
+
+def _streams(parsed: dict, mapping: dict, time_base, acceleration: str, notes: list[str]):
+    """(ImuStream per key, free acceleration per key where Acc holds it, conversions done)."""
+    use_fine, t0, c0 = time_base
+    imu, free_acc, units = {}, {}, ["orientation matrix -> quaternion wxyz"]
     for sid, (_f, p) in parsed.items():
         if use_fine:  # synchronised sensors share the SampleTimeFine clock
-            t = p["sample_time_s"] - fine0
+            t = p["sample_time_s"] - t0
         else:
             t = (p["counter"] - c0) / p["rate_hz"]
         acc = p["acc"]
-        kind = _acc_kind(acc, p["q"], acceleration)
-        if kind == "free":
+        if _acc_kind(acc, p["q"], acceleration) == "free":
             free_acc[mapping[sid]] = acc
             acc = specific_force_from_free_acc(p["q"], acc)
             units = sorted(
@@ -344,22 +318,52 @@ def read_opensense(
             f"|acc| < {_FREE_ACC_MAX} m/s^2); specific force rebuilt as R^T (a_free + g e_z), the "
             "free acceleration kept in metadata['free_acc_m_s2']"
         )
-    md = make_metadata(
-        path,
-        "opensense",
-        subject=None,
-        units_converted=units,
-        segment_map=mapping,
-        time_source="SampleTimeFine" if use_fine else "PacketCounter / Update Rate",
-        free_acc_m_s2=free_acc,
-        files=[str(f) for f, _ in parsed.values()],
-        packet_counter_origin=int(c0),
-        frame_notes=(
-            "orientation frame: Xsens global, z up (R @ acc = +g z at rest); heading axes as set in MT Manager "
-            "(ENU default in 4.x), not converted"
-        ),
-        notes=notes,
-    )
-    rec = Recording(imu=imu, metadata=md)
-    check_units(rec, where=str(path))
-    return rec
+    return imu, free_acc, units
+
+
+def _files(path: Path) -> tuple[list[Path], Path]:
+    """The Xsens text files of ``path`` (a file or a folder) and the folder they are in."""
+    if not path.is_dir():
+        return [path], path.parent
+    files = sorted(p for p in path.glob("*.txt") if _is_xsens(p))
+    if not files:
+        raise FormatError(
+            path,
+            "expected Xsens MT Manager .txt exports (with a PacketCounter column), found none",
+        )
+    return files, path
+
+
+def _overrides(parsed: dict, sensor_map, folder: Path) -> dict[str, str]:
+    """Sensor id -> key from ``sensor_map``, else the folder's XML mapping or the example's ids."""
+    xml_map = _xml_mapping(folder)
+    overrides = {}
+    for sid in parsed:
+        target = None
+        if sensor_map is not None and sid in sensor_map:
+            target = sensor_map[sid]
+        elif sensor_map is None and sid in xml_map:
+            target = xml_map[sid]
+        elif sensor_map is None and sid in OPENSENSE_EXAMPLE_SENSORS:
+            target = OPENSENSE_EXAMPLE_SENSORS[sid]
+        if target is not None:
+            overrides[sid] = canonical_segment(target) or target
+    return overrides
+
+
+def _time_base(parsed: dict, notes: list[str]) -> tuple[bool, float, float]:
+    """(SampleTimeFine for all sensors?, its earliest first time, the smallest first counter)."""
+    c0 = min(p["counter"][0] for _, p in parsed.values())
+    rates = {p["rate_hz"] for _, p in parsed.values()}
+    if len(rates) > 1:
+        notes.append(f"sensors report different update rates {sorted(rates)}")
+    use_fine = all(p["sample_time_s"] is not None for _, p in parsed.values())
+    for sid, (f, p) in parsed.items():
+        note = p["sample_time_note"]
+        if not use_fine and note and "not increasing" in note:
+            notes.append(f"{sid}: {note}")
+        if use_fine and note and "Update Rate" in note:
+            warnings.warn(f"{f}: {note}", FormatWarning, stacklevel=3)
+            notes.append(f"{sid}: {note}")
+    fine0 = min(p["sample_time_s"][0] for _, p in parsed.values()) if use_fine else 0.0
+    return use_fine, fine0, c0

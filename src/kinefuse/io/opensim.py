@@ -29,13 +29,10 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError, FormatWarning, InputError
-from kinefuse.io._common import (
-    _read_text,
-    check_time,
-    make_metadata,
-    map_segments,
-    write_text_safely,
-)
+from kinefuse.io._checks import make_metadata
+from kinefuse.io._names import map_segments
+from kinefuse.io._text import check_time, read_text
+from kinefuse.io._write import write_text_safely
 from kinefuse.io.recording import ImuStream, Recording
 
 __all__ = [
@@ -195,34 +192,8 @@ def _parse_fields(path: Path, text: str, lineno: int, labels: list[str], k: int)
     return out
 
 
-def read_opensim_table(path) -> OpenSimTable:
-    """Read an OpenSim ``.mot`` / ``.sto`` table (any version OpenSim reads).
-
-    Parameters
-    ----------
-    path : str or Path
-        The file.
-
-    Returns
-    -------
-    OpenSimTable
-        Values exactly as stored (OpenSim's ``STOFileAdapter`` returns the same numbers); units
-        from ``inDegrees`` via :meth:`OpenSimTable.units`.
-
-    Raises
-    ------
-    FormatError
-        No ``endheader`` line, no column labels, an unknown ``DataType``, a row with another
-        number of fields than the labels, a non-numeric value, non-increasing time.
-
-    Warns
-    -----
-    FormatWarning
-        ``nRows`` / ``nColumns`` in the header disagree with the table (the rows there are are
-        read, as OpenSim does).
-    """
-    path = Path(path)
-    lines = _read_text(path).splitlines()
+def _table_header(path: Path, lines: list[str]):
+    """(``key=value`` header, description lines, index of the labels line, column labels)."""
     end = next((i for i, ln in enumerate(lines) if ln.strip().lower() == "endheader"), None)
     if end is None:
         raise FormatError(
@@ -256,6 +227,38 @@ def read_opensim_table(path) -> OpenSimTable:
             f"expected tab-separated column labels (time first), found {raw.strip()!r}",
             line=k_lab + 1,
         )
+    return header, description, k_lab, labels
+
+
+def read_opensim_table(path) -> OpenSimTable:
+    """Read an OpenSim ``.mot`` / ``.sto`` table (any version OpenSim reads).
+
+    Parameters
+    ----------
+    path : str or Path
+        The file.
+
+    Returns
+    -------
+    OpenSimTable
+        Values exactly as stored (OpenSim's ``STOFileAdapter`` returns the same numbers); units
+        from ``inDegrees`` via :meth:`OpenSimTable.units`.
+
+    Raises
+    ------
+    FormatError
+        No ``endheader`` line, no column labels, an unknown ``DataType``, a row with another
+        number of fields than the labels, a non-numeric value, non-increasing time.
+
+    Warns
+    -----
+    FormatWarning
+        ``nRows`` / ``nColumns`` in the header disagree with the table (the rows there are are
+        read, as OpenSim does).
+    """
+    path = Path(path)
+    lines = read_text(path).splitlines()
+    header, description, k_lab, labels = _table_header(path, lines)
     dtype = header.get("DataType", "double")
     if dtype not in _ELEMENTS:
         raise FormatError(
@@ -408,6 +411,24 @@ def write_opensense_sto(
     streams = imu.imu if isinstance(imu, Recording) else dict(imu)
     if not streams:
         raise InputError("write_opensense_sto: expected at least one IMU stream, got none")
+    t, labels = _timeline_and_labels(streams, names)
+    if rate_hz is None:
+        rate_hz = md.get("rate_hz") or (1.0 / float(np.median(np.diff(t))) if t.size > 1 else None)
+    if rate_hz is None or not (float(rate_hz) > 0):
+        raise InputError(f"write_opensense_sto: expected rate_hz > 0, got {rate_hz!r}")
+    out = [f"DataRate={float(rate_hz):.6f}", "DataType=Quaternion", "version=3", "endheader"]
+    out.append("\t".join(["time", *labels]))
+    qs = [s.q_world_from_sensor for s in streams.values()]
+    for i in range(t.size):
+        out.append(
+            "\t".join([_sto_float(t[i])] + [",".join(_sto_float(v) for v in q[i]) for q in qs])
+        )
+    protect = [md.get("source")] + list(md.get("files", []))
+    return write_text_safely(path, "\n".join(out) + "\n", force=force, protect=protect)
+
+
+def _timeline_and_labels(streams: Mapping, names) -> tuple[np.ndarray, list[str]]:
+    """The streams' common time (checked) and their column labels (checked unique)."""
     t = None
     labels = []
     for key, s in streams.items():
@@ -432,19 +453,7 @@ def write_opensense_sto(
                 f"write_opensense_sto: bad or duplicate column label {lab!r} for {key!r}"
             )
         labels.append(lab)
-    if rate_hz is None:
-        rate_hz = md.get("rate_hz") or (1.0 / float(np.median(np.diff(t))) if t.size > 1 else None)
-    if rate_hz is None or not (float(rate_hz) > 0):
-        raise InputError(f"write_opensense_sto: expected rate_hz > 0, got {rate_hz!r}")
-    out = [f"DataRate={float(rate_hz):.6f}", "DataType=Quaternion", "version=3", "endheader"]
-    out.append("\t".join(["time", *labels]))
-    qs = [s.q_world_from_sensor for s in streams.values()]
-    for i in range(t.size):
-        out.append(
-            "\t".join([_sto_float(t[i])] + [",".join(_sto_float(v) for v in q[i]) for q in qs])
-        )
-    protect = [md.get("source")] + list(md.get("files", []))
-    return write_text_safely(path, "\n".join(out) + "\n", force=force, protect=protect)
+    return t, labels
 
 
 def read_opensim_mot(path) -> Recording:

@@ -19,7 +19,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from kinefuse.exceptions import InputError
-from kinefuse.io._common import current_umask
+from kinefuse.io._write import current_umask
 
 __all__ = ["OutputFolder", "check_writable_file", "deferred_interrupts"]
 

@@ -9,7 +9,9 @@ import numpy as np
 import scipy.io
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import check_time, check_units, make_metadata, map_segments
+from kinefuse.io._checks import finish_recording, make_metadata
+from kinefuse.io._names import map_segments
+from kinefuse.io._text import check_time
 from kinefuse.io.recording import ImuStream, Recording
 
 __all__ = ["read_qmt"]
@@ -66,23 +68,7 @@ def read_qmt(
     raw_quat = {}
     for name, s in structs.items():
         fields = list(s._fieldnames)
-        for f in ("acc", "gyr"):
-            if f not in fields:
-                raise FormatError(
-                    path,
-                    f"struct {name!r}: missing field {f!r}; found {fields}",
-                    field=f"{name}.{f}",
-                )
-        arr = {}
-        for f in ("acc", "gyr"):
-            a = np.asarray(getattr(s, f))
-            if a.shape != (t.size, 3) or not np.issubdtype(a.dtype, np.number):
-                raise FormatError(
-                    path,
-                    f"expected {name}.{f} numeric with shape ({t.size}, 3), found {a.shape}",
-                    field=f"{name}.{f}",
-                )
-            arr[f] = a.astype(np.float64)
+        arr = _acc_gyr(path, name, s, t.size)
         if keep_raw_quat and "quat" in fields:
             raw_quat[mapping[name]] = np.asarray(s.quat, dtype=float)
         imu[mapping[name]] = ImuStream(t_s=t, acc_m_s2=arr["acc"], gyr_rad_s=arr["gyr"], name=name)
@@ -96,6 +82,27 @@ def read_qmt(
     )
     if keep_raw_quat:
         md["raw_quat"] = raw_quat
-    rec = Recording(imu=imu, metadata=md)
-    check_units(rec, where=str(path))
-    return rec
+    return finish_recording(path, md, imu=imu)
+
+
+def _acc_gyr(path: Path, name: str, s, T: int) -> dict[str, np.ndarray]:
+    """Fields ``acc`` and ``gyr`` of struct ``name`` as float64 (T, 3), checked."""
+    fields = list(s._fieldnames)
+    for f in ("acc", "gyr"):
+        if f not in fields:
+            raise FormatError(
+                path,
+                f"struct {name!r}: missing field {f!r}; found {fields}",
+                field=f"{name}.{f}",
+            )
+    arr = {}
+    for f in ("acc", "gyr"):
+        a = np.asarray(getattr(s, f))
+        if a.shape != (T, 3) or not np.issubdtype(a.dtype, np.number):
+            raise FormatError(
+                path,
+                f"expected {name}.{f} numeric with shape ({T}, 3), found {a.shape}",
+                field=f"{name}.{f}",
+            )
+        arr[f] = a.astype(np.float64)
+    return arr

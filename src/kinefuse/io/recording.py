@@ -9,7 +9,7 @@ import numpy as np
 
 from kinefuse.exceptions import InputError
 
-__all__ = ["ImuStream", "JointStream", "Recording"]
+__all__ = ["ImuStream", "JointStream", "Recording", "name_index"]
 
 
 def _time_vector(t_s, where: str) -> np.ndarray:
@@ -41,6 +41,14 @@ def _signal(value, where: str, name: str, shape_tail: tuple[int, ...], T: int) -
         exp = "(" + ", ".join(["T", *map(str, shape_tail)]) + ")"
         raise InputError(f"{where}: expected {name} with shape {exp} = {expected}, got {a.shape}")
     return np.asarray(a, dtype=np.float64)
+
+
+def name_index(names: Sequence[str], name: str, what: str, owner: str) -> int:
+    """Position of ``name`` in ``names``; an InputError lists the known names otherwise."""
+    try:
+        return list(names).index(name)
+    except ValueError:
+        raise InputError(f"unknown {what} {name!r}; {owner} has {list(names)}") from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -161,12 +169,7 @@ class JointStream:
 
     def index(self, joint: str) -> int:
         """Column index of ``joint``; a clear error lists the known names."""
-        try:
-            return self.joints.index(joint)
-        except ValueError:
-            raise InputError(
-                f"unknown joint {joint!r}; this stream has {list(self.joints)}"
-            ) from None
+        return name_index(self.joints, joint, "joint", "this stream")
 
     def position(self, joint: str, *, masked: bool = True) -> np.ndarray:
         """Positions ``(T, 3)`` of one joint; NaN where unavailable when ``masked``."""

@@ -17,21 +17,15 @@ from __future__ import annotations
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from kinefuse.exceptions import FormatError, FormatWarning, InputError
-from kinefuse.io._common import (
-    ZERO_RULE,
-    _read_text,
-    check_time,
-    check_units,
-    fmt_float,
-    make_metadata,
-    map_joints,
-    write_text_safely,
-)
-from kinefuse.io._common import zero_is_missing as _zero_mask
+from kinefuse.io._checks import ZERO_RULE, finish_recording, make_metadata, zero_samples
+from kinefuse.io._names import map_joints
+from kinefuse.io._text import check_time, read_text
+from kinefuse.io._write import fmt_float, write_text_safely
 from kinefuse.io.recording import JointStream, Recording
 
 __all__ = ["read_trc", "write_trc"]
@@ -62,7 +56,7 @@ def read_trc(
         others are kept.
     zero_is_missing : bool
         Treat a marker whose three coordinates are all exactly 0 as missing
-        (:data:`kinefuse.io._common.ZERO_RULE`, the "not tracked" encoding of many TRC writers).
+        (:data:`kinefuse.io._checks.ZERO_RULE`, the "not tracked" encoding of many TRC writers).
 
     Returns
     -------
@@ -83,13 +77,60 @@ def read_trc(
     Raises
     ------
     FormatError
-        Missing header keys, unknown units, wrong field counts, non-numeric fields,
-        non-monotonic time.
+        Missing header keys, unknown units, wrong field counts, non-numbers, time out of order.
     """
     path = Path(path)
     if role not in ("reference", "vision"):
         raise InputError(f"expected role 'reference' or 'vision', got {role!r}")
-    lines = _read_text(path).splitlines()
+    lines = read_text(path).splitlines()
+    h = _read_header(path, lines)
+    data, line_no = _read_rows(path, lines, h.sep, h.markers, h.n_frames)
+    if len(data) != h.n_frames:
+        msg = (
+            f"{path}: header NumFrames = {h.n_frames} but the file has {len(data)} data rows; "
+            f"read the {len(data)} rows (as OpenSim does)"
+        )
+        warnings.warn(msg, FormatWarning, stacklevel=2)
+        h.notes.append(msg)
+    t = check_time(path, data[:, 1], np.asarray(line_no), "Time")
+    pos = data[:, 2:].reshape(-1, len(h.markers), 3) * h.factor
+    zero, n_zero = zero_samples(pos, zero_is_missing)
+    pos[zero] = np.nan
+    if map_names:
+        joints, jmap = map_joints(h.markers)
+    else:
+        joints, jmap = tuple(h.markers), {m: m for m in h.markers}
+    js = JointStream(t_s=t, position_m=pos, joints=joints, frame="trc_lab")
+    md = make_metadata(
+        path,
+        "trc",
+        units_converted=[f"positions {h.unit} -> m"] if h.factor != 1.0 else [],
+        joint_map=jmap,
+        rate_hz=h.rate,
+        header=h.header,
+        frame_numbers=data[:, 0].copy(),
+        availability_rule=f"all three coordinates present; {ZERO_RULE}"
+        if zero_is_missing
+        else "all three coordinates present",
+        n_zero_samples=n_zero,
+        notes=h.notes,
+    )
+    return finish_recording(path, md, **{role: js})
+
+
+class _Header(NamedTuple):
+    sep: str
+    header: dict[str, str]
+    rate: float
+    n_frames: int
+    unit: str
+    factor: float
+    markers: list[str]
+    notes: list[str]
+
+
+def _read_header(path: Path, lines: list[str]) -> _Header:
+    """The four header lines: separator, keys and values, units, marker names."""
     if len(lines) < 5:
         raise FormatError(
             path,
@@ -126,10 +167,15 @@ def read_trc(
         raise FormatError(
             path, f"expected Units one of {sorted(_TO_M)}, found {unit!r}", line=3, field="Units"
         )
-    names_f = lines[3].split(sep)
+    markers = _marker_names(path, lines[3], sep, n_markers)
+    return _Header(sep, hdr, rate, n_frames, unit, factor, markers, notes)
+
+
+def _marker_names(path: Path, line: str, sep: str, n_markers: int) -> list[str]:
+    names_f = line.split(sep)
     if len(names_f) < 2 or names_f[0].strip() != "Frame#" or names_f[1].strip() != "Time":
         raise FormatError(
-            path, f"expected 'Frame#<tab>Time<tab><markers>', found {lines[3][:60]!r}", line=4
+            path, f"expected 'Frame#<tab>Time<tab><markers>', found {line[:60]!r}", line=4
         )
     markers = [m.strip() for m in names_f[2:] if m.strip()]
     if len(markers) != n_markers:
@@ -139,12 +185,17 @@ def read_trc(
             line=4,
             field="NumMarkers",
         )
+    return markers
+
+
+def _read_rows(path: Path, lines: list[str], sep: str, markers: list[str], n_frames: int):
+    """Data rows (n, 2 + 3 M) as floats (NaN = empty marker field) and their line numbers."""
+    n_markers = len(markers)
     n_fields = 2 + 3 * n_markers
     rows = []
     line_no = []
     for j in range(5, len(lines)):
-        ln = lines[j]
-        f = ln.split(sep)
+        f = lines[j].split(sep)
         if not any(x.strip() for x in f):
             continue
         if len(f) > n_fields and not any(x.strip() for x in f[n_fields:]):
@@ -155,71 +206,42 @@ def read_trc(
                 f"expected {n_fields} fields (Frame#, Time, 3 x {n_markers} markers), found {len(f)}",
                 line=j + 1,
             )
-        row = np.empty(n_fields)
-        for i, v in enumerate(f):
-            v = v.strip()
-            if not v:
-                if i < 2:
-                    raise FormatError(
-                        path,
-                        "expected a value, found an empty field",
-                        line=j + 1,
-                        field=("Frame#", "Time")[i],
-                    )
-                row[i] = np.nan
-                continue
-            try:
-                row[i] = float(v)
-            except ValueError:
-                fld = (
-                    ("Frame#", "Time")[i]
-                    if i < 2
-                    else f"{markers[(i - 2) // 3]}.{'XYZ'[(i - 2) % 3]}"
-                )
-                raise FormatError(
-                    path, f"expected a number, found {v!r}", line=j + 1, field=fld
-                ) from None
-        rows.append(row)
+        rows.append(_row_values(path, f, j + 1, markers))
         line_no.append(j + 1)
     if not rows:
-        raise FormatError(path, f"expected {n_frames} frames (NumFrames), found no data rows")
-    if len(rows) != n_frames:
-        msg = (
-            f"{path}: header NumFrames = {n_frames} but the file has {len(rows)} data rows; "
-            f"read the {len(rows)} rows (as OpenSim does)"
+        n_frames = int(
+            float(
+                dict(zip(_split(lines[1], sep), _split(lines[2], sep), strict=False))["NumFrames"]
+            )
         )
-        warnings.warn(msg, FormatWarning, stacklevel=2)
-        notes.append(msg)
-    data = np.asarray(rows).reshape(len(rows), n_fields)
-    t = check_time(path, data[:, 1], np.asarray(line_no), "Time")
-    pos = data[:, 2:].reshape(-1, n_markers, 3) * factor
-    n_zero = 0
-    if zero_is_missing:
-        zero = _zero_mask(pos)
-        n_zero = int(zero.sum())
-        pos[zero] = np.nan
-    if map_names:
-        joints, jmap = map_joints(markers)
-    else:
-        joints, jmap = tuple(markers), {m: m for m in markers}
-    js = JointStream(t_s=t, position_m=pos, joints=joints, frame="trc_lab")
-    md = make_metadata(
-        path,
-        "trc",
-        units_converted=[f"positions {unit} -> m"] if factor != 1.0 else [],
-        joint_map=jmap,
-        rate_hz=rate,
-        header=hdr,
-        frame_numbers=data[:, 0].copy(),
-        availability_rule=f"all three coordinates present; {ZERO_RULE}"
-        if zero_is_missing
-        else "all three coordinates present",
-        n_zero_samples=n_zero,
-        notes=notes,
-    )
-    rec = Recording(**{role: js}, metadata=md)
-    check_units(rec, where=str(path))
-    return rec
+        raise FormatError(path, f"expected {n_frames} frames (NumFrames), found no data rows")
+    return np.asarray(rows).reshape(len(rows), n_fields), line_no
+
+
+def _row_values(path: Path, fields: list[str], line: int, markers: list[str]) -> np.ndarray:
+    row = np.empty(len(fields))
+    for i, v in enumerate(fields):
+        v = v.strip()
+        if not v:
+            if i < 2:
+                raise FormatError(
+                    path,
+                    "expected a value, found an empty field",
+                    line=line,
+                    field=("Frame#", "Time")[i],
+                )
+            row[i] = np.nan
+            continue
+        try:
+            row[i] = float(v)
+        except ValueError:
+            fld = (
+                ("Frame#", "Time")[i] if i < 2 else f"{markers[(i - 2) // 3]}.{'XYZ'[(i - 2) % 3]}"
+            )
+            raise FormatError(
+                path, f"expected a number, found {v!r}", line=line, field=fld
+            ) from None
+    return row
 
 
 def _nice_rate(t_s: np.ndarray) -> float:
@@ -282,43 +304,13 @@ def write_trc(
     FileExistsError
         ``path`` exists and ``force`` is False.
     """
-    if not isinstance(stream, JointStream):
-        raise InputError(f"expected a JointStream, got {type(stream).__name__}")
-    factor = {"m": 1.0, "mm": 1e3, "cm": 1e2}.get(units)
-    if factor is None:
-        raise InputError(f"expected units 'm', 'mm' or 'cm', got {units!r}")
-    if decimals is None:
-        decimals = {"m": 6, "mm": 3, "cm": 4}[units]
-    for j in stream.joints:
-        if "\t" in j or not j.strip():
-            raise InputError(f"joint name {j!r} cannot be written to TRC (empty or contains a tab)")
-    hdr = {str(k): str(v).strip() for k, v in (header or {}).items()}
-    for k, v in hdr.items():
-        if "\t" in v or not v:
-            raise InputError(f"header value {k}={v!r} cannot be written to TRC (empty or a tab)")
     path = Path(path)
+    factor, decimals, hdr = _check_write_args(stream, units, decimals, header, note)
     T, J = len(stream), len(stream.joints)
     p = stream.position_m * factor
     if masked:
         p = np.where(stream.available[..., None], p, np.nan)
-    if rate_hz is not None:
-        if not (np.isfinite(rate_hz) and rate_hz > 0):
-            raise InputError(f"expected rate_hz finite and > 0, got {rate_hz!r}")
-        rate = f"{float(rate_hz):.10g}"
-    else:
-        rate = hdr.get("DataRate") or f"{_nice_rate(stream.t_s):.10g}"
-    out_hdr = {
-        "DataRate": rate,
-        "CameraRate": hdr.get("CameraRate", rate),
-        "NumFrames": str(T),
-        "NumMarkers": str(J),
-        "Units": units,
-        "OrigDataRate": hdr.get("OrigDataRate", rate),
-        "OrigDataStartFrame": hdr.get("OrigDataStartFrame", "1"),
-        "OrigNumFrames": hdr.get("OrigNumFrames", str(T)),
-    }
-    if note is not None and ("\t" in note or "\n" in note):
-        raise InputError(f"TRC note must be one line without tabs, got {note!r}")
+    out_hdr = _out_header(stream, hdr, units, rate_hz)
     out = [
         f"PathFileType\t4\t(X/Y/Z)\t{path.name}" + (f"\t{note}" if note else ""),
         "\t".join(out_hdr),
@@ -334,3 +326,45 @@ def write_trc(
         # gets a closing tab so that every row keeps 2 + 3 J fields there too
         out.append(row + "\t" if vals and not vals[-1] else row)
     return write_text_safely(path, "\n".join(out) + "\n", force=force)
+
+
+def _check_write_args(stream, units: str, decimals, header, note) -> tuple[float, int, dict]:
+    """(factor from m, decimals, header values as text) after checking what TRC can hold."""
+    if not isinstance(stream, JointStream):
+        raise InputError(f"expected a JointStream, got {type(stream).__name__}")
+    factor = {"m": 1.0, "mm": 1e3, "cm": 1e2}.get(units)
+    if factor is None:
+        raise InputError(f"expected units 'm', 'mm' or 'cm', got {units!r}")
+    if decimals is None:
+        decimals = {"m": 6, "mm": 3, "cm": 4}[units]
+    for j in stream.joints:
+        if "\t" in j or not j.strip():
+            raise InputError(f"joint name {j!r} cannot be written to TRC (empty or contains a tab)")
+    hdr = {str(k): str(v).strip() for k, v in (header or {}).items()}
+    for k, v in hdr.items():
+        if "\t" in v or not v:
+            raise InputError(f"header value {k}={v!r} cannot be written to TRC (empty or a tab)")
+    if note is not None and ("\t" in note or "\n" in note):
+        raise InputError(f"TRC note must be one line without tabs, got {note!r}")
+    return factor, decimals, hdr
+
+
+def _out_header(stream: JointStream, hdr: dict, units: str, rate_hz) -> dict[str, str]:
+    """The header keys and values written: rates as given or from the data, sizes of the data."""
+    T, J = len(stream), len(stream.joints)
+    if rate_hz is not None:
+        if not (np.isfinite(rate_hz) and rate_hz > 0):
+            raise InputError(f"expected rate_hz finite and > 0, got {rate_hz!r}")
+        rate = f"{float(rate_hz):.10g}"
+    else:
+        rate = hdr.get("DataRate") or f"{_nice_rate(stream.t_s):.10g}"
+    return {
+        "DataRate": rate,
+        "CameraRate": hdr.get("CameraRate", rate),
+        "NumFrames": str(T),
+        "NumMarkers": str(J),
+        "Units": units,
+        "OrigDataRate": hdr.get("OrigDataRate", rate),
+        "OrigDataStartFrame": hdr.get("OrigDataStartFrame", "1"),
+        "OrigNumFrames": hdr.get("OrigNumFrames", str(T)),
+    }

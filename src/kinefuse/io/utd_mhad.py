@@ -15,15 +15,15 @@ import numpy as np
 import scipy.io
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import (
+from kinefuse.io._checks import (
     DEG2RAD,
-    KINECT_LIMB_JOINTS,
     ZERO_RULE,
     G,
-    check_units,
+    finish_recording,
     make_metadata,
     zero_is_missing,
 )
+from kinefuse.io._names import KINECT_LIMB_JOINTS
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["KINECT_V1_JOINTS", "KINECT_V1_TO_CANONICAL", "read_utd_mhad", "utd_mhad_partner"]
@@ -149,6 +149,52 @@ def read_utd_mhad(
     """
     path = Path(path)
     parsed = _parse_name(path)
+    iner_path, skel_path = _trial_files(path, parsed, skeleton_path)
+    notes: list[str] = []
+    imu, t_end = {}, None
+    action = parsed[0] if parsed else None
+    if iner_path is not None:
+        segment = _default_segment(action, notes) if segment is None else segment
+        imu[segment] = _inertial(iner_path, imu_rate_hz)
+        t_end = float(imu[segment].t_s[-1])
+        notes.append(f"inertial times assumed: t = n / {imu_rate_hz} Hz (files have no timestamps)")
+    else:
+        _warn_no_partner(path, "inertial", "the skeleton")
+    vision = None
+    if skel_path is not None:
+        vision = _skeleton(skel_path, skeleton_rate_hz, t_end, notes)
+    elif iner_path == path:
+        _warn_no_partner(path, "skeleton", "the inertial data")
+    md = make_metadata(
+        path,
+        "utd_mhad",
+        subject=f"s{parsed[1]}" if parsed else None,
+        units_converted=["acc g -> m/s^2", "gyr deg/s -> rad/s"] if imu else [],
+        action=action,
+        trial=parsed[2] if parsed else None,
+        files={
+            "inertial": str(iner_path) if iner_path else None,
+            "skeleton": str(skel_path) if skel_path else None,
+        },
+        segment_map={"utd_mhad_inertial": segment} if imu else {},
+        joint_map=dict(zip(KINECT_V1_JOINTS, KINECT_V1_TO_CANONICAL, strict=True)),
+        availability_rule=f"finite; {ZERO_RULE} (Kinect v1 has no tracking state)",
+        frame_notes="vision in Kinect v1 camera frame: x toward the sensor's left, y up, z away from the sensor",
+        notes=notes,
+    )
+    return finish_recording(path, md, imu=imu, vision=vision)
+
+
+def _warn_no_partner(path: Path, missing: str, reading: str) -> None:
+    warnings.warn(
+        f"{path}: {missing} partner file not found; reading {reading} only",
+        UserWarning,
+        stacklevel=3,
+    )
+
+
+def _trial_files(path: Path, parsed, skeleton_path) -> tuple[Path | None, Path | None]:
+    """(inertial file, skeleton file) of the trial ``path`` belongs to (None: not found)."""
     kind = parsed[3] if parsed else None
     if kind is None:
         try:
@@ -163,99 +209,60 @@ def read_utd_mhad(
                 path, f"expected variable 'd_iner' or 'd_skel', found {sorted(names)}"
             )
     if kind == "inertial":
-        iner_path = path
-        skel_path = Path(skeleton_path) if skeleton_path is not None else utd_mhad_partner(path)
-    else:
-        skel_path = path
-        iner_path = utd_mhad_partner(path)
-        if skeleton_path is not None:
-            raise FormatError(path, "skeleton_path given but path is already the skeleton file")
-    notes = []
-    units = []
-    imu = {}
-    t_end = None
-    action = parsed[0] if parsed else None
-    if iner_path is not None:
-        x = _loadmat(iner_path, "d_iner", "(N, 6): acc x,y,z [g], gyro x,y,z [deg/s]")
-        if x.ndim != 2 or x.shape[1] != 6 or x.shape[0] < 2:
-            raise FormatError(
-                iner_path, f"expected d_iner with shape (N>=2, 6), found {x.shape}", field="d_iner"
-            )
-        t = np.arange(x.shape[0]) / float(imu_rate_hz)
-        t_end = float(t[-1])
-        if segment is None:
-            if action is None:
-                segment = "imu"
-                notes.append("action unknown (file name not a<A>_s<S>_t<T>); IMU kept as 'imu'")
-            else:
-                segment = "forearm_r" if action <= 21 else "thigh_r"
-        imu[segment] = ImuStream(
-            t_s=t,
-            acc_m_s2=x[:, :3] * G,
-            gyr_rad_s=x[:, 3:] * DEG2RAD,
-            name="utd_mhad_inertial",
-            frame="ENU",
+        return path, Path(skeleton_path) if skeleton_path is not None else utd_mhad_partner(path)
+    if skeleton_path is not None:
+        raise FormatError(path, "skeleton_path given but path is already the skeleton file")
+    return utd_mhad_partner(path), path
+
+
+def _default_segment(action: int | None, notes: list[str]) -> str:
+    """``forearm_r`` for actions 1-21 (right wrist), ``thigh_r`` for 22-27 (right thigh)."""
+    if action is None:
+        notes.append("action unknown (file name not a<A>_s<S>_t<T>); IMU kept as 'imu'")
+        return "imu"
+    return "forearm_r" if action <= 21 else "thigh_r"
+
+
+def _inertial(iner_path: Path, imu_rate_hz: float) -> ImuStream:
+    x = _loadmat(iner_path, "d_iner", "(N, 6): acc x,y,z [g], gyro x,y,z [deg/s]")
+    if x.ndim != 2 or x.shape[1] != 6 or x.shape[0] < 2:
+        raise FormatError(
+            iner_path, f"expected d_iner with shape (N>=2, 6), found {x.shape}", field="d_iner"
         )
-        units += ["acc g -> m/s^2", "gyr deg/s -> rad/s"]
-        notes.append(f"inertial times assumed: t = n / {imu_rate_hz} Hz (files have no timestamps)")
-    else:
-        warnings.warn(
-            f"{path}: inertial partner file not found; reading the skeleton only",
-            UserWarning,
-            stacklevel=2,
-        )
-    vision = None
-    if skel_path is not None:
-        s = _loadmat(skel_path, "d_skel", "(20, 3, T) joint positions [m]")
-        if s.ndim != 3 or s.shape[:2] != (20, 3) or s.shape[2] < 1:
-            raise FormatError(
-                skel_path, f"expected d_skel with shape (20, 3, T), found {s.shape}", field="d_skel"
-            )
-        pos = np.transpose(s, (2, 0, 1)).copy()  # (T, 20, 3)
-        T = pos.shape[0]
-        if skeleton_rate_hz is not None:
-            ts = np.arange(T) / float(skeleton_rate_hz)
-            notes.append(f"skeleton times assumed: t = n / {skeleton_rate_hz} Hz")
-        elif t_end is not None and T > 1:
-            ts = np.linspace(0.0, t_end, T)
-            notes.append(
-                f"skeleton frames stretched uniformly over the inertial duration 0..{t_end:.3f} s "
-                f"(effective {(T - 1) / t_end:.2f} Hz); expect some timing error"
-            )
-        else:
-            ts = np.arange(T) / 30.0
-            notes.append("skeleton times assumed: t = n / 30 Hz")
-        avail = np.all(np.isfinite(pos), axis=-1) & ~zero_is_missing(pos)
-        vision = JointStream(
-            t_s=ts,
-            position_m=pos,
-            available=avail,
-            joints=KINECT_V1_TO_CANONICAL,
-            frame="kinect_v1_camera",
-        )
-    elif kind == "inertial":
-        warnings.warn(
-            f"{path}: skeleton partner file not found; reading the inertial data only",
-            UserWarning,
-            stacklevel=2,
-        )
-    md = make_metadata(
-        path,
-        "utd_mhad",
-        subject=f"s{parsed[1]}" if parsed else None,
-        units_converted=units,
-        action=action,
-        trial=parsed[2] if parsed else None,
-        files={
-            "inertial": str(iner_path) if iner_path else None,
-            "skeleton": str(skel_path) if skel_path else None,
-        },
-        segment_map={"utd_mhad_inertial": segment} if imu else {},
-        joint_map=dict(zip(KINECT_V1_JOINTS, KINECT_V1_TO_CANONICAL, strict=True)),
-        availability_rule=f"finite; {ZERO_RULE} (Kinect v1 has no tracking state)",
-        frame_notes="vision in Kinect v1 camera frame: x toward the sensor's left, y up, z away from the sensor",
-        notes=notes,
+    return ImuStream(
+        t_s=np.arange(x.shape[0]) / float(imu_rate_hz),
+        acc_m_s2=x[:, :3] * G,
+        gyr_rad_s=x[:, 3:] * DEG2RAD,
+        name="utd_mhad_inertial",
+        frame="ENU",
     )
-    rec = Recording(imu=imu, vision=vision, metadata=md)
-    check_units(rec, where=str(path))
-    return rec
+
+
+def _skeleton(skel_path: Path, skeleton_rate_hz, t_end, notes: list[str]) -> JointStream:
+    s = _loadmat(skel_path, "d_skel", "(20, 3, T) joint positions [m]")
+    if s.ndim != 3 or s.shape[:2] != (20, 3) or s.shape[2] < 1:
+        raise FormatError(
+            skel_path, f"expected d_skel with shape (20, 3, T), found {s.shape}", field="d_skel"
+        )
+    pos = np.transpose(s, (2, 0, 1)).copy()  # (T, 20, 3)
+    T = pos.shape[0]
+    if skeleton_rate_hz is not None:
+        ts = np.arange(T) / float(skeleton_rate_hz)
+        notes.append(f"skeleton times assumed: t = n / {skeleton_rate_hz} Hz")
+    elif t_end is not None and T > 1:
+        ts = np.linspace(0.0, t_end, T)
+        notes.append(
+            f"skeleton frames stretched uniformly over the inertial duration 0..{t_end:.3f} s "
+            f"(effective {(T - 1) / t_end:.2f} Hz); expect some timing error"
+        )
+    else:
+        ts = np.arange(T) / 30.0
+        notes.append("skeleton times assumed: t = n / 30 Hz")
+    avail = np.all(np.isfinite(pos), axis=-1) & ~zero_is_missing(pos)
+    return JointStream(
+        t_s=ts,
+        position_m=pos,
+        available=avail,
+        joints=KINECT_V1_TO_CANONICAL,
+        frame="kinect_v1_camera",
+    )

@@ -15,18 +15,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import FormatError, InputError
-from kinefuse.io._common import (
-    DEG2RAD,
-    G,
-    Table,
-    check_time,
-    check_units,
-    make_metadata,
-    map_segments,
-    read_table,
-)
+from kinefuse.io._checks import DEG2RAD, G, finish_recording, make_metadata
+from kinefuse.io._names import map_segments
+from kinefuse.io._text import Table, check_time, read_table, unit_triplet
 from kinefuse.io.align import resample_orientation, resample_positions
 from kinefuse.io.recording import ImuStream, Recording
+from kinefuse.io.xio_csv import read_xio_csv
 
 __all__ = ["EARTH_TO_ENU", "read_ximu3"]
 
@@ -52,16 +46,6 @@ def _header_line(path: Path) -> str:
         raise FormatError(path, f"could not read the file: {e}") from None
 
 
-def _plain_csv_reader():
-    """The registered reader of x-io's plain CSV (``Time (s), Gyroscope X (deg/s) ...``), if any."""
-    from kinefuse.io import _registry
-
-    for key, spec in _registry._REGISTRY.items():
-        if spec.module == "xio_csv":
-            return key, _registry._reader(key)
-    return None, None
-
-
 def _sensor_dirs(path: Path) -> list[Path]:
     if path.is_file():
         if not (path.parent / "Inertial.csv").is_file():
@@ -82,30 +66,6 @@ def _sensor_dirs(path: Path) -> list[Path]:
 
 def _sensor_name(folder: Path) -> str:
     return re.sub(r"\s*\(UDP\)\s*$", "", folder.name)
-
-
-def _triplet(tab: Table, prefix: str) -> tuple[np.ndarray, str]:
-    names = []
-    units = set()
-    for ax in "XYZ":
-        hit = [c for c in tab.columns if c.startswith(f"{prefix} {ax}")]
-        if not hit:
-            raise FormatError(
-                tab.path,
-                f"missing column '{prefix} {ax} (...)'; found {tab.columns}",
-                line=tab.header_line,
-                field=f"{prefix} {ax}",
-            )
-        names.append(hit[0])
-        m = _UNIT.search(hit[0])
-        units.add(m.group(1).strip().lower() if m else "")
-    if len(units) != 1:
-        raise FormatError(
-            tab.path,
-            f"expected one unit for {prefix} X/Y/Z, found {sorted(units)}",
-            line=tab.header_line,
-        )
-    return np.stack([tab.floats(n) for n in names], axis=1), units.pop()
 
 
 def _time(tab: Table) -> np.ndarray:
@@ -179,76 +139,35 @@ def read_ximu3(
         )
     single = None
     if path.is_file() and not (path.parent / "Inertial.csv").is_file():
-        head = _header_line(path).lower()
-        if head.startswith("timestamp (") and "gyroscope" in head and "accelerometer" in head:
-            single = path  # an Inertial.csv under another name
-        elif head.startswith("time (s)") and "gyroscope" in head:
-            key, reader = _plain_csv_reader()
-            if reader is None:
-                raise FormatError(
-                    path,
-                    "this is x-io's plain CSV export ('Time (s), Gyroscope X (deg/s), ...'), not an "
-                    "x-IMU3 log (a folder of sensor folders with Inertial.csv); this installation has "
-                    "no reader for it",
-                    line=1,
-                )
-            rec = reader(path, **({"sensor_map": sensor_map} if sensor_map else {}))
+        if _is_plain_csv(path):
+            rec = read_xio_csv(path, **({"sensor_map": sensor_map} if sensor_map else {}))
             rec.metadata.setdefault("notes", []).append(
-                f"format='ximu3' given for x-io's plain CSV: read with the {key!r} reader"
+                "format='ximu3' given for x-io's plain CSV: read with the 'xio_csv' reader"
             )
             return rec
-        else:
-            raise FormatError(
-                path,
-                "expected an x-IMU3 Inertial.csv ('Timestamp (us), Gyroscope X (deg/s), ..., "
-                f"Accelerometer X (g), ...') or a sensor folder, found header {head[:80]!r}",
-                line=1,
-            )
+        single = path  # an Inertial.csv under another name
     dirs = [path.parent] if single is not None else _sensor_dirs(path)
     names = [single.stem] if single is not None else [_sensor_name(d) for d in dirs]
     mapping, notes = map_segments(names, sensor_map)
-    raw = {}
-    for d, name in zip(dirs, names, strict=True):
-        tab = read_table(single if single is not None else d / "Inertial.csv", delimiter=",")
-        t = _time(tab)
-        gyr, gu = _triplet(tab, "Gyroscope")
-        acc, au = _triplet(tab, "Accelerometer")
-        gf = {"deg/s": DEG2RAD, "dps": DEG2RAD, "rad/s": 1.0}.get(gu)
-        af = {"g": G, "m/s^2": 1.0, "m/s2": 1.0, "m/s²": 1.0}.get(au)
-        if gf is None:
-            raise FormatError(
-                tab.path,
-                f"expected gyroscope unit deg/s or rad/s, found {gu!r}",
-                line=tab.header_line,
-            )
-        if af is None:
-            raise FormatError(
-                tab.path,
-                f"expected accelerometer unit g or m/s^2, found {au!r}",
-                line=tab.header_line,
-            )
-        q = None
-        qf = d / "Quaternion.csv"
-        if single is None and qf.is_file():
-            qt = read_table(qf, delimiter=",")
-            tq = _time(qt)
-            qq = np.stack([qt.floats(c) for c in ("W", "X", "Y", "Z")], axis=1)
-            if tq.shape == t.shape and np.array_equal(tq, t):
-                q = qq
-            else:
-                q = resample_orientation(tq, qq, t)
-                notes.append(
-                    f"{name}: Quaternion.csv timestamps differ from Inertial.csv; SLERP-resampled"
-                )
-            q = _to_enu(q, earth_frame)
-        mag = None
-        mf = d / "Magnetometer.csv"
-        if single is None and include_mag and mf.is_file():
-            mt = read_table(mf, delimiter=",")
-            tm = _time(mt)
-            mv = np.stack([mt.floats(c) for c in _mag_cols(mt)], axis=1)
-            mag, _ = resample_positions(tm, mv, t)
-        raw[name] = (t, gyr * gf, acc * af, q, mag, (gu, au))
+    raw = {
+        name: _read_sensor(d, name, single, earth_frame, include_mag, notes)
+        for d, name in zip(dirs, names, strict=True)
+    }
+    imu, units, t0 = _streams(raw, mapping, earth_frame)
+    md = make_metadata(
+        path,
+        "ximu3",
+        subject=None,
+        units_converted=sorted(units),
+        segment_map=mapping,
+        t0_us=t0 * 1e6,
+        notes=notes,
+    )
+    return finish_recording(path, md, imu=imu)
+
+
+def _streams(raw: dict, mapping: dict, earth_frame: str):
+    """(ImuStream per key, times from the earliest first sample of all sensors; conversions, t0)."""
     t0 = min(v[0][0] for v in raw.values())
     imu = {}
     units = set()
@@ -262,18 +181,58 @@ def read_ximu3(
             units.add("acc g -> m/s^2")
         if q is not None and earth_frame != "ENU":
             units.add(f"quaternion earth frame {earth_frame} -> ENU")
-    md = make_metadata(
+    return imu, units, t0
+
+
+def _is_plain_csv(path: Path) -> bool:
+    """True for x-io's plain CSV export, False for an Inertial.csv under another name."""
+    head = _header_line(path).lower()
+    if head.startswith("timestamp (") and "gyroscope" in head and "accelerometer" in head:
+        return False
+    if head.startswith("time (s)") and "gyroscope" in head:
+        return True
+    raise FormatError(
         path,
-        "ximu3",
-        subject=None,
-        units_converted=sorted(units),
-        segment_map=mapping,
-        t0_us=t0 * 1e6,
-        notes=notes,
+        "expected an x-IMU3 Inertial.csv ('Timestamp (us), Gyroscope X (deg/s), ..., "
+        f"Accelerometer X (g), ...') or a sensor folder, found header {head[:80]!r}",
+        line=1,
     )
-    rec = Recording(imu=imu, metadata=md)
-    check_units(rec, where=str(path))
-    return rec
+
+
+def _read_sensor(d: Path, name: str, single, earth_frame: str, include_mag: bool, notes):
+    """(t, gyr rad/s, acc m/s², q ENU or None, mag or None, (gyr unit, acc unit)) of one sensor."""
+    tab = read_table(single if single is not None else d / "Inertial.csv", delimiter=",")
+    t = _time(tab)
+    gyr, gu = unit_triplet(tab, "Gyroscope")
+    acc, au = unit_triplet(tab, "Accelerometer")
+    gf = {"deg/s": DEG2RAD, "dps": DEG2RAD, "rad/s": 1.0}.get(gu)
+    af = {"g": G, "m/s^2": 1.0, "m/s2": 1.0, "m/s²": 1.0}.get(au)
+    if gf is None:
+        raise tab.header_error(f"expected gyroscope unit deg/s or rad/s, found {gu!r}")
+    if af is None:
+        raise tab.header_error(f"expected accelerometer unit g or m/s^2, found {au!r}")
+    q = None
+    qf = d / "Quaternion.csv"
+    if single is None and qf.is_file():
+        qt = read_table(qf, delimiter=",")
+        tq = _time(qt)
+        qq = np.stack([qt.floats(c) for c in ("W", "X", "Y", "Z")], axis=1)
+        if tq.shape == t.shape and np.array_equal(tq, t):
+            q = qq
+        else:
+            q = resample_orientation(tq, qq, t)
+            notes.append(
+                f"{name}: Quaternion.csv timestamps differ from Inertial.csv; SLERP-resampled"
+            )
+        q = _to_enu(q, earth_frame)
+    mag = None
+    mf = d / "Magnetometer.csv"
+    if single is None and include_mag and mf.is_file():
+        mt = read_table(mf, delimiter=",")
+        tm = _time(mt)
+        mv = np.stack([mt.floats(c) for c in _mag_cols(mt)], axis=1)
+        mag, _ = resample_positions(tm, mv, t)
+    return t, gyr * gf, acc * af, q, mag, (gu, au)
 
 
 def _mag_cols(tab: Table) -> list[str]:
@@ -281,12 +240,7 @@ def _mag_cols(tab: Table) -> list[str]:
     for ax in "XYZ":
         hit = [c for c in tab.columns if c == ax or c.startswith(f"{ax} ")]
         if not hit:
-            raise FormatError(
-                tab.path,
-                f"missing column '{ax} (a.u.)'; found {tab.columns}",
-                line=tab.header_line,
-                field=ax,
-            )
+            raise tab.header_error(f"missing column '{ax} (a.u.)'; found {tab.columns}", ax)
         out.append(hit[0])
     return out
 

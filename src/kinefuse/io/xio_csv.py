@@ -17,17 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import FormatError
-from kinefuse.io._common import (
-    DEG2RAD,
-    G,
-    _read_text,
-    check_time,
-    check_units,
-    make_metadata,
-    read_table,
-)
+from kinefuse.io._checks import DEG2RAD, G, finish_recording, make_metadata
+from kinefuse.io._text import Table, check_time, read_table, read_text, unit_triplet
 from kinefuse.io.recording import ImuStream, Recording
-from kinefuse.io.ximu3 import _triplet
 
 __all__ = ["is_xio_csv", "read_xio_csv"]
 
@@ -75,7 +67,45 @@ def read_xio_csv(path, *, segment: str = "imu") -> Recording:
         with the same time but different values, decreasing time.
     """
     path = Path(path)
-    first = next((ln for ln in _read_text(path).splitlines() if ln.strip()), "")
+    tab = _table(path)
+    tcol = tab.columns[0]
+    t = tab.floats(tcol, allow_empty=False) * _TIME_FACTOR[_TIME.match(tcol).group(1).lower()]
+    gyr, gu, acc, au = _gyr_acc(tab)
+    has_mag = any(c.lower().startswith("magnetometer x") for c in tab.columns)
+    mag = unit_triplet(tab, "Magnetometer")[0] if has_mag else None
+    data = np.column_stack([t, gyr, acc] + ([mag] if mag is not None else []))
+    same_t = np.concatenate([[False], np.diff(t) == 0])
+    dup = same_t & np.concatenate([[False], np.all(data[1:] == data[:-1], axis=1)])
+    if np.any(same_t & ~dup):
+        i = int(np.flatnonzero(same_t & ~dup)[0])
+        raise tab.error_at(
+            i, f"expected one row per time, found two different rows at time {t[i]!r}", tcol
+        )
+    keep = ~dup
+    t = check_time(path, t[keep], tab.lines[keep], tcol)
+    units = [f"gyr {gu} -> rad/s"] if _GYR_FACTOR[gu] != 1.0 else []
+    units += [f"acc {au} -> m/s^2"] if _ACC_FACTOR[au] != 1.0 else []
+    stream = ImuStream(
+        t_s=t,
+        acc_m_s2=acc[keep] * _ACC_FACTOR[au],
+        gyr_rad_s=gyr[keep] * _GYR_FACTOR[gu],
+        mag=None if mag is None else mag[keep],
+        name=path.stem,
+    )
+    md = make_metadata(
+        path,
+        "xio_csv",
+        units_converted=units,
+        segment_map={path.stem: segment},
+        duplicate_rows_dropped=int(dup.sum()),
+        notes=[f"{int(dup.sum())} exact duplicate rows dropped"] if dup.any() else [],
+    )
+    return finish_recording(path, md, imu={segment: stream})
+
+
+def _table(path: Path) -> Table:
+    """The file as a table, after checking that its header is x-io's."""
+    first = next((ln for ln in read_text(path).splitlines() if ln.strip()), "")
     if not is_xio_csv(first.split(",")):
         raise FormatError(
             path,
@@ -85,62 +115,24 @@ def read_xio_csv(path, *, segment: str = "imu") -> Recording:
         )
     tab = read_table(path, delimiter=",")
     if not is_xio_csv(tab.columns):
-        raise FormatError(
-            path,
+        raise tab.header_error(
             "expected an x-io CSV header 'Time (s),Gyroscope X (deg/s),...,Accelerometer X (g),...', "
-            f"found {tab.columns[:4]}",
-            line=tab.header_line,
+            f"found {tab.columns[:4]}"
         )
-    tcol = tab.columns[0]
-    t = tab.floats(tcol, allow_empty=False) * _TIME_FACTOR[_TIME.match(tcol).group(1).lower()]
-    gyr, gu = _triplet(tab, "Gyroscope")
-    acc, au = _triplet(tab, "Accelerometer")
+    return tab
+
+
+def _gyr_acc(tab: Table):
+    """(gyr, its unit, acc, its unit), the units checked against the known factors."""
+    gyr, gu = unit_triplet(tab, "Gyroscope")
+    acc, au = unit_triplet(tab, "Accelerometer")
     if gu not in _GYR_FACTOR or au not in _ACC_FACTOR:
         bad, known = (
             ("Gyroscope", sorted(_GYR_FACTOR))
             if gu not in _GYR_FACTOR
             else ("Accelerometer", sorted(_ACC_FACTOR))
         )
-        raise FormatError(
-            path,
-            f"unknown unit {(gu if bad == 'Gyroscope' else au)!r} of {bad} X/Y/Z; kinefuse reads {known}",
-            line=tab.header_line,
+        raise tab.header_error(
+            f"unknown unit {(gu if bad == 'Gyroscope' else au)!r} of {bad} X/Y/Z; kinefuse reads {known}"
         )
-    has_mag = any(c.lower().startswith("magnetometer x") for c in tab.columns)
-    mag = _triplet(tab, "Magnetometer")[0] if has_mag else None
-    data = np.column_stack([t, gyr, acc] + ([mag] if mag is not None else []))
-    same_t = np.concatenate([[False], np.diff(t) == 0])
-    dup = same_t & np.concatenate([[False], np.all(data[1:] == data[:-1], axis=1)])
-    if np.any(same_t & ~dup):
-        i = int(np.flatnonzero(same_t & ~dup)[0])
-        raise FormatError(
-            path,
-            f"expected one row per time, found two different rows at time {t[i]!r}",
-            line=int(tab.lines[i]),
-            field=tcol,
-        )
-    keep = ~dup
-    t = check_time(path, t[keep], tab.lines[keep], tcol)
-    units = [f"gyr {gu} -> rad/s"] if _GYR_FACTOR[gu] != 1.0 else []
-    units += [f"acc {au} -> m/s^2"] if _ACC_FACTOR[au] != 1.0 else []
-    rec = Recording(
-        imu={
-            segment: ImuStream(
-                t_s=t,
-                acc_m_s2=acc[keep] * _ACC_FACTOR[au],
-                gyr_rad_s=gyr[keep] * _GYR_FACTOR[gu],
-                mag=None if mag is None else mag[keep],
-                name=path.stem,
-            )
-        },
-        metadata=make_metadata(
-            path,
-            "xio_csv",
-            units_converted=units,
-            segment_map={path.stem: segment},
-            duplicate_rows_dropped=int(dup.sum()),
-            notes=[f"{int(dup.sum())} exact duplicate rows dropped"] if dup.any() else [],
-        ),
-    )
-    check_units(rec, where=str(path))
-    return rec
+    return gyr, gu, acc, au

@@ -23,16 +23,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import FormatError, FormatWarning
-from kinefuse.io._common import (
-    DEG2RAD,
-    G,
-    Table,
-    _read_text,
-    check_time,
-    check_units,
-    make_metadata,
-    map_segments,
-)
+from kinefuse.io._checks import DEG2RAD, G, finish_recording, make_metadata
+from kinefuse.io._names import map_segments
+from kinefuse.io._text import Table, check_time, read_text
 from kinefuse.io.recording import ImuStream, Recording
 
 __all__ = ["is_xsens_dot_csv", "read_xsens_dot", "specific_force_from_free_acc"]
@@ -83,7 +76,7 @@ def is_xsens_dot_csv(path) -> bool:
 
 
 def _parse(path: Path) -> tuple[Table, dict[str, str]]:
-    lines = _read_text(path).splitlines()
+    lines = read_text(path).splitlines()
     k = next(
         (i for i, ln in enumerate(lines) if ln.startswith("PacketCounter") and "," in ln), None
     )
@@ -122,19 +115,7 @@ def _parse(path: Path) -> tuple[Table, dict[str, str]]:
 
 
 def _group(tab: Table, prefix: str, axes: str) -> np.ndarray | None:
-    names = [f"{prefix}_{a}" for a in axes]
-    present = [tab.has(n) for n in names]
-    if not any(present):
-        return None
-    if not all(present):
-        missing = next(n for n, p in zip(names, present, strict=True) if not p)
-        raise FormatError(
-            tab.path,
-            f"missing column {missing!r} (found {names[present.index(True)]!r})",
-            line=tab.header_line,
-            field=missing,
-        )
-    return np.stack([tab.floats(n) for n in names], axis=1)
+    return tab.column_group([f"{prefix}_{a}" for a in axes])
 
 
 def _read_one(path: Path) -> dict:
@@ -236,98 +217,19 @@ def read_xsens_dot(
         ``OutputRate`` disagrees with ``SampleTimeFine`` by more than ``rate_tolerance``.
     """
     path = Path(path)
-    if path.is_dir():
-        files = sorted(p for p in path.glob("*.csv") if is_xsens_dot_csv(p))
-        if not files:
-            raise FormatError(
-                path,
-                "expected Movella/Xsens DOT .csv exports (PacketCounter,SampleTimeFine,...), found none",
-            )
-    else:
-        files = [path]
-    parsed: dict[str, tuple[Path, dict]] = {}
-    for f in files:
-        p = _read_one(f)
-        name = _sensor_name(f, p["info"])
-        if name in parsed:
-            name = f.stem
-        parsed[name] = (f, p)
-    overrides = {}
-    for name, (_f, p) in parsed.items():
-        tag = p["info"].get("DeviceTag")
-        if sensor_map and (name in sensor_map or tag in sensor_map):
-            overrides[name] = sensor_map.get(name) or sensor_map[tag]
-    mapping, notes = map_segments(list(parsed), overrides)
-    synced = all(p["info"].get("SyncStatus", "").lower() == "synced" for _, p in parsed.values())
-    firsts = [p["stf_us"][0] for _, p in parsed.values()]
-    if synced and max(firsts) - min(firsts) > _STF_WRAP / 2:
-        # the shared clock wrapped between two sensors' first samples: unwrap the late starters
-        for _, p in parsed.values():
-            if p["stf_us"][0] < _STF_WRAP / 2:
-                p["stf_us"] = p["stf_us"] + _STF_WRAP
-    s0_common = min(p["stf_us"][0] for _, p in parsed.values())
-    if not synced and len(parsed) > 1:
-        notes.append(
-            "not every file says SyncStatus: Synced; each sensor's time starts at its own first sample "
-            "(their clocks are independent)"
-        )
+    parsed = _read_files(path)
+    mapping, notes = map_segments(list(parsed), _overrides(parsed, sensor_map))
+    synced, s0_common = _common_clock(parsed, notes)
     imu, rates, dropped, free, units = {}, {}, {}, {}, set()
     for name, (f, p) in parsed.items():
         key = mapping[name]
         t = (p["stf_us"] - (s0_common if synced else p["stf_us"][0])) / 1e6
-        m = _RATE.search(p["info"].get("OutputRate", ""))
-        rate = float(m.group(1)) if m else None
+        rates[key] = rate = _rate(f, p, t, rate_tolerance)
         dc = np.diff(p["counter"])
-        if t.size > 1 and np.any(dc > 0):
-            # time per packet (dropped packets leave longer steps, not a slower rate)
-            measured = 1.0 / float(np.median(np.diff(t)[dc > 0] / dc[dc > 0]))
-            if rate is not None and abs(measured - rate) > rate_tolerance * rate:
-                warnings.warn(
-                    f"{f}: header OutputRate {rate:g} Hz disagrees with SampleTimeFine "
-                    f"({measured:.4g} Hz per packet); times follow SampleTimeFine",
-                    FormatWarning,
-                    stacklevel=2,
-                )
-            rate = rate if rate is not None else measured
-        rates[key] = rate
         dropped[key] = int(np.sum(dc[dc > 1] - 1))
-        acc, gyr = p["acc"], p["gyr"]
-        if (acc is None and p["dv"] is not None) or (gyr is None and p["dq"] is not None):
-            if rate is None:
-                raise FormatError(f, "delta quantities (dq/dv) need the OutputRate header line")
-            # DOT manual: calibrated acceleration = dv / dt, dt = 1 / output rate; dq likewise
-            if acc is None and p["dv"] is not None:
-                acc = p["dv"] * rate
-                units.add("dv (m/s per sample) -> acc_m_s2 = dv * OutputRate")
-            if gyr is None and p["dq"] is not None:
-                dq = p["dq"]
-                gyr = np.full((dq.shape[0], 3), np.nan)
-                ok = np.all(np.isfinite(dq), axis=1)
-                rv = Rotation.from_quat(dq[ok], scalar_first=True).as_rotvec()
-                gyr[ok] = rv * rate
-                units.add("dq (orientation increment) -> gyr_rad_s = rotvec(dq) * OutputRate")
+        imu[key] = _stream(f, p, name, t, rate, derive_acc, units)
         if p["free_acc"] is not None:
             free[key] = p["free_acc"]
-            if acc is None and derive_acc and p["q"] is not None:
-                acc = specific_force_from_free_acc(p["q"], p["free_acc"])
-                units.add("acc_m_s2 derived from FreeAcc: R(q)^T (FreeAcc + 9.80665 e_z)")
-        if p["gyr"] is not None:
-            units.add("gyr deg/s -> rad/s")
-        if p["euler"]:
-            units.add("Euler roll/pitch/yaw deg (ZYX) -> quaternion wxyz")
-        if p["q"] is None and acc is None:
-            raise FormatError(
-                f, "expected an orientation or Acc_X..Z with Gyr_X..Z; found only free acceleration"
-            )
-        imu[key] = ImuStream(
-            t_s=t,
-            q_world_from_sensor=p["q"],
-            acc_m_s2=acc,
-            gyr_rad_s=gyr,
-            mag=p["mag"],
-            name=name,
-            frame="ENU",
-        )
     md = make_metadata(
         path,
         "xsens_dot",
@@ -345,6 +247,117 @@ def read_xsens_dot(
         ),
         notes=notes,
     )
-    rec = Recording(imu=imu, metadata=md)
-    check_units(rec, where=str(path))
-    return rec
+    return finish_recording(path, md, imu=imu)
+
+
+def _read_files(path: Path) -> dict[str, tuple[Path, dict]]:
+    """Sensor name -> (file, :func:`_read_one` result) of one DOT file or a folder of them."""
+    if path.is_dir():
+        files = sorted(p for p in path.glob("*.csv") if is_xsens_dot_csv(p))
+        if not files:
+            raise FormatError(
+                path,
+                "expected Movella/Xsens DOT .csv exports (PacketCounter,SampleTimeFine,...), found none",
+            )
+    else:
+        files = [path]
+    parsed: dict[str, tuple[Path, dict]] = {}
+    for f in files:
+        p = _read_one(f)
+        name = _sensor_name(f, p["info"])
+        if name in parsed:
+            name = f.stem
+        parsed[name] = (f, p)
+    return parsed
+
+
+def _overrides(parsed: dict, sensor_map) -> dict[str, str]:
+    """``sensor_map`` entries by sensor name or DeviceTag, keyed by sensor name."""
+    overrides = {}
+    for name, (_f, p) in parsed.items():
+        tag = p["info"].get("DeviceTag")
+        if sensor_map and (name in sensor_map or tag in sensor_map):
+            overrides[name] = sensor_map.get(name) or sensor_map[tag]
+    return overrides
+
+
+def _common_clock(parsed: dict, notes: list[str]) -> tuple[bool, float]:
+    """(all files synced, the earliest first SampleTimeFine, unwrapped across sensors)."""
+    synced = all(p["info"].get("SyncStatus", "").lower() == "synced" for _, p in parsed.values())
+    firsts = [p["stf_us"][0] for _, p in parsed.values()]
+    if synced and max(firsts) - min(firsts) > _STF_WRAP / 2:
+        # the shared clock wrapped between two sensors' first samples: unwrap the late starters
+        for _, p in parsed.values():
+            if p["stf_us"][0] < _STF_WRAP / 2:
+                p["stf_us"] = p["stf_us"] + _STF_WRAP
+    s0_common = min(p["stf_us"][0] for _, p in parsed.values())
+    if not synced and len(parsed) > 1:
+        notes.append(
+            "not every file says SyncStatus: Synced; each sensor's time starts at its own first sample "
+            "(their clocks are independent)"
+        )
+    return synced, s0_common
+
+
+def _rate(f: Path, p: dict, t: np.ndarray, rate_tolerance: float) -> float | None:
+    """The header's OutputRate (else the measured one); warns when they disagree."""
+    m = _RATE.search(p["info"].get("OutputRate", ""))
+    rate = float(m.group(1)) if m else None
+    dc = np.diff(p["counter"])
+    if t.size > 1 and np.any(dc > 0):
+        # time per packet (dropped packets leave longer steps, not a slower rate)
+        measured = 1.0 / float(np.median(np.diff(t)[dc > 0] / dc[dc > 0]))
+        if rate is not None and abs(measured - rate) > rate_tolerance * rate:
+            warnings.warn(
+                f"{f}: header OutputRate {rate:g} Hz disagrees with SampleTimeFine "
+                f"({measured:.4g} Hz per packet); times follow SampleTimeFine",
+                FormatWarning,
+                stacklevel=3,
+            )
+        rate = rate if rate is not None else measured
+    return rate
+
+
+def _stream(f: Path, p: dict, name: str, t, rate, derive_acc: bool, units: set) -> ImuStream:
+    """One sensor's ImuStream (acc from deltas or, with ``derive_acc``, from free acceleration)."""
+    acc, gyr = _raw_from_deltas(f, p, rate, units)
+    if p["free_acc"] is not None and acc is None and derive_acc and p["q"] is not None:
+        acc = specific_force_from_free_acc(p["q"], p["free_acc"])
+        units.add("acc_m_s2 derived from FreeAcc: R(q)^T (FreeAcc + 9.80665 e_z)")
+    if p["q"] is None and acc is None:
+        raise FormatError(
+            f, "expected an orientation or Acc_X..Z with Gyr_X..Z; found only free acceleration"
+        )
+    return ImuStream(
+        t_s=t,
+        q_world_from_sensor=p["q"],
+        acc_m_s2=acc,
+        gyr_rad_s=gyr,
+        mag=p["mag"],
+        name=name,
+        frame="ENU",
+    )
+
+
+def _raw_from_deltas(f: Path, p: dict, rate, units: set) -> tuple:
+    """(acc, gyr): the file's, else from the delta quantities dv/dq and the output rate."""
+    acc, gyr = p["acc"], p["gyr"]
+    if (acc is None and p["dv"] is not None) or (gyr is None and p["dq"] is not None):
+        if rate is None:
+            raise FormatError(f, "delta quantities (dq/dv) need the OutputRate header line")
+        # DOT manual: calibrated acceleration = dv / dt, dt = 1 / output rate; dq likewise
+        if acc is None and p["dv"] is not None:
+            acc = p["dv"] * rate
+            units.add("dv (m/s per sample) -> acc_m_s2 = dv * OutputRate")
+        if gyr is None and p["dq"] is not None:
+            dq = p["dq"]
+            gyr = np.full((dq.shape[0], 3), np.nan)
+            ok = np.all(np.isfinite(dq), axis=1)
+            rv = Rotation.from_quat(dq[ok], scalar_first=True).as_rotvec()
+            gyr[ok] = rv * rate
+            units.add("dq (orientation increment) -> gyr_rad_s = rotvec(dq) * OutputRate")
+    if p["gyr"] is not None:
+        units.add("gyr deg/s -> rad/s")
+    if p["euler"]:
+        units.add("Euler roll/pitch/yaw deg (ZYX) -> quaternion wxyz")
+    return acc, gyr
