@@ -14,7 +14,7 @@ import pytest
 
 import kinefuse.io as kio
 from kinefuse.exceptions import FormatError, FormatWarning, UnitWarning
-from kinefuse.io._common import KINECT_LIMB_JOINTS
+from kinefuse.io._names import KINECT_LIMB_JOINTS
 from kinefuse.io.recording import JointStream
 
 
@@ -448,7 +448,7 @@ def test_bvh_units_checked(tp):
         with pytest.warns(UserWarning, match="no joint found"):
             rec = kio.read_bvh(path, length_unit_m=1.0)
     with pytest.warns(UnitWarning, match="looks like centimetres"):
-        from kinefuse.io._common import check_units
+        from kinefuse.io._checks import check_units
 
         check_units(rec)
 

@@ -96,7 +96,7 @@ def write_json(path: Path, data: Any, force: bool = False) -> None:
     if str(path) == "-":
         sys.stdout.write(text + "\n")
         return
-    from kinefuse.io._common import write_text_safely  # SciPy: see the module docs
+    from kinefuse.io._write import write_text_safely  # SciPy: see the module docs
 
     check_json(path, force)
     write_text_safely(path, text + "\n", force=force)

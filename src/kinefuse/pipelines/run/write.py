@@ -21,7 +21,7 @@ from kinefuse.evaluation.angles import angle_section, write_angle_report
 from kinefuse.evaluation.report import REPORT_NAME
 from kinefuse.exceptions import ConfigError
 from kinefuse.io import ImuStream, JointStream, write_joint_csv, write_trc
-from kinefuse.io._common import write_text_safely
+from kinefuse.io._write import write_text_safely
 from kinefuse.io.mot import write_mot
 from kinefuse.io.opensim import write_opensense_sto
 from kinefuse.io.output_folder import OutputFolder
