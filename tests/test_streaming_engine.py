@@ -11,11 +11,12 @@ from kinefuse.conventions import SOURCE_CAMERA, SOURCE_FUSED, SOURCE_IMU
 from kinefuse.kinematics import full_body
 from kinefuse.streaming.engine import (
     FLAG_CAMERA_MISSING,
+    FLAG_FORCED,
     FLAG_IMU_STALE,
     Engine,
     EngineConfig,
-    offline_causal,
 )
+from kinefuse.streaming.offline import offline_causal
 from kinefuse.streaming.processors import (
     SOURCE_PREDICT,
     IntegratedProcessor,
@@ -101,12 +102,15 @@ def offline_of(engine, make_processor, frame_times=None):
 def assert_equal_offline(outs, off):
     pos = np.stack([o.position_m for o in outs])
     cov = np.stack([o.cov_m2 for o in outs])
-    np.testing.assert_array_equal([o.t_s for o in outs], off["t_s"])
-    np.testing.assert_array_equal(np.isnan(pos), np.isnan(off["position_m"]))
-    np.testing.assert_allclose(pos, off["position_m"], atol=TOL, rtol=0)
-    np.testing.assert_allclose(cov, off["cov_m2"], atol=TOL, rtol=0)
-    np.testing.assert_array_equal(np.stack([o.source for o in outs]), off["source"])
-    np.testing.assert_array_equal(np.stack([o.imu_status for o in outs]), off["imu_status"])
+    np.testing.assert_array_equal([o.t_s for o in outs], off.t_s)
+    np.testing.assert_array_equal(np.isnan(pos), np.isnan(off.position_m))
+    np.testing.assert_allclose(pos, off.position_m, atol=TOL, rtol=0)
+    np.testing.assert_allclose(cov, off.cov_m2, atol=TOL, rtol=0)
+    np.testing.assert_array_equal(np.stack([o.source for o in outs]), off.source)
+    np.testing.assert_array_equal(np.stack([o.imu_status for o in outs]), off.imu_status)
+    # the same per-frame code: the same flags (offline never forces a frame)
+    flags = np.stack([o.flags for o in outs]) & ~np.uint8(FLAG_FORCED)
+    np.testing.assert_array_equal(flags, off.flags)
 
 
 @pytest.mark.parametrize("name", list(PROCESSORS))

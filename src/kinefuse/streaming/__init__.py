@@ -2,7 +2,8 @@
 
 * :class:`Engine` (:mod:`.engine`): causal, sample-by-sample fusion of asynchronous IMU and
   camera streams, one output per camera frame, with fault handling and checkpoints;
-  :func:`offline_causal` is the batch computation it equals.
+  :func:`offline_causal` (:mod:`.offline`) runs the same per-frame code (:mod:`.alignment`) on
+  a recording.
 * Processors (:mod:`.processors`): :class:`KalmanFusionProcessor` (IMU + camera KF baseline),
   :class:`IntegratedProcessor` (paper A's EM-KF/FIR); the :class:`Processor` protocol.
 * LSL (:mod:`.lsl`, :mod:`.replay`, :mod:`.runner`): :func:`run_replay` publishes a recording
@@ -23,8 +24,8 @@ from kinefuse.streaming.engine import (
     EngineConfig,
     EngineEvent,
     EngineOutput,
-    offline_causal,
 )
+from kinefuse.streaming.offline import OfflineCausalResult, offline_causal
 from kinefuse.streaming.processors import (
     SOURCE_PREDICT,
     IntegratedProcessor,
@@ -46,6 +47,7 @@ __all__ = [
     "IntegratedProcessor",
     "KalmanFusionProcessor",
     "LslUnavailable",
+    "OfflineCausalResult",
     "Processor",
     "StreamConfig",
     "ensure_local_lsl_config",
