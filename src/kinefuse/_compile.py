@@ -54,7 +54,7 @@ KERNEL_MODULES = (
     "kinefuse.filters._kernels_em",
     "kinefuse.filters._kernels_imm",
     "kinefuse.filters._kernels_ufir",
-    "kinefuse.pipelines.kinefuse_fusion",
+    "kinefuse.pipelines._kinefuse_kernels",
     "kinefuse.streaming._kernels",
 )
 # A kernel of each heavy module: if their cache index files exist, the kernels were compiled.
