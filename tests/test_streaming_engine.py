@@ -413,7 +413,7 @@ def test_run_loop_ctrl_c_flushes_and_closes(rec):
     inp, outlet = FakeInput(ev), FakeOutlet()
     eng = Engine(make_config(rec), KalmanFusionProcessor(1 / 30, lag=3))
     res = run_loop(eng, [inp], outlet, clock=lambda: eng._data_now)
-    assert res["interrupted"] and inp.closed and outlet.closed
+    assert res.interrupted and inp.closed and outlet.closed
     n_cam = sum(1 for e in ev[: 40 * 25] if e[2] == "camera")
     assert len(outlet.pushed) == eng.counters["frames"] == n_cam  # nothing held back
     assert [o.index for o in outlet.pushed] == list(range(n_cam))

@@ -310,6 +310,15 @@ def _causal_joint(zc, zi, phi, seen, dt, cfg: _CausalSettings):
     return xf, Pf, corr, last, len(times), (times[0] if times else T)
 
 
+def _check_options(causal, lag) -> None:
+    if not isinstance(causal, (bool, np.bool_)):
+        raise InputError(f"expected causal as a bool, got {causal!r}")
+    if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 0:
+        raise InputError(f"expected lag as an int >= 0 (samples), got {lag!r}")
+    if not causal and lag != 0:
+        raise InputError("lag applies to causal=True only (offline mode smooths the whole series)")
+
+
 def _check(z_imu, z_cam, available, dt_s, features):
     zi = np.asarray(z_imu)
     zc = np.asarray(z_cam)
@@ -409,8 +418,7 @@ def kinefuse_fusion(
 
     Notes
     -----
-    The model, the noise fit, the offline and the causal runs and the causal outage bridge are
-    described in the Notes of :mod:`kinefuse.pipelines.kinefuse_fusion`.
+    Model, noise fit, offline and causal runs, bridge: the Notes of this module's docstring.
 
     Deviations from the papers
     --------------------------
@@ -418,12 +426,7 @@ def kinefuse_fusion(
     position filters (SPEC §8) and ELM-1/ELM-2 (SPEC §10) by one state-space model with both
     sensors as measurements and a regression on IMU features instead of on positions.
     """
-    if not isinstance(causal, (bool, np.bool_)):
-        raise InputError(f"expected causal as a bool, got {causal!r}")
-    if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 0:
-        raise InputError(f"expected lag as an int >= 0 (samples), got {lag!r}")
-    if not causal and lag != 0:
-        raise InputError("lag applies to causal=True only (offline mode smooths the whole series)")
+    _check_options(causal, lag)
     zi, zc, av, dt, phi = _check(z_imu, z_cam, available, dt_s, features)
     base = chain_features(zi, dt, parents)
     # the chain's velocity is always a feature: it absorbs a residual time offset between the

@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -30,6 +31,7 @@ __all__ = [
     "EngineConfig",
     "EngineEvent",
     "EngineOutput",
+    "SummaryMapping",
 ]
 
 #: Per-segment / per-joint IMU status of a frame.
@@ -210,3 +212,29 @@ class EngineOutput:
         """Per-axis standard deviation, m, shape (J, 3)."""
         return np.sqrt(np.maximum(np.diagonal(self.cov_m2, axis1=-2, axis2=-1), 0.0))
 
+
+
+class SummaryMapping(Mapping):
+    """Base of the streaming run summaries (dataclasses): also a read-only mapping of the
+    fields, in order, without the optional ones that are None (:meth:`to_dict`), so that
+    ``summary["outputs"]`` and ``summary.outputs`` both work and the CLI's JSON is the dict."""
+
+    #: Fields left out of :meth:`to_dict` while None.
+    _optional: tuple[str, ...] = ()
+
+    def to_dict(self) -> dict:
+        """The summary as a plain dict."""
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        for k in self._optional:
+            if d[k] is None:
+                del d[k]
+        return d
+
+    def __getitem__(self, key):
+        return self.to_dict()[key]
+
+    def __iter__(self):
+        return iter(self.to_dict())
+
+    def __len__(self) -> int:
+        return len(self.to_dict())
