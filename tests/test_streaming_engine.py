@@ -9,13 +9,8 @@ import pytest
 
 from kinefuse.conventions import SOURCE_CAMERA, SOURCE_FUSED, SOURCE_IMU
 from kinefuse.kinematics import full_body
-from kinefuse.streaming.engine import (
-    FLAG_CAMERA_MISSING,
-    FLAG_FORCED,
-    FLAG_IMU_STALE,
-    Engine,
-    EngineConfig,
-)
+from kinefuse.streaming.engine import Engine, EngineConfig
+from kinefuse.streaming.engine_types import FLAG_CAMERA_MISSING, FLAG_FORCED, FLAG_IMU_STALE
 from kinefuse.streaming.offline import offline_causal
 from kinefuse.streaming.processors import (
     SOURCE_PREDICT,

@@ -92,6 +92,7 @@ from typing import Any
 
 import numpy as np
 
+from kinefuse._validation import positive_finite
 from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED, SOURCE_IMU
 from kinefuse.exceptions import InputError
 from kinefuse.pipelines._kinefuse_kernels import kf_segment, rts_smooth
@@ -339,14 +340,7 @@ def _check(z_imu, z_cam, available, dt_s, features):
         raise InputError(
             f"expected available as bool with shape (T, J) = {(T, J)}, got {av.shape} {av.dtype}"
         )
-    if isinstance(dt_s, bool):
-        raise InputError(f"expected dt_s as a positive number of seconds, got {dt_s!r}")
-    try:
-        dt = float(dt_s)
-    except (TypeError, ValueError):
-        raise InputError(f"expected dt_s as a positive number of seconds, got {dt_s!r}") from None
-    if not np.isfinite(dt) or dt <= 0:
-        raise InputError(f"expected dt_s finite and > 0, got {dt_s!r}")
+    dt = positive_finite(dt_s, "dt_s")
     if np.any(np.isinf(zi)):
         raise InputError("expected z_imu finite or NaN (missing), got ±inf")
     zc = np.where(av[..., None], zc, np.nan).astype(float)

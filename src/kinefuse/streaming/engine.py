@@ -78,12 +78,6 @@ from kinefuse.streaming.alignment import (
     unit_quaternion,
 )
 from kinefuse.streaming.engine_types import (
-    FLAG_CAMERA_MISSING,
-    FLAG_FORCED,
-    FLAG_IMU_HELD,
-    FLAG_IMU_STALE,
-    FLAG_NO_CAMERA_JOINT,
-    IMU_FRESH,
     IMU_HELD,
     IMU_STALE,
     EngineConfig,
@@ -92,20 +86,9 @@ from kinefuse.streaming.engine_types import (
 )
 from kinefuse.streaming.processors import Processor
 
-__all__ = [
-    "FLAG_CAMERA_MISSING",
-    "FLAG_FORCED",
-    "FLAG_IMU_HELD",
-    "FLAG_IMU_STALE",
-    "FLAG_NO_CAMERA_JOINT",
-    "IMU_FRESH",
-    "IMU_HELD",
-    "IMU_STALE",
-    "Engine",
-    "EngineConfig",
-    "EngineEvent",
-    "EngineOutput",
-]
+# the configuration and output types are part of the engine's interface: re-exported (their
+# module, with the FLAG_* and IMU_* codes, is kinefuse.streaming.engine_types)
+__all__ = ["Engine", "EngineConfig", "EngineEvent", "EngineOutput"]
 
 log = logging.getLogger("kinefuse.streaming")
 

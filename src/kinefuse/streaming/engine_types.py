@@ -9,12 +9,12 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from kinefuse._validation import positive_finite
 from kinefuse.conventions import PAPER_B_JOINTS
 from kinefuse.exceptions import InputError
 from kinefuse.kinematics import Skeleton
@@ -123,14 +123,7 @@ class EngineConfig:
         else:
             object.__setattr__(self, "camera_joints", None)
         for name in ("camera_rate_hz", "output_rate_hz", "max_latency_s", "stale_after_s"):
-            v = getattr(self, name)
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, (int, float))
-                or not math.isfinite(v)
-                or v <= 0
-            ):
-                raise InputError(f"expected {name} finite and > 0, got {v!r}")
+            positive_finite(getattr(self, name), name)
         if not (isinstance(self.gap_factor, (int, float)) and self.gap_factor > 1):
             raise InputError(f"expected gap_factor > 1, got {self.gap_factor!r}")
         rates = self.imu_rate_hz
