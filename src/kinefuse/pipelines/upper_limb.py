@@ -25,7 +25,13 @@ from kinefuse.kinematics import chain_positions, lengths_from_joints
 from kinefuse.kinematics import upper_limb as upper_limb_skeleton
 from kinefuse.models import constant_velocity
 
-__all__ = ["UPPER_LIMB_METHODS", "UpperLimbResult", "upper_limb", "upper_limb_from_recording"]
+__all__ = [
+    "UPPER_LIMB_METHODS",
+    "UpperLimbResult",
+    "paper_a_filter",
+    "upper_limb",
+    "upper_limb_from_recording",
+]
 
 #: Filters of paper A: the integrated filter and its three baselines.
 UPPER_LIMB_METHODS = ("em-kf-fir", "kf", "fir", "em-kf")
@@ -131,10 +137,34 @@ def _chain_arrays(z_elbow, z_wrist, joints):
     return np.stack(arrs, axis=1), names, None, None
 
 
-def _filter(method, model, z, horizon, threshold1, threshold2, n_em_iter):
+def paper_a_filter(dt_s: float, q: float, r: float, **filter_kwargs) -> IntegratedFilter:
+    """Paper A's integrated EM-KF/FIR filter (SPEC §7) on the constant-velocity model.
+
+    The one construction of both forms of paper A: the batch :func:`upper_limb` runs its
+    ``filter``, the online :class:`~kinefuse.streaming.processors.IntegratedProcessor` its
+    ``step`` (stream = batch is the filter's own contract, tested in the filter layer).
+
+    Parameters
+    ----------
+    dt_s : float
+        Sample interval, s.
+    q : float
+        Process-noise scale, (m/s)² per step.
+    r : float
+        Measurement-noise variance ``R = r I``, m².
+    **filter_kwargs
+        :class:`~kinefuse.filters.integrated.IntegratedFilter` settings (``horizon``,
+        ``threshold1``, ``threshold2``, ``n_em_iter``, ``gate``, ``fir_feedback``).
+    """
+    return IntegratedFilter(constant_velocity(dt_s, q=q, r=r), **filter_kwargs)
+
+
+def _filter(method, dt, q, r, z, horizon, threshold1, threshold2, n_em_iter):
     """Paper A's filter (or a baseline) on ``z (J, T, 3)``: its FilterResult."""
+    model = constant_velocity(dt, q, r)
     if method == "em-kf-fir":
-        flt = IntegratedFilter(model, horizon, threshold1, threshold2, n_em_iter)
+        flt = paper_a_filter(dt, q, r, horizon=horizon, threshold1=threshold1,
+                             threshold2=threshold2, n_em_iter=n_em_iter)  # fmt: skip
     elif method == "kf":
         flt = KalmanFilter(model)
     elif method == "fir":
@@ -249,7 +279,7 @@ def _filter_joints(z, dt, method, qs, rs, settings, names, t_s) -> UpperLimbResu
     for j in range(J):
         groups.setdefault((qs[j], rs[j]), []).append(j)
     for (qv, rv), idx in groups.items():
-        res = _filter(method, constant_velocity(dt, qv, rv), zj[idx], *settings)
+        res = _filter(method, dt, qv, rv, zj[idx], *settings)
         pos[idx] = res.position
         cov[idx] = res.cov[..., 0::2, 0::2]
         obs[idx] = res.observed
