@@ -146,12 +146,9 @@ def paper_a_filter(dt_s: float, q: float, r: float, **filter_kwargs) -> Integrat
 
     Parameters
     ----------
-    dt_s : float
-        Sample interval, s.
-    q : float
-        Process-noise scale, (m/s)² per step.
-    r : float
-        Measurement-noise variance ``R = r I``, m².
+    dt_s, q, r : float
+        Sample interval (s), process-noise scale ((m/s)² per step) and measurement-noise
+        variance ``R = r I`` (m²) of :func:`kinefuse.models.constant_velocity`.
     **filter_kwargs
         :class:`~kinefuse.filters.integrated.IntegratedFilter` settings (``horizon``,
         ``threshold1``, ``threshold2``, ``n_em_iter``, ``gate``, ``fir_feedback``).
