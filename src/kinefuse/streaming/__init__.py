@@ -6,10 +6,11 @@
   a recording.
 * Processors (:mod:`.processors`): :class:`KalmanFusionProcessor` (IMU + camera KF baseline),
   :class:`IntegratedProcessor` (paper A's EM-KF/FIR); the :class:`Processor` protocol.
-* LSL (:mod:`.lsl`, :mod:`.replay`, :mod:`.runner`): :func:`run_replay` publishes a recording
-  as LSL streams, :func:`run_stream` runs the engine on LSL inlets and publishes the fused
-  joints. pylsl is imported lazily and only after :func:`ensure_local_lsl_config` has pointed
-  ``LSLAPICFG`` at a machine-local configuration (:mod:`.config`).
+* LSL (:mod:`.lsl`, :mod:`.replay`, :mod:`.runner`, :mod:`.loop`): :func:`run_replay`
+  publishes a recording as LSL streams (:class:`ReplaySummary`), :func:`run_stream` runs the
+  engine on LSL inlets and publishes the fused joints (:class:`StreamSummary`). pylsl is
+  imported lazily and only after :func:`ensure_local_lsl_config` has pointed ``LSLAPICFG`` at
+  a machine-local configuration (:mod:`.config`).
 """
 
 from kinefuse.streaming.config import (
@@ -32,8 +33,8 @@ from kinefuse.streaming.processors import (
     KalmanFusionProcessor,
     Processor,
 )
-from kinefuse.streaming.replay import run_replay
-from kinefuse.streaming.runner import run_stream
+from kinefuse.streaming.replay import ReplaySummary, run_replay
+from kinefuse.streaming.runner import StreamSummary, run_stream
 
 #: Alias used by :mod:`kinefuse.cli` (``kinefuse replay RECORDING``).
 replay_recording = run_replay
@@ -49,7 +50,9 @@ __all__ = [
     "LslUnavailable",
     "OfflineCausalResult",
     "Processor",
+    "ReplaySummary",
     "StreamConfig",
+    "StreamSummary",
     "ensure_local_lsl_config",
     "import_pylsl",
     "load_stream_config",
