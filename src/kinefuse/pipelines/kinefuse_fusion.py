@@ -112,7 +112,7 @@ __all__ = [
 _N_X = 4  # per axis: [p, v, b, c]
 _H_CAM = np.array([1.0, 0.0, 0.0, 1.0])  # z_cam = p + c + n_V
 _H_IMU = np.array([1.0, 0.0, 1.0, 0.0])  # z_imu + f(φ) = p + b + n_I
-# causal mode (see kinefuse_fusion, Notes "Causal")
+# causal mode (see the module Notes, "Causal")
 _N_FOLDS_CAUSAL = 10  # CV folds of the streaming ridge (bounded cost per re-solve)
 _PRIOR_S = 2.0  # weight of the conservative noise prior, seconds of pseudo-data
 _MIN_FIT_S = 3.0  # camera-seen history before the correction uses more than an intercept, s

@@ -156,7 +156,7 @@ class _Moments:
         conservative prior of :func:`_prior_variograms` to the data before the fit.
         ``camera_white``: no camera-error state (σ_c² = 0); the camera's white level is the
         white part of its variogram fit and the chain's variogram is the rest of the
-        difference variogram (Notes of :func:`kinefuse_fusion`, causal mode).
+        difference variogram (Notes of :mod:`kinefuse.pipelines.kinefuse_fusion`, causal mode).
         """
         n = self.S[:, 0, 0]
         K = n.size
