@@ -77,10 +77,13 @@ class Processor(Protocol):
         """Back to the initial state."""
 
 
+def _as_arrays(z_imu, z_cam, available):
+    z_imu, z_cam = np.asarray(z_imu, dtype=float), np.asarray(z_cam, dtype=float)
+    return z_imu, z_cam, np.asarray(available, dtype=bool)
+
+
 def _check_frame(z_imu, z_cam, available):
-    z_imu = np.asarray(z_imu, dtype=float)
-    z_cam = np.asarray(z_cam, dtype=float)
-    available = np.asarray(available, dtype=bool)
+    z_imu, z_cam, available = _as_arrays(z_imu, z_cam, available)
     if z_imu.ndim != 2 or z_imu.shape[1] != 3 or z_cam.shape != z_imu.shape:
         raise InputError(
             f"expected z_imu and z_cam with the same shape (J, 3), got {z_imu.shape} and {z_cam.shape}"
@@ -94,9 +97,7 @@ def _check_frame(z_imu, z_cam, available):
 
 def _check_series(t_s, z_imu, z_cam, available):
     t = np.asarray(t_s, dtype=float)
-    z_imu = np.asarray(z_imu, dtype=float)
-    z_cam = np.asarray(z_cam, dtype=float)
-    available = np.asarray(available, dtype=bool)
+    z_imu, z_cam, available = _as_arrays(z_imu, z_cam, available)
     if z_imu.ndim != 3 or z_imu.shape[2] != 3 or z_cam.shape != z_imu.shape:
         raise InputError(
             f"expected z_imu and z_cam with the same shape (T, J, 3), got {z_imu.shape} and {z_cam.shape}"
