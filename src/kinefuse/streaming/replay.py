@@ -1,5 +1,9 @@
 """Publish a recording as live LSL streams (for tests, demos and latency measurements).
 
+Streams: ``{prefix}_imu_{segment}`` (type ``IMU``: ``qw qx qy qz`` and, if present and
+``include_raw``, ``acc_*`` m/s², ``gyr_*`` rad/s) and ``{prefix}_camera`` (type ``MoCap``: x,
+y, z, available per joint); source ids ``{name}@kinefuse-replay``.
+
 Sample k of a stream is pushed when ``local_clock() >= t_start + (t_k − t_0) / rate`` and
 carries exactly that value as its LSL timestamp: the original timestamps, shifted to
 ``local_clock`` and compressed by ``rate``; nominal rates are multiplied by ``rate``. The
@@ -172,14 +176,11 @@ def run_replay(
     rate : float
         Speed-up factor (2 = twice real time).
     name_prefix : str
-        Streams are ``{prefix}_imu_{segment}`` (type ``IMU``: ``qw qx qy qz`` and, if present
-        and ``include_raw``, ``acc_*`` m/s², ``gyr_*`` rad/s) and ``{prefix}_camera`` (type
-        ``MoCap``: x, y, z, available per joint); source ids ``{name}@kinefuse-replay``.
+        Stream names ``{prefix}_imu_{segment}`` and ``{prefix}_camera`` (module docstring).
     loop : bool
         Start again at the end (timestamps keep increasing).
     duration_s : float, optional
-        Stop after this much recording time, s (default: the recording once, or forever with
-        ``loop``).
+        Stop after this much recording time, s (default: once, or forever with ``loop``).
     include_raw : bool
         Publish acc/gyr channels next to the orientation.
     wait_for_consumers_s : float, optional
@@ -194,10 +195,6 @@ def run_replay(
     Returns
     -------
     ReplaySummary
-
-    Notes
-    -----
-    Timing and timestamps: see the module docstring.
     """
     if not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
         raise InputError(f"expected rate > 0, got {rate!r}")
