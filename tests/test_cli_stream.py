@@ -209,15 +209,15 @@ def test_cli_replay_stream_loopback_60s(lsl_env, tmp_path):
     imu = {s: (rec[f"imu_{s}_t"], rec[f"imu_{s}_q"]) for s in segments}
     camera = (rec["camera_t"], rec["camera_position_m"], rec["camera_available"])
     off = offline_causal(cfg, engine.processor, imu, camera, frame_times=frame_t)
-    assert np.array_equal(off["synthesized"], rec["frame_synthesized"])
+    assert np.array_equal(off.synthesized, rec["frame_synthesized"])
     rows = got["rows"].reshape(len(stamps), len(cfg.joints), 8)
-    std = np.sqrt(np.diagonal(off["cov_m2"], axis1=-2, axis2=-1))
-    for live, batch in ((rows[..., :3], off["position_m"]), (rows[..., 3:6], std)):
+    std = np.sqrt(np.diagonal(off.cov_m2, axis1=-2, axis2=-1))
+    for live, batch in ((rows[..., :3], off.position_m), (rows[..., 3:6], std)):
         assert np.array_equal(np.isnan(live), np.isnan(batch))
         assert np.nanmax(np.abs(live - batch)) <= 1e-9
-    assert np.array_equal(rows[..., 6].astype(int), off["source"])
+    assert np.array_equal(rows[..., 6].astype(int), off.source)
     assert np.array_equal(rec["position_m"], rows[..., :3], equal_nan=True)  # the --out file
-    assert len(np.unique(off["source"])) > 1  # camera outages: more than one source was used
+    assert len(np.unique(off.source)) > 1  # camera outages: more than one source was used
     assert "pylsl" not in sys.modules
 
 

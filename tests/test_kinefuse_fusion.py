@@ -133,7 +133,7 @@ def test_causal_streaming_refits_and_lag_use_the_same_filter():
 
 
 def test_noise_prior_is_used_before_history():
-    from kinefuse.pipelines.kinefuse_fusion import _Moments
+    from kinefuse.pipelines.kinefuse_noise import _Moments
 
     prm = _Moments(30).noise(DT, prior_pairs=60)  # no data: the prior alone
     assert np.all(prm.var_b > 0) and np.all(prm.phi_b < 1)  # stationary chain error

@@ -166,17 +166,17 @@ off = offline_causal(cfgE, eng.processor, imu, camera, frame_times=frames)
 G = np.array(rows).reshape(len(rows), len(cfgE.joints), 8)
 stamps = np.array(stamps)
 n = min(len(stamps), len(frames))
-same_nan = bool(np.array_equal(np.isnan(G[..., :3]), np.isnan(off["position_m"][:len(G)])))
+same_nan = bool(np.array_equal(np.isnan(G[..., :3]), np.isnan(off.position_m[:len(G)])))
 print("RESULT:" + json.dumps({
     "received": len(rows), "outputs": res["outputs"], "frames": len(frames),
     "camera_frames_sent": len(rec.vision), "camera_frames_accepted": len(cam),
     "camera_in_outputs": int(np.isin(camera[0], stamps).sum()),
     "in_order": bool(np.all(np.diff(stamps) > 0)),
     "stamps_equal_frames": bool(len(stamps) == len(frames) and np.array_equal(stamps, frames)),
-    "max_pos_diff": float(np.nanmax(np.abs(G[..., :3] - off["position_m"][:len(G)]))),
-    "max_std_diff": float(np.nanmax(np.abs(G[..., 3:6] - np.sqrt(np.diagonal(off["cov_m2"], axis1=-2, axis2=-1))[:len(G)]))),
+    "max_pos_diff": float(np.nanmax(np.abs(G[..., :3] - off.position_m[:len(G)]))),
+    "max_std_diff": float(np.nanmax(np.abs(G[..., 3:6] - np.sqrt(np.diagonal(off.cov_m2, axis1=-2, axis2=-1))[:len(G)]))),
     "same_nan": same_nan,
-    "source_equal": bool(np.array_equal(G[..., 6].astype(int), off["source"][:len(G)])),
+    "source_equal": bool(np.array_equal(G[..., 6].astype(int), off.source[:len(G)])),
     "imu_samples": {s: len(eng.accepted["imu"][s]) for s in cfgE.segments},
     "imu_sent": {s: len(st) for s, st in rec.imu.items()},
     "counters": res["counters"], "latency_ms": res["latency_ms"], "missing": res["missing"],

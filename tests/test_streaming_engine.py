@@ -9,13 +9,9 @@ import pytest
 
 from kinefuse.conventions import SOURCE_CAMERA, SOURCE_FUSED, SOURCE_IMU
 from kinefuse.kinematics import full_body
-from kinefuse.streaming.engine import (
-    FLAG_CAMERA_MISSING,
-    FLAG_IMU_STALE,
-    Engine,
-    EngineConfig,
-    offline_causal,
-)
+from kinefuse.streaming.engine import Engine, EngineConfig
+from kinefuse.streaming.engine_types import FLAG_CAMERA_MISSING, FLAG_FORCED, FLAG_IMU_STALE
+from kinefuse.streaming.offline import offline_causal
 from kinefuse.streaming.processors import (
     SOURCE_PREDICT,
     IntegratedProcessor,
@@ -101,12 +97,15 @@ def offline_of(engine, make_processor, frame_times=None):
 def assert_equal_offline(outs, off):
     pos = np.stack([o.position_m for o in outs])
     cov = np.stack([o.cov_m2 for o in outs])
-    np.testing.assert_array_equal([o.t_s for o in outs], off["t_s"])
-    np.testing.assert_array_equal(np.isnan(pos), np.isnan(off["position_m"]))
-    np.testing.assert_allclose(pos, off["position_m"], atol=TOL, rtol=0)
-    np.testing.assert_allclose(cov, off["cov_m2"], atol=TOL, rtol=0)
-    np.testing.assert_array_equal(np.stack([o.source for o in outs]), off["source"])
-    np.testing.assert_array_equal(np.stack([o.imu_status for o in outs]), off["imu_status"])
+    np.testing.assert_array_equal([o.t_s for o in outs], off.t_s)
+    np.testing.assert_array_equal(np.isnan(pos), np.isnan(off.position_m))
+    np.testing.assert_allclose(pos, off.position_m, atol=TOL, rtol=0)
+    np.testing.assert_allclose(cov, off.cov_m2, atol=TOL, rtol=0)
+    np.testing.assert_array_equal(np.stack([o.source for o in outs]), off.source)
+    np.testing.assert_array_equal(np.stack([o.imu_status for o in outs]), off.imu_status)
+    # the same per-frame code: the same flags (offline never forces a frame)
+    flags = np.stack([o.flags for o in outs]) & ~np.uint8(FLAG_FORCED)
+    np.testing.assert_array_equal(flags, off.flags)
 
 
 @pytest.mark.parametrize("name", list(PROCESSORS))
@@ -409,7 +408,7 @@ def test_run_loop_ctrl_c_flushes_and_closes(rec):
     inp, outlet = FakeInput(ev), FakeOutlet()
     eng = Engine(make_config(rec), KalmanFusionProcessor(1 / 30, lag=3))
     res = run_loop(eng, [inp], outlet, clock=lambda: eng._data_now)
-    assert res["interrupted"] and inp.closed and outlet.closed
+    assert res.interrupted and inp.closed and outlet.closed
     n_cam = sum(1 for e in ev[: 40 * 25] if e[2] == "camera")
     assert len(outlet.pushed) == eng.counters["frames"] == n_cam  # nothing held back
     assert [o.index for o in outlet.pushed] == list(range(n_cam))

@@ -11,7 +11,8 @@ from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED, SOURCE_IMU
 from kinefuse.exceptions import InputError
 from kinefuse.kinematics import full_body
 from kinefuse.pipelines import VisionParams, vision_assisted
-from kinefuse.streaming.engine import Engine, EngineConfig, offline_causal
+from kinefuse.streaming.engine import Engine, EngineConfig
+from kinefuse.streaming.offline import offline_causal
 from kinefuse.streaming.paper_b import VisionAssistedProcessor
 from kinefuse.streaming.processors import Processor
 
@@ -231,20 +232,20 @@ def test_engine_equals_offline_causal_on_virtual_clip(rec, method):
     pos = np.stack([o.position_m for o in outs])
     cov = np.stack([o.cov_m2 for o in outs])
     src = np.stack([o.source for o in outs])
-    np.testing.assert_array_equal(src, off["source"])
-    np.testing.assert_array_equal(np.isnan(pos), np.isnan(off["position_m"]))
+    np.testing.assert_array_equal(src, off.source)
+    np.testing.assert_array_equal(np.isnan(pos), np.isnan(off.position_m))
     # the trained ELM bridge (a least-squares solve) amplifies the rounding of the two paths'
     # summation orders to ~1e-9 m on this clip (realistic virtual sensors): 1e-8 m = 10 nm
-    np.testing.assert_allclose(pos, off["position_m"], atol=10 * TOL, rtol=0)
-    np.testing.assert_allclose(cov, off["cov_m2"], atol=10 * TOL, rtol=0)
+    np.testing.assert_allclose(pos, off.position_m, atol=10 * TOL, rtol=0)
+    np.testing.assert_allclose(cov, off.cov_m2, atol=10 * TOL, rtol=0)
     # the clip exercises the camera path, the IMU fallback and a trained bridge
     assert {SOURCE_FUSED, SOURCE_BRIDGED, SOURCE_IMU} <= set(np.unique(src).tolist())
     # and the processor's step equals the batch pipeline on the engine's own inputs
     res = vision_assisted(
-        off["z_imu"], off["z_cam"], off["available"], DT, method, causal=True, params=params
+        off.z_imu, off.z_cam, off.available, DT, method, causal=True, params=params
     )
     proc = VisionAssistedProcessor(method, params)
-    assert_matches(stepped(proc, off["z_imu"], off["z_cam"], off["available"]), res)
+    assert_matches(stepped(proc, off.z_imu, off.z_cam, off.available), res)
 
 
 def test_engine_checkpoint_with_trained_bridge(rec):

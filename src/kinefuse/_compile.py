@@ -60,7 +60,7 @@ KERNEL_MODULES = (
     "kinefuse.filters._kernels_linalg",
     "kinefuse.filters._kernels_ufir",
     "kinefuse.filters._kernels_ufir_run",
-    "kinefuse.pipelines.kinefuse_fusion",
+    "kinefuse.pipelines._kinefuse_kernels",
     "kinefuse.streaming._kernels",
 )
 # A kernel of each heavy module: if their cache index files exist, the kernels were compiled.

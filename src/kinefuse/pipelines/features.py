@@ -89,6 +89,58 @@ def _world_rate(R: np.ndarray, t_s: np.ndarray) -> np.ndarray:
     return w
 
 
+def _check_feature_args(recording_or_orientations, joints, t_s, R_world_from_camera):
+    """Validated ``(streams, joints, t, R_world_from_camera or None)`` of :func:`imu_features`."""
+    if isinstance(recording_or_orientations, Recording):
+        streams = recording_or_orientations.imu
+    elif isinstance(recording_or_orientations, Mapping):
+        streams = dict(recording_or_orientations)
+    else:
+        raise InputError(
+            "expected a Recording or a mapping segment -> ImuStream, got "
+            f"{type(recording_or_orientations).__name__}"
+        )
+    for k, v in streams.items():
+        if not isinstance(v, ImuStream):
+            raise InputError(f"orientations[{k!r}]: expected an ImuStream, got {type(v).__name__}")
+    if isinstance(joints, str):
+        raise InputError(f"expected joints as a sequence of names, got the string {joints!r}")
+    joints = list(joints)
+    if not joints:
+        raise InputError("expected at least one joint, got none")
+    t = np.asarray(t_s, dtype=float)
+    if t.ndim != 1 or t.size < 1 or not np.all(np.isfinite(t)):
+        raise InputError(f"expected t_s as a finite 1-D array, got shape {t.shape}")
+    if t.size > 1 and np.any(np.diff(t) <= 0):
+        raise InputError("expected t_s strictly increasing")
+    Rc = None
+    if R_world_from_camera is not None:
+        Rc = np.asarray(R_world_from_camera, dtype=float)
+        if Rc.shape != (3, 3) or not np.all(np.isfinite(Rc)):
+            raise InputError(f"expected R_world_from_camera with shape (3, 3), got {Rc.shape}")
+    return streams, joints, t, Rc
+
+
+def _joint_columns(skeleton, j, streams, seg, relative: bool, T: int) -> np.ndarray:
+    """The feature columns ``(T, F_j)`` of joint ``j`` (``seg(s) -> (R (T, 3, 3), rate or None)``)."""
+    segs = [s for s in joint_segments(skeleton, j) if s in streams]
+    if not segs:
+        raise InputError(
+            f"joint {j!r}: none of its segments {list(joint_segments(skeleton, j))} has an IMU; "
+            f"got IMUs for {sorted(streams)}"
+        )
+    cols = []
+    for s in segs:
+        R, w = seg(s)
+        cols.append(R.reshape(T, 9))
+        if w is not None:
+            cols.append(w)
+    if relative:
+        for a, b in zip(segs[:-1], segs[1:], strict=True):
+            cols.append(np.einsum("tji,tjk->tik", seg(a)[0], seg(b)[0]).reshape(T, 9))
+    return np.concatenate(cols, axis=1)
+
+
 def imu_features(
     recording_or_orientations: Recording | Mapping[str, ImuStream],
     skeleton: Skeleton,
@@ -142,33 +194,8 @@ def imu_features(
     represents errors that vary with segment direction, joint angle and speed (the ``rates``)
     along the movement, such as soft-tissue motion over a gait cycle.
     """
-    if isinstance(recording_or_orientations, Recording):
-        streams = recording_or_orientations.imu
-    elif isinstance(recording_or_orientations, Mapping):
-        streams = dict(recording_or_orientations)
-    else:
-        raise InputError(
-            "expected a Recording or a mapping segment -> ImuStream, got "
-            f"{type(recording_or_orientations).__name__}"
-        )
-    for k, v in streams.items():
-        if not isinstance(v, ImuStream):
-            raise InputError(f"orientations[{k!r}]: expected an ImuStream, got {type(v).__name__}")
-    if isinstance(joints, str):
-        raise InputError(f"expected joints as a sequence of names, got the string {joints!r}")
-    joints = list(joints)
-    if not joints:
-        raise InputError("expected at least one joint, got none")
-    t = np.asarray(t_s, dtype=float)
-    if t.ndim != 1 or t.size < 1 or not np.all(np.isfinite(t)):
-        raise InputError(f"expected t_s as a finite 1-D array, got shape {t.shape}")
-    if t.size > 1 and np.any(np.diff(t) <= 0):
-        raise InputError("expected t_s strictly increasing")
-    Rc = None
-    if R_world_from_camera is not None:
-        Rc = np.asarray(R_world_from_camera, dtype=float)
-        if Rc.shape != (3, 3) or not np.all(np.isfinite(Rc)):
-            raise InputError(f"expected R_world_from_camera with shape (3, 3), got {Rc.shape}")
+    streams, joints, t, Rc = _check_feature_args(recording_or_orientations, joints, t_s,
+                                                 R_world_from_camera)  # fmt: skip
     cache: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
 
     def seg(s: str):
@@ -181,24 +208,7 @@ def imu_features(
             cache[s] = (R, _world_rate(R, t) if rates else None)
         return cache[s]
 
-    per_joint = []
-    for j in joints:
-        segs = [s for s in joint_segments(skeleton, j) if s in streams]
-        if not segs:
-            raise InputError(
-                f"joint {j!r}: none of its segments {list(joint_segments(skeleton, j))} has an IMU; "
-                f"got IMUs for {sorted(streams)}"
-            )
-        cols = []
-        for s in segs:
-            R, w = seg(s)
-            cols.append(R.reshape(t.size, 9))
-            if w is not None:
-                cols.append(w)
-        if relative:
-            for a, b in zip(segs[:-1], segs[1:], strict=True):
-                cols.append(np.einsum("tji,tjk->tik", seg(a)[0], seg(b)[0]).reshape(t.size, 9))
-        per_joint.append(np.concatenate(cols, axis=1))
+    per_joint = [_joint_columns(skeleton, j, streams, seg, relative, t.size) for j in joints]
     F = max(p.shape[1] for p in per_joint)
     out = np.zeros((t.size, len(joints), F))
     for k, p in enumerate(per_joint):

@@ -13,16 +13,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kinefuse._validation import positive_finite
 from kinefuse.conventions import MODE_EM, MODE_FIR, MODE_KF, MODE_PREDICT
 from kinefuse.exceptions import InputError
 from kinefuse.filters import KalmanFilter
 from kinefuse.filters.em_kalman import EMKalmanFilter
 from kinefuse.filters.integrated import IntegratedFilter
 from kinefuse.filters.ufir import UFIRFilter
-from kinefuse.io.recording import JointStream
+from kinefuse.io.recording import JointStream, Recording
+from kinefuse.kinematics import chain_positions, lengths_from_joints
+from kinefuse.kinematics import upper_limb as upper_limb_skeleton
 from kinefuse.models import constant_velocity
 
-__all__ = ["UPPER_LIMB_METHODS", "UpperLimbResult", "upper_limb", "upper_limb_from_recording"]
+__all__ = [
+    "UPPER_LIMB_METHODS",
+    "UpperLimbResult",
+    "paper_a_filter",
+    "upper_limb",
+    "upper_limb_from_recording",
+]
 
 #: Filters of paper A: the integrated filter and its three baselines.
 UPPER_LIMB_METHODS = ("em-kf-fir", "kf", "fir", "em-kf")
@@ -128,6 +137,53 @@ def _chain_arrays(z_elbow, z_wrist, joints):
     return np.stack(arrs, axis=1), names, None, None
 
 
+def paper_a_filter(dt_s: float, q: float, r: float, **filter_kwargs) -> IntegratedFilter:
+    """Paper A's integrated EM-KF/FIR filter (SPEC §7) on the constant-velocity model.
+
+    The one construction of both forms of paper A: the batch :func:`upper_limb` runs its
+    ``filter``, the online :class:`~kinefuse.streaming.processors.IntegratedProcessor` its
+    ``step`` (stream = batch is the filter's own contract, tested in the filter layer).
+
+    Parameters
+    ----------
+    dt_s, q, r : float
+        Sample interval (s), process-noise scale ((m/s)² per step) and measurement-noise
+        variance ``R = r I`` (m²) of :func:`kinefuse.models.constant_velocity`.
+    **filter_kwargs
+        :class:`~kinefuse.filters.integrated.IntegratedFilter` settings (``horizon``,
+        ``threshold1``, ``threshold2``, ``n_em_iter``, ``gate``, ``fir_feedback``).
+    """
+    return IntegratedFilter(constant_velocity(dt_s, q=q, r=r), **filter_kwargs)
+
+
+def _filter(method, dt, q, r, z, horizon, threshold1, threshold2, n_em_iter):
+    """Paper A's filter (or a baseline) on ``z (J, T, 3)``: its FilterResult."""
+    model = constant_velocity(dt, q, r)
+    if method == "em-kf-fir":
+        flt = paper_a_filter(dt, q, r, horizon=horizon, threshold1=threshold1,
+                             threshold2=threshold2, n_em_iter=n_em_iter)  # fmt: skip
+    elif method == "kf":
+        flt = KalmanFilter(model)
+    elif method == "fir":
+        flt = UFIRFilter(model, horizon=horizon)
+    else:
+        flt = EMKalmanFilter(model, n_iter=n_em_iter)
+    return flt.filter(z)[1]
+
+
+def _mode_and_distance(method, res, r: float):
+    """Per sample: the branch (MODE_*) and the distance of :class:`UpperLimbResult`."""
+    if method == "em-kf-fir":
+        return res.mode, res.distance
+    if method in ("kf", "em-kf"):
+        mode = np.where(res.observed, MODE_KF if method == "kf" else MODE_EM, MODE_PREDICT)
+        return mode, res.distance
+    nu = res.innovation
+    dist = np.einsum("...i,...i->...", nu, nu) / r  # D₁ = νᵀ R⁻¹ ν, R = r I
+    mode = np.where(res.observed, np.where(res.fir_ready, MODE_FIR, MODE_KF), MODE_PREDICT)
+    return mode, dist
+
+
 def upper_limb(
     z_elbow,
     z_wrist=None,
@@ -197,17 +253,19 @@ def upper_limb(
     z, names, dt_stream, t_s = _chain_arrays(z_elbow, z_wrist, joints)
     if dt_s is None:
         dt_s = dt_stream if dt_stream is not None else 1.0 / 30.0
-    try:
-        dt = float(dt_s)
-    except (TypeError, ValueError):
-        raise InputError(f"expected dt_s as a number > 0, got {dt_s!r}") from None
-    if not (math.isfinite(dt) and dt > 0):
-        raise InputError(f"expected dt_s finite and > 0, got {dt_s!r}")
+    dt = positive_finite(dt_s, "dt_s")
     T, J, _ = z.shape
     if T < 1:
         raise InputError(f"expected at least one sample, got shape {z.shape}")
-    zj = np.ascontiguousarray(z.transpose(1, 0, 2))
     qs, rs = _per_joint(q, "q", J), _per_joint(r, "r", J)
+    return _filter_joints(z, dt, method, qs, rs, (horizon, threshold1, threshold2, n_em_iter),
+                          names, t_s)  # fmt: skip
+
+def _filter_joints(z, dt, method, qs, rs, settings, names, t_s) -> UpperLimbResult:
+    """:func:`upper_limb` on validated ``z (T, J, 3)``: one batch call per distinct ``(q, r)``;
+    ``settings = (horizon, threshold1, threshold2, n_em_iter)``."""
+    T, J, _ = z.shape
+    zj = np.ascontiguousarray(z.transpose(1, 0, 2))
     pos = np.empty((J, T, 3))
     cov = np.empty((J, T, 3, 3))
     mode = np.empty((J, T), dtype=np.int8)
@@ -218,33 +276,13 @@ def upper_limb(
     for j in range(J):
         groups.setdefault((qs[j], rs[j]), []).append(j)
     for (qv, rv), idx in groups.items():
-        model = constant_velocity(dt, qv, rv)
-        zz = zj[idx]
-        if method == "em-kf-fir":
-            flt = IntegratedFilter(model, horizon, threshold1, threshold2, n_em_iter)
-        elif method == "kf":
-            flt = KalmanFilter(model)
-        elif method == "fir":
-            flt = UFIRFilter(model, horizon=horizon)
-        else:
-            flt = EMKalmanFilter(model, n_iter=n_em_iter)
-        _, res = flt.filter(zz)
+        res = _filter(method, dt, qv, rv, zj[idx], *settings)
         pos[idx] = res.position
         cov[idx] = res.cov[..., 0::2, 0::2]
         obs[idx] = res.observed
-        if method == "em-kf-fir":
-            mode[idx] = res.mode
-            dist[idx] = res.distance
+        mode[idx], dist[idx] = _mode_and_distance(method, res, rv)
+        if dist2 is not None:
             dist2[idx] = res.distance2
-        elif method in ("kf", "em-kf"):
-            mode[idx] = np.where(res.observed, MODE_KF if method == "kf" else MODE_EM, MODE_PREDICT)
-            dist[idx] = res.distance
-        else:
-            nu = res.innovation
-            dist[idx] = np.einsum("...i,...i->...", nu, nu) / rv  # D₁ = νᵀ R⁻¹ ν, R = r I
-            mode[idx] = np.where(
-                res.observed, np.where(res.fir_ready, MODE_FIR, MODE_KF), MODE_PREDICT
-            )
     return UpperLimbResult(
         position=np.ascontiguousarray(pos.transpose(1, 0, 2)),
         cov=np.ascontiguousarray(cov.transpose(1, 0, 2, 3)),
@@ -265,6 +303,47 @@ def _fill(t_src: np.ndarray, p: np.ndarray, t_dst: np.ndarray) -> np.ndarray:
     if not np.any(ok):
         return np.full((t_dst.size, 3), np.nan)
     return np.stack([np.interp(t_dst, t_src[ok], p[ok, k]) for k in range(3)], axis=-1)
+
+
+def _check_recording_args(recording, side, source, shoulder, rate_hz):
+    """Validated ``(joint stream, side letter, rate Hz)`` of :func:`upper_limb_from_recording`."""
+    if not isinstance(recording, Recording):
+        raise InputError(f"expected recording as a Recording, got {type(recording).__name__}")
+    if source not in ("vision", "reference"):
+        raise InputError(f"expected source in ('vision', 'reference'), got {source!r}")
+    if shoulder not in ("stream", "constant"):
+        raise InputError(f"expected shoulder in ('stream', 'constant'), got {shoulder!r}")
+    stream = getattr(recording, source)
+    if stream is None:
+        raise InputError(f"expected a {source} joint stream in the recording, got None")
+    s = str(side).lower()[:1]
+    if s not in ("l", "r"):
+        raise InputError(f"expected side in ('l', 'r'), got {side!r}")
+    return stream, s, positive_finite(rate_hz, "rate_hz")
+
+
+def _timeline(t_src: np.ndarray, rate: float) -> np.ndarray:
+    """The stream's timeline when its median rate is within 5 % of ``rate``, else a uniform
+    grid at ``rate`` over its span."""
+    src_rate = 1.0 / float(np.median(np.diff(t_src))) if t_src.size > 1 else rate
+    if abs(src_rate - rate) <= 0.05 * rate:
+        return t_src
+    return t_src[0] + np.arange(int(np.floor((t_src[-1] - t_src[0]) * rate)) + 1) / rate
+
+
+def _shoulder_root(stream, sh: str, t: np.ndarray, shoulder: str, source: str) -> np.ndarray:
+    """Chain root ``(T, 3)`` on ``t``: the stream's shoulder (gaps interpolated) or paper A's
+    constant one (mean over the first second of available samples)."""
+    t_src = stream.t_s
+    p_sh = stream.position(sh)
+    if shoulder == "constant":
+        ok = np.all(np.isfinite(p_sh), axis=1)
+        first = t_src[ok][:1]
+        if first.size == 0:
+            raise InputError(f"no available {sh!r} sample in the {source} stream")
+        sel = ok & (t_src < first[0] + 1.0)
+        return np.broadcast_to(p_sh[sel].mean(axis=0), (t.size, 3)).copy()
+    return _fill(t_src, p_sh, t)
 
 
 def upper_limb_from_recording(
@@ -317,45 +396,10 @@ def upper_limb_from_recording(
     stream's shoulder, which is what a camera or reference provides (``shoulder="constant"``
     for the paper's form). IMU orientations are SLERP-resampled to the filter timeline.
     """
-    from kinefuse.io.recording import Recording
-    from kinefuse.kinematics import chain_positions, lengths_from_joints
-    from kinefuse.kinematics import upper_limb as upper_limb_skeleton
-
-    if not isinstance(recording, Recording):
-        raise InputError(f"expected recording as a Recording, got {type(recording).__name__}")
-    if source not in ("vision", "reference"):
-        raise InputError(f"expected source in ('vision', 'reference'), got {source!r}")
-    if shoulder not in ("stream", "constant"):
-        raise InputError(f"expected shoulder in ('stream', 'constant'), got {shoulder!r}")
-    stream = getattr(recording, source)
-    if stream is None:
-        raise InputError(f"expected a {source} joint stream in the recording, got None")
-    s = str(side).lower()[:1]
-    if s not in ("l", "r"):
-        raise InputError(f"expected side in ('l', 'r'), got {side!r}")
-    try:
-        rate = float(rate_hz)
-    except (TypeError, ValueError):
-        raise InputError(f"expected rate_hz as a number > 0, got {rate_hz!r}") from None
-    if not (math.isfinite(rate) and rate > 0):
-        raise InputError(f"expected rate_hz finite and > 0, got {rate_hz!r}")
-    t_src = stream.t_s
-    src_rate = 1.0 / float(np.median(np.diff(t_src))) if t_src.size > 1 else rate
-    if abs(src_rate - rate) <= 0.05 * rate:
-        t = t_src
-    else:
-        t = t_src[0] + np.arange(int(np.floor((t_src[-1] - t_src[0]) * rate)) + 1) / rate
+    stream, s, rate = _check_recording_args(recording, side, source, shoulder, rate_hz)
+    t = _timeline(stream.t_s, rate)
     sh = f"shoulder_{s}"
-    p_sh = stream.position(sh)
-    if shoulder == "constant":
-        ok = np.all(np.isfinite(p_sh), axis=1)
-        first = t_src[ok][:1]
-        if first.size == 0:
-            raise InputError(f"no available {sh!r} sample in the {source} stream")
-        sel = ok & (t_src < first[0] + 1.0)
-        root = np.broadcast_to(p_sh[sel].mean(axis=0), (t.size, 3)).copy()
-    else:
-        root = _fill(t_src, p_sh, t)
+    root = _shoulder_root(stream, sh, t, shoulder, source)
     sk = skeleton
     if sk is None:
         sk = upper_limb_skeleton(s, lengths={f"upper_arm_{s}": 0.3, f"forearm_{s}": 0.25})

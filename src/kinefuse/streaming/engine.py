@@ -54,8 +54,9 @@ on the ``kinefuse.streaming`` logger:
   expected time, the expected frames before it are synthesized (camera unavailable), so the
   output grid stays one output per camera period.
 
-:func:`offline_causal` is the batch computation the engine must equal (same resampling rules,
-forward kinematics by :func:`kinefuse.kinematics.forward_kinematics`, processor ``run``).
+:func:`kinefuse.streaming.offline.offline_causal` is the same computation on a recording: it
+fills the same :class:`~.alignment.SegmentBuffer` s and calls the same
+:class:`~.alignment.FrameAssembler` per frame (:mod:`.alignment`), then the processor's ``run``.
 """
 
 from __future__ import annotations
@@ -65,318 +66,33 @@ import copy
 import logging
 import math
 from collections import deque
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from kinefuse.conventions import PAPER_B_JOINTS
 from kinefuse.exceptions import InputError
-from kinefuse.kinematics import Skeleton, forward_kinematics
-from kinefuse.orientation.resample import slerp_resample
+from kinefuse.orientation import OrientationEstimator
+from kinefuse.streaming.alignment import (
+    FrameAssembler,
+    SegmentBuffer,
+    camera_frame_due,
+    unit_quaternion,
+)
+from kinefuse.streaming.engine_types import (
+    IMU_HELD,
+    IMU_STALE,
+    EngineConfig,
+    EngineEvent,
+    EngineOutput,
+)
 from kinefuse.streaming.processors import Processor
 
-__all__ = [
-    "FLAG_CAMERA_MISSING",
-    "FLAG_FORCED",
-    "FLAG_IMU_HELD",
-    "FLAG_IMU_STALE",
-    "FLAG_NO_CAMERA_JOINT",
-    "IMU_FRESH",
-    "IMU_HELD",
-    "IMU_STALE",
-    "Engine",
-    "EngineConfig",
-    "EngineEvent",
-    "EngineOutput",
-    "offline_causal",
-]
+# the configuration and output types are part of the engine's interface: re-exported (their
+# module, with the FLAG_* and IMU_* codes, is kinefuse.streaming.engine_types)
+__all__ = ["Engine", "EngineConfig", "EngineEvent", "EngineOutput"]
 
 log = logging.getLogger("kinefuse.streaming")
 
-#: Per-segment / per-joint IMU status of a frame.
-IMU_FRESH, IMU_HELD, IMU_STALE = 0, 1, 2
-
-#: Bits of :attr:`EngineOutput.flags` (per joint).
-FLAG_IMU_HELD = 1  #: an IMU orientation of the joint's chain was held (no sample after t yet)
-FLAG_IMU_STALE = 2  #: an IMU stream of the chain is stale: no IMU measurement
-FLAG_CAMERA_MISSING = 4  #: no camera frame at this time (synthesized frame)
-FLAG_NO_CAMERA_JOINT = 8  #: the camera frame did not see this joint
-FLAG_FORCED = 16  #: the frame was processed after ``max_latency_s`` without all live IMUs
-
 _CHECKPOINT_VERSION = 1
-#: A camera frame more than this many periods after the expected next frame time leaves a
-#: hole: the expected frames before it are synthesized (camera unavailable).
-_HOLE_TOL = 0.75
-
-
-@dataclass(frozen=True, eq=False)
-class EngineConfig:
-    """Configuration of :class:`Engine` (immutable).
-
-    Attributes
-    ----------
-    skeleton : Skeleton
-        Kinematic chain (lengths, axes in the sensor frames, offsets); e.g.
-        :func:`kinefuse.kinematics.full_body` with calibrated axes.
-    joints : tuple of str
-        Output joints, in output order (default the eight of paper B).
-    camera_joints : tuple of str or None
-        Joint order of the camera frames given to :meth:`Engine.push_camera` (default
-        ``joints`` plus the skeleton root if missing). None with ``camera=False``.
-    camera : bool
-        Whether a camera stream is expected (outputs per camera frame) or not (outputs on a
-        regular grid at ``output_rate_hz`` anchored on the first IMU sample).
-    camera_rate_hz : float
-        Nominal camera rate, Hz (sets the expected frame period).
-    output_rate_hz : float
-        Output rate without a camera, Hz.
-    imu_rate_hz : float or mapping of str -> float
-        Nominal IMU rate(s), Hz (gap detection; VQF rate for raw samples).
-    max_latency_s : float
-        Longest wait for live IMU streams (or a camera frame) past a frame time, s.
-    stale_after_s : float
-        Silence after which an IMU stream is stale and a held orientation no longer used, s.
-    gap_factor : float
-        Consecutive samples more than ``gap_factor`` nominal periods apart form a gap.
-    root_position_m : tuple of 3 floats
-        Root joint position before the camera first sees it, m.
-    R_world_from_camera : ndarray, shape (3, 3), or None
-        Rotation from the camera frame to the IMU world frame (a
-        :class:`~kinefuse.kinematics.Calibration`'s); outputs are in the camera frame.
-    vqf_params : mapping or None
-        VQF parameters for raw IMU samples.
-    record : bool
-        Keep every accepted sample in :attr:`Engine.accepted` (tests, benchmarks).
-    """
-
-    skeleton: Skeleton
-    joints: tuple[str, ...] = PAPER_B_JOINTS
-    camera_joints: tuple[str, ...] | None = None
-    camera: bool = True
-    camera_rate_hz: float = 30.0
-    output_rate_hz: float = 30.0
-    imu_rate_hz: float | Mapping[str, float] = 100.0
-    max_latency_s: float = 0.1
-    stale_after_s: float = 0.25
-    gap_factor: float = 2.5
-    root_position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    R_world_from_camera: np.ndarray | None = None
-    vqf_params: Mapping | None = None
-    record: bool = False
-    segments: tuple[str, ...] = field(init=False)
-
-    def __post_init__(self):
-        if not isinstance(self.skeleton, Skeleton):
-            raise InputError(f"expected skeleton as a Skeleton, got {type(self.skeleton).__name__}")
-        joints = tuple(self.joints)
-        if not joints or len(set(joints)) != len(joints):
-            raise InputError(f"expected unique output joints, got {joints}")
-        object.__setattr__(self, "joints", joints)
-        segs = list(self.skeleton.segments)
-        if self.skeleton.root_segment is not None and self.skeleton.offsets_m:
-            segs.insert(0, self.skeleton.root_segment)
-        object.__setattr__(self, "segments", tuple(dict.fromkeys(segs)))
-        if self.camera:
-            cj = self.camera_joints
-            if cj is None:
-                cj = joints + ((self.skeleton.root,) if self.skeleton.root not in joints else ())
-            cj = tuple(cj)
-            if len(set(cj)) != len(cj):
-                raise InputError(f"expected unique camera_joints, got {cj}")
-            object.__setattr__(self, "camera_joints", cj)
-        else:
-            object.__setattr__(self, "camera_joints", None)
-        for name in ("camera_rate_hz", "output_rate_hz", "max_latency_s", "stale_after_s"):
-            v = getattr(self, name)
-            if (
-                isinstance(v, bool)
-                or not isinstance(v, (int, float))
-                or not math.isfinite(v)
-                or v <= 0
-            ):
-                raise InputError(f"expected {name} finite and > 0, got {v!r}")
-        if not (isinstance(self.gap_factor, (int, float)) and self.gap_factor > 1):
-            raise InputError(f"expected gap_factor > 1, got {self.gap_factor!r}")
-        rates = self.imu_rate_hz
-        if isinstance(rates, Mapping):
-            missing = [s for s in self.segments if s not in rates]
-            if missing:
-                raise InputError(f"imu_rate_hz: no rate for segment(s) {missing}")
-        elif not (isinstance(rates, (int, float)) and rates > 0):
-            raise InputError(f"expected imu_rate_hz > 0 or a mapping segment -> Hz, got {rates!r}")
-        root = np.asarray(self.root_position_m, dtype=float)
-        if root.shape != (3,) or not np.all(np.isfinite(root)):
-            raise InputError(
-                f"expected root_position_m as 3 finite numbers, got {self.root_position_m!r}"
-            )
-        object.__setattr__(self, "root_position_m", tuple(float(v) for v in root))
-        if self.R_world_from_camera is not None:
-            R = np.asarray(self.R_world_from_camera, dtype=float)
-            if R.shape != (3, 3) or np.abs(R.T @ R - np.eye(3)).max() > 1e-6:
-                raise InputError("expected R_world_from_camera as a (3, 3) rotation matrix")
-            R.setflags(write=False)
-            object.__setattr__(self, "R_world_from_camera", R)
-
-    def imu_period_s(self, segment: str) -> float:
-        """Nominal sample period of ``segment``'s IMU stream, s."""
-        r = self.imu_rate_hz
-        return 1.0 / float(r[segment] if isinstance(r, Mapping) else r)
-
-    @property
-    def frame_period_s(self) -> float:
-        """Nominal output period, s."""
-        return 1.0 / (self.camera_rate_hz if self.camera else self.output_rate_hz)
-
-
-@dataclass(frozen=True)
-class EngineEvent:
-    """Something the engine noticed. ``kind`` in ``stream_stale``, ``camera_stale``,
-    ``resumed``, ``time_jump``, ``late``, ``duplicate``, ``reordered``, ``forced``."""
-
-    t_s: float
-    kind: str
-    stream: str
-    detail: str
-
-    def __str__(self) -> str:
-        return f"[{self.t_s:.3f} s] {self.kind} {self.stream}: {self.detail}"
-
-
-@dataclass(frozen=True, eq=False)
-class EngineOutput:
-    """One fused frame.
-
-    Attributes
-    ----------
-    t_s : float
-        Time of the frame described (camera frame time), s.
-    index : int
-        Output index (0, 1, 2, ...).
-    position_m : ndarray, shape (J, 3)
-    cov_m2 : ndarray, shape (J, 3, 3)
-        Position covariance.
-    source : ndarray of int8, shape (J,)
-        Processor source code (:data:`kinefuse.conventions.SOURCE_NAMES`, -1 predict only).
-    flags : ndarray of uint8, shape (J,)
-        ``FLAG_*`` bits.
-    imu_status : ndarray of int8, shape (J,)
-        Worst ``IMU_*`` status over the segments carrying the joint.
-    """
-
-    t_s: float
-    index: int
-    position_m: np.ndarray
-    cov_m2: np.ndarray
-    source: np.ndarray
-    flags: np.ndarray
-    imu_status: np.ndarray
-
-    @property
-    def std_m(self) -> np.ndarray:
-        """Per-axis standard deviation, m, shape (J, 3)."""
-        return np.sqrt(np.maximum(np.diagonal(self.cov_m2, axis1=-2, axis2=-1), 0.0))
-
-
-# ------------------------------------------------------------------------------ small math
-class _Chain:
-    """Precomputed forward kinematics of a skeleton for one frame at a time."""
-
-    def __init__(self, config: EngineConfig):
-        sk = config.skeleton
-        self.segments = config.segments
-        seg_index = {s: i for i, s in enumerate(self.segments)}
-        self.root = sk.root
-        self.offsets = [
-            (j, seg_index[sk.root_segment], np.array(o)) for j, o in sk.offsets_m.items()
-        ]
-        self.steps = [
-            (sk.proximal[i], sk.distal[i], seg_index[s], sk.lengths_m[i] * np.array(sk.axes[i]))
-            for i, s in enumerate(sk.segments)
-        ]
-        # segments each joint depends on
-        deps: dict[str, set] = {sk.root: set()}
-        for j, si, _ in self.offsets:
-            deps[j] = {si}
-        for prox, dist, si, _ in self.steps:
-            deps[dist] = deps.get(prox, set()) | {si}
-        self.deps = deps
-        self.out_joints = config.joints
-        self.out_deps = [sorted(deps.get(j, set())) for j in config.joints]
-        # (J, S) mask of the segments each output joint depends on (vectorised worst status)
-        self.dep_mask = np.zeros((len(config.joints), max(len(self.segments), 1)), bool)
-        for j, d in enumerate(self.out_deps):
-            self.dep_mask[j, d] = True
-        self.computable = np.array([j in deps for j in config.joints])
-        # the chain as arrays for the compiled kernel: node 0 = root, then every joint placed
-        node = {sk.root: 0}
-        dst, src, segs, vecs = [], [], [], []
-        ops = [(sk.root, j, si, o) for j, si, o in self.offsets]
-        ops += [(prox, dist, si, vec) for prox, dist, si, vec in self.steps]
-        for a, b, si, v in ops:
-            node.setdefault(b, len(node))
-            dst.append(node[b])
-            src.append(node[a])
-            segs.append(si)
-            vecs.append(np.asarray(v, dtype=float))
-        self._dst = np.array(dst, np.int64)
-        self._src = np.array(src, np.int64)
-        self._seg = np.array(segs, np.int64)
-        self._vec = np.array(vecs, dtype=float).reshape(-1, 3)
-        self._out_node = np.array([node.get(j, -1) for j in config.joints], np.int64)
-        from kinefuse.streaming._kernels import chain_positions  # compiled: imported on use
-
-        self._kernel = chain_positions
-        Rc = config.R_world_from_camera
-        self._use_cam = Rc is not None
-        self._Rc = np.eye(3) if Rc is None else np.ascontiguousarray(Rc, dtype=float)
-
-    def positions(self, Q: np.ndarray, U: np.ndarray, root: np.ndarray) -> np.ndarray:
-        """Joint positions (J_out, 3), m, from per-segment orientations ``slerp(Q[0], Q[1],
-        U)`` (``Q`` (2, S, 4) unit wxyz, ``U`` (S,); NaN rows for stale segments -> NaN for
-        the joints that depend on them)."""
-        return self._kernel(Q, U, self._Rc, self._use_cam, np.asarray(root, dtype=float),
-                               self._dst, self._src, self._seg, self._vec, self._out_node)  # fmt: skip
-
-
-class _SegmentBuffer:
-    """Time-ordered recent orientation samples of one IMU stream."""
-
-    def __init__(self, name: str, period_s: float, gap_s: float):
-        self.name = name
-        self.period_s = period_s
-        self.gap_s = gap_s
-        self.t: list[float] = []
-        self.q: list[np.ndarray] = []
-        self.last_t = -math.inf  # newest timestamp ever accepted
-        self.stale = False
-        self.n = 0
-        self.estimator = None
-
-    def orientation_at(self, t: float, stale_after_s: float):
-        """``(q0, q1, u, status)``: the orientation at ``t`` is ``slerp(q0, q1, u)`` (q1 is
-        q0 and u = 0 when no interpolation is needed; q0 None when stale)."""
-        ts = self.t
-        i = bisect.bisect_right(ts, t)
-        if i > 0 and ts[i - 1] == t:
-            return self.q[i - 1], self.q[i - 1], 0.0, IMU_FRESH
-        if 0 < i < len(ts):
-            a, b = ts[i - 1], ts[i]
-            if b - a <= self.gap_s + 1e-12:
-                return self.q[i - 1], self.q[i], (t - a) / (b - a), IMU_FRESH
-        if i > 0 and t - ts[i - 1] <= stale_after_s:
-            return self.q[i - 1], self.q[i - 1], 0.0, IMU_HELD
-        if i == 0 and ts and ts[0] - t <= self.gap_s:
-            q = self.q[0]  # stream starts just after t (clock offsets of inlets)
-            return q, q, 0.0, IMU_HELD
-        return None, None, 0.0, IMU_STALE
-
-    def prune(self, t_done: float):
-        """Drop samples no future frame (t > t_done) can need."""
-        i = bisect.bisect_right(self.t, t_done) - 1
-        if i > 0:
-            del self.t[:i]
-            del self.q[:i]
 
 
 class Engine:
@@ -415,21 +131,14 @@ class Engine:
                 raise InputError(
                     f"expected a Processor (step, flush, checkpoint, restore, lag_frames), got {type(processor).__name__} without .{attr}"
                 )
-        from kinefuse.streaming._kernels import joint_flags  # compiled: imported on first use
-
         self.config = config
         self.processor = processor
-        self._joint_flags = joint_flags
-        self._chain = _Chain(config)
+        self._frames = FrameAssembler(config)
         self._seg = {
-            s: _SegmentBuffer(s, config.imu_period_s(s), config.gap_factor * config.imu_period_s(s))
+            s: SegmentBuffer(s, config.imu_period_s(s), config.gap_factor * config.imu_period_s(s))
             for s in config.segments
         }
         self._seg_list = [self._seg[s] for s in config.segments]
-        if config.camera:
-            cj = config.camera_joints
-            self._cam_out = np.array([cj.index(j) if j in cj else -1 for j in config.joints])
-            self._cam_root = cj.index(config.skeleton.root) if config.skeleton.root in cj else -1
         self.events: deque[EngineEvent] = deque(maxlen=2000)
         self.counters = dict.fromkeys(
             ("imu_samples", "camera_frames", "outputs", "frames", "forced_frames",
@@ -490,65 +199,54 @@ class Engine:
         t = float(t_s)
         if not math.isfinite(t):
             raise InputError(f"expected a finite timestamp, got {t_s!r}")
-        name = "imu:" + segment
+        i = self._imu_slot(buf, t)
+        if i is None:
+            return False
+        if q is None:
+            if acc is None or gyr is None:
+                raise InputError(f"push_imu({segment!r}): give q (wxyz) or acc and gyr")
+            if t < buf.last_t:
+                self._event(t, "late", "imu:" + segment,
+                            "raw sample out of order (VQF needs time order): dropped", logging.DEBUG)  # fmt: skip
+                return False
+            if buf.estimator is None:
+                buf.estimator = OrientationEstimator(1.0 / buf.period_s, self.config.vqf_params)
+            q = buf.estimator.update(acc, gyr, mag)
+        q = unit_quaternion(q, f"push_imu({segment!r})")
+        self._insert_imu(buf, i, t, q, now)
+        self._data_arrived(t)
+        if self.config.record:
+            self.accepted["imu"][segment].append((t, q))
+        return True
+
+    def _imu_slot(self, buf: SegmentBuffer, t: float) -> int | None:
+        """Where a sample at ``t`` goes in ``buf``; None (reported) for a duplicate or late one."""
+        name = "imu:" + buf.name
         bt = buf.t
         if bt and t > bt[-1]:
             i = len(bt)  # in order (the usual case): newer than everything buffered
         else:
             i = bisect.bisect_left(bt, t)
             if i < len(bt) and bt[i] == t:
-                self._event(
-                    t,
-                    "duplicate",
-                    name,
-                    "same timestamp as a buffered sample: dropped",
-                    logging.DEBUG,
-                )
-                return False
+                self._event(t, "duplicate", name, "same timestamp as a buffered sample: dropped",
+                            logging.DEBUG)  # fmt: skip
+                return None
         if self._last_frame_t is not None and t <= self._last_frame_t:
-            self._event(
-                t,
-                "late",
-                name,
-                f"older than the last output ({self.last_output_t:.3f} s): dropped",
-                logging.DEBUG,
-            )
-            return False
-        if q is None:
-            if acc is None or gyr is None:
-                raise InputError(f"push_imu({segment!r}): give q (wxyz) or acc and gyr")
-            if t < buf.last_t:
-                self._event(
-                    t,
-                    "late",
-                    name,
-                    "raw sample out of order (VQF needs time order): dropped",
-                    logging.DEBUG,
-                )
-                return False
-            if buf.estimator is None:
-                from kinefuse.orientation import OrientationEstimator
+            self._event(t, "late", name,
+                        f"older than the last output ({self.last_output_t:.3f} s): dropped",
+                        logging.DEBUG)  # fmt: skip
+            return None
+        return i
 
-                buf.estimator = OrientationEstimator(1.0 / buf.period_s, self.config.vqf_params)
-            q = buf.estimator.update(acc, gyr, mag)
-        q = np.array(q, dtype=float)
-        n = math.sqrt(float(q @ q)) if q.shape == (4,) else float("nan")  # = np.linalg.norm
-        if not (math.isfinite(n) and abs(n - 1.0) < 1e-2):
-            raise InputError(
-                f"push_imu({segment!r}): expected a unit quaternion wxyz (4,), got {q}"
-            )
-        q /= n
+    def _insert_imu(self, buf: SegmentBuffer, i: int, t: float, q: np.ndarray, now) -> None:
+        """Insert an accepted sample at index ``i``; report a gap, a resume or a reorder."""
+        name = "imu:" + buf.name
         if t > buf.last_t:
             if buf.last_t > -math.inf and t - buf.last_t > buf.gap_s:
                 silent = self._now(now) - buf.last_t
                 if buf.stale:
-                    self._event(
-                        t,
-                        "resumed",
-                        name,
-                        f"after {t - buf.last_t:.3f} s without samples",
-                        logging.INFO,
-                    )
+                    self._event(t, "resumed", name, f"after {t - buf.last_t:.3f} s without samples",
+                                logging.INFO)  # fmt: skip
                 else:
                     self._event(t, "time_jump", name, f"step {t - buf.last_t:.3f} s > {buf.gap_s:.3f} s "
                                 f"(expected {buf.period_s:.4f} s; silent {silent:.3f} s): gap, not interpolated")  # fmt: skip
@@ -557,28 +255,22 @@ class Engine:
             buf.q.append(q)
         else:
             if buf.last_t - t > buf.gap_s:
-                self._event(
-                    t,
-                    "time_jump",
-                    name,
-                    f"{buf.last_t - t:.3f} s behind the newest sample: inserted in time order",
-                )
+                self._event(t, "time_jump", name,
+                            f"{buf.last_t - t:.3f} s behind the newest sample: inserted in time order")  # fmt: skip
             else:
-                self._event(
-                    t, "reordered", name, "out of order: inserted in time order", logging.DEBUG
-                )
+                self._event(t, "reordered", name, "out of order: inserted in time order",
+                            logging.DEBUG)  # fmt: skip
             buf.t.insert(i, t)
             buf.q.insert(i, q)
         buf.stale = False
         buf.n += 1
         self.counters["imu_samples"] += 1
+
+    def _data_arrived(self, t: float) -> None:
         if t > self._data_now:
             self._data_now = t
         if self._first_data_t is None:
             self._first_data_t = t
-        if self.config.record:
-            self.accepted["imu"][segment].append((t, q))
-        return True
 
     def push_camera(self, t_s: float, position_m, available=None, *, now=None) -> bool:
         """Add one camera frame.
@@ -601,6 +293,29 @@ class Engine:
         if not self.config.camera:
             raise InputError("push_camera: the engine was configured with camera=False")
         t = float(t_s)
+        pos, avail = self._camera_frame(position_m, available)
+        times = [f[0] for f in self._pending]
+        i = bisect.bisect_left(times, t)
+        if (i < len(times) and times[i] == t) or t == self._last_frame_t:
+            self._event(t, "duplicate", "camera", "same timestamp as a frame already received: dropped",
+                        logging.DEBUG)  # fmt: skip
+            return False
+        if t <= self.last_output_t:
+            self._event(t, "late", "camera",
+                        f"older than the last output ({self.last_output_t:.3f} s): dropped",
+                        logging.DEBUG)  # fmt: skip
+            return False
+        self._camera_sequence(t)
+        self._cam_stale = False
+        self._pending.insert(i, (t, pos, avail))
+        self.counters["camera_frames"] += 1
+        self._data_arrived(t)
+        if self.config.record:
+            self.accepted["camera"].append((t, pos, avail))
+        return True
+
+    def _camera_frame(self, position_m, available) -> tuple[np.ndarray, np.ndarray]:
+        """Validated ``(position (Jc, 3), available (Jc,))`` of a camera frame."""
         pos = np.array(position_m, dtype=float)
         Jc = len(self.config.camera_joints)
         if pos.shape != (Jc, 3):
@@ -613,55 +328,24 @@ class Engine:
             if a.shape != (Jc,):
                 raise InputError(f"expected available with shape ({Jc},), got {a.shape}")
             avail &= a.astype(bool)
-        times = [f[0] for f in self._pending]
-        i = bisect.bisect_left(times, t)
-        if (i < len(times) and times[i] == t) or t == self._last_frame_t:
-            self._event(
-                t,
-                "duplicate",
-                "camera",
-                "same timestamp as a frame already received: dropped",
-                logging.DEBUG,
-            )
-            return False
-        if t <= self.last_output_t:
-            self._event(
-                t,
-                "late",
-                "camera",
-                f"older than the last output ({self.last_output_t:.3f} s): dropped",
-                logging.DEBUG,
-            )
-            return False
+        return pos, avail
+
+    def _camera_sequence(self, t: float) -> None:
+        """Track the newest camera time; report a gap, a resume or a reorder."""
         period = 1.0 / self.config.camera_rate_hz
         gap = self.config.gap_factor * period
         if t > self._cam_last_t:
             if self._cam_last_t > -math.inf and t - self._cam_last_t > gap:
                 if self._cam_stale:
-                    self._event(
-                        t,
-                        "resumed",
-                        "camera",
-                        f"after {t - self._cam_last_t:.3f} s without frames",
-                        logging.INFO,
-                    )
+                    self._event(t, "resumed", "camera",
+                                f"after {t - self._cam_last_t:.3f} s without frames", logging.INFO)  # fmt: skip
                 else:
                     self._event(t, "time_jump", "camera", f"step {t - self._cam_last_t:.3f} s > {gap:.3f} s "
                                 f"(expected {period:.4f} s): gap, frames synthesized")  # fmt: skip
             self._cam_last_t = t
         else:
-            self._event(
-                t, "reordered", "camera", "out of order: inserted in time order", logging.DEBUG
-            )
-        self._cam_stale = False
-        self._pending.insert(i, (t, pos, avail))
-        self.counters["camera_frames"] += 1
-        self._data_now = max(self._data_now, t)
-        if self._first_data_t is None:
-            self._first_data_t = t
-        if self.config.record:
-            self.accepted["camera"].append((t, pos, avail))
-        return True
+            self._event(t, "reordered", "camera", "out of order: inserted in time order",
+                        logging.DEBUG)  # fmt: skip
 
     # ------------------------------------------------------------------ scheduling
     def _next_frame(self, now: float):
@@ -680,7 +364,7 @@ class Engine:
         t_exp = self._last_frame_t + period
         if cfg.camera and self._pending:
             f = self._pending[0]
-            if f[0] <= t_exp + _HOLE_TOL * period:
+            if camera_frame_due(f[0], t_exp, period):
                 return f[0], f[1], f[2], False
         if cfg.camera and now < t_exp + cfg.max_latency_s:
             return None
@@ -738,59 +422,28 @@ class Engine:
             self.counters["synthesized_frames"] += 1
             if not self._cam_stale and t > self._cam_last_t:  # silent, not a hole already reported
                 self._cam_stale = True
-                self._event(
-                    t,
-                    "camera_stale",
-                    "camera",
-                    "no camera frame: synthesizing frames (camera unavailable)",
-                )
+                self._event(t, "camera_stale", "camera",
+                            "no camera frame: synthesizing frames (camera unavailable)")  # fmt: skip
         if forced:
             self.counters["forced_frames"] += 1
-        # orientations
-        S = len(self._seg_list)
-        Q = np.full((2, S, 4), np.nan)  # the two samples around t per segment ...
-        U = np.zeros(S)  # ... and the interpolation fraction (slerp in the kernel)
-        status = np.empty(S, np.int8)
-        for k, buf in enumerate(self._seg_list):
-            q0, q1, u, st = buf.orientation_at(t, cfg.stale_after_s)
-            status[k] = st
-            if st == IMU_STALE:
-                if not buf.stale:
-                    buf.stale = True
-                    self._event(t, "stream_stale", f"imu:{buf.name}",
-                                f"no sample since {buf.last_t:.3f} s: joints predict-only")  # fmt: skip
-            else:
-                Q[0, k] = q0
-                Q[1, k] = q1
-                U[k] = u
+        fr = self._frames.assemble(t, cam_pos, cam_avail, self._seg_list, self._root, forced)
+        self._root = fr.root
+        status = fr.segment_status
+        for buf, st in zip(self._seg_list, status, strict=True):
+            if st == IMU_STALE and not buf.stale:
+                buf.stale = True
+                self._event(t, "stream_stale", f"imu:{buf.name}",
+                            f"no sample since {buf.last_t:.3f} s: joints predict-only")  # fmt: skip
         self.counters["held"] += int(np.sum(status == IMU_HELD))
         self.counters["stale"] += int(np.sum(status == IMU_STALE))
-        # camera
-        J = len(cfg.joints)
-        z_cam = np.full((J, 3), np.nan)
-        avail = np.zeros(J, bool)
-        if cam_pos is not None:
-            m = self._cam_out >= 0
-            idx = self._cam_out[m]
-            z_cam[m] = cam_pos[idx]
-            avail[m] = cam_avail[idx]
-            z_cam[~avail] = np.nan
-            if self._cam_root >= 0 and cam_avail[self._cam_root]:
-                self._root = cam_pos[self._cam_root].copy()
-        z_imu = self._chain.positions(Q, U, self._root)  # camera frame if R_world_from_camera
-        # flags: worst status over each joint's segments (IMU_FRESH = 0 without any)
-        jstat, flags = self._joint_flags(status, self._chain.dep_mask[:, :S], self._chain.computable,
-                                   avail, cfg.camera, cam_pos is None, forced, IMU_FRESH, IMU_HELD,
-                                   IMU_STALE, FLAG_IMU_HELD, FLAG_IMU_STALE, FLAG_CAMERA_MISSING,
-                                   FLAG_NO_CAMERA_JOINT, FLAG_FORCED)  # fmt: skip
         self._last_frame_t = t
         for buf in self._seg_list:
             buf.prune(t)
         if cfg.record:
             self.accepted["frames"].append((t, bool(cam_pos is None and cfg.camera)))
         self.counters["frames"] += 1
-        self._meta.append((t, flags, jstat))
-        res = self.processor.step(t, z_imu, z_cam, avail)
+        self._meta.append((t, fr.flags, fr.imu_status))
+        res = self.processor.step(t, fr.z_imu, fr.z_cam, fr.available)
         if res is not None:
             outs.append(self._emit(res))
 
@@ -859,8 +512,6 @@ class Engine:
             b.t, b.q = list(s["t"]), [np.array(q) for q in s["q"]]
             b.last_t, b.stale, b.n = s["last_t"], s["stale"], s["n"]
             if s["vqf"] is not None:
-                from kinefuse.orientation import OrientationEstimator
-
                 b.estimator = OrientationEstimator(1.0 / b.period_s, self.config.vqf_params)
                 b.estimator.state = copy.deepcopy(s["vqf"])
                 b.estimator._used_mag = s["vqf_mag"]
@@ -876,143 +527,3 @@ class Engine:
         self.counters = dict(checkpoint["counters"])
         self.processor.restore(checkpoint["processor"])
 
-
-# ------------------------------------------------------------------------------ offline
-def _offline_orientations(t_src, q_src, t_frames, gap_s, stale_after_s):
-    """Batch version of the engine's orientation rule: SLERP, else hold, else NaN."""
-    T = t_frames.size
-    if t_src.size == 0:
-        return np.full((T, 4), np.nan), np.full(T, IMU_STALE, np.int8)
-    if t_src.size == 1:
-        q = np.full((T, 4), np.nan)
-        exact = t_frames == t_src[0]
-        q[exact] = q_src[0]
-    else:
-        q = slerp_resample(t_src, q_src, t_frames, max_gap_s=gap_s)
-    status = np.where(np.all(np.isfinite(q), axis=1), IMU_FRESH, IMU_STALE).astype(np.int8)
-    i = np.searchsorted(t_src, t_frames, side="right") - 1
-    hold = (status == IMU_STALE) & (i >= 0)
-    hold &= t_frames - t_src[np.clip(i, 0, None)] <= stale_after_s
-    q[hold] = q_src[i[hold]]
-    status[hold] = IMU_HELD
-    first = (status == IMU_STALE) & (i < 0) & (t_src[0] - t_frames <= gap_s)
-    q[first] = q_src[0]
-    status[first] = IMU_HELD
-    return q, status
-
-
-def offline_causal(
-    config: EngineConfig,
-    processor: Processor,
-    imu: Mapping[str, tuple],
-    camera: tuple | None,
-    frame_times: Sequence[float] | None = None,
-) -> dict:
-    """The engine's computation done offline (causal, batch) on recorded samples.
-
-    Parameters
-    ----------
-    config : EngineConfig
-    processor : Processor
-        A processor of the same configuration as the engine's; its :meth:`run` is used (its
-        online state is not touched).
-    imu : mapping of str -> (t (N,), q (N, 4))
-        Accepted orientation samples per segment (any order; sorted here).
-    camera : (t (M,), position (M, Jc, 3), available (M, Jc)) or None
-        Accepted camera frames.
-    frame_times : sequence of float, optional
-        Frame times. Default: the camera frames plus the frames the engine synthesizes in
-        camera holes (``t_prev + period`` while the next frame is more than 0.75 periods
-        beyond); required without a camera.
-
-    Returns
-    -------
-    dict
-        ``t_s (T,)``, ``position_m (T, J, 3)``, ``cov_m2 (T, J, 3, 3)``, ``source (T, J)``,
-        ``imu_status (T, J)``, ``synthesized (T,)``, ``z_imu``, ``z_cam``, ``available``.
-
-    Notes
-    -----
-    Orientation at frame time: :func:`kinefuse.orientation.slerp_resample` with
-    ``max_gap_s = gap_factor × period``, else hold of the last sample at most
-    ``stale_after_s`` old, else NaN; positions by :func:`kinefuse.kinematics.forward_kinematics`
-    with the root from the camera (forward-filled). Equals the engine's outputs whenever the
-    engine never forced a frame (every live IMU sample at or after a frame time had arrived
-    when it was processed) and was given ``frame_times`` equal to its frames.
-    """
-    cfg = config
-    period = cfg.frame_period_s
-    if camera is not None:
-        ct, cpos, cav = (np.asarray(a) for a in camera)
-        order = np.argsort(ct, kind="stable")
-        ct, cpos, cav = ct[order].astype(float), cpos[order].astype(float), cav[order].astype(bool)
-        cav = cav & np.all(np.isfinite(cpos), axis=-1)
-    else:
-        ct = np.zeros(0)
-    if frame_times is None:
-        if camera is None:
-            raise InputError("offline_causal: frame_times is required without a camera")
-        ft = []
-        tol = _HOLE_TOL * period
-        for k, tc in enumerate(ct):
-            if k:
-                t_exp = ft[-1] + period
-                while tc > t_exp + tol:
-                    ft.append(t_exp)
-                    t_exp += period
-            ft.append(float(tc))
-        t = np.asarray(ft)
-    else:
-        t = np.asarray(frame_times, dtype=float)
-    T, J = t.size, len(cfg.joints)
-    # camera per frame
-    z_cam = np.full((T, J, 3), np.nan)
-    avail = np.zeros((T, J), bool)
-    synthesized = np.ones(T, bool) if cfg.camera else np.zeros(T, bool)
-    root = np.empty((T, 3))
-    last_root = np.array(cfg.root_position_m)
-    ci = {float(v): k for k, v in enumerate(ct)}
-    cj = cfg.camera_joints or ()
-    rj = cj.index(cfg.skeleton.root) if cfg.skeleton.root in cj else -1
-    for k, tk in enumerate(t):
-        c = ci.get(float(tk))
-        if c is not None:
-            synthesized[k] = False
-            for j, name in enumerate(cfg.joints):
-                if name in cj:
-                    m = cj.index(name)
-                    avail[k, j] = cav[c, m]
-                    if cav[c, m]:
-                        z_cam[k, j] = cpos[c, m]
-            if rj >= 0 and cav[c, rj]:
-                last_root = cpos[c, rj]
-        root[k] = last_root
-    # orientations per segment
-    ori, stat = {}, {}
-    Rc = cfg.R_world_from_camera
-    for s in cfg.segments:
-        ts, qs = imu.get(s, (np.zeros(0), np.zeros((0, 4))))
-        ts, qs = np.asarray(ts, float), np.asarray(qs, float).reshape(-1, 4)
-        o = np.argsort(ts, kind="stable")
-        q, st = _offline_orientations(
-            ts[o], qs[o], t, cfg.gap_factor * cfg.imu_period_s(s), cfg.stale_after_s
-        )
-        from kinefuse.kinematics import as_rotation_matrices
-
-        Rm = as_rotation_matrices(q, f"orientation {s}")
-        ori[s] = Rm if Rc is None else np.einsum("ji,kjl->kil", Rc, Rm)
-        stat[s] = st
-    pos = forward_kinematics(cfg.skeleton, ori, root)
-    z_imu = np.stack([pos.get(j, np.full((T, 3), np.nan)) for j in cfg.joints], axis=1)
-    chain = _Chain(cfg)
-    S = np.stack([stat[s] for s in cfg.segments], axis=1)  # (T, S)
-    jstat = np.zeros((T, J), np.int8)
-    for j, d in enumerate(chain.out_deps):
-        if d:
-            jstat[:, j] = S[:, d].max(axis=1)
-    jstat[:, ~chain.computable] = IMU_STALE
-    position, cov, source = processor.run(t, z_imu, z_cam, avail)
-    return {
-        "t_s": t, "position_m": position, "cov_m2": cov, "source": source, "imu_status": jstat,
-        "synthesized": synthesized, "z_imu": z_imu, "z_cam": z_cam, "available": avail,
-    }  # fmt: skip

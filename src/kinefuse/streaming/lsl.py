@@ -35,7 +35,7 @@ import numpy as np
 
 from kinefuse.conventions import SOURCE_NAMES
 from kinefuse.exceptions import InputError
-from kinefuse.streaming import engine as _engine
+from kinefuse.streaming import engine_types as _engine
 from kinefuse.streaming.config import import_pylsl
 from kinefuse.streaming.processors import SOURCE_PREDICT
 

@@ -33,10 +33,10 @@ from kinefuse.conventions import SOURCE_CAMERA, SOURCE_FUSED, SOURCE_IMU
 from kinefuse.exceptions import InputError
 from kinefuse.filters._base import FilterResult, GaussianState
 from kinefuse.filters._kernels_axis import state_is_block_diagonal
-from kinefuse.filters.integrated import IntegratedFilter
 from kinefuse.filters.kalman import KalmanFilter
 from kinefuse.filters.smoothing import fixed_lag_smooth
 from kinefuse.models import constant_velocity
+from kinefuse.pipelines.upper_limb import paper_a_filter
 
 __all__ = [
     "SOURCE_PREDICT",
@@ -77,10 +77,13 @@ class Processor(Protocol):
         """Back to the initial state."""
 
 
+def _as_arrays(z_imu, z_cam, available):
+    z_imu, z_cam = np.asarray(z_imu, dtype=float), np.asarray(z_cam, dtype=float)
+    return z_imu, z_cam, np.asarray(available, dtype=bool)
+
+
 def _check_frame(z_imu, z_cam, available):
-    z_imu = np.asarray(z_imu, dtype=float)
-    z_cam = np.asarray(z_cam, dtype=float)
-    available = np.asarray(available, dtype=bool)
+    z_imu, z_cam, available = _as_arrays(z_imu, z_cam, available)
     if z_imu.ndim != 2 or z_imu.shape[1] != 3 or z_cam.shape != z_imu.shape:
         raise InputError(
             f"expected z_imu and z_cam with the same shape (J, 3), got {z_imu.shape} and {z_cam.shape}"
@@ -94,9 +97,7 @@ def _check_frame(z_imu, z_cam, available):
 
 def _check_series(t_s, z_imu, z_cam, available):
     t = np.asarray(t_s, dtype=float)
-    z_imu = np.asarray(z_imu, dtype=float)
-    z_cam = np.asarray(z_cam, dtype=float)
-    available = np.asarray(available, dtype=bool)
+    z_imu, z_cam, available = _as_arrays(z_imu, z_cam, available)
     if z_imu.ndim != 3 or z_imu.shape[2] != 3 or z_cam.shape != z_imu.shape:
         raise InputError(
             f"expected z_imu and z_cam with the same shape (T, J, 3), got {z_imu.shape} and {z_cam.shape}"
@@ -316,8 +317,9 @@ class IntegratedProcessor(_LinearProcessor):
 
     Notes
     -----
-    Implements Sun 2024 (paper A) §3.4 through :class:`IntegratedFilter` batched over the J
-    joints: ``step`` calls ``IntegratedFilter.step`` and ``run`` calls
+    Implements Sun 2024 (paper A) §3.4 through the filter of the batch pipeline
+    (:func:`kinefuse.pipelines.upper_limb.paper_a_filter`, an :class:`IntegratedFilter`)
+    batched over the J joints: ``step`` calls ``IntegratedFilter.step`` and ``run`` calls
     ``IntegratedFilter.filter`` (the same compiled loop). The camera is not a measurement here
     (paper A has none); it only places the chain root (engine). Source per joint:
     ``SOURCE_IMU`` where the filter was updated, :data:`SOURCE_PREDICT` where the IMU chain had
@@ -327,7 +329,7 @@ class IntegratedProcessor(_LinearProcessor):
     def __init__(
         self, dt_s: float, q: float = 0.05, r: float = 4e-4, *, lag: int = 0, **filter_kwargs
     ):
-        self.filter = IntegratedFilter(constant_velocity(dt_s, q=q, r=r), **filter_kwargs)
+        self.filter = paper_a_filter(dt_s, q, r, **filter_kwargs)  # upper_limb's filter
         self.last_mode = None
         super().__init__(self.filter.model, lag)
 

@@ -1,10 +1,22 @@
-"""Publish a recording as live LSL streams (for tests, demos and latency measurements)."""
+"""Publish a recording as live LSL streams (for tests, demos and latency measurements).
+
+Streams: ``{prefix}_imu_{segment}`` (type ``IMU``: ``qw qx qy qz`` and, if present and
+``include_raw``, ``acc_*`` m/s², ``gyr_*`` rad/s) and ``{prefix}_camera`` (type ``MoCap``: x,
+y, z, available per joint); source ids ``{name}@kinefuse-replay``.
+
+Sample k of a stream is pushed when ``local_clock() >= t_start + (t_k − t_0) / rate`` and
+carries exactly that value as its LSL timestamp: the original timestamps, shifted to
+``local_clock`` and compressed by ``rate``; nominal rates are multiplied by ``rate``. The
+camera's NaN positions (unavailable joints) are sent as NaN with ``available = 0``. Ctrl-C
+stops publishing and closes the outlets.
+"""
 
 from __future__ import annotations
 
 import logging
 import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +24,7 @@ import numpy as np
 from kinefuse.exceptions import InputError
 from kinefuse.io.recording import Recording
 from kinefuse.streaming.config import import_pylsl
+from kinefuse.streaming.engine_types import SummaryMapping
 from kinefuse.streaming.lsl import (
     CAMERA_TYPE,
     IMU_CHANNELS,
@@ -21,7 +34,7 @@ from kinefuse.streaming.lsl import (
     make_outlet,
 )
 
-__all__ = ["demo_recording", "load_recording", "run_replay"]
+__all__ = ["ReplaySummary", "demo_recording", "load_recording", "run_replay"]
 
 log = logging.getLogger("kinefuse.streaming")
 
@@ -74,6 +87,72 @@ def _streams(rec: Recording, prefix: str, include_raw: bool):
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class ReplaySummary(SummaryMapping):
+    """Outcome of :func:`run_replay` (also a read-only mapping of its fields, in order)."""
+
+    #: Stream names.
+    streams: list
+    #: Samples pushed per stream.
+    samples: dict
+    #: Wall time, s.
+    duration_s: float
+    #: Published recording time, s (up to the last sample pushed when stopped early).
+    recording_s: float
+    #: Ctrl-C stopped it.
+    interrupted: bool
+
+
+class _Publisher:
+    """One merged, time-ordered schedule of every stream's samples, pushed at their due times."""
+
+    def __init__(self, streams, rate: float, limit: float, stop_event):
+        t_all = np.concatenate([s[3] for s in streams])
+        which = np.concatenate([np.full(len(s[3]), k) for k, s in enumerate(streams)])
+        row = np.concatenate([np.arange(len(s[3])) for s in streams])
+        order = np.lexsort((which, t_all))
+        self.t_all, self.which, self.row = t_all[order], which[order], row[order]
+        self.t0 = float(self.t_all[0])
+        self.span = float(self.t_all[-1] - self.t0) + float(np.median(np.diff(streams[0][3])))
+        self.streams, self.rate, self.limit, self.stop_event = streams, rate, limit, stop_event
+        self.pushed = [0] * len(streams)
+        self.last_rt = 0.0  # recording time of the last sample pushed, s
+        self.rep = 0
+
+    def run(self, outlets, pylsl, loop: bool, quiet: bool) -> None:
+        """Push every sample at ``start + (t_k − t_0) / rate``; raises :class:`_Stop` on the
+        stop event."""
+        start = pylsl.local_clock() + 0.05
+        done = False
+        while not done:
+            base = self.rep * self.span
+            for k in range(self.t_all.size):
+                rt = float(self.t_all[k] - self.t0) + base
+                if rt >= self.limit:
+                    done = True
+                    break
+                due = start + rt / self.rate
+                self._wait(pylsl, due)
+                s = self.which[k]
+                outlets[s].push_sample(self.streams[s][4][self.row[k]], due)
+                self.pushed[s] += 1
+                self.last_rt = rt
+            self.rep += 1
+            if not loop:
+                done = True
+            elif not quiet:
+                log.info("replay: loop %d done", self.rep)
+
+    def _wait(self, pylsl, due: float) -> None:
+        while True:
+            now = pylsl.local_clock()
+            if now >= due:
+                return
+            if self.stop_event is not None and self.stop_event.is_set():
+                raise _Stop
+            time.sleep(min(due - now, 0.005))
+
+
 def run_replay(
     recording,
     rate: float = 1.0,
@@ -86,7 +165,7 @@ def run_replay(
     stop_event=None,
     quiet: bool = True,
     linger_s: float = 0.5,
-) -> dict:
+) -> ReplaySummary:
     """Publish a recording to LSL at its real rate (or ``rate`` times faster).
 
     Parameters
@@ -97,14 +176,11 @@ def run_replay(
     rate : float
         Speed-up factor (2 = twice real time).
     name_prefix : str
-        Streams are ``{prefix}_imu_{segment}`` (type ``IMU``: ``qw qx qy qz`` and, if present
-        and ``include_raw``, ``acc_*`` m/s², ``gyr_*`` rad/s) and ``{prefix}_camera`` (type
-        ``MoCap``: x, y, z, available per joint); source ids ``{name}@kinefuse-replay``.
+        Stream names ``{prefix}_imu_{segment}`` and ``{prefix}_camera`` (module docstring).
     loop : bool
         Start again at the end (timestamps keep increasing).
     duration_s : float, optional
-        Stop after this much recording time, s (default: the recording once, or forever with
-        ``loop``).
+        Stop after this much recording time, s (default: once, or forever with ``loop``).
     include_raw : bool
         Publish acc/gyr channels next to the orientation.
     wait_for_consumers_s : float, optional
@@ -118,18 +194,7 @@ def run_replay(
 
     Returns
     -------
-    dict
-        ``streams`` (names), ``samples`` (pushed per stream), ``duration_s`` (wall),
-        ``recording_s`` (published recording time, s; up to the last sample pushed when
-        stopped early), ``interrupted`` (Ctrl-C).
-
-    Notes
-    -----
-    Sample k of a stream is pushed when ``local_clock() >= t_start + (t_k − t_0) / rate`` and
-    carries exactly that value as its LSL timestamp: the original timestamps, shifted to
-    ``local_clock`` and compressed by ``rate``; nominal rates are multiplied by ``rate``. The
-    camera's NaN positions (unavailable joints) are sent as NaN with ``available = 0``.
-    Ctrl-C stops publishing and closes the outlets.
+    ReplaySummary
     """
     if not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
         raise InputError(f"expected rate > 0, got {rate!r}")
@@ -140,63 +205,19 @@ def run_replay(
     if not streams:
         raise InputError("the recording has no IMU or camera stream to publish")
     pylsl = import_pylsl()
-    outlets = [
-        make_outlet(
-            name,
-            stype,
-            chans,
-            rate_hz * rate,
-            source_id=f"{name}@kinefuse-replay",
-            desc=desc,
-            chunk_size=1,
-        )
-        for name, stype, chans, _t, _v, rate_hz, desc in streams
-    ]
-    # one merged, time-ordered schedule
-    t_all = np.concatenate([s[3] for s in streams])
-    which = np.concatenate([np.full(len(s[3]), k) for k, s in enumerate(streams)])
-    row = np.concatenate([np.arange(len(s[3])) for s in streams])
-    order = np.lexsort((which, t_all))
-    t_all, which, row = t_all[order], which[order], row[order]
-    t0 = float(t_all[0])
-    span = float(t_all[-1] - t0) + float(np.median(np.diff(streams[0][3])))
+    outlets = [make_outlet(name, stype, chans, rate_hz * rate, source_id=f"{name}@kinefuse-replay",
+                           desc=desc, chunk_size=1)
+               for name, stype, chans, _t, _v, rate_hz, desc in streams]  # fmt: skip
     limit = math.inf if duration_s is None else float(duration_s)
-    pushed = [0] * len(streams)
-    interrupted = stopped = False
-    last_rt = 0.0  # recording time of the last sample pushed, s
     start_wall = time.monotonic()
+    pub = _Publisher(streams, rate, limit, stop_event)
+    interrupted = stopped = False
     try:
         if wait_for_consumers_s:
             deadline = time.monotonic() + wait_for_consumers_s
             for o in outlets:
                 o.wait_for_consumers(max(0.0, deadline - time.monotonic()))
-        start = pylsl.local_clock() + 0.05
-        rep = 0
-        done = False
-        while not done:
-            base = rep * span
-            for k in range(t_all.size):
-                rt = float(t_all[k] - t0) + base
-                if rt >= limit:
-                    done = True
-                    break
-                due = start + rt / rate
-                while True:
-                    now = pylsl.local_clock()
-                    if now >= due:
-                        break
-                    if stop_event is not None and stop_event.is_set():
-                        raise _Stop
-                    time.sleep(min(due - now, 0.005))
-                s = which[k]
-                outlets[s].push_sample(streams[s][4][row[k]], due)
-                pushed[s] += 1
-                last_rt = rt
-            rep += 1
-            if not loop:
-                done = True
-            elif not quiet:
-                log.info("replay: loop %d done", rep)
+        pub.run(outlets, pylsl, loop, quiet)
     except _Stop:
         stopped = True
     except KeyboardInterrupt:
@@ -205,14 +226,12 @@ def run_replay(
         if not interrupted:
             time.sleep(linger_s)  # let the last samples reach the inlets before closing
         del outlets[:]
-    published = last_rt if interrupted or stopped else min(limit, rep * span if loop else span)
-    return {
-        "streams": [s[0] for s in streams],
-        "samples": dict(zip([s[0] for s in streams], pushed, strict=True)),
-        "duration_s": time.monotonic() - start_wall,
-        "recording_s": published,
-        "interrupted": interrupted,
-    }
+    done = min(limit, pub.rep * pub.span if loop else pub.span)
+    published = pub.last_rt if interrupted or stopped else done
+    return ReplaySummary(streams=[s[0] for s in streams],
+                         samples=dict(zip([s[0] for s in streams], pub.pushed, strict=True)),
+                         duration_s=time.monotonic() - start_wall, recording_s=published,
+                         interrupted=interrupted)  # fmt: skip
 
 
 class _Stop(Exception):

@@ -1,22 +1,58 @@
-"""``run_stream``: the engine on live LSL inputs, publishing the fused joints (Ctrl-C stops)."""
+"""``run_stream``: the engine on live LSL inputs, publishing the fused joints (Ctrl-C stops).
+
+Output files (``run_stream(out=...)``)
+--------------------------------------
+The outputs go to ``out`` with suffix ``.npz`` and the summary (:class:`StreamSummary`,
+as JSON) next to it with suffix ``.json``; existing files are overwritten. Outputs, for T
+outputs and the J ``joints``: ``t_s`` (T,) frame time on the LSL clock, s; ``position_m``
+(T, J, 3), m; ``std_m`` (T, J, 3), m; ``source`` (T, J) int8 code; ``flags`` (T, J) uint8 bit
+mask; ``joints`` (J,) str.
+
+With ``record_inputs`` the accepted input samples are in the ``.npz`` too, so that the session
+can be re-run offline with :func:`~kinefuse.streaming.offline.offline_causal`: for each of the
+S engine segments ``imu_<segment>_t`` (N,), s, and ``imu_<segment>_q`` (N, 4),
+``q_world_from_sensor`` wxyz, in arrival order; ``camera_t`` (F,), s, ``camera_position_m``
+(F, Jc, 3), m (camera frame, NaN = not seen) and ``camera_available`` (F, Jc) bool for the
+accepted camera frames, with ``camera_joints`` (Jc,) str (F = Jc = 0 without a camera);
+``frame_t`` (K,), s, and ``frame_synthesized`` (K,) bool (no camera frame at that time) for
+every processed frame; ``segments`` (S,) str, ``imu_rate_hz`` (S,) and ``camera_rate_hz``
+(scalar), Hz: the nominal rates the engine was built with (:func:`build_engine`). All times are
+on the local LSL clock after clock correction, as the engine saw them.
+
+Inputs
+------
+Inputs are resolved by name (timeout ``resolve_timeout_s``); a missing IMU stream leaves its
+joints predict-only and is looked for again in the loop; a camera stream is required unless
+the configuration has ``camera_stream = ""``. The camera's nominal rate sets the output rate
+(one output per camera frame). The engine is built and warmed up and the output stream
+created before the inlets subscribe, right before the loop, so that the loop starts without a
+backlog of samples. Each inlet is opened with ``recover=True``, so a stream re-created with
+the same source id is reattached by liblsl; a lost stream without source id is resolved again
+by name. Timestamps: see :mod:`kinefuse.streaming.lsl`.
+"""
 
 from __future__ import annotations
 
 import dataclasses
-import gc
 import json
 import logging
 import math
+import sys
 import time
-from collections import deque
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from rich.console import Console
+from rich.live import Live
+from rich.table import Table
 
 from kinefuse.conventions import SOURCE_NAMES
 from kinefuse.exceptions import ConfigError, InputError
 from kinefuse.kinematics import full_body
+from kinefuse.sim.camera import bone_edges
 from kinefuse.streaming.config import (
     StreamConfig,
     import_pylsl,
@@ -24,9 +60,13 @@ from kinefuse.streaming.config import (
     stream_config_from_session,
 )
 from kinefuse.streaming.engine import Engine, EngineConfig
+from kinefuse.streaming.engine_types import SummaryMapping
+from kinefuse.streaming.liveview import LiveView
+from kinefuse.streaming.loop import run_loop
+from kinefuse.streaming.lsl import IMU_TYPE, FusedOutlet, Input, resolve_many
 from kinefuse.streaming.processors import SOURCE_PREDICT, IntegratedProcessor, KalmanFusionProcessor
 
-__all__ = ["build_engine", "run_loop", "run_stream", "stream_config", "warm_up"]
+__all__ = ["StreamSummary", "build_engine", "run_loop", "run_stream", "stream_config", "warm_up"]
 
 log = logging.getLogger("kinefuse.streaming")
 
@@ -127,141 +167,7 @@ def warm_up(engine, seconds: float = 2.0) -> None:
         proc.restore(saved)
 
 
-def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=None, stop_event=None,
-             on_output=None, status=None, reattach=None) -> dict:  # fmt: skip
-    """Pull every input, feed the engine, push its outputs, until a stop condition.
-
-    Parameters
-    ----------
-    engine : Engine
-    inputs : list of :class:`~kinefuse.streaming.lsl.Input`-like objects
-        ``pull() -> (data, ts)``, ``feed(engine, data, ts, now)``, ``refresh_clock()``,
-        ``close()``, ``lost``.
-    outlet : object with ``push(output)`` and ``close()``, or None
-    clock : callable
-        Current time on the samples' clock (``pylsl.local_clock``).
-    duration_s, idle_timeout_s : float, optional
-        Stop after this wall time / after this long without any input sample (once some
-        arrived).
-    stop_event : threading.Event, optional
-    on_output : callable, optional
-        Called with every :class:`EngineOutput` after it was pushed.
-    status : callable, optional
-        Called about 4 times a second with ``(engine, latencies_s)``.
-    reattach : callable, optional
-        Called with a lost input every 0.5 s until it returns True.
-
-    Returns
-    -------
-    dict
-        ``interrupted`` (Ctrl-C), ``latency_s`` (array, per output: start of the pull that
-        returned the sample completing its frame -> output pushed), ``outputs`` (count),
-        ``catch_up_outputs`` (outputs of the start-up backlog, not timed).
-
-    Notes
-    -----
-    Live, every input is polled in turn and the engine right after each input that returned
-    samples, so a frame goes out as soon as its last sample is in. At start-up the samples
-    buffered while the streams were being connected are first read from every input before
-    any frame is processed (until a loop pass finds nothing new); those outputs are counted
-    as ``catch_up_outputs`` and not timed (they measure the connection time, not the
-    processing). Outputs released by ``max_latency_s`` / staleness are not timed either.
-
-    Ctrl-C (KeyboardInterrupt, i.e. SIGINT in the main thread) ends the loop; pending frames
-    are then processed (:meth:`Engine.flush`) and pushed, and inputs and outlet are closed.
-    """
-    start = time.monotonic()
-    last_data = None
-    latencies: deque = deque(maxlen=200_000)
-    n_out = 0
-    interrupted = False
-    next_status = 0.0
-    next_reattach = 0.0
-
-    def push(outs, t_pull):
-        nonlocal n_out
-        for o in outs:
-            if outlet is not None:
-                outlet.push(o)
-            if t_pull is not None:
-                latencies.append(time.perf_counter() - t_pull)
-            n_out += 1
-            if on_output is not None:
-                on_output(o)
-
-    gc.collect()
-    gc.freeze()  # set-up objects out of the collector's way: short collections in the loop
-    caught_up = False
-    n_catch_up = 0
-    try:
-        while True:
-            got = False
-            for inp in inputs:
-                if inp.lost:
-                    continue
-                t_pull = time.perf_counter()
-                data, ts = inp.pull()
-                if len(ts):
-                    got = True
-                    inp.feed(engine, data, ts, clock())
-                    if caught_up:  # live: the frame these samples complete goes out now
-                        push(engine.poll(clock()), t_pull)
-            if not caught_up:
-                # start-up: the samples buffered while the streams were connected are all
-                # read before any frame is processed (a frame never goes out without IMU
-                # samples that had already arrived); these outputs are not timed
-                outs = engine.poll(clock())
-                n_catch_up += len(outs)
-                push(outs, None)
-                caught_up = not got
-            else:
-                push(engine.poll(clock()), None)  # frames released by max latency / staleness
-            mono = time.monotonic()
-            if got:
-                last_data = mono
-            for inp in inputs:
-                if not inp.lost:
-                    inp.refresh_clock()
-            if reattach is not None and mono >= next_reattach:
-                next_reattach = mono + 0.5
-                for inp in inputs:
-                    if inp.lost:
-                        reattach(inp)
-            if status is not None and mono >= next_status:
-                next_status = mono + 0.25
-                status(engine, latencies)
-            if duration_s is not None and mono - start >= duration_s:
-                break
-            if (
-                idle_timeout_s is not None
-                and last_data is not None
-                and mono - last_data >= idle_timeout_s
-            ):
-                break
-            if stop_event is not None and stop_event.is_set():
-                break
-            if not got:
-                time.sleep(0.0005)
-    except KeyboardInterrupt:
-        interrupted = True
-        log.warning("interrupted (Ctrl-C): flushing pending frames and closing streams")
-    finally:
-        gc.unfreeze()
-        try:
-            push(engine.flush(clock()), None)
-        finally:
-            for inp in inputs:
-                inp.close()
-            if outlet is not None:
-                outlet.close()
-    return {"interrupted": interrupted, "latency_s": np.asarray(latencies), "outputs": n_out,
-            "catch_up_outputs": n_catch_up}  # fmt: skip
-
-
 def _status_printer(console, cfg):
-    from rich.live import Live
-    from rich.table import Table
-
     # rendered by the loop itself (4 Hz, right after a push), not by rich's refresh thread:
     # a thread would compete with the loop for the GIL at random moments
     live = Live(console=console, auto_refresh=False, transient=False)
@@ -301,96 +207,68 @@ def _status_printer(console, cfg):
     return live, show
 
 
-def run_stream(
-    session=None,
-    duration_s: float | None = None,
-    out: str | Path | None = None,
-    status: bool = True,
-    *,
-    idle_timeout_s: float | None = None,
-    wait_for_reader_s: float | None = None,
-    stop_event=None,
-    record: bool = False,
-    record_inputs: bool = False,
-    return_engine: bool = False,
-    view_port: int | None = None,
-) -> dict:
-    """Run the online engine on LSL inputs and publish the fused joints.
+@dataclass(frozen=True, eq=False)
+class StreamSummary(SummaryMapping):
+    """Outcome of :func:`run_stream`; also a read-only mapping of its JSON keys (``s["outputs"]``
+    as ``s.outputs``), in the order of :meth:`to_dict`.
 
-    Parameters
+    Attributes
     ----------
-    session : path, SessionConfig, StreamConfig or None
-        A streaming session TOML (:func:`~kinefuse.streaming.config.load_stream_config`), an
-        offline session (:func:`~kinefuse.streaming.config.stream_config_from_session`), a
-        :class:`StreamConfig`, or None for the defaults (the streams of
-        ``run_replay(..., name_prefix="kinefuse")``).
-    duration_s : float, optional
-        Stop after this wall time, s (default: until Ctrl-C, ``idle_timeout_s`` or
-        ``stop_event``).
-    out : path, optional
-        Write the outputs to ``out`` with suffix ``.npz`` (arrays below) and the summary next
-        to it with suffix ``.json``. Existing files are overwritten. Outputs, for T outputs and
-        the J ``joints``: ``t_s`` (T,) frame time on the LSL clock, s; ``position_m`` (T, J, 3),
-        m; ``std_m`` (T, J, 3), m; ``source`` (T, J) int8 code; ``flags`` (T, J) uint8 bit
-        mask; ``joints`` (J,) str.
-    status : bool
-        Live terminal status (rich): streams, rates, per-joint source, latency.
-    idle_timeout_s : float, optional
-        Stop once no input sample arrived for this long.
-    wait_for_reader_s : float, optional
-        Wait up to this long for a consumer of the output stream before the inputs are
-        opened.
-    stop_event : threading.Event, optional
-        Stop when set (tests, embedding).
-    record : bool
-        Keep the accepted samples in ``engine.accepted`` (tests).
-    record_inputs : bool
-        Also write the accepted input samples into the ``.npz`` of ``out`` (required), so the
-        session can be re-run offline with :func:`~kinefuse.streaming.offline_causal`
-        (implies ``record``; memory grows with the session). For each of the S engine
-        segments ``imu_<segment>_t`` (N,), s, and ``imu_<segment>_q`` (N, 4),
-        ``q_world_from_sensor`` wxyz, in arrival order; ``camera_t`` (F,), s,
-        ``camera_position_m`` (F, Jc, 3), m (camera frame, NaN = not seen) and
-        ``camera_available`` (F, Jc) bool for the accepted camera frames, with
-        ``camera_joints`` (Jc,) str (F = Jc = 0 without a camera); ``frame_t`` (K,), s, and
-        ``frame_synthesized`` (K,) bool (no camera frame at that time) for every processed
-        frame; ``segments`` (S,) str, ``imu_rate_hz`` (S,) and ``camera_rate_hz`` (scalar),
-        Hz: the nominal rates the engine was built with (:func:`build_engine`). All times are
-        on the local LSL clock after clock correction, as the engine saw them.
-    return_engine : bool
-        Put the :class:`Engine` in the summary (key ``"engine"``).
-    view_port : int, optional
-        Serve the live view (:class:`~kinefuse.streaming.liveview.LiveView`) on
-        ``http://127.0.0.1:view_port/`` (0 = a free port) while the stream runs; its address
-        is printed on stderr when it is up and is in the summary (``view_url``, with
-        ``view`` counts). The page never slows the stream down.
-
-    Returns
-    -------
-    dict
-        ``outputs``, ``frames``, ``counters``, ``events`` (last 50, as text), ``latency_ms``
-        (``p50``, ``p99``, ``max`` and ``n`` over the live outputs: pull of the sample that
-        completed the frame -> output pushed; ``catch_up_outputs``: outputs of the start-up
-        backlog, not timed; see :func:`run_loop`), ``streams``, ``missing`` (streams not
-        found), ``interrupted``.
-
-    Notes
-    -----
-    Inputs are resolved by name (timeout ``resolve_timeout_s``); a missing IMU stream leaves
-    its joints predict-only and is looked for again in the loop; a camera stream is required
-    unless the configuration has ``camera_stream = ""``. The camera's nominal rate sets the
-    output rate (one output per camera frame). The engine is built and warmed up and the
-    output stream created before the inlets subscribe, right before the loop, so that the loop
-    starts without a backlog of samples. Each inlet is opened with ``recover=True``, so a
-    stream re-created with the same source id is reattached by liblsl; a lost stream without
-    source id is resolved again by name. Timestamps: see :mod:`kinefuse.streaming.lsl`.
+    outputs, frames : int
+        Outputs pushed; frames processed.
+    counters : dict
+        :attr:`Engine.counters` at the end.
+    events : list of str
+        The last 50 :class:`~kinefuse.streaming.engine.EngineEvent` s, as text.
+    latency_ms : dict
+        ``p50``, ``p99``, ``max`` (ms, None without timed outputs) and ``n`` over the live
+        outputs (pull of the sample that completed the frame -> output pushed) and
+        ``catch_up_outputs`` (outputs of the start-up backlog, not timed; see
+        :func:`~kinefuse.streaming.loop.run_loop`).
+    streams, missing : list of str
+        Streams read; streams not found (still missing at the end).
+    output_stream : str
+    interrupted : bool
+        Ctrl-C ended the run.
+    view_url, view : str, dict or None
+        With ``view_port``: the live view's address and ``published``/``sent`` counts.
+    out : str or None
+        The ``.npz`` written (``out``).
+    engine : Engine or None
+        With ``return_engine``.
     """
-    if record_inputs and out is None:
-        raise InputError("record_inputs needs out: the accepted inputs are written to its .npz")
-    cfg = stream_config(session)
-    pylsl = import_pylsl()
-    from kinefuse.streaming.lsl import IMU_TYPE, FusedOutlet, Input, resolve_many
 
+    outputs: int
+    frames: int
+    counters: dict
+    events: list
+    latency_ms: dict
+    streams: list
+    missing: list
+    output_stream: str
+    interrupted: bool
+    view_url: str | None = None
+    view: dict | None = None
+    out: str | None = None
+    engine: Engine | None = None
+
+    _optional = ("view_url", "view", "out", "engine")
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """The LSL streams found for a :class:`StreamConfig`."""
+
+    segments: tuple
+    wanted: dict  # stream name -> segment
+    found: dict  # stream name -> pylsl StreamInfo
+    camera: str | None
+    missing: list
+    imu_rates: dict
+    camera_rate_hz: float
+
+
+def _resolve_inputs(cfg: StreamConfig) -> _Inputs:
     segments = EngineConfig(
         full_body(height_m=cfg.body_height_m, lengths=cfg.lengths_m or None), joints=cfg.joints
     ).segments
@@ -414,17 +292,12 @@ def run_stream(
         if cam_name and found[cam_name].nominal_srate() > 0
         else cfg.output_rate_hz
     )
-    engine = build_engine(
-        cfg,
-        camera=cam_name is not None,
-        camera_rate_hz=cam_rate,
-        imu_rate_hz=imu_rates,
-        record=record or record_inputs,
-    )
-    warm_up(engine)
-    outlet = FusedOutlet(cfg.output_stream_name, cfg.joints, cam_rate, processor=cfg.processor,
-                         lag_frames=cfg.lag)  # fmt: skip
-    lost_errors = (TimeoutError, pylsl.util.TimeoutError, pylsl.util.LostError)
+    return _Inputs(segments, wanted, found, cam_name, missing, imu_rates, cam_rate)
+
+
+def _open_inputs(cfg: StreamConfig, plan: _Inputs, outlet, wait_for_reader_s, lost_errors) -> list:
+    """Subscribe to every stream found (all at once) and take first clock offsets; a stream
+    that went away since it was resolved joins ``plan.missing`` (the camera: an error)."""
     inputs = []
     try:
         if wait_for_reader_s:
@@ -435,17 +308,15 @@ def run_stream(
         # one after the other: the first would buffer data the last has not seen yet), the
         # camera listed last so that each loop pass reads the IMUs before the frame they
         # complete.
-        from concurrent.futures import ThreadPoolExecutor
-
         def open_input(spec):
             kind, key, name = spec
             try:
-                return Input.open(kind, key, name, info=found[name], clock=cfg.clock)
+                return Input.open(kind, key, name, info=plan.found[name], clock=cfg.clock)
             except lost_errors as exc:  # the stream went away since it was resolved
                 return exc
 
-        specs = [("imu", seg, name) for name, seg in wanted.items() if name in found]
-        specs += [("camera", "camera", cam_name)] if cam_name else []
+        specs = [("imu", seg, name) for name, seg in plan.wanted.items() if name in plan.found]
+        specs += [("camera", "camera", plan.camera)] if plan.camera else []
         with ThreadPoolExecutor(max_workers=len(specs)) as pool:
             opened = list(pool.map(open_input, specs))
         inputs += [r for r in opened if not isinstance(r, Exception)]
@@ -456,7 +327,7 @@ def run_stream(
                 raise InputError(f"camera stream {name!r} went away before it could be opened")
             log.warning("LSL stream %s went away before it could be opened: its joints stay "
                         "predict-only until it appears", name)  # fmt: skip
-            missing.append(name)
+            plan.missing.append(name)
         if not any(i.kind == "imu" for i in inputs):
             raise InputError("every IMU stream went away before it could be opened")
         # first clock-offset estimates in parallel (each takes a few probe round trips)
@@ -467,14 +338,11 @@ def run_stream(
             inp.close()
         outlet.close()
         raise
+    return inputs
 
-    pending_missing = {seg: cfg.imu_stream_name(seg) for seg in segments
-                       if cfg.imu_stream_name(seg) in missing}  # fmt: skip
 
-    def reattach(inp):
-        return inp.reattach(0.05)
-
-    collected = [] if out is not None else None
+def _output_hook(engine, cfg: StreamConfig, inputs, pending_missing, collected, lost_errors):
+    """Called with every output: remembers its sources, collects it, attaches late streams."""
 
     def on_output(o):
         engine._last_sources = o.source
@@ -493,28 +361,34 @@ def run_stream(
                 except lost_errors:
                     pass
 
+    return on_output
+
+
+def _run_live(engine, inputs, outlet, cfg, on_output, status, view_port, loop_kw):
+    """:func:`run_loop` with the terminal status and the live view; returns (result, view)."""
     view = None
     if view_port is not None:
         view, on_output, show_view = _live_view(cfg, view_port, on_output, inputs, outlet)
     live = show = None
     if status:
-        from rich.console import Console
-
         live, show = _status_printer(Console(stderr=True), cfg)
     if view is not None:
         show = show_view(show)
     try:
-        res = run_loop(engine, inputs, outlet, clock=pylsl.local_clock, duration_s=duration_s,
-                       idle_timeout_s=idle_timeout_s, stop_event=stop_event, on_output=on_output,
-                       status=show, reattach=reattach)  # fmt: skip
+        res = run_loop(engine, inputs, outlet, on_output=on_output, status=show,
+                       reattach=lambda inp: inp.reattach(0.05), **loop_kw)  # fmt: skip
     finally:
         if live is not None:
             live.stop()
         if view is not None:
             view.close()
-    lat = res["latency_s"]
+    return res, view
+
+
+def _summary(engine, res, inputs, pending_missing, cfg: StreamConfig, view) -> dict:
+    lat = res.latency_s
     summary = {
-        "outputs": res["outputs"],
+        "outputs": res.outputs,
         "frames": engine.counters["frames"],
         "counters": dict(engine.counters),
         "events": [str(e) for e in list(engine.events)[-50:]],
@@ -523,43 +397,118 @@ def run_stream(
             "p99": float(1e3 * np.percentile(lat, 99)) if lat.size else None,
             "max": float(1e3 * lat.max()) if lat.size else None,
             "n": int(lat.size),
-            "catch_up_outputs": res["catch_up_outputs"],
+            "catch_up_outputs": res.catch_up_outputs,
         },
         "streams": [i.name for i in inputs],
         "missing": sorted(pending_missing.values()),
         "output_stream": cfg.output_stream_name,
-        "interrupted": res["interrupted"],
+        "interrupted": res.interrupted,
     }
     if view is not None:
         summary["view_url"] = view.url
         summary["view"] = {"published": view.published, "sent": view.sent}
-    if out is not None:
-        p = Path(out)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(
-            p.with_suffix(".npz"),
-            t_s=np.array([o.t_s for o in collected]),
-            position_m=np.array([o.position_m for o in collected]).reshape(-1, len(cfg.joints), 3),
-            std_m=np.array([o.std_m for o in collected]).reshape(-1, len(cfg.joints), 3),
-            source=np.array([o.source for o in collected], np.int8).reshape(-1, len(cfg.joints)),
-            flags=np.array([o.flags for o in collected], np.uint8).reshape(-1, len(cfg.joints)),
-            joints=np.array(cfg.joints),
-            **(_recorded_inputs(engine) if record_inputs else {}),
-        )
-        p.with_suffix(".json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
-        summary["out"] = str(p.with_suffix(".npz"))
-    if return_engine:
-        summary["engine"] = engine
     return summary
+
+
+def _write_outputs(out, collected, engine, cfg: StreamConfig, summary, record_inputs) -> str:
+    """The ``.npz`` of the outputs (module docstring) and the ``.json`` summary; the npz path."""
+    p = Path(out)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    J = len(cfg.joints)
+    np.savez(
+        p.with_suffix(".npz"),
+        t_s=np.array([o.t_s for o in collected]),
+        position_m=np.array([o.position_m for o in collected]).reshape(-1, J, 3),
+        std_m=np.array([o.std_m for o in collected]).reshape(-1, J, 3),
+        source=np.array([o.source for o in collected], np.int8).reshape(-1, J),
+        flags=np.array([o.flags for o in collected], np.uint8).reshape(-1, J),
+        joints=np.array(cfg.joints),
+        **(_recorded_inputs(engine) if record_inputs else {}),
+    )
+    p.with_suffix(".json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
+    return str(p.with_suffix(".npz"))
+
+
+def run_stream(
+    session=None,
+    duration_s: float | None = None,
+    out: str | Path | None = None,
+    status: bool = True,
+    *,
+    idle_timeout_s: float | None = None,
+    wait_for_reader_s: float | None = None,
+    stop_event=None,
+    record: bool = False,
+    record_inputs: bool = False,
+    return_engine: bool = False,
+    view_port: int | None = None,
+) -> StreamSummary:
+    """Run the online engine on LSL inputs and publish the fused joints.
+
+    Parameters
+    ----------
+    session : path, SessionConfig, StreamConfig or None
+        A streaming session TOML (:func:`~kinefuse.streaming.config.load_stream_config`), an
+        offline session (:func:`~kinefuse.streaming.config.stream_config_from_session`), a
+        :class:`StreamConfig`, or None for the defaults (the streams of
+        ``run_replay(..., name_prefix="kinefuse")``).
+    duration_s : float, optional
+        Stop after this wall time, s (default: until Ctrl-C, ``idle_timeout_s`` or
+        ``stop_event``).
+    out : path, optional
+        Write the outputs (``.npz``) and the summary (``.json``): see the module docstring.
+    status : bool
+        Live terminal status (rich): streams, rates, per-joint source, latency.
+    idle_timeout_s : float, optional
+        Stop once no input sample arrived for this long.
+    wait_for_reader_s : float, optional
+        Wait up to this long for a consumer of the output stream before the inputs are opened.
+    stop_event : threading.Event, optional
+        Stop when set (tests, embedding).
+    record : bool
+        Keep the accepted samples in ``engine.accepted`` (tests).
+    record_inputs : bool
+        Also write the accepted input samples into the ``.npz`` of ``out`` (required; module
+        docstring), implies ``record`` (memory grows with the session).
+    return_engine : bool
+        Put the :class:`Engine` in the summary (key ``"engine"``).
+    view_port : int, optional
+        Serve the live view (:class:`~kinefuse.streaming.liveview.LiveView`) on
+        ``http://127.0.0.1:view_port/`` (0 = a free port) while the stream runs; its address
+        is printed on stderr and is in the summary. The page never slows the stream down.
+
+    Returns
+    -------
+    StreamSummary
+        Inputs and timing: see the module docstring.
+    """
+    if record_inputs and out is None:
+        raise InputError("record_inputs needs out: the accepted inputs are written to its .npz")
+    cfg = stream_config(session)
+    pylsl = import_pylsl()
+    plan = _resolve_inputs(cfg)
+    engine = build_engine(cfg, camera=plan.camera is not None, camera_rate_hz=plan.camera_rate_hz,
+                          imu_rate_hz=plan.imu_rates, record=record or record_inputs)  # fmt: skip
+    warm_up(engine)
+    outlet = FusedOutlet(cfg.output_stream_name, cfg.joints, plan.camera_rate_hz,
+                         processor=cfg.processor, lag_frames=cfg.lag)  # fmt: skip
+    lost_errors = (TimeoutError, pylsl.util.TimeoutError, pylsl.util.LostError)
+    inputs = _open_inputs(cfg, plan, outlet, wait_for_reader_s, lost_errors)
+    pending_missing = {seg: cfg.imu_stream_name(seg) for seg in plan.segments
+                       if cfg.imu_stream_name(seg) in plan.missing}  # fmt: skip
+    collected = [] if out is not None else None
+    on_output = _output_hook(engine, cfg, inputs, pending_missing, collected, lost_errors)
+    loop_kw = dict(clock=pylsl.local_clock, duration_s=duration_s, idle_timeout_s=idle_timeout_s,
+                   stop_event=stop_event)  # fmt: skip
+    res, view = _run_live(engine, inputs, outlet, cfg, on_output, status, view_port, loop_kw)
+    summary = _summary(engine, res, inputs, pending_missing, cfg, view)
+    if out is not None:
+        summary["out"] = _write_outputs(out, collected, engine, cfg, summary, record_inputs)
+    return StreamSummary(**summary, engine=engine if return_engine else None)
 
 
 def _live_view(cfg: StreamConfig, port: int, on_output, inputs, outlet):
     """Start the live view; return it, the output hook publishing to it and a status wrapper."""
-    import sys
-
-    from kinefuse.sim.camera import bone_edges
-    from kinefuse.streaming.liveview import LiveView
-
     try:
         view = LiveView(cfg.joints, bone_edges(cfg.joints), port=port,
                         title=f"kinefuse stream -> {cfg.output_stream_name}",
