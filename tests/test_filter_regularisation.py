@@ -41,7 +41,11 @@ def _indefinite_S_state(model):
 
 
 def _regularisation_warnings(record):
-    return [w for w in record if issubclass(w.category, NumericalWarning) and "regularised" in str(w.message)]
+    return [
+        w
+        for w in record
+        if issubclass(w.category, NumericalWarning) and "regularised" in str(w.message)
+    ]
 
 
 def test_chol_status_values():
@@ -69,7 +73,9 @@ def test_dense_kalman_warns_once_per_call():
 def test_rts_warns_once_per_call():
     m = constant_velocity(DT, q=1.0, r=1e-2)
     Pp = np.eye(6)
-    Pp[np.ix_([0, 2, 4], [0, 2, 4])] = np.array([[1.0, 0.5, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, -1e-13]])
+    Pp[np.ix_([0, 2, 4], [0, 2, 4])] = np.array(
+        [[1.0, 0.5, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, -1e-13]]
+    )
     cov = np.broadcast_to(_cov_giving(m, Pp), (4, 6, 6)).copy()  # not axis-blocked: dense RTS
     res = FilterResult(
         mean=np.zeros((4, 6)), cov=cov, position=np.zeros((4, 3)), observed=np.ones(4, bool),

@@ -117,8 +117,9 @@ _TABLE = (
 
 #: The registry: name -> :class:`Method`, in the order help texts and templates list them.
 REGISTRY: dict[str, Method] = {
-    name: Method(name, label, tuple(needs.split()), tuple(forms.split()), summary, paper,
-                 online, substitute)  # fmt: skip
+    name: Method(
+        name, label, tuple(needs.split()), tuple(forms.split()), summary, paper, online, substitute
+    )  # fmt: skip
     for name, label, needs, forms, online, substitute, paper, summary in _TABLE
 }
 
@@ -185,7 +186,6 @@ def help_lines(*, form: str | None = None) -> list[str]:
     chosen = names(form=form)
     w = max(len(n) for n in chosen)
     return [
-        f"{n:<{w}}  {REGISTRY[n].uses:<14}: {REGISTRY[n].summary} "
-        f"[{', '.join(REGISTRY[n].forms)}]"
+        f"{n:<{w}}  {REGISTRY[n].uses:<14}: {REGISTRY[n].summary} [{', '.join(REGISTRY[n].forms)}]"
         for n in chosen
     ]

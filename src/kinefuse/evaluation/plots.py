@@ -242,18 +242,14 @@ def _axis_panel(ax, a, t, ref, estimates, measurement, outage, colors, styles, d
             zorder=5,  # on top: the "camera only" method runs right under these dots
             label="camera (input)" if a == 0 else None,
         )
-    ax.plot(
-        t, ref[:, a], color=_REF_COLOR, lw=1.6, zorder=3, label="reference" if a == 0 else None
-    )
+    ax.plot(t, ref[:, a], color=_REF_COLOR, lw=1.6, zorder=3, label="reference" if a == 0 else None)
     for m, est in estimates.items():
         style = (
             {"ls": "none", "marker": ".", "ms": 2.5}
             if m in dotted
             else {"lw": 1.1, "alpha": 0.9, "ls": styles.get(m, "-")}
         )
-        ax.plot(
-            t, np.asarray(est)[:, a], color=colors.get(m), label=m if a == 0 else None, **style
-        )
+        ax.plot(t, np.asarray(est)[:, a], color=colors.get(m), label=m if a == 0 else None, **style)
     ax.grid(alpha=0.3)
 
 
@@ -478,7 +474,9 @@ def _body_context(body, index: dict[str, int]) -> _BodyContext:
     b_pos = np.asarray(b_pos, dtype=float)
     bi = {n: i for i, n in enumerate(b_names)}
     b_bones = [
-        (bi[a], bi[b]) for a, b in b_edges if a in bi and b in bi and not (a in index and b in index)
+        (bi[a], bi[b])
+        for a, b in b_edges
+        if a in bi and b in bi and not (a in index and b in index)
     ]
     # bones from a context joint (not evaluated) to an evaluated joint: drawn per series
     attach = [(bi[a], index[b]) for a, b in b_edges if a in bi and a not in index and b in index]

@@ -376,7 +376,12 @@ def _write_figures(
         emit(
             "timeline_sources",
             plots.timeline_figure(
-                t, d.source_codes, source_names, joints, outage=outage, title="Data source per sample"
+                t,
+                d.source_codes,
+                source_names,
+                joints,
+                outage=outage,
+                title="Data source per sample",
             ),
         )
     if skeleton_edges:

@@ -320,7 +320,16 @@ def joint_method_table(
 
 
 def _joint_rows(
-    result, joint, jp, has_paper, paper_mode, include_cdf, include_outage, drop_empty, n_extra, empty
+    result,
+    joint,
+    jp,
+    has_paper,
+    paper_mode,
+    include_cdf,
+    include_outage,
+    drop_empty,
+    n_extra,
+    empty,
 ) -> list[TableRow]:
     """The rows of one joint in :func:`joint_method_table` (``empty`` collects left-out methods)."""
     rows = []

@@ -260,7 +260,13 @@ def em_update_sparse(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x
     Pm, M, S, LS, Kt, AP, D, W, L6 = sc.Pm, sc.M, sc.S, sc.LS, sc.Kt, sc.AP, sc.D, sc.W, sc.L6
     Rj, Om1, nu, e, tmp = sc.Rj, sc.Om1, sc.nu, sc.e, sc.tmp
     Hr, Hc, Hv = struct.Hr, struct.Hc, struct.Hv
-    n_iter, regularized, tau, floor_c, want_R = it.n_iter, it.regularized, it.tau, it.floor_c, it.want_R
+    n_iter, regularized, tau, floor_c, want_R = (
+        it.n_iter,
+        it.regularized,
+        it.tau,
+        it.floor_c,
+        it.want_R,
+    )
     n_x = len(tx)
     n_z = len(tz)
     nnz = len(Hv)
@@ -413,7 +419,13 @@ def em_update_cv(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x, P,
     """
     Rj, Rl, Om1, Pm, S, LS, Kt = sc.Rj, sc.Rl, sc.Om1, sc.Pm, sc.S, sc.LS, sc.Kt
     AP, D, W, nu, e, tmp = sc.AP, sc.D, sc.W, sc.nu, sc.e, sc.tmp
-    n_iter, regularized, tau, floor_c, want_R = it.n_iter, it.regularized, it.tau, it.floor_c, it.want_R
+    n_iter, regularized, tau, floor_c, want_R = (
+        it.n_iter,
+        it.regularized,
+        it.tau,
+        it.floor_c,
+        it.want_R,
+    )
     defer = it.defer
     n_a = len(tz)
     n = len(tx)

@@ -126,7 +126,8 @@ def solve_alignment(W: dict, U: dict, align: str):
 
     def axes_given(Rc):
         return {
-            s: unit_direction(np.einsum("kji,kj->i", W[s], U[s] @ Rc.T), f"segment {s!r}") for s in W
+            s: unit_direction(np.einsum("kji,kj->i", W[s], U[s] @ Rc.T), f"segment {s!r}")
+            for s in W
         }
 
     def cost(Rc, A):

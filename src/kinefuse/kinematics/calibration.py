@@ -252,7 +252,9 @@ def _joint_stream_calibration(
         align = "none" if frames == {stream.frame} else "rotation"
     if align == "none":
         Rc = None
-        axes = {s: unit_direction(np.einsum("kji,kj->i", W[s], U[s]), f"segment {s!r}") for s in segs}
+        axes = {
+            s: unit_direction(np.einsum("kji,kj->i", W[s], U[s]), f"segment {s!r}") for s in segs
+        }
     else:
         Rc, axes = solve_alignment(W, U, align)
         weak = alignment_sensitivity(W, U, Rc, align)

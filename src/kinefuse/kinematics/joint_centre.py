@@ -21,6 +21,7 @@ from kinefuse.orientation.resample import slerp_resample
 
 __all__ = ["GRAVITY_M_S2", "JointFit", "Signals", "fit_joint", "joint_signals"]
 
+
 @dataclass(frozen=True, eq=False)
 class JointFit:
     """One joint's functional estimate.

@@ -666,7 +666,10 @@ def full_body(*, lengths=None, height_m=None, axes=None, offsets=None) -> Skelet
 _ARM = (("upper_arm", "shoulder", "elbow"), ("forearm", "elbow", "wrist"))
 _LEG = (("thigh", "hip", "knee"), ("shank", "knee", "ankle"))
 _FULL_BODY = tuple(
-    (f"{seg}_{s}", f"{p}_{s}", f"{d}_{s}") for limb in (_ARM, _LEG) for s in "lr" for seg, p, d in limb
+    (f"{seg}_{s}", f"{p}_{s}", f"{d}_{s}")
+    for limb in (_ARM, _LEG)
+    for s in "lr"
+    for seg, p, d in limb
 )
 
 

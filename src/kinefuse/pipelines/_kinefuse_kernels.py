@@ -155,4 +155,3 @@ def accumulate_moments(zc, zi, ok, t0, t1, S, D):
                 D[0, a] += 1.0
                 D[1, a] += d2c * d2i
                 D[2, a] += d2i * d2i
-

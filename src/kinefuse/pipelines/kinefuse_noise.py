@@ -16,7 +16,9 @@ from kinefuse.pipelines._kinefuse_kernels import accumulate_moments
 
 __all__ = ["NoiseParameters", "estimate_noise"]
 
-_VAR_FLOOR_M2 = 1e-6  # (1 mm)²: smallest white-noise variance (below: neither credible nor identifiable)
+_VAR_FLOOR_M2 = (
+    1e-6  # (1 mm)²: smallest white-noise variance (below: neither credible nor identifiable)
+)
 # the conservative prior of the causal noise fit (_prior_variograms)
 _PRIOR_R_CAM = 1e-3  # prior camera white noise, m² (SPEC §12.2 R_V)
 _PRIOR_R_IMU = 1e-4  # prior white noise of the corrected chain, m² (1 cm)²
@@ -330,4 +332,3 @@ def estimate_noise(z_cam, z_imu, available, dt_s: float, *, max_lag: int = 60) -
     T = zc.shape[0]
     K = int(max(1, min(max_lag, T - 1)))
     return _Moments(K).add(zc, zi, ok, 0, T).noise(dt_s)
-

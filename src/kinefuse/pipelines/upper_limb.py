@@ -261,6 +261,7 @@ def upper_limb(
     return _filter_joints(z, dt, method, qs, rs, (horizon, threshold1, threshold2, n_em_iter),
                           names, t_s)  # fmt: skip
 
+
 def _filter_joints(z, dt, method, qs, rs, settings, names, t_s) -> UpperLimbResult:
     """:func:`upper_limb` on validated ``z (T, J, 3)``: one batch call per distinct ``(q, r)``;
     ``settings = (horizon, threshold1, threshold2, n_em_iter)``."""

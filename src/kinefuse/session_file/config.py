@@ -47,6 +47,7 @@ ROOTS = {
     "reference": "the reference joints; needs [reference]",
 }
 
+
 @dataclass(frozen=True)
 class ImuConfig:
     """``[imu]``: the IMU recording.

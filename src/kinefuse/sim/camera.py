@@ -321,7 +321,9 @@ def _bone_length_variation(rng, true_all, all_names, names, config: CameraConfig
     """
     n = true_all.shape[0]
     edges = bone_edges(all_names)
-    eps = gauss_markov(rng, n, len(edges), config.bone_length_std, config.bone_length_corr_time_s, dt)
+    eps = gauss_markov(
+        rng, n, len(edges), config.bone_length_std, config.bone_length_corr_time_s, dt
+    )
     scale = {child: 1.0 + eps[:, e] for e, (_, child) in enumerate(edges)}
     parent = dict((c, p) for p, c in edges)
     out = {}

@@ -111,6 +111,7 @@ __all__ = [
 
 _DEG = math.pi / 180.0
 
+
 def time_grid(t_s: np.ndarray, rate_hz: float) -> np.ndarray:
     """``t_0 + k / rate_hz`` for all k with the time inside ``[t_s[0], t_s[-1]]``, shape (n,)."""
     n = int(math.floor((t_s[-1] - t_s[0]) * rate_hz + 1e-9)) + 1
@@ -350,9 +351,7 @@ def _true_inertial(rot_ws: Rotation, spline: CubicSpline, t, t_src, dt: float):
 def _prepend_rest(n_warm: int, gyr_true, acc_true, rot_ws: Rotation, t, dt: float):
     """``n_warm`` samples of the sensor at rest in its first pose before the recording."""
     gyr_true = np.vstack([np.zeros((n_warm, 3)), gyr_true])
-    acc_true = np.vstack(
-        [np.tile(rot_ws[0].inv().apply(-GRAVITY_ENU_M_S2), (n_warm, 1)), acc_true]
-    )
+    acc_true = np.vstack([np.tile(rot_ws[0].inv().apply(-GRAVITY_ENU_M_S2), (n_warm, 1)), acc_true])
     q_all = np.vstack([np.tile(rot_ws[0].as_quat(), (n_warm, 1)), rot_ws.as_quat()])
     rot_ws = Rotation.from_quat(q_all)
     t = np.concatenate([t[0] - dt * np.arange(n_warm, 0, -1), t])
@@ -396,7 +395,9 @@ def _magnetometer(rng, t, rot_ws: Rotation, config: ImuConfig, dt: float):
     episodes.
     """
     n = t.size
-    m_inh = gauss_markov(rng, n, 3, config.mag_inhomogeneity_ut, config.mag_inhomogeneity_time_s, dt)
+    m_inh = gauss_markov(
+        rng, n, 3, config.mag_inhomogeneity_ut, config.mag_inhomogeneity_time_s, dt
+    )
     m_dist, episodes = disturbance_episodes(rng, t, config)
     m_world = config.mag_earth_ut + m_inh + m_dist
     mag_true = rot_ws.inv().apply(m_world)
@@ -424,7 +425,9 @@ def _output_orientation(rng, t, rot_ws: Rotation, acc, gyr, mag, config: ImuConf
     n = t.size
     psi0 = rng.uniform(-1.0, 1.0) * config.ahrs_initial_heading_deg * _DEG
     psi_rate = rng.standard_normal() * config.ahrs_heading_drift_deg_per_min * _DEG / 60.0
-    psi = psi0 + psi_rate * (t - t[0]) + rng.standard_normal(n) * config.ahrs_heading_noise_deg * _DEG
+    psi = (
+        psi0 + psi_rate * (t - t[0]) + rng.standard_normal(n) * config.ahrs_heading_noise_deg * _DEG
+    )
     tilt = rng.standard_normal((n, 2)) * config.ahrs_tilt_noise_deg * _DEG
     err = Rotation.from_rotvec(np.column_stack([np.zeros((n, 2)), psi])) * Rotation.from_rotvec(
         np.column_stack([tilt, np.zeros(n)])

@@ -44,6 +44,7 @@ _DEG = math.pi / 180.0
 #: Orientation sources of a virtual IMU (:mod:`kinefuse.sim.imu`, "Orientation").
 ORIENTATIONS = ("vqf", "vqf-6d", "idealised-ahrs")
 
+
 @dataclass(frozen=True)
 class ImuConfig:
     """Virtual IMU settings (datasheet units in the names; defaults: ICM-20948, module doc).

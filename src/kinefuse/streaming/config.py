@@ -420,9 +420,7 @@ class StreamConfig:
 
 
 _STREAM_KEYS = tuple(
-    f
-    for f in StreamConfig.__dataclass_fields__
-    if f not in ("body_height_m", "lengths_m", "notes")
+    f for f in StreamConfig.__dataclass_fields__ if f not in ("body_height_m", "lengths_m", "notes")
 )
 
 

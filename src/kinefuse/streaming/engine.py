@@ -526,4 +526,3 @@ class Engine:
         self._n_out = checkpoint["n_out"]
         self.counters = dict(checkpoint["counters"])
         self.processor.restore(checkpoint["processor"])
-

@@ -206,7 +206,6 @@ class EngineOutput:
         return np.sqrt(np.maximum(np.diagonal(self.cov_m2, axis1=-2, axis2=-1), 0.0))
 
 
-
 class SummaryMapping(Mapping):
     """Base of the streaming run summaries (dataclasses): also a read-only mapping of the
     fields, in order, without the optional ones that are None (:meth:`to_dict`), so that

@@ -302,6 +302,7 @@ def _open_inputs(cfg: StreamConfig, plan: _Inputs, outlet, wait_for_reader_s, lo
     try:
         if wait_for_reader_s:
             outlet.outlet.wait_for_consumers(wait_for_reader_s)
+
         # the inlets subscribe only now, right before the loop: data buffered during warm-up
         # would arrive as a backlog older than stale_after_s, and every IMU stream would look
         # stale while the frames of that backlog are processed. All are opened at once (not
