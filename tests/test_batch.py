@@ -199,7 +199,9 @@ def test_rerun_skips_finished_and_force_redoes_despite_a_restart(first_run, seri
     def restart_once(kind, payload):  # the cluster loses the submitted tasks: resubmitted
         events.append(kind)
         if kind == "poll" and events.count("poll") == 1:
-            client.restart()
+            # a restarted worker re-imports kinefuse and may load cold numba caches on a loaded
+            # 2-core machine: distributed's default 120 s wait for it was seen to run out in CI
+            client.restart(timeout=600)
 
     forced = kb.run_study(
         two, client=client, force=True, quiet=True, report=False, on_event=restart_once
