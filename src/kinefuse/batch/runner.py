@@ -409,9 +409,10 @@ def _run_pending(
 def compare_workers(study: Study, counts: Sequence[int], *, quiet: bool = False) -> list[Mapping]:
     """Run the whole study once per worker count (fresh outputs each time), time each run.
 
-    Each run writes into ``out_dir/compare/workers-N`` with ``force``; the numba cache is warmed
-    first so no run pays the compile cost. Returns one mapping per count: ``workers``,
-    ``wall_s`` (cluster start to report), ``tasks_wall_s``, ``counts``.
+    Each run writes into ``out_dir/compare/workers-N`` with ``force`` (table, per-recording
+    outputs and study report, as a plain run); the numba cache is warmed first so no run pays
+    the compile cost. Returns one mapping per count: ``workers``, ``wall_s`` (cluster start to
+    report), ``tasks_wall_s``, ``counts``, ``table`` and ``report`` (paths).
     """
     if not _kernels_cached() and study.tasks:  # compile before any timed run
         warm = replace(study, out_dir=study.out_dir / "compare" / "warm-up")
@@ -421,13 +422,15 @@ def compare_workers(study: Study, counts: Sequence[int], *, quiet: bool = False)
     runs = []
     for n in counts:
         sub = replace(study, out_dir=study.out_dir / "compare" / f"workers-{n}")
-        s = run_study(sub, force=True, workers=n, quiet=quiet, report=False)
+        s = run_study(sub, force=True, workers=n, quiet=quiet)
         runs.append(
             {
                 "workers": n,
                 "wall_s": s["wall_s"],
                 "tasks_wall_s": s["tasks_wall_s"],
                 "counts": s["counts"],
+                "table": s["table"],
+                "report": s["report"],
             }
         )
     return runs
@@ -494,6 +497,8 @@ def compare_table(runs: Sequence[Mapping]):
         digits=2,
         notes=(
             f"speed-up = wall time with {base['workers']} worker(s) / wall time; 'wall' includes "
-            "cluster start-up and writing the table, 'tasks' is first submission to last result",
+            "cluster start-up, writing the table and the study report, 'tasks' is first "
+            "submission to last result",
+            *(f"{r['workers']} worker(s): report {r['report']}" for r in runs if r.get("report")),
         ),
     )
