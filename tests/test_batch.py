@@ -236,7 +236,7 @@ def test_cli_rerun_on_a_glob_starts_no_cluster(first_run, sessions, monkeypatch)
     def no_cluster(*a, **k):
         raise AssertionError("a rerun with nothing to do must not start a cluster")
 
-    monkeypatch.setattr(runner_mod, "_client", no_cluster)
+    monkeypatch.setattr(runner_mod, "connect", no_cluster)
     res = runner.invoke(
         cli.app, ["batch", str(sessions / "utd_*.toml"), "--out", str(study.out_dir), "--quiet"]
     )
@@ -343,3 +343,84 @@ def test_example_study_lists_the_utd_mhad_wrist_trials(shared_data):
     assert len(st.recordings) == 503  # actions 1-21 x subjects 1-6 x 4 trials, 1 never released
     assert st.methods == ("imu-only", "elm-fir", "kinefuse") and len(st.tasks) == 3 * 503
     assert all(t.error is None for t in st.tasks)
+
+
+# ---- kinefuse experiment --workers: an experiment's trials through the same cluster path ----
+
+
+def _numbers(tree, path=""):
+    """Every number of a results tree by its path, timing keys left out (they differ per run)."""
+    if isinstance(tree, dict):
+        out = {}
+        for k, v in tree.items():
+            if "time" in str(k) or str(k).endswith("_ms"):
+                continue
+            out.update(_numbers(v, f"{path}/{k}"))
+        return out
+    if isinstance(tree, (list, tuple)):
+        out = {}
+        for i, v in enumerate(tree):
+            out.update(_numbers(v, f"{path}[{i}]"))
+        return out
+    if isinstance(tree, (int, float)) and not isinstance(tree, bool):
+        return {path: float(tree)}
+    return {path: tree}
+
+
+@pytest.mark.parametrize("name", ["paper-a", "paper-b"])
+def test_experiment_trials_on_dask_equal_the_serial_run(client, shared_data, name):
+    import numpy as np
+
+    from kinefuse.apps.experiments import run_experiment
+    from kinefuse.batch.trials import dask_trial_map
+
+    serial = run_experiment(name, shared_data, quick=True, quiet=True)
+    on_dask = run_experiment(
+        name, shared_data, quick=True, quiet=True, trial_map=dask_trial_map(client)
+    )
+    a, b = _numbers(serial["results"]), _numbers(on_dask["results"])
+    assert a.keys() == b.keys()
+    nums = [k for k, v in a.items() if isinstance(v, float)]
+    assert len(nums) > 50
+    assert [a[k] for k in a if k not in nums] == [b[k] for k in b if k not in nums]
+    # same code and seeds; only the BLAS summation order may differ between processes
+    np.testing.assert_allclose([b[k] for k in nums], [a[k] for k in nums], rtol=1e-9, atol=1e-12)
+    assert serial["notes"] == on_dask["notes"]
+
+
+def test_trial_map_keeps_call_order_and_raises_a_trials_error(client):
+    import operator
+
+    from kinefuse.batch.trials import dask_trial_map
+
+    trial_map = dask_trial_map(client)
+    seen = []
+    assert trial_map(pow, [(2, k) for k in range(12)], lambda: seen.append(1)) == [
+        2**k for k in range(12)
+    ]
+    assert len(seen) == 12
+    with pytest.raises(ZeroDivisionError):
+        trial_map(operator.truediv, [(1, 1), (1, 0), (2, 1)])
+
+
+def test_cli_experiment_workers_refused_before_a_cluster(monkeypatch):
+    import kinefuse.batch.runner as runner_mod
+
+    def no_cluster(*a, **k):
+        raise AssertionError("refused input must not start a cluster")
+
+    monkeypatch.setattr(runner_mod, "connect", no_cluster)
+    res = runner.invoke(cli.app, ["experiment", "neura-imu-only", "--workers", "2"])
+    assert res.exit_code == 2
+    assert "only paper-a and paper-b run on Dask" in _err(res)
+    monkeypatch.setattr(kb, "missing_packages", lambda: ["distributed"])
+    res = runner.invoke(cli.app, ["experiment", "paper-b", "--quick", "--workers", "2"])
+    assert res.exit_code == 1
+    assert "pip install 'kinefuse[batch]'" in _err(res)
+
+
+def test_cli_and_apps_agree_on_the_trial_experiments():
+    from kinefuse.apps.experiments import TRIAL_EXPERIMENTS
+    from kinefuse.cli.offline import TRIAL_EXPERIMENTS as CLI_TRIAL_EXPERIMENTS
+
+    assert CLI_TRIAL_EXPERIMENTS == TRIAL_EXPERIMENTS

@@ -40,6 +40,7 @@ from kinefuse.apps.splits import (
     DataSplit,
     default_data_dir,
 )
+from kinefuse.apps.trials import TrialMap, serial_map
 from kinefuse.exceptions import InputError
 from kinefuse.progress import progress
 
@@ -48,6 +49,7 @@ __all__ = [
     "PAPER_A_TESTS",
     "REPORT_SET",
     "SPLITS",
+    "TRIAL_EXPERIMENTS",
     "TUNING_SET",
     "UTD_ACTIONS",
     "DataSplit",
@@ -60,19 +62,22 @@ EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only", "realism")
 _QUICK_ENV = "KINEFUSE_EXPERIMENT_QUICK"
 
 
-def _neura_imu_only(data_dir, quick, split, advance, notes):  # the Neura walk, evaluation only
+def _neura_imu_only(data_dir, quick, split, advance, notes, trial_map):  # one recording
     return run_neura_imu_only(data_dir, advance, notes)
 
 
-def _realism(
-    data_dir, quick, split, advance, notes
-):  # its own declared sets (realism.TUNING/REPORT)
+def _realism(data_dir, quick, split, advance, notes, trial_map):  # its own declared sets
     return run_realism(data_dir, quick, advance, notes)
 
 
+#: Experiments made of independent trials (:mod:`kinefuse.apps.trials`): the ones that can run
+#: on Dask (``kinefuse experiment --workers`` / ``--scheduler``).
+TRIAL_EXPERIMENTS = ("paper-a", "paper-b")
+
+
 def _runner(name: str, quick: bool, split: DataSplit) -> tuple[Callable, int]:
-    """The experiment's function ``(data_dir, quick, split, advance, notes) -> dict`` and its
-    number of progress steps."""
+    """The experiment's function ``(data_dir, quick, split, advance, notes, trial_map) -> dict``
+    and its number of progress steps."""
     n_cmu = 1 if quick else len(split.cmu_trials)
     return {
         "neura-imu-only": (_neura_imu_only, 2),
@@ -97,6 +102,7 @@ def run_experiment(
     quick: bool | None = None,
     quiet: bool = False,
     split: str = "report",
+    trial_map: TrialMap | None = None,
 ) -> dict:
     """Back-end of ``kinefuse experiment``: reproduce paper A's or paper B's experiment.
 
@@ -116,6 +122,11 @@ def run_experiment(
         Which declared set of recordings (:data:`REPORT_SET`, default; :data:`TUNING_SET`,
         the only one to develop on) for ``paper-a`` and ``paper-b``; every table title names
         it. ``neura-imu-only`` ignores it (the Neura walk, evaluation only).
+    trial_map : TrialMap, optional
+        How the trials of ``paper-a`` and ``paper-b`` (:data:`TRIAL_EXPERIMENTS`) run
+        (:mod:`kinefuse.apps.trials`): default here, in order; ``kinefuse experiment
+        --workers/--scheduler`` passes a Dask map (:func:`kinefuse.batch.trials.dask_trial_map`).
+        The numbers do not depend on it. Refused for the other experiments.
 
     Returns
     -------
@@ -127,10 +138,16 @@ def run_experiment(
     Raises
     ------
     InputError
-        Unknown experiment or split, or missing data folder.
+        Unknown experiment or split, missing data folder, or a ``trial_map`` for an experiment
+        that is not made of trials.
     """
     if name not in EXPERIMENTS:
         raise InputError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
+    if trial_map is not None and name not in TRIAL_EXPERIMENTS:
+        raise InputError(
+            f"--workers/--scheduler: {name} is not split into trials; only "
+            f"{' and '.join(TRIAL_EXPERIMENTS)} run on Dask"
+        )
     if split not in SPLITS:
         raise InputError(f"unknown set {split!r}; expected one of {', '.join(SPLITS)}")
     chosen = SPLITS[split]
@@ -149,7 +166,7 @@ def run_experiment(
     paper = name in ("paper-a", "paper-b")  # neura-imu-only: the Neura walk, evaluation only
     title = f"Experiment {name}" + (f" ({split} set)" if paper else "")
     with progress(title, total=n_steps, quiet=quiet) as advance:
-        out = run(data_dir, bool(quick), chosen, advance, notes)
+        out = run(data_dir, bool(quick), chosen, advance, notes, trial_map or serial_map)
     out.update(
         notes=notes,
         quick=bool(quick),

@@ -20,6 +20,7 @@ import numpy as np
 
 from kinefuse.apps._common import finite_or_none, result_table
 from kinefuse.apps.splits import SEED, DataSplit, cmu_motions, each_utd_trial, utd_wrist_chain
+from kinefuse.apps.trials import TrialMap, serial_map
 from kinefuse.conventions import MODE_NAMES
 from kinefuse.evaluation import evaluate
 from kinefuse.evaluation.tables import PAPER_A_RMSE_M, PAPER_A_TIME_PER_STEP_MS
@@ -181,20 +182,28 @@ def _branch_fractions(modes: np.ndarray) -> dict[str, float]:
     }
 
 
-def _cmu_datasets(motions, quick: bool, notes: list[str], advance: Callable) -> dict:
-    """The CMU-driven parts (virtual IMUs; also with a degraded AHRS unless quick)."""
-    datasets: dict[str, list[dict]] = {"CMU (virtual IMUs)": []}
+def _cmu_parts(motion, i: int, name: str, quick: bool) -> tuple[dict, dict | None]:
+    """One CMU trial (a trial of :mod:`kinefuse.apps.trials`): its arm chain with VQF
+    orientation, and (unless quick) with the degraded AHRS."""
+    t, z, ref = arm_chain_virtual(motion, SEED + i)
+    degraded = None
     if not quick:
-        datasets["CMU (virtual IMUs, degraded AHRS)"] = []
-    for i, (name, motion) in enumerate(motions):
-        t, z, ref = arm_chain_virtual(motion, SEED + i)
-        datasets["CMU (virtual IMUs)"].append({"name": name, "z": z, "ref": ref})
-        if not quick:
-            t, z, ref = arm_chain_virtual(
-                motion, SEED + i, {**DEGRADED_AHRS, "orientation": "idealised-ahrs"}
-            )
-            datasets["CMU (virtual IMUs, degraded AHRS)"].append({"name": name, "z": z, "ref": ref})
-        advance()
+        t, z_d, ref_d = arm_chain_virtual(
+            motion, SEED + i, {**DEGRADED_AHRS, "orientation": "idealised-ahrs"}
+        )
+        degraded = {"name": name, "z": z_d, "ref": ref_d}
+    return {"name": name, "z": z, "ref": ref}, degraded
+
+
+def _cmu_datasets(
+    motions, quick: bool, notes: list[str], advance: Callable, trial_map: TrialMap
+) -> dict:
+    """The CMU-driven parts (virtual IMUs; also with a degraded AHRS unless quick)."""
+    calls = [(motion, i, name, quick) for i, (name, motion) in enumerate(motions)]
+    parts = trial_map(_cmu_parts, calls, advance)
+    datasets: dict[str, list[dict]] = {"CMU (virtual IMUs)": [p for p, _ in parts]}
+    if not quick:
+        datasets["CMU (virtual IMUs, degraded AHRS)"] = [d for _, d in parts]
     if not quick:
         notes.append(
             "Degraded AHRS: "
@@ -217,9 +226,11 @@ def _utd_part(rec, name: str) -> dict:
     return {"name": name, "z": {"wrist_r": zw}, "ref": {"wrist_r": rw}}
 
 
-def _utd_parts(data_dir: Path, quick: bool, split: DataSplit, notes: list[str]) -> list[dict]:
+def _utd_parts(
+    data_dir: Path, quick: bool, split: DataSplit, notes: list[str], trial_map: TrialMap
+) -> list[dict]:
     """The UTD-MHAD wrist parts (real forearm IMU, Kinect elbow; Kinect wrist = reference)."""
-    utd = each_utd_trial(data_dir, quick, split, notes, _utd_part)
+    utd = each_utd_trial(data_dir, quick, split, notes, _utd_part, trial_map)
     if utd:
         notes.append(
             f"UTD-MHAD: {len(utd)} trials ({', '.join(u['name'] for u in utd)}); wrist = "
@@ -350,7 +361,12 @@ def _table6(cmu0: dict):
 
 
 def run_paper_a(
-    data_dir: Path | None, quick: bool, split: DataSplit, advance: Callable, notes: list[str]
+    data_dir: Path | None,
+    quick: bool,
+    split: DataSplit,
+    advance: Callable,
+    notes: list[str],
+    trial_map: TrialMap = serial_map,
 ) -> dict:
     """Paper A's experiment on a declared set of recordings (see the module docstring).
 
@@ -367,6 +383,10 @@ def run_paper_a(
         Progress callback (once per CMU trial, once for UTD-MHAD, once per test table).
     notes : list of str
         Receives the notes printed under the tables.
+    trial_map : TrialMap
+        Runs the CMU trials and the UTD-MHAD trials (:mod:`kinefuse.apps.trials`; default
+        here, in order; ``kinefuse experiment --workers`` passes a Dask map). The filter runs
+        and Table 6's timing stay in this process; the tables do not depend on it.
 
     Returns
     -------
@@ -375,9 +395,9 @@ def run_paper_a(
         ``time_per_step_ms``).
     """
     motions = cmu_motions(data_dir, split.cmu_trials, quick, notes)
-    datasets = _cmu_datasets(motions, quick, notes, advance)
+    datasets = _cmu_datasets(motions, quick, notes, advance, trial_map)
     if data_dir is not None and (Path(data_dir) / "utd_mhad").is_dir():
-        utd = _utd_parts(Path(data_dir), quick, split, notes)
+        utd = _utd_parts(Path(data_dir), quick, split, notes, trial_map)
         if utd:
             datasets["UTD-MHAD (real wrist IMU)"] = utd
         advance()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,7 @@ from kinefuse.apps.splits import (
     each_utd_trial,
     utd_wrist_chain,
 )
+from kinefuse.apps.trials import TrialMap, serial_map
 from kinefuse.evaluation import evaluate
 from kinefuse.evaluation import tables as T
 from kinefuse.exceptions import InputError
@@ -83,12 +85,15 @@ def cmu_scenario(rec, name: str) -> dict:
     }
 
 
-def _paper_b_cmu(data_dir, quick, split, advance, notes) -> list[dict]:
+def _cmu_part(motion, i: int, name: str) -> dict:
+    """One CMU trial (a trial of :mod:`kinefuse.apps.trials`): its virtual recording, run."""
+    return cmu_scenario(cmu_recording(motion, i), name)
+
+
+def _paper_b_cmu(data_dir, quick, split, advance, notes, trial_map: TrialMap) -> list[dict]:
     motions = cmu_motions(data_dir, split.cmu_trials, quick, notes)
-    parts = []
-    for i, (name, motion) in enumerate(motions):
-        parts.append(cmu_scenario(cmu_recording(motion, i), name))
-        advance()
+    calls = [(motion, i, name) for i, (name, motion) in enumerate(motions)]
+    parts = trial_map(_cmu_part, calls, advance)
     notes.append(
         "CMU scenarios: "
         + ", ".join(p["name"] for p in parts)
@@ -139,10 +144,11 @@ def utd_scenario(rec, name: str, methods) -> dict:
     }
 
 
-def _paper_b_utd(data_dir: Path, quick: bool, split, methods, advance, notes) -> list[dict]:
-    parts = each_utd_trial(
-        data_dir, quick, split, notes, lambda rec, name: utd_scenario(rec, name, methods)
-    )
+def _paper_b_utd(
+    data_dir: Path, quick: bool, split, methods, advance, notes, trial_map: TrialMap
+) -> list[dict]:
+    make = partial(utd_scenario, methods=methods)
+    parts = each_utd_trial(data_dir, quick, split, notes, make, trial_map)
     advance()
     if parts:
         a, n = UTD_HIDDEN
@@ -246,11 +252,13 @@ _FOOTNOTES = {
 }
 
 
-def _datasets(data_dir, quick: bool, split: DataSplit, methods, advance, notes) -> dict:
+def _datasets(
+    data_dir, quick: bool, split: DataSplit, methods, advance, notes, trial_map: TrialMap
+) -> dict:
     """Data set name -> its pooled parts (CMU always; UTD-MHAD and Neura when present)."""
-    datasets = {"CMU (virtual)": _paper_b_cmu(data_dir, quick, split, advance, notes)}
+    datasets = {"CMU (virtual)": _paper_b_cmu(data_dir, quick, split, advance, notes, trial_map)}
     if data_dir is not None and (Path(data_dir) / "utd_mhad").is_dir():
-        utd = _paper_b_utd(Path(data_dir), quick, split, methods, advance, notes)
+        utd = _paper_b_utd(Path(data_dir), quick, split, methods, advance, notes, trial_map)
         if utd:
             datasets["UTD-MHAD (real IMU)"] = utd
     if split.neura and data_dir is not None and (Path(data_dir) / "neura_sparse_sample").is_dir():
@@ -297,7 +305,12 @@ def _dataset_tables(ds_name: str, parts: list[dict], labels, split: DataSplit):
 
 
 def run_paper_b(
-    data_dir: Path | None, quick: bool, split: DataSplit, advance: Callable, notes: list[str]
+    data_dir: Path | None,
+    quick: bool,
+    split: DataSplit,
+    advance: Callable,
+    notes: list[str],
+    trial_map: TrialMap = serial_map,
 ) -> dict:
     """Paper B's experiment on a declared set of recordings (see the module docstring).
 
@@ -314,6 +327,10 @@ def run_paper_b(
         Progress callback (once per CMU trial, once for UTD-MHAD, once for Neura).
     notes : list of str
         Receives the notes printed under the tables.
+    trial_map : TrialMap
+        Runs the CMU scenarios and the UTD-MHAD trials (:mod:`kinefuse.apps.trials`; default
+        here, in order; ``kinefuse experiment --workers`` passes a Dask map). The tables do
+        not depend on it.
 
     Returns
     -------
@@ -324,7 +341,7 @@ def run_paper_b(
     methods = paper_b_methods()
     labels = [PAPER_B_LABELS.get(m, m) for m in methods]
     labels += [f"{PAPER_B_LABELS.get(m, m)} causal" for m in PAPER_B_CAUSAL if m in METHODS]
-    datasets = _datasets(data_dir, quick, split, methods, advance, notes)
+    datasets = _datasets(data_dir, quick, split, methods, advance, notes, trial_map)
     notes.append(split.describe() + ". Calibration never sees samples inside the outages.")
     tables, results, summaries, in_view = [], {}, {}, {}
     for ds_name, parts in datasets.items():

@@ -11,10 +11,12 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from kinefuse.apps._common import imu_only_output
+from kinefuse.apps.trials import TrialMap, serial_map
 from kinefuse.data import DEMO_TRIAL, demo_motion
 from kinefuse.exceptions import InputError
 from kinefuse.io import load
@@ -174,16 +176,42 @@ def utd_wrist_chain(rec, hidden: tuple[float, float] | None = None):
     return out.t_s, out.chain[:, j], out.reference[:, j], camera, origin, hide
 
 
+class _Skipped(NamedTuple):
+    """A UTD-MHAD trial that was skipped, and why (a note)."""
+
+    note: str
+
+
+def _utd_trial(make: Callable, inertial: Path, skeleton: Path, name: str):
+    """``make(recording, name)`` on one UTD-MHAD trial, or :class:`_Skipped` on an InputError."""
+    try:
+        return make(utd_recording(inertial, skeleton), name)
+    except InputError as exc:
+        return _Skipped(f"UTD-MHAD {inertial.name}: skipped ({exc})")
+
+
 def each_utd_trial(
-    data_dir: Path, quick: bool, split: DataSplit, notes: list[str], make: Callable
+    data_dir: Path,
+    quick: bool,
+    split: DataSplit,
+    notes: list[str],
+    make: Callable,
+    trial_map: TrialMap = serial_map,
 ) -> list:
     """``make(recording, name)`` for each UTD-MHAD trial of the set (:func:`utd_trials`); a trial
-    whose loading or ``make`` raises :class:`InputError` is skipped with a note."""
+    whose loading or ``make`` raises :class:`InputError` is skipped with a note.
+
+    The trials run through ``trial_map`` (:mod:`kinefuse.apps.trials`: here, or on Dask), each
+    loading its own files; results and notes keep the order of the trials.
+    """
+    calls = [
+        (make, inertial, skeleton, inertial.name.replace("_inertial.mat", ""))
+        for inertial, skeleton in utd_trials(data_dir, quick, split)
+    ]
     out = []
-    for inertial, skeleton in utd_trials(data_dir, quick, split):
-        name = inertial.name.replace("_inertial.mat", "")
-        try:
-            out.append(make(utd_recording(inertial, skeleton), name))
-        except InputError as exc:
-            notes.append(f"UTD-MHAD {inertial.name}: skipped ({exc})")
+    for r in trial_map(_utd_trial, calls):
+        if isinstance(r, _Skipped):
+            notes.append(r.note)
+        else:
+            out.append(r)
     return out

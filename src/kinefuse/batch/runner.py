@@ -40,7 +40,7 @@ from kinefuse.batch.tasks import clean_temporaries, is_finished, read_result, ru
 from kinefuse.evaluation.tables import ResultTable, TableRow
 from kinefuse.exceptions import InputError
 
-__all__ = ["MAX_ATTEMPTS", "compare_workers", "run_study", "start_local_cluster"]
+__all__ = ["MAX_ATTEMPTS", "compare_workers", "connect", "run_study", "start_local_cluster"]
 
 #: How often a task lost by the cluster (not failed by its recording) is resubmitted.
 MAX_ATTEMPTS = 4
@@ -251,8 +251,30 @@ def _kernels_cached() -> bool:
     return _compile.kernels_cached()
 
 
-def _client(scheduler: str | None, workers: int | None, dashboard: bool):
-    """(client, cluster or None, where) for the requested cluster."""
+def connect(scheduler: str | None, workers: int | None, dashboard: bool):
+    """A Dask client for the requested cluster: ``(client, cluster or None, where)``.
+
+    Parameters
+    ----------
+    scheduler : str, optional
+        Address of an existing scheduler (default: ``DASK_SCHEDULER_ADDRESS``); else a
+        :func:`start_local_cluster` of ``workers`` workers.
+    workers : int, optional
+        LocalCluster size (default: the number of cores).
+    dashboard : bool
+        Serve the LocalCluster's dashboard on 127.0.0.1.
+
+    Returns
+    -------
+    tuple
+        The client, the LocalCluster it owns (None for an existing scheduler; the caller
+        closes both) and a one-line description (``"LocalCluster, 2 workers on 127.0.0.1"``).
+
+    Raises
+    ------
+    InputError
+        The scheduler cannot be reached.
+    """
     from distributed import Client
 
     address = scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS") or None
@@ -383,7 +405,7 @@ def _run_pending(
     own = client is None
     cluster = None
     if own:
-        client, cluster, cluster_desc = _client(scheduler, workers, dashboard)
+        client, cluster, cluster_desc = connect(scheduler, workers, dashboard)
     else:
         cluster_desc = "given client"
     link = _dashboard_link(client)

@@ -8,7 +8,9 @@ from typing import Annotated
 import typer
 from rich.text import Text
 
-from kinefuse.cli._app import backend, stderr, stdout
+from kinefuse import batch as kb
+from kinefuse.batch.trials import trial_cluster
+from kinefuse.cli._app import BackendUnavailable, backend, stderr, stdout
 from kinefuse.cli._output import (
     Force,
     Json,
@@ -25,6 +27,7 @@ from kinefuse.session_file import CALIBRATIONS, METHODS, ROOTS, load_session, se
 
 __all__ = [
     "EXPERIMENTS",
+    "TRIAL_EXPERIMENTS",
     "bench",
     "demo",
     "evaluate",
@@ -36,6 +39,9 @@ __all__ = [
 
 #: ``kinefuse experiment NAME`` choices (checked before the back-end is imported).
 EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only", "realism")
+#: Those made of independent trials, which ``--workers``/``--scheduler`` run on Dask
+#: (:data:`kinefuse.apps.experiments.TRIAL_EXPERIMENTS`; checked before a cluster starts).
+TRIAL_EXPERIMENTS = ("paper-a", "paper-b")
 
 
 def demo(
@@ -266,6 +272,24 @@ def experiment(
             "'tuning' (the only set kinefuse was developed on).",
         ),
     ] = "report",
+    workers: Annotated[
+        int | None,
+        typer.Option(
+            "--workers",
+            "-w",
+            min=1,
+            help="paper-a/paper-b: run the trials on a Dask LocalCluster of N workers "
+            "(pip install 'kinefuse[batch]'); the numbers do not change.",
+        ),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            "--scheduler",
+            metavar="tcp://HOST:PORT",
+            help="paper-a/paper-b: run the trials on an existing Dask scheduler (as kinefuse batch).",
+        ),
+    ] = None,
     quiet: Quiet = False,
     json_file: Json = None,
     force: JsonForce = False,
@@ -277,8 +301,26 @@ def experiment(
         raise InputError(f"--data {data}: folder not found")
     if data_set not in ("report", "tuning"):
         raise InputError(f"--set: expected 'report' or 'tuning', got {data_set!r}")
+    on_dask = workers is not None or scheduler is not None
+    if on_dask and name not in TRIAL_EXPERIMENTS:
+        raise InputError(
+            f"--workers/--scheduler: {name} is not split into trials; only "
+            f"{' and '.join(TRIAL_EXPERIMENTS)} run on Dask"
+        )
+    if on_dask and kb.missing_packages():
+        raise BackendUnavailable(
+            f"--workers/--scheduler need {', '.join(kb.missing_packages())}: "
+            "pip install 'kinefuse[batch]'"
+        )
     check_json(json_file, force, () if data is None else (data,))
-    summary = backend("experiment")(name, data, quick=quick or None, quiet=quiet, split=data_set)
+    run = backend("experiment")
+    opts = {"quick": quick or None, "quiet": quiet, "split": data_set}
+    if not on_dask:
+        summary = run(name, data, **opts)
+    else:
+        with trial_cluster(scheduler, workers) as (trial_map, where):
+            summary = run(name, data, **opts, trial_map=trial_map)
+        summary["notes"].append(f"Trials ran on Dask: {where}.")
     present(summary, quiet=quiet, json_file=json_file, force=force)
 
 
