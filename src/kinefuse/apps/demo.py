@@ -476,7 +476,7 @@ def _run_demo(out_dir: Path, quiet: bool) -> dict:
             f"occlusions and dropouts), seed {DEMO_SEED}.",
             *scenario.notes,
         ]
-        if _compile._interpret:
+        if _compile.interpreting():
             notes.append(
                 "The filter kernels ran interpreted: this machine has not compiled them yet, and "
                 "compiling would take far longer than this small demo. Results are identical; the "

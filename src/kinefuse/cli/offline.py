@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 from rich.text import Text
 
+from kinefuse import _kernel_mode
 from kinefuse.cli._app import backend, stderr, stdout
 from kinefuse.cli._output import (
     Force,
@@ -20,6 +21,7 @@ from kinefuse.cli._output import (
     present,
 )
 from kinefuse.exceptions import InputError
+from kinefuse.io import FORMATS
 from kinefuse.progress import progress
 from kinefuse.session_file import CALIBRATIONS, METHODS, ROOTS, load_session, session_template
 
@@ -56,12 +58,10 @@ def demo(
     out_dir = fresh_dir("kinefuse-demo") if out is None else out
     check_report_free(out_dir, force)
     check_json(json_file, force)
-    # lazy: imports numba, and must run before any kernel module is imported
-    from kinefuse import _compile
-
-    # A first run on this machine: interpreting the kernels on the demo's few hundred samples
-    # is much faster than compiling them (minutes on 2 cores). Results are identical.
-    if not _compile.kernels_cached() and _compile.interpret_kernels() and not quiet:
+    # Before any kernel module is imported (the back-end is, below): on a first run on this
+    # machine, interpreting the kernels on the demo's few hundred samples is much faster than
+    # compiling them (minutes on 2 cores). Results are identical.
+    if not _kernel_mode.kernels_cached() and _kernel_mode.interpret_kernels() and not quiet:
         stderr().print(
             "[yellow]First run on this machine: filter kernels run interpreted (identical "
             "results; `kinefuse run/experiment/bench` compile them once).[/yellow]"
@@ -212,8 +212,6 @@ def evaluate(
     force: JsonForce = False,
 ) -> None:
     """Run one method on a recording and print RMSE tables against its reference."""
-    from kinefuse.io import FORMATS  # lazy: SciPy, see kinefuse.cli._output
-
     if not recording.exists():
         raise InputError(f"RECORDING {recording}: file not found (a file or a dataset folder)")
     check_json(json_file, force, (recording,))

@@ -23,13 +23,11 @@ import numpy as np
 from kinefuse import __version__
 from kinefuse.conventions import MODE_NAMES, SOURCE_NAMES
 from kinefuse.evaluation import plots, tables, viewer
+from kinefuse.evaluation._names import REPORT_NAME
 from kinefuse.evaluation.metrics import EvaluationResult
 from kinefuse.exceptions import InputError
 
 __all__ = ["REPORT_NAME", "write_report"]
-
-#: File name of the report inside ``out_dir``.
-REPORT_NAME = "report.html"
 
 #: The report page's style sheet (also used by :mod:`kinefuse.evaluation.angles`).
 REPORT_CSS = """
