@@ -20,6 +20,7 @@ _LAZY = {
     "rmse_3d": "metrics",
     "rmse_per_axis": "metrics",
     "valid_samples": "metrics",
+    "ReportOptions": "report",
     "write_report": "report",
     "joint_method_table": "tables",
     "method_table": "tables",
