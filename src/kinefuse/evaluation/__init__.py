@@ -7,7 +7,7 @@ matplotlib, which the plots and the report need.
 
 from __future__ import annotations
 
-import importlib
+from kinefuse._lazy import lazy_exports
 
 _LAZY = {
     "EvaluationResult": "metrics",
@@ -29,14 +29,4 @@ _LAZY = {
 __all__ = sorted(_LAZY)
 
 
-def __getattr__(name: str):
-    mod = _LAZY.get(name)
-    if mod is None:
-        raise AttributeError(f"module 'kinefuse.evaluation' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"kinefuse.evaluation.{mod}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)
