@@ -48,23 +48,12 @@ OPTIONAL_DEPENDENCIES = frozenset(
 )
 
 # ---- ratchet: the violations left after the redesign merge (issue 14); remove entries as they
-# are fixed. The cli entries keep `kinefuse --help` free of numba/matplotlib/SciPy imports; the
-# streaming kernel entries sit behind the interpreted-kernel switch of `kinefuse demo`/`stream`.
+# are fixed. The streaming kernel entries sit behind the interpreted-kernel switch of
+# `kinefuse demo`/`stream`.
 
 #: ``path::function -> imported module`` for imports inside functions.
 ALLOWED_FUNCTION_IMPORTS: frozenset[str] = frozenset(
     {
-        "kinefuse/cli/_output.py::_print_tables -> kinefuse.evaluation.tables",
-        "kinefuse/cli/_output.py::_report_name -> kinefuse.evaluation.report",
-        "kinefuse/cli/_output.py::check_json -> kinefuse.io.output_folder",
-        "kinefuse/cli/_output.py::jsonable -> kinefuse.evaluation.tables",
-        "kinefuse/cli/_output.py::write_json -> kinefuse.io._write",
-        "kinefuse/cli/live.py::_stream_session -> kinefuse.streaming.config",
-        "kinefuse/cli/offline.py::demo -> kinefuse._compile",
-        "kinefuse/cli/offline.py::evaluate -> kinefuse.io",
-        "kinefuse/data/__init__.py::demo_motion -> kinefuse.io.cmu",
-        "kinefuse/pipelines/features.py::_orientation_at -> kinefuse.orientation",
-        "kinefuse/pipelines/features.py::_world_rate -> scipy.spatial.transform",
         "kinefuse/streaming/alignment.py::Chain.__init__ -> kinefuse.streaming._kernels",
         "kinefuse/streaming/alignment.py::FrameAssembler.__init__ -> kinefuse.streaming._kernels",
         "kinefuse/streaming/lsl.py::_pull_options -> inspect",
@@ -83,7 +72,6 @@ ALLOWED_LONG_MODULES: frozenset[str] = frozenset()
 #: ``path::qualified.name`` of public functions above MAX_FUNCTION_LINES lines of code.
 ALLOWED_LONG_FUNCTIONS: frozenset[str] = frozenset(
     {
-        "kinefuse/evaluation/report.py::write_report",
         "kinefuse/filters/_kernels_axis.py::kf_filter_axis",
         "kinefuse/filters/_kernels_blocks.py::rts_blocks",
         "kinefuse/filters/_kernels_em.py::em_update_sparse",

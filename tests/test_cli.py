@@ -43,6 +43,30 @@ def test_help_everywhere(args):
     assert "Exit codes" in result.output
 
 
+_HELP_CHILD = """
+import json, sys
+from kinefuse import cli
+from kinefuse._kernel_mode import KERNEL_MODULES
+sys.argv = ["kinefuse", "--help"]
+try:
+    cli.main()
+except SystemExit:
+    pass
+heavy = ("numba", "matplotlib", "scipy.io", "scipy.signal", "scipy.spatial", "kinefuse.filters",
+         "kinefuse.streaming", "kinefuse.batch", "kinefuse.evaluation.report", *KERNEL_MODULES)
+print("RESULT:" + json.dumps([m for m in heavy if m in sys.modules]))
+"""
+
+
+def test_help_imports_no_numba_matplotlib_scipy_subpackages():
+    # `kinefuse --help` stays fast, and `kinefuse demo` can still switch to interpreted kernels
+    proc = subprocess.run(
+        [sys.executable, "-c", _HELP_CHILD], capture_output=True, text=True, check=True, timeout=300
+    )
+    line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT:"))
+    assert json.loads(line[len("RESULT:") :]) == []
+
+
 def test_no_arguments_shows_help():
     result = runner.invoke(cli.app, [])
     assert "demo" in result.output + cli_stderr(result)

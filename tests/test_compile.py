@@ -53,7 +53,7 @@ def test_interpret_refused_once_kernels_are_imported():
     import kinefuse.filters  # noqa: F401  (imports the kernel modules)
 
     assert _compile.interpret_kernels() is False
-    assert _compile._interpret is False
+    assert _compile.interpreting() is False
 
 
 def test_kernels_cached_looks_in_the_user_cache_dir(tmp_path, monkeypatch):

@@ -20,7 +20,7 @@ from _chromium import (
 from kinefuse.conventions import MODE_FIR, MODE_KF, MODE_PREDICT, SOURCE_BRIDGED, SOURCE_FUSED
 from kinefuse.evaluation import plots
 from kinefuse.evaluation.metrics import evaluate
-from kinefuse.evaluation.report import write_report
+from kinefuse.evaluation.report import ReportOptions, write_report
 from kinefuse.exceptions import InputError
 from kinefuse.io.recording import JointStream
 
@@ -71,10 +71,9 @@ def _write(case, out_dir, **kw):
         case["outage"],
         modes=case["modes"],
         sources=case["sources"],
-        skeleton_edges=EDGES,
-        title="test report",
-        notes="q = 1, R = 0.01",
-        dpi=60,
+        options=ReportOptions(
+            skeleton_edges=EDGES, title="test report", notes="q = 1, R = 0.01", dpi=60
+        ),
         **kw,
     )
 
@@ -181,7 +180,9 @@ def test_report_tables_drop_empty_rows_and_no_viewer_no_script(case, tmp_path):
     est["arm only"] = case["est"]["KF"].copy()
     est["arm only"][:, 2] = np.nan  # no estimate at the wrist
     ev = evaluate(est, case["ref"], case["outage"], joints=JOINTS)
-    path = write_report(tmp_path, ev, est, case["ref"], case["t"], interactive=False, dpi=40)
+    path = write_report(
+        tmp_path, ev, est, case["ref"], case["t"], options=ReportOptions(interactive=False, dpi=40)
+    )
     html = path.read_text(encoding="utf-8")
     assert "<script" not in html and "http" not in html  # interactive=False: static as before
     assert "Not applicable at wrist_r: arm only (no estimate there)." in html

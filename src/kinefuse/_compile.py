@@ -1,74 +1,38 @@
-"""Numba compilation settings shared by all kernels.
+"""Numba compilation settings shared by all kernels: :func:`njit` and :func:`njit_inline`.
 
-Compiled functions are cached on disk (``cache=True``). Numba writes the cache next to the
-source file (``__pycache__`` inside the installed package). When that directory is not writable
-(e.g. a system-wide, read-only site-packages), numba itself falls back to a per-user cache
-directory; we make that explicit: unless ``NUMBA_CACHE_DIR`` is already set, it is set to
-``$XDG_CACHE_HOME/kinefuse/numba`` (default ``~/.cache/kinefuse/numba``) when the package
-directory is read-only. Paying the compile cost once per machine is expected; later processes
-load the cached machine code.
-
-Interpreted kernels
--------------------
-Compiling every kernel takes minutes on a small machine, which is far more than a small workload
-(the built-in demo: a few hundred samples per joint) needs. :func:`interpret_kernels`, called
-before the kernel modules are imported, makes :data:`njit` return the plain Python functions:
-identical results, no compile cost, slower per step. ``kinefuse demo`` uses it when
-:func:`kernels_cached` says this machine has not compiled the kernels yet.
+Importing this module imports numba. The cache directory and the switch to interpreted kernels
+are decided in :mod:`kinefuse._kernel_mode` (imported first, so ``NUMBA_CACHE_DIR`` is set
+before numba reads it; no numba import there) and re-exported here: compiled functions are
+cached on disk (``cache=True``), in the package's ``__pycache__`` or, when that is read-only, in
+``$XDG_CACHE_HOME/kinefuse/numba``; after :func:`interpret_kernels` (called before the kernel
+modules are imported) :func:`njit` returns the plain Python functions, with identical results.
 """
 
 from __future__ import annotations
 
-import glob
-import os
-import sys
-from pathlib import Path
+from kinefuse._kernel_mode import (
+    _SENTINELS,
+    KERNEL_MODULES,
+    interpret_kernels,
+    interpreting,
+    kernels_cached,
+)
 
+# isort: split
+import numba  # after kinefuse._kernel_mode has set NUMBA_CACHE_DIR
 
-def _configure_cache_dir() -> None:
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return
-    pkg_dir = Path(__file__).resolve().parent
-    if os.access(pkg_dir, os.W_OK):
-        return
-    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    cache_dir = base / "kinefuse" / "numba"
-    try:
-        cache_dir.mkdir(parents=True, exist_ok=True)
-    except OSError:  # pragma: no cover - nowhere writable; numba will compile in memory
-        return
-    os.environ["NUMBA_CACHE_DIR"] = str(cache_dir)
-
-
-_configure_cache_dir()
-
-import numba  # noqa: E402
+__all__ = [
+    "KERNEL_MODULES",
+    "_SENTINELS",
+    "interpret_kernels",
+    "interpreting",
+    "kernels_cached",
+    "njit",
+    "njit_inline",
+]
 
 _numba_njit = numba.njit(cache=True, nogil=True, error_model="numpy")
 _numba_njit_inline = numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-_interpret = False
-
-#: Modules holding compiled kernels (imported lazily by the filters and pipelines).
-KERNEL_MODULES = (
-    "kinefuse.filters._kernels",
-    "kinefuse.filters._kernels_axis",
-    "kinefuse.filters._kernels_blocks",
-    "kinefuse.filters._kernels_common",
-    "kinefuse.filters._kernels_em",
-    "kinefuse.filters._kernels_imm",
-    "kinefuse.filters._kernels_integrated",
-    "kinefuse.filters._kernels_linalg",
-    "kinefuse.filters._kernels_ufir",
-    "kinefuse.filters._kernels_ufir_run",
-    "kinefuse.pipelines._kinefuse_kernels",
-    "kinefuse.streaming._kernels",
-)
-# A kernel of each heavy module: if their cache index files exist, the kernels were compiled.
-_SENTINELS = (
-    ("filters", "_kernels_integrated.integrated_run-*.nbi"),
-    ("filters", "_kernels_ufir_run.ufir_run-*.nbi"),
-    ("filters", "_kernels_imm.imm_run-*.nbi"),
-)
 
 
 def njit(func):
@@ -76,45 +40,9 @@ def njit(func):
 
     Returns ``func`` itself (interpreted) after :func:`interpret_kernels`.
     """
-    return func if _interpret else _numba_njit(func)
+    return func if interpreting() else _numba_njit(func)
 
 
 def njit_inline(func):
     """As :func:`njit`, with the callee inlined into its callers at numba IR level."""
-    return func if _interpret else _numba_njit_inline(func)
-
-
-def interpreting() -> bool:
-    """True after :func:`interpret_kernels`: kernels run as plain Python in this process.
-
-    Kernel modules that choose an implementation by argument type (``numba.extending.overload``)
-    read it at import time and then dispatch in Python instead.
-    """
-    return _interpret
-
-
-def interpret_kernels() -> bool:
-    """Run the kernels as plain Python in this process (no compilation).
-
-    Must be called before any kernel module is imported; returns False (and changes nothing) if
-    one already is.
-    """
-    global _interpret
-    if any(m in sys.modules for m in KERNEL_MODULES):
-        return False
-    _interpret = True
-    return True
-
-
-def kernels_cached() -> bool:
-    """True when this machine's numba cache holds the compiled kernels (checked without importing)."""
-    pkg = Path(__file__).resolve().parent
-    user_dir = os.environ.get("NUMBA_CACHE_DIR")  # numba looks there first when it is set
-    for sub, pattern in _SENTINELS:
-        if user_dir:
-            found = glob.glob(str(Path(user_dir) / "**" / pattern), recursive=True)
-        else:
-            found = glob.glob(str(pkg / sub / "__pycache__" / pattern))
-        if not found:
-            return False
-    return True
+    return func if interpreting() else _numba_njit_inline(func)

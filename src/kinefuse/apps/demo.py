@@ -28,7 +28,7 @@ from kinefuse.apps._common import labelled_runs, timed_quietly
 from kinefuse.conventions import MODE_NAMES, PAPER_B_JOINTS, SOURCE_NAMES
 from kinefuse.data import demo_motion
 from kinefuse.evaluation import evaluate, tables
-from kinefuse.evaluation.report import REPORT_NAME, write_report
+from kinefuse.evaluation.report import REPORT_NAME, ReportOptions, write_report
 from kinefuse.exceptions import InputError
 from kinefuse.io.output_folder import OutputFolder
 from kinefuse.io.recording import Recording
@@ -476,7 +476,7 @@ def _run_demo(out_dir: Path, quiet: bool) -> dict:
             f"occlusions and dropouts), seed {DEMO_SEED}.",
             *scenario.notes,
         ]
-        if _compile._interpret:
+        if _compile.interpreting():
             notes.append(
                 "The filter kernels ran interpreted: this machine has not compiled them yet, and "
                 "compiling would take far longer than this small demo. Results are identical; the "
@@ -492,16 +492,18 @@ def _run_demo(out_dir: Path, quiet: bool) -> dict:
             scenario.outage,
             measurement=scenario.camera,
             modes=scenario.modes,
-            mode_names=MODE_NAMES,
             sources=scenario.sources,
-            source_names=SOURCE_NAMES,
-            skeleton_edges=SKELETON_EDGES,
             body=whole_body(recording, scenario),
-            viewer_methods=[m for m in ("ELM/FIR", "kinefuse") if m in ev_all.methods],
-            axis_labels=("X", "Y", "Z"),
-            paper=None,
-            title="kinefuse demo: CMU swordplay, virtual IMUs and Kinect",
-            notes=notes,
+            options=ReportOptions(
+                title="kinefuse demo: CMU swordplay, virtual IMUs and Kinect",
+                notes=notes,
+                axis_labels=("X", "Y", "Z"),
+                paper=None,
+                mode_names=MODE_NAMES,
+                source_names=SOURCE_NAMES,
+                skeleton_edges=SKELETON_EDGES,
+                viewer_methods=[m for m in ("ELM/FIR", "kinefuse") if m in ev_all.methods],
+            ),
         )
         advance()
     notes.append(f"Wall time {time.perf_counter() - t0:.1f} s.")

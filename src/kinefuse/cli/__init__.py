@@ -19,8 +19,9 @@ Exit codes
 Back-end contracts
 ------------------
 Each command imports its back-end when it runs (:data:`kinefuse.cli._app.BACKENDS`), so
-``--help`` is fast and a missing back-end gives a clear "not available in this version" message
-(exit 1) instead of an ImportError:
+``--help`` is fast (it imports no numba, no matplotlib and no SciPy subpackage) and a missing
+back-end gives a clear "not available in this version" message (exit 1) instead of an
+ImportError:
 
 ============  =========================================================================
 command       back-end call
@@ -29,6 +30,8 @@ demo          ``kinefuse.apps.demo.run_demo(out_dir, force, quiet) -> summary``
 run           ``kinefuse.pipelines.run.run_session(path, out_dir, force) -> summary``
 evaluate      ``kinefuse.pipelines.run.evaluate_recording(path, method) -> summary``
 experiment    ``kinefuse.apps.experiments.run_experiment(name, data_dir) -> summary``
+batch         ``kinefuse.batch.run_study(study, *, force, workers, scheduler, dashboard,
+              quiet) -> summary`` (and the other functions of :mod:`kinefuse.batch`)
 bench         ``kinefuse.apps.bench.run_bench(quick) -> summary``
 stream        ``kinefuse.streaming.run_stream(cfg: StreamConfig, duration_s, out, status,
               *, idle_timeout_s, wait_for_reader_s, record_inputs) -> summary``

@@ -6,6 +6,7 @@ import os
 import sys
 import traceback
 from collections.abc import Callable
+from types import ModuleType
 from typing import Annotated
 
 import typer
@@ -23,6 +24,7 @@ __all__ = [
     "BackendUnavailable",
     "app",
     "backend",
+    "backend_module",
     "fail",
     "guarded",
     "stderr",
@@ -55,13 +57,14 @@ _CLICK_EXCEPTION = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "
 _PASS_THROUGH = (typer.Exit, typer.Abort, _CLICK_EXCEPTION)
 
 #: command -> (module, function) of its back-end, imported when the command runs (see
-#: :func:`backend`): ``kinefuse --help`` stays fast, a missing back-end or optional package
+#: :func:`backend` and :func:`backend_module`): ``kinefuse --help`` stays fast, a missing back-end or optional package
 #: is a clear exit 1, and ``kinefuse demo`` can switch the kernels to interpreted mode first.
 BACKENDS = {
     "demo": ("kinefuse.apps.demo", "run_demo"),
     "run": ("kinefuse.pipelines.run", "run_session"),
     "evaluate": ("kinefuse.pipelines.run", "evaluate_recording"),
     "experiment": ("kinefuse.apps.experiments", "run_experiment"),
+    "batch": ("kinefuse.batch", "run_study"),
     "bench": ("kinefuse.apps.bench", "run_bench"),
     "stream": ("kinefuse.streaming", "run_stream"),
     "replay": ("kinefuse.streaming", "replay_recording"),
@@ -123,22 +126,30 @@ def guarded(fn: Callable) -> Callable:
     return wrapper
 
 
-def backend(command: str) -> Callable:
-    """Import the back-end function of ``command`` (:data:`BACKENDS`) or raise
-    :class:`BackendUnavailable`."""
-    module, func = BACKENDS[command]
+def backend_module(command: str, module: str | None = None) -> ModuleType:
+    """Import the back-end module of ``command`` (:data:`BACKENDS`), or ``module``, another
+    module the command needs, or raise :class:`BackendUnavailable`."""
+    default, func = BACKENDS[command]
+    name = module or default
     try:
-        mod = importlib.import_module(module)
+        return importlib.import_module(name)
     except ModuleNotFoundError as exc:
         missing = exc.name or ""
         if missing.startswith("kinefuse") or not missing:
+            what = name if module else f"{name}.{func}"
             raise BackendUnavailable(
-                f"`kinefuse {command}` is not available in this version ({module}.{func} is missing)"
+                f"`kinefuse {command}` is not available in this version ({what} is missing)"
             ) from exc
         raise BackendUnavailable(
             f"`kinefuse {command}` needs the optional package {missing!r}; install it (e.g. pip install {missing})"
         ) from exc
-    fn = getattr(mod, func, None)
+
+
+def backend(command: str) -> Callable:
+    """Import the back-end function of ``command`` (:data:`BACKENDS`) or raise
+    :class:`BackendUnavailable`."""
+    module, func = BACKENDS[command]
+    fn = getattr(backend_module(command), func, None)
     if fn is None:
         raise BackendUnavailable(
             f"`kinefuse {command}` is not available in this version ({module}.{func} is missing)"

@@ -1,7 +1,7 @@
 """What the commands share: the common options, ``--json``, output-folder checks, result tables.
 
-Modules whose import pulls in matplotlib (``kinefuse.evaluation``) or SciPy (``kinefuse.io``)
-are imported inside the helpers that need them, so that ``kinefuse --help`` stays fast.
+Everything imported here is light (no numba, matplotlib or SciPy), so that ``kinefuse --help``
+stays fast.
 """
 
 import json
@@ -15,7 +15,11 @@ import typer
 from rich.text import Text
 
 from kinefuse.cli._app import EXIT_FAILURE, fail, one_line, stderr, stdout
+from kinefuse.evaluation import tables
+from kinefuse.evaluation._names import REPORT_NAME
 from kinefuse.exceptions import InputError
+from kinefuse.io._write import write_text_safely
+from kinefuse.io.output_folder import check_writable_file
 
 __all__ = [
     "Force",
@@ -75,9 +79,7 @@ def jsonable(obj: Any) -> Any:
     if obj is None or isinstance(obj, (str, int, bool)):
         return obj
     if hasattr(obj, "title") and hasattr(obj, "rows"):  # ResultTable
-        from kinefuse.evaluation.tables import to_markdown  # matplotlib: see the module docs
-
-        return to_markdown(obj)
+        return tables.to_markdown(obj)
     return str(obj)
 
 
@@ -85,8 +87,6 @@ def check_json(path: Path | None, force: bool = False, protect=()) -> None:
     """``--json FILE`` before any work: never an input, never overwritten without --force."""
     if path is None or str(path) == "-":
         return
-    from kinefuse.io.output_folder import check_writable_file  # SciPy: see the module docs
-
     check_writable_file(path, force=force, protect=protect, what="--json")
 
 
@@ -96,21 +96,13 @@ def write_json(path: Path, data: Any, force: bool = False) -> None:
     if str(path) == "-":
         sys.stdout.write(text + "\n")
         return
-    from kinefuse.io._write import write_text_safely  # SciPy: see the module docs
-
     check_json(path, force)
     write_text_safely(path, text + "\n", force=force)
 
 
-def _report_name() -> str:
-    from kinefuse.evaluation.report import REPORT_NAME  # matplotlib: see the module docs
-
-    return REPORT_NAME
-
-
 def check_report_free(out_dir: Path, force: bool) -> None:
     """``--out DIR`` before any work: a folder (or nothing yet) without a report, or --force."""
-    target = out_dir / _report_name()
+    target = out_dir / REPORT_NAME
     if target.exists() and not force:
         raise FileExistsError(
             f"{target} already exists; pass --force to overwrite it, or choose another --out folder"
@@ -121,10 +113,9 @@ def check_report_free(out_dir: Path, force: bool) -> None:
 
 def fresh_dir(stem: str) -> Path:
     """``./stem``, or ``./stem-2``, ``./stem-3`` ... whichever holds no report yet."""
-    report = _report_name()
     candidate = Path(stem)
     n = 1
-    while (candidate / report).exists() or (candidate.exists() and not candidate.is_dir()):
+    while (candidate / REPORT_NAME).exists() or (candidate.exists() and not candidate.is_dir()):
         n += 1
         candidate = Path(f"{stem}-{n}")
     return candidate
@@ -147,8 +138,6 @@ def _parts(summary: Any) -> tuple[Any, Any, list, Any]:
 
 
 def _print_tables(summary: Any, evaluation: Any, report: Any, extra_tables: list) -> None:
-    from kinefuse.evaluation import tables  # matplotlib: see the module docs
-
     out = stdout()
     if evaluation is not None:
         out.print(tables.to_rich(tables.joint_method_table(evaluation)))

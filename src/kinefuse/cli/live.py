@@ -11,7 +11,7 @@ import typer
 from rich import box
 from rich.table import Table
 
-from kinefuse.cli._app import backend, stderr
+from kinefuse.cli._app import backend, backend_module, stderr
 from kinefuse.cli._output import Json, JsonForce, Quiet, check_json, existing_file, finish
 from kinefuse.exceptions import InputError
 from kinefuse.session_file import load_session, read_toml
@@ -36,16 +36,16 @@ def _positive(value: float | None, option: str) -> None:
 
 def _stream_session(path: Path, resolve_timeout_s: float | None):
     """The StreamConfig of SESSION.toml: a ``[stream]`` table -> streaming loader, else offline."""
-    # lazy: kinefuse.streaming imports numba
-    from kinefuse.streaming.config import load_stream_config, stream_config_from_session
-
+    # the streaming back-end's loaders, imported when the command runs (kinefuse.streaming loads
+    # compiled kernels)
+    config = backend_module("stream", "kinefuse.streaming.config")
     p = path.expanduser()
     existing_file(p, "SESSION.toml")
     doc = read_toml(p)
     overrides = {} if resolve_timeout_s is None else {"resolve_timeout_s": resolve_timeout_s}
     if "stream" in doc:
-        return dataclasses.replace(load_stream_config(p), **overrides)
-    return stream_config_from_session(load_session(p), **overrides)
+        return dataclasses.replace(config.load_stream_config(p), **overrides)
+    return config.stream_config_from_session(load_session(p), **overrides)
 
 
 def _out_files(out: Path, force: bool) -> None:

@@ -8,9 +8,8 @@ from typing import Annotated
 import typer
 from rich.text import Text
 
-from kinefuse import batch as kb
-from kinefuse.batch.trials import trial_cluster
-from kinefuse.cli._app import BackendUnavailable, backend, stderr, stdout
+from kinefuse import _kernel_mode
+from kinefuse.cli._app import BackendUnavailable, backend, backend_module, stderr, stdout
 from kinefuse.cli._output import (
     Force,
     Json,
@@ -22,6 +21,7 @@ from kinefuse.cli._output import (
     present,
 )
 from kinefuse.exceptions import InputError
+from kinefuse.io import FORMATS
 from kinefuse.progress import progress
 from kinefuse.session_file import CALIBRATIONS, METHODS, ROOTS, load_session, session_template
 
@@ -62,12 +62,10 @@ def demo(
     out_dir = fresh_dir("kinefuse-demo") if out is None else out
     check_report_free(out_dir, force)
     check_json(json_file, force)
-    # lazy: imports numba, and must run before any kernel module is imported
-    from kinefuse import _compile
-
-    # A first run on this machine: interpreting the kernels on the demo's few hundred samples
-    # is much faster than compiling them (minutes on 2 cores). Results are identical.
-    if not _compile.kernels_cached() and _compile.interpret_kernels() and not quiet:
+    # Before any kernel module is imported (the back-end is, below): on a first run on this
+    # machine, interpreting the kernels on the demo's few hundred samples is much faster than
+    # compiling them (minutes on 2 cores). Results are identical.
+    if not _kernel_mode.kernels_cached() and _kernel_mode.interpret_kernels() and not quiet:
         stderr().print(
             "[yellow]First run on this machine: filter kernels run interpreted (identical "
             "results; `kinefuse run/experiment/bench` compile them once).[/yellow]"
@@ -218,8 +216,6 @@ def evaluate(
     force: JsonForce = False,
 ) -> None:
     """Run one method on a recording and print RMSE tables against its reference."""
-    from kinefuse.io import FORMATS  # lazy: SciPy, see kinefuse.cli._output
-
     if not recording.exists():
         raise InputError(f"RECORDING {recording}: file not found (a file or a dataset folder)")
     check_json(json_file, force, (recording,))
@@ -307,7 +303,8 @@ def experiment(
             f"--workers/--scheduler: {name} is not split into trials; only "
             f"{' and '.join(TRIAL_EXPERIMENTS)} run on Dask"
         )
-    if on_dask and kb.missing_packages():
+    kb = backend_module("batch") if on_dask else None  # loads compiled kernels: when used
+    if kb is not None and kb.missing_packages():
         raise BackendUnavailable(
             f"--workers/--scheduler need {', '.join(kb.missing_packages())}: "
             "pip install 'kinefuse[batch]'"
@@ -318,7 +315,8 @@ def experiment(
     if not on_dask:
         summary = run(name, data, **opts)
     else:
-        with trial_cluster(scheduler, workers) as (trial_map, where):
+        trials = backend_module("batch", "kinefuse.batch.trials")
+        with trials.trial_cluster(scheduler, workers) as (trial_map, where):
             summary = run(name, data, **opts, trial_map=trial_map)
         summary["notes"].append(f"Trials ran on Dask: {where}.")
     present(summary, quiet=quiet, json_file=json_file, force=force)

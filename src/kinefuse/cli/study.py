@@ -6,9 +6,7 @@ from typing import Annotated
 
 import typer
 
-from kinefuse import batch as kb
-from kinefuse.batch.runner import compare_table, summary_tables
-from kinefuse.cli._app import BackendUnavailable
+from kinefuse.cli._app import BackendUnavailable, backend_module
 from kinefuse.cli._output import Json, Quiet, present
 from kinefuse.exceptions import InputError
 
@@ -59,6 +57,8 @@ def batch(
     json_file: Json = None,
 ) -> None:
     """Run a whole study (recordings x methods) on Dask: one table, per-recording outputs, a report."""
+    kb = backend_module("batch")  # imported when the command runs: it loads compiled kernels
+    runner = backend_module("batch", "kinefuse.batch.runner")
     if kb.missing_packages():
         raise BackendUnavailable(
             f"`kinefuse batch` needs {', '.join(kb.missing_packages())}: "
@@ -80,11 +80,13 @@ def batch(
         except ValueError:
             raise InputError(f"--compare-workers: expected e.g. 1,2, got {compare!r}") from None
         runs = kb.compare_workers(st, counts, quiet=quiet)
-        present({"tables": [compare_table(runs)], "runs": runs}, quiet=quiet, json_file=json_file)
+        present(
+            {"tables": [runner.compare_table(runs)], "runs": runs}, quiet=quiet, json_file=json_file
+        )
         return
     s = kb.run_study(st, force=force, workers=workers, scheduler=scheduler, dashboard=dashboard,
                      quiet=quiet)  # fmt: skip
-    s["tables"] = summary_tables(s)
+    s["tables"] = runner.summary_tables(s)
     if s["failed"]:
         s["passed"], s["reason"] = False, f"{len(s['failed'])} of {len(st.tasks)} tasks failed"
     present(s, quiet=quiet, json_file=json_file)

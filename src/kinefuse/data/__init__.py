@@ -9,6 +9,8 @@ from __future__ import annotations
 from importlib.resources import as_file, files
 from pathlib import Path
 
+from kinefuse.io.cmu import load_motion_asf_amc
+
 __all__ = ["DEMO_TRIAL", "demo_motion", "demo_paths"]
 
 #: The packaged trial: CMU subject 02, trial 08 ("swordplay", 1500 frames at 120 Hz).
@@ -35,8 +37,6 @@ def demo_motion(start_s: float | None = None, stop_s: float | None = None):
     Motion
         120 Hz; ``q_world_from_segment (T, 12, 4)``, ``position_m (T, 22, 3)`` in metres, ENU.
     """
-    from kinefuse.io.cmu import load_motion_asf_amc
-
     amc, asf = demo_paths()
     motion = load_motion_asf_amc(amc, asf)
     if start_s is not None or stop_s is not None:

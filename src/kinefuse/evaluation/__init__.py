@@ -1,32 +1,32 @@
-"""Evaluation: accuracy metrics as the papers define them, paper-style tables, plots, HTML report."""
+"""Evaluation: accuracy metrics as the papers define them, paper-style tables, plots, HTML report.
 
-from kinefuse.evaluation.metrics import (
-    EvaluationResult,
-    error_at,
-    error_cdf,
-    evaluate,
-    mean_rmse,
-    position_error,
-    relative_improvement,
-    rmse_3d,
-    rmse_per_axis,
-    valid_samples,
-)
-from kinefuse.evaluation.report import write_report
-from kinefuse.evaluation.tables import joint_method_table, method_table
+The functions below are re-exported lazily (as in :mod:`kinefuse.io`): importing a light
+submodule such as :mod:`kinefuse.evaluation.tables` (the CLI's result tables) does not import
+matplotlib, which the plots and the report need.
+"""
 
-__all__ = [
-    "EvaluationResult",
-    "error_at",
-    "error_cdf",
-    "evaluate",
-    "joint_method_table",
-    "mean_rmse",
-    "method_table",
-    "position_error",
-    "relative_improvement",
-    "rmse_3d",
-    "rmse_per_axis",
-    "valid_samples",
-    "write_report",
-]
+from __future__ import annotations
+
+from kinefuse._lazy import lazy_exports
+
+_LAZY = {
+    "EvaluationResult": "metrics",
+    "error_at": "metrics",
+    "error_cdf": "metrics",
+    "evaluate": "metrics",
+    "mean_rmse": "metrics",
+    "position_error": "metrics",
+    "relative_improvement": "metrics",
+    "rmse_3d": "metrics",
+    "rmse_per_axis": "metrics",
+    "valid_samples": "metrics",
+    "ReportOptions": "report",
+    "write_report": "report",
+    "joint_method_table": "tables",
+    "method_table": "tables",
+}
+
+__all__ = sorted(_LAZY)
+
+
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

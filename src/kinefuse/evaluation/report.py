@@ -15,6 +15,7 @@ import html
 import json
 import re
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
@@ -23,13 +24,11 @@ import numpy as np
 from kinefuse import __version__
 from kinefuse.conventions import MODE_NAMES, SOURCE_NAMES
 from kinefuse.evaluation import plots, tables, viewer
+from kinefuse.evaluation._names import REPORT_NAME
 from kinefuse.evaluation.metrics import EvaluationResult
 from kinefuse.exceptions import InputError
 
-__all__ = ["REPORT_NAME", "write_report"]
-
-#: File name of the report inside ``out_dir``.
-REPORT_NAME = "report.html"
+__all__ = ["REPORT_NAME", "ReportOptions", "write_report"]
 
 #: The report page's style sheet (also used by :mod:`kinefuse.evaluation.angles`).
 REPORT_CSS = """
@@ -103,6 +102,61 @@ def _default_instants(T: int, outage: np.ndarray | None) -> list[int]:
     return sorted({min(max(k, 0), T - 1) for k in picks})
 
 
+@dataclass(frozen=True)
+class ReportOptions:
+    """How :func:`write_report` draws and labels an evaluation (every field has a default).
+
+    Attributes
+    ----------
+    title : str
+        The page's title.
+    notes : str or sequence of str, optional
+        Free text shown under the title (settings, data source, caveats).
+    axis_labels : sequence of 3 str
+        Axis names in tables and figures (paper B: ``("X", "Y", "Z")``).
+    dotted : sequence of str
+        Methods drawn as dots in the trajectory figures (raw, noisy inputs such as the camera).
+    paper : mapping joint -> method -> (x, y, z, mean), optional
+        The papers' RMSE numbers to show next to ours (e.g. ``tables.PAPER_B_RMSE_M``).
+    mode_names : mapping int -> str
+        Names of the ``modes`` codes (default :data:`kinefuse.conventions.MODE_NAMES`).
+    source_names : mapping int -> str
+        Names of the ``sources`` codes (default :data:`kinefuse.conventions.SOURCE_NAMES`).
+    skeleton_edges : sequence of (str, str), optional
+        Bones as joint-name pairs; enables the 3-D skeleton snapshots.
+    snapshot_instants : sequence of int, optional
+        Sample indices of the snapshots (default: 25 %, the middle of the longest outage or
+        50 %, and 75 % of the recording).
+    viewer_methods : sequence of str, optional
+        Methods ticked when the viewer opens (default: the first); all can be toggled.
+    interactive : bool
+        Include the interactive 3-D viewer (about 0.6 MB of inlined three.js plus the
+        positions, thinned to at most 30 Hz and 1.5 MB).
+    dpi : int
+        Resolution of the figures.
+    sections : sequence of str
+        Extra HTML fragments shown after the notes (e.g.
+        :func:`kinefuse.evaluation.angles.angle_section`).
+    extra_metrics : mapping, optional
+        Merged into ``metrics.json`` (e.g. ``provenance``: which data calibrated what).
+    """
+
+    title: str = "kinefuse report"
+    notes: str | Sequence[str] | None = None
+    axis_labels: Sequence[str] = ("East", "North", "Up")
+    dotted: Sequence[str] = ()
+    paper: Mapping[str, Mapping[str, Sequence[float]]] | None = None
+    mode_names: Mapping[int, str] = field(default_factory=lambda: MODE_NAMES)
+    source_names: Mapping[int, str] = field(default_factory=lambda: SOURCE_NAMES)
+    skeleton_edges: Sequence[tuple[str, str]] | None = None
+    snapshot_instants: Sequence[int] | None = None
+    viewer_methods: Sequence[str] | None = None
+    interactive: bool = True
+    dpi: int = 100
+    sections: Sequence[str] = ()
+    extra_metrics: Mapping | None = None
+
+
 def write_report(
     out_dir: str | Path,
     evaluation: EvaluationResult,
@@ -113,23 +167,10 @@ def write_report(
     *,
     measurement=None,
     modes: Mapping[str, np.ndarray] | None = None,
-    mode_names: Mapping[int, str] = MODE_NAMES,
     sources: Mapping[str, np.ndarray] | None = None,
-    source_names: Mapping[int, str] = SOURCE_NAMES,
-    skeleton_edges: Sequence[tuple[str, str]] | None = None,
-    snapshot_instants: Sequence[int] | None = None,
-    axis_labels: Sequence[str] = ("East", "North", "Up"),
-    dotted: Sequence[str] = (),
-    paper: Mapping[str, Mapping[str, Sequence[float]]] | None = None,
-    title: str = "kinefuse report",
-    notes: str | Sequence[str] | None = None,
-    force: bool = False,
-    dpi: int = 100,
     body=None,
-    viewer_methods: Sequence[str] | None = None,
-    interactive: bool = True,
-    sections: Sequence[str] = (),
-    extra_metrics: Mapping | None = None,
+    options: ReportOptions | None = None,
+    force: bool = False,
 ) -> Path:
     """Write a self-contained HTML report with figures and tables of an evaluation.
 
@@ -151,44 +192,16 @@ def write_report(
         The raw input positions (e.g. camera), drawn as grey dots.
     modes : mapping method -> int array, shape (T, J), optional
         Active filter branch per sample (:data:`kinefuse.conventions.MODE_NAMES` codes).
-    mode_names : mapping int -> str
-        Names of the ``modes`` codes.
     sources : mapping method -> int array, shape (T, J), optional
         Data source per sample (:data:`kinefuse.conventions.SOURCE_NAMES` codes).
-    source_names : mapping int -> str
-        Names of the ``sources`` codes.
-    skeleton_edges : sequence of (str, str), optional
-        Bones as joint-name pairs; enables the 3-D skeleton snapshots.
-    snapshot_instants : sequence of int, optional
-        Sample indices of the snapshots (default: 25 %, the middle of the longest outage or
-        50 %, and 75 % of the recording).
-    axis_labels : sequence of 3 str
-        Axis names in tables and figures (paper B: ``("X", "Y", "Z")``).
-    dotted : sequence of str
-        Methods drawn as dots in the trajectory figures (raw, noisy inputs such as the camera).
-    paper : mapping joint -> method -> (x, y, z, mean), optional
-        The papers' RMSE numbers to show next to ours (e.g. ``tables.PAPER_B_RMSE_M``).
-    title : str
-    notes : str or sequence of str, optional
-        Free text shown under the title (settings, data source, caveats).
-    force : bool
-        Overwrite an existing ``report.html`` in ``out_dir``.
-    dpi : int
-        Resolution of the figures.
     body : (names, positions, edges), optional
         A whole-body context skeleton in the same frame: joint names (K,), positions
         (T, K, 3) in m and bones as name pairs; drawn light grey under the evaluated joints
         in the snapshots and the viewer (e.g. every joint of the reference).
-    viewer_methods : sequence of str, optional
-        Methods ticked when the viewer opens (default: the first); all can be toggled.
-    interactive : bool
-        Include the interactive 3-D viewer (about 0.6 MB of inlined three.js plus the
-        positions, thinned to at most 30 Hz and 1.5 MB).
-    sections : sequence of str
-        Extra HTML fragments shown after the notes (e.g.
-        :func:`kinefuse.evaluation.angles.angle_section`).
-    extra_metrics : mapping, optional
-        Merged into ``metrics.json`` (e.g. ``provenance``: which data calibrated what).
+    options : ReportOptions, optional
+        Title, notes, labels, figure and viewer settings (default: ``ReportOptions()``).
+    force : bool
+        Overwrite an existing ``report.html`` in ``out_dir``.
 
     Returns
     -------
@@ -200,8 +213,10 @@ def write_report(
     FileExistsError
         ``out_dir/report.html`` exists and ``force`` is False (the message names the file).
     InputError
-        Shapes do not match the evaluation.
+        Shapes do not match the evaluation, or ``options.viewer_methods`` names a method that
+        was not evaluated.
     """
+    opts = ReportOptions() if options is None else options
     out = Path(out_dir)
     report_path = out / REPORT_NAME
     if report_path.exists() and not force:
@@ -211,7 +226,7 @@ def write_report(
     d = _checked_inputs(
         evaluation, trajectories, reference, t_s, outage_mask, measurement, modes, sources, body
     )
-    unknown = [m for m in viewer_methods or () if m not in evaluation.methods]
+    unknown = [m for m in opts.viewer_methods or () if m not in evaluation.methods]
     if unknown:
         raise InputError(
             f"viewer_methods {unknown} are not evaluated methods {list(evaluation.methods)}"
@@ -219,57 +234,52 @@ def write_report(
     style = _Style(
         plots.method_colors(evaluation.methods),
         plots.method_linestyles(evaluation.methods),
-        tuple(axis_labels),
-        tuple(dotted),
+        tuple(opts.axis_labels),
+        tuple(opts.dotted),
     )
-    figures = _write_figures(
-        out / "figures",
-        evaluation,
-        d,
-        style,
-        (mode_names, source_names),
-        skeleton_edges,
-        snapshot_instants,
-        dpi,
+    figures = _write_figures(out / "figures", evaluation, d, style, opts)
+    viewer_html = (
+        _viewer_html(evaluation, d, style, opts) if opts.interactive and d.t.size else None
     )
-    t = d.t
-    viewer_html = None
-    if interactive and t.size:
-        viewer_html = viewer.report_viewer_html(
-            t,
-            evaluation.joints,
-            reference=d.ref,
-            estimates=d.traj,
-            colors=style.colors,
-            edges=skeleton_edges,
-            dashed=[m for m, ls in style.linestyles.items() if ls != "-"],
-            sources=d.source_codes,
-            camera=d.meas,
-            body=d.body,
-            shown=None
-            if viewer_methods is None
-            else ["whole body (reference)", "reference", "camera", *viewer_methods],
-            source_names=source_names,
-        )
     doc = _html(
         evaluation,
         figures,
-        title=title,
-        notes=notes,
-        t=t,
-        axis_labels=axis_labels,
-        paper=paper,
+        title=opts.title,
+        notes=opts.notes,
+        t=d.t,
+        axis_labels=opts.axis_labels,
+        paper=opts.paper,
         viewer_html=viewer_html,
     )
-    if sections:
+    if opts.sections:
         anchor = '<section id="summary">'
-        doc = doc.replace(anchor, "".join(sections) + anchor, 1)
+        doc = doc.replace(anchor, "".join(opts.sections) + anchor, 1)
     tmp = report_path.with_name(REPORT_NAME + ".part")
     tmp.write_text(doc, encoding="utf-8")
     tmp.replace(report_path)
-    metrics = {**evaluation.to_dict(), **dict(extra_metrics or {})}
+    metrics = {**evaluation.to_dict(), **dict(opts.extra_metrics or {})}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2), encoding="utf-8")
     return report_path
+
+
+def _viewer_html(evaluation: EvaluationResult, d: _Inputs, style: _Style, opts: ReportOptions):
+    """The interactive 3-D viewer's HTML fragment (:mod:`kinefuse.evaluation.viewer`)."""
+    return viewer.report_viewer_html(
+        d.t,
+        evaluation.joints,
+        reference=d.ref,
+        estimates=d.traj,
+        colors=style.colors,
+        edges=opts.skeleton_edges,
+        dashed=[m for m, ls in style.linestyles.items() if ls != "-"],
+        sources=d.source_codes,
+        camera=d.meas,
+        body=d.body,
+        shown=None
+        if opts.viewer_methods is None
+        else ["whole body (reference)", "reference", "camera", *opts.viewer_methods],
+        source_names=opts.source_names,
+    )
 
 
 class _Inputs(NamedTuple):
@@ -343,17 +353,11 @@ def _checked_inputs(
 
 
 def _write_figures(
-    fig_dir: Path,
-    evaluation: EvaluationResult,
-    d: _Inputs,
-    style: _Style,
-    code_names,
-    skeleton_edges,
-    snapshot_instants,
-    dpi: int,
+    fig_dir: Path, evaluation: EvaluationResult, d: _Inputs, style: _Style, opts: ReportOptions
 ) -> dict[str, str]:
     """Every figure as a PNG in ``fig_dir``; returns key -> base64 PNG for inlining."""
-    mode_names, source_names = code_names
+    mode_names, source_names = opts.mode_names, opts.source_names
+    skeleton_edges, snapshot_instants, dpi = opts.skeleton_edges, opts.snapshot_instants, opts.dpi
     fig_dir.mkdir(parents=True, exist_ok=True)
     figures: dict[str, str] = {}  # key -> base64
 

@@ -1,7 +1,7 @@
 """The interactive 3-D skeleton viewer of the HTML report (and of ``kinefuse stream --view``).
 
 The viewer is plain JavaScript (``_viewer/viewer.js``) on a vendored copy of three.js r187
-(``_vendor/three/``, MIT licence; see its README for how the bundle was made), inlined into the
+(``vendor/three/``, MIT licence; see its README for how the bundle was made), inlined into the
 page so that a report opens offline, from a file, with no network access.
 
 :func:`report_viewer_html` builds the report's section: every series (reference, camera, each
@@ -37,7 +37,7 @@ __all__ = [
     "viewer_assets",
 ]
 
-#: three.js release inlined into the pages (``_vendor/three/three.min.js``).
+#: three.js release inlined into the pages (``vendor/three/three.min.js``).
 THREE_VERSION = "r187 (npm three@0.187.0)"
 
 #: Colour of each source code (Okabe & Ito 2008 colour-blind-safe palette, as the report's
@@ -78,7 +78,7 @@ def viewer_assets() -> tuple[str, str]:
     The script defines ``kinefuseReport(data)`` and ``kinefuseLive(meta)``; it contains no
     ``</script`` and loads nothing from the network.
     """
-    three = _read("kinefuse.evaluation", "_vendor/three/three.min.js")
+    three = _read("kinefuse.evaluation", "vendor/three/three.min.js")
     viewer = _read("kinefuse.evaluation", "_viewer/viewer.js")
     script = three + "\n" + viewer
     return script.replace("</script", "<\\/script"), VIEWER_CSS

@@ -8,8 +8,7 @@ when used.
 
 from __future__ import annotations
 
-import importlib
-
+from kinefuse._lazy import lazy_exports
 from kinefuse.io._registry import _REGISTRY, FORMATS, detect_format, load
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
@@ -56,14 +55,4 @@ _LAZY |= {spec.function: spec.module for spec in _REGISTRY.values() if spec.func
 __all__ = ["FORMATS", "ImuStream", "JointStream", "Recording", "detect_format", "load", *_LAZY]
 
 
-def __getattr__(name: str):
-    mod = _LAZY.get(name)
-    if mod is None:
-        raise AttributeError(f"module 'kinefuse.io' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"kinefuse.io.{mod}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY)

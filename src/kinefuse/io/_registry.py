@@ -11,7 +11,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import scipy.io
+import scipy  # scipy.io loads on first use (SciPy imports its subpackages lazily)
 
 from kinefuse.exceptions import FormatError, InputError
 from kinefuse.io._unsupported import unsupported_message

@@ -11,7 +11,7 @@ from collections import Counter
 from collections.abc import Mapping
 from pathlib import Path
 
-import scipy.io
+import scipy  # scipy.io loads on first use (SciPy imports its subpackages lazily)
 
 __all__ = ["looks_like", "unsupported_message"]
 

@@ -13,11 +13,13 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import InputError
 from kinefuse.io.recording import ImuStream, Recording
 from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.kinematics.skeleton import Skeleton
+from kinefuse.orientation import estimate
 from kinefuse.orientation.resample import slerp_resample
 
 __all__ = ["chain_features", "imu_features", "joint_segments"]
@@ -61,8 +63,6 @@ def joint_segments(skeleton: Skeleton, joint: str) -> tuple[str, ...]:
 def _orientation_at(stream: ImuStream, t_s: np.ndarray, segment: str) -> np.ndarray:
     q = stream.q_world_from_sensor
     if q is None:
-        from kinefuse.orientation import estimate
-
         q = estimate(stream.acc_m_s2, stream.gyr_rad_s, rate_hz=stream.rate_hz)
     if q.shape[0] < 2:
         raise InputError(
@@ -73,8 +73,6 @@ def _orientation_at(stream: ImuStream, t_s: np.ndarray, segment: str) -> np.ndar
 
 def _world_rate(R: np.ndarray, t_s: np.ndarray) -> np.ndarray:
     """World-frame angular rate (T, 3), rad/s: ``log(R_t R_{t−1}ᵀ) / Δt`` (causal; 0 at t = 0)."""
-    from scipy.spatial.transform import Rotation
-
     T = R.shape[0]
     w = np.zeros((T, 3))
     if T < 2:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.conventions import MODE_NAMES, SOURCE_KINDS, SOURCE_NAMES
-from kinefuse.evaluation import write_report
+from kinefuse.evaluation import ReportOptions, write_report
 from kinefuse.evaluation.angles import angle_section, write_angle_report
 from kinefuse.evaluation.report import REPORT_NAME
 from kinefuse.exceptions import ConfigError
@@ -289,11 +289,13 @@ def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> N
             out.t_s,
             modes={ev.methods[0]: out.mode} if np.any(out.mode >= 0) else None,
             sources={ev.methods[0]: out.source},
-            skeleton_edges=out.edges or None,
-            title=title,
-            notes=out.notes,
-            sections=[angle_section(out.t_s, out.angles, folder / "figures")],
-            extra_metrics={"provenance": out.provenance},
+            options=ReportOptions(
+                title=title,
+                notes=out.notes,
+                skeleton_edges=out.edges or None,
+                sections=[angle_section(out.t_s, out.angles, folder / "figures")],
+                extra_metrics={"provenance": out.provenance},
+            ),
         )
     else:
         result.report = write_angle_report(
