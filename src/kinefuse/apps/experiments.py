@@ -40,7 +40,7 @@ from kinefuse.apps.splits import (
     DataSplit,
     default_data_dir,
 )
-from kinefuse.apps.trials import TrialMap, serial_map
+from kinefuse.apps.trials import ExperimentRun, TrialMap, serial_map
 from kinefuse.exceptions import InputError
 from kinefuse.progress import progress
 
@@ -62,12 +62,12 @@ EXPERIMENTS = ("paper-a", "paper-b", "neura-imu-only", "realism")
 _QUICK_ENV = "KINEFUSE_EXPERIMENT_QUICK"
 
 
-def _neura_imu_only(data_dir, quick, split, advance, notes, trial_map):  # one recording
-    return run_neura_imu_only(data_dir, advance, notes)
+def _neura_imu_only(run: ExperimentRun) -> dict:  # one recording, evaluation only
+    return run_neura_imu_only(run.data_dir, run.advance, run.notes)
 
 
-def _realism(data_dir, quick, split, advance, notes, trial_map):  # its own declared sets
-    return run_realism(data_dir, quick, advance, notes)
+def _realism(run: ExperimentRun) -> dict:  # its own declared sets (realism.TUNING/REPORT)
+    return run_realism(run.data_dir, run.quick, run.advance, run.notes)
 
 
 #: Experiments made of independent trials (:mod:`kinefuse.apps.trials`): the ones that can run
@@ -76,8 +76,7 @@ TRIAL_EXPERIMENTS = ("paper-a", "paper-b")
 
 
 def _runner(name: str, quick: bool, split: DataSplit) -> tuple[Callable, int]:
-    """The experiment's function ``(data_dir, quick, split, advance, notes, trial_map) -> dict``
-    and its number of progress steps."""
+    """The experiment's function ``(ExperimentRun) -> dict`` and its number of progress steps."""
     n_cmu = 1 if quick else len(split.cmu_trials)
     return {
         "neura-imu-only": (_neura_imu_only, 2),
@@ -166,7 +165,9 @@ def run_experiment(
     paper = name in ("paper-a", "paper-b")  # neura-imu-only: the Neura walk, evaluation only
     title = f"Experiment {name}" + (f" ({split} set)" if paper else "")
     with progress(title, total=n_steps, quiet=quiet) as advance:
-        out = run(data_dir, bool(quick), chosen, advance, notes, trial_map or serial_map)
+        out = run(
+            ExperimentRun(data_dir, bool(quick), chosen, advance, notes, trial_map or serial_map)
+        )
     out.update(
         notes=notes,
         quick=bool(quick),

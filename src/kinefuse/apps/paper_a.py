@@ -20,7 +20,7 @@ import numpy as np
 
 from kinefuse.apps._common import finite_or_none, result_table
 from kinefuse.apps.splits import SEED, DataSplit, cmu_motions, each_utd_trial, utd_wrist_chain
-from kinefuse.apps.trials import TrialMap, serial_map
+from kinefuse.apps.trials import ExperimentRun, TrialMap
 from kinefuse.conventions import MODE_NAMES
 from kinefuse.evaluation import evaluate
 from kinefuse.evaluation.tables import PAPER_A_RMSE_M, PAPER_A_TIME_PER_STEP_MS
@@ -360,33 +360,15 @@ def _table6(cmu0: dict):
     return table, timing
 
 
-def run_paper_a(
-    data_dir: Path | None,
-    quick: bool,
-    split: DataSplit,
-    advance: Callable,
-    notes: list[str],
-    trial_map: TrialMap = serial_map,
-) -> dict:
+def run_paper_a(run: ExperimentRun) -> dict:
     """Paper A's experiment on a declared set of recordings (see the module docstring).
 
-    Parameters
-    ----------
-    data_dir : Path, optional
-        The shared data folder (``cmu_mocap/``, ``utd_mhad/``); None: the packaged CMU clip.
-    quick : bool
-        The packaged clip and two UTD-MHAD trials only; no degraded-AHRS data set.
-    split : DataSplit
-        The declared set of recordings (:data:`kinefuse.apps.splits.REPORT_SET` or
-        :data:`~kinefuse.apps.splits.TUNING_SET`).
-    advance : callable
-        Progress callback (once per CMU trial, once for UTD-MHAD, once per test table).
-    notes : list of str
-        Receives the notes printed under the tables.
-    trial_map : TrialMap
-        Runs the CMU trials and the UTD-MHAD trials (:mod:`kinefuse.apps.trials`; default
-        here, in order; ``kinefuse experiment --workers`` passes a Dask map). The filter runs
-        and Table 6's timing stay in this process; the tables do not depend on it.
+    ``run`` (:class:`~kinefuse.apps.trials.ExperimentRun`): the data folder; quick = the
+    packaged clip and two UTD-MHAD trials, no degraded-AHRS data set; the declared set
+    (:data:`kinefuse.apps.splits.REPORT_SET` or :data:`~kinefuse.apps.splits.TUNING_SET`);
+    progress once per CMU trial, once for UTD-MHAD, once per test table; the notes; the trial
+    map running the CMU and UTD-MHAD trials (the filter runs and Table 6's timing stay in
+    this process).
 
     Returns
     -------
@@ -394,6 +376,7 @@ def run_paper_a(
         ``tables`` (ResultTable list) and ``results`` (data set -> test -> numbers, and
         ``time_per_step_ms``).
     """
+    data_dir, quick, split, advance, notes, trial_map = run
     motions = cmu_motions(data_dir, split.cmu_trials, quick, notes)
     datasets = _cmu_datasets(motions, quick, notes, advance, trial_map)
     if data_dir is not None and (Path(data_dir) / "utd_mhad").is_dir():

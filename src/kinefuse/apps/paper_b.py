@@ -12,7 +12,7 @@ paper B's Tables 3-5 and the tables of :mod:`kinefuse.apps.paper_b_tables`.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
@@ -30,7 +30,7 @@ from kinefuse.apps.splits import (
     each_utd_trial,
     utd_wrist_chain,
 )
-from kinefuse.apps.trials import TrialMap, serial_map
+from kinefuse.apps.trials import ExperimentRun, TrialMap
 from kinefuse.evaluation import evaluate
 from kinefuse.evaluation import tables as T
 from kinefuse.exceptions import InputError
@@ -304,33 +304,13 @@ def _dataset_tables(ds_name: str, parts: list[dict], labels, split: DataSplit):
     return tables, sres, (vres if shown else None), result
 
 
-def run_paper_b(
-    data_dir: Path | None,
-    quick: bool,
-    split: DataSplit,
-    advance: Callable,
-    notes: list[str],
-    trial_map: TrialMap = serial_map,
-) -> dict:
+def run_paper_b(run: ExperimentRun) -> dict:
     """Paper B's experiment on a declared set of recordings (see the module docstring).
 
-    Parameters
-    ----------
-    data_dir : Path, optional
-        The shared data folder (``cmu_mocap/``, ``utd_mhad/``, ``neura_sparse_sample/``);
-        None: the packaged CMU clip only.
-    quick : bool
-        The packaged clip and two UTD-MHAD trials.
-    split : DataSplit
-        The declared set of recordings; the Neura walk only where ``split.neura``.
-    advance : callable
-        Progress callback (once per CMU trial, once for UTD-MHAD, once for Neura).
-    notes : list of str
-        Receives the notes printed under the tables.
-    trial_map : TrialMap
-        Runs the CMU scenarios and the UTD-MHAD trials (:mod:`kinefuse.apps.trials`; default
-        here, in order; ``kinefuse experiment --workers`` passes a Dask map). The tables do
-        not depend on it.
+    ``run`` (:class:`~kinefuse.apps.trials.ExperimentRun`): the data folder; quick = the
+    packaged clip and two UTD-MHAD trials; the declared set (the Neura walk only where
+    ``split.neura``); progress once per CMU trial, once for UTD-MHAD, once for Neura; the notes;
+    the trial map running the CMU scenarios and the UTD-MHAD trials.
 
     Returns
     -------
@@ -338,6 +318,7 @@ def run_paper_b(
         ``tables`` (ResultTable list), ``results`` (per data set: the evaluation, the summary,
         in-view and CDF figures, the trials) and ``targets`` (kinefuse vs the baselines).
     """
+    data_dir, quick, split, advance, notes, trial_map = run
     methods = paper_b_methods()
     labels = [PAPER_B_LABELS.get(m, m) for m in methods]
     labels += [f"{PAPER_B_LABELS.get(m, m)} causal" for m in PAPER_B_CAUSAL if m in METHODS]

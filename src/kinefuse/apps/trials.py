@@ -12,9 +12,13 @@ so the tables are the same.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NamedTuple
 
-__all__ = ["TrialMap", "serial_map"]
+if TYPE_CHECKING:  # splits imports this module
+    from kinefuse.apps.splits import DataSplit
+
+__all__ = ["ExperimentRun", "TrialMap", "serial_map"]
 
 #: ``map(fn, calls, advance=None) -> [fn(*args) for args in calls]``, results in call order,
 #: ``advance()`` called once per finished call; the first exception of a call is raised.
@@ -51,3 +55,32 @@ def serial_map(
         if advance is not None:
             advance()
     return out
+
+
+class ExperimentRun(NamedTuple):
+    """What a paper experiment runs with (``run_paper_a(run)``, ``run_paper_b(run)``).
+
+    Attributes
+    ----------
+    data_dir : Path or None
+        The shared data folder (``cmu_mocap/``, ``utd_mhad/``, ``neura_sparse_sample/``);
+        None: the packaged CMU clip only.
+    quick : bool
+        The reduced configuration: the packaged clip and two UTD-MHAD trials.
+    split : DataSplit
+        The declared set of recordings (:mod:`kinefuse.apps.splits`).
+    advance : callable
+        Progress callback (once per CMU trial, once for UTD-MHAD, once per later step).
+    notes : list of str
+        Receives the notes printed under the tables.
+    trial_map : TrialMap
+        Runs the independent trials (default :func:`serial_map`; ``kinefuse experiment
+        --workers`` passes a Dask map). The tables do not depend on it.
+    """
+
+    data_dir: Path | None
+    quick: bool
+    split: DataSplit
+    advance: Callable[..., None]
+    notes: list[str]
+    trial_map: TrialMap = serial_map

@@ -25,6 +25,8 @@ __all__ = [
     "Force",
     "Json",
     "JsonForce",
+    "Scheduler",
+    "Workers",
     "Quiet",
     "check_json",
     "check_report_free",
@@ -54,6 +56,21 @@ Force = Annotated[
 ]
 JsonForce = Annotated[
     bool, typer.Option("--force", "-f", help="Overwrite an existing --json file.")
+]
+#: Dask options of ``kinefuse batch`` and ``kinefuse experiment`` (:func:`kinefuse.batch.runner.connect`
+#: reads ``DASK_SCHEDULER_ADDRESS`` when no ``--scheduler`` is given).
+Workers = Annotated[
+    int | None,
+    typer.Option("--workers", "-w", min=1, help="Dask LocalCluster workers (default: cores)."),
+]
+Scheduler = Annotated[
+    str | None,
+    typer.Option(
+        "--scheduler",
+        metavar="tcp://HOST:PORT",
+        help="An existing Dask scheduler instead of a LocalCluster (default: "
+        "$DASK_SCHEDULER_ADDRESS).",
+    ),
 ]
 
 

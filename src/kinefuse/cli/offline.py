@@ -15,6 +15,8 @@ from kinefuse.cli._output import (
     Json,
     JsonForce,
     Quiet,
+    Scheduler,
+    Workers,
     check_json,
     check_report_free,
     fresh_dir,
@@ -268,29 +270,17 @@ def experiment(
             "'tuning' (the only set kinefuse was developed on).",
         ),
     ] = "report",
-    workers: Annotated[
-        int | None,
-        typer.Option(
-            "--workers",
-            "-w",
-            min=1,
-            help="paper-a/paper-b: run the trials on a Dask LocalCluster of N workers "
-            "(pip install 'kinefuse[batch]'); the numbers do not change.",
-        ),
-    ] = None,
-    scheduler: Annotated[
-        str | None,
-        typer.Option(
-            "--scheduler",
-            metavar="tcp://HOST:PORT",
-            help="paper-a/paper-b: run the trials on an existing Dask scheduler (as kinefuse batch).",
-        ),
-    ] = None,
+    workers: Workers = None,
+    scheduler: Scheduler = None,
     quiet: Quiet = False,
     json_file: Json = None,
     force: JsonForce = False,
 ) -> None:
-    """Reproduce a paper's experiment and compare with the paper's tables."""
+    """Reproduce a paper's experiment and compare with the paper's tables.
+
+    With --workers or --scheduler, paper-a's and paper-b's trials run on Dask (as kinefuse
+    batch; pip install 'kinefuse[batch]'): the numbers do not change.
+    """
     if name not in EXPERIMENTS:
         raise InputError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
     if data is not None and not data.is_dir():

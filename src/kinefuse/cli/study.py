@@ -7,7 +7,7 @@ from typing import Annotated
 import typer
 
 from kinefuse.cli._app import BackendUnavailable, backend_module
-from kinefuse.cli._output import Json, Quiet, present
+from kinefuse.cli._output import Json, Quiet, Scheduler, Workers, present
 from kinefuse.exceptions import InputError
 
 __all__ = ["batch"]
@@ -30,19 +30,8 @@ def batch(
     out: Annotated[
         Path | None, typer.Option("--out", "-o", metavar="DIR", help="Output folder.")
     ] = None,
-    workers: Annotated[
-        int | None,
-        typer.Option("--workers", "-w", min=1, help="LocalCluster workers (default: cores)."),
-    ] = None,
-    scheduler: Annotated[
-        str | None,
-        typer.Option(
-            "--scheduler",
-            metavar="tcp://HOST:PORT",
-            envvar="DASK_SCHEDULER_ADDRESS",
-            help="An existing Dask scheduler instead of a LocalCluster.",
-        ),
-    ] = None,
+    workers: Workers = None,
+    scheduler: Scheduler = None,
     dashboard: Annotated[
         bool, typer.Option("--dashboard", help="Serve the Dask dashboard on 127.0.0.1.")
     ] = False,
