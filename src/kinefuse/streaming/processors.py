@@ -37,6 +37,7 @@ from kinefuse.filters.kalman import KalmanFilter
 from kinefuse.filters.smoothing import fixed_lag_smooth
 from kinefuse.models import constant_velocity
 from kinefuse.pipelines.upper_limb import paper_a_filter
+from kinefuse.streaming._kernels import fusion_step
 
 __all__ = [
     "SOURCE_PREDICT",
@@ -458,8 +459,6 @@ class KalmanFusionProcessor(_LinearProcessor):
     def _fast_step(self, z_imu, z_cam, available, wi, wc):
         """:meth:`_filter_step` as one compiled call (the same per-axis filter kernel, the
         same numbers: tested against the grouped form)."""
-        from kinefuse.streaming._kernels import fusion_step
-
         r, P0b, Fb, Qb, Hb = self._fast
         J, n_x = z_imu.shape[0], self.model.n_x
         st = self._state
