@@ -1,10 +1,25 @@
 """Shared pieces of the filter objects: result container, state container, input checks.
 
 No numerics here beyond initialisation; kernels live in ``_kernels*.py``.
+
+Trusted fast path
+-----------------
+The public ``step`` / ``filter`` of every filter validate their inputs (shapes, dtypes, ±inf,
+the state's type and shapes): tens to hundreds of µs a call, more than the compiled step itself
+on one frame of a few joints. Code inside kinefuse that has validated its data already and
+passes back a state the filter returned itself (the streaming processors,
+:class:`kinefuse.pipelines.paper_b.PaperBCore`) calls ``flt._filter_unchecked(z, state)``
+instead: the compiled loop of ``filter`` (the same numbers) without any check. Its contract:
+``z`` is a float64 array ``(..., T, n_z)`` (the IMM: ``(..., T, M, n_z)``) without ±inf, and
+``state`` comes from this filter's ``init`` / ``step`` / ``filter`` / ``_filter_unchecked``
+with ``z``'s batch shape. Anything else is undefined (no error; wrong numbers or an error inside
+a kernel). Users call ``step`` / ``filter``, which stay checked.
 """
 
 from __future__ import annotations
 
+import functools
+import math
 import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -157,19 +172,28 @@ def expand_cov_blocks(cov_blocks: np.ndarray) -> np.ndarray:
     ``(..., n_a, 3)`` of :attr:`FilterResult.cov_blocks`; entries outside the blocks are 0
     (NaN where a block is NaN: an element without a state yet)."""
     cb = np.asarray(cov_blocks)
-    n_a = cb.shape[-2]
+    lead, n_a = cb.shape[:-2], cb.shape[-2]
     n_x = 2 * n_a
-    full = np.zeros((*cb.shape[:-2], n_x, n_x))
-    for a in range(n_a):
-        i = 2 * a
-        full[..., i, i] = cb[..., a, 0]
-        full[..., i, i + 1] = cb[..., a, 1]
-        full[..., i + 1, i] = cb[..., a, 1]
-        full[..., i + 1, i + 1] = cb[..., a, 2]
-    unknown = np.isnan(cb).any(axis=(-2, -1))
+    dst, src = _block_index(n_a)
+    c2 = cb.reshape(math.prod(lead), 3 * n_a)  # (a copy only for a broadcast view)
+    full = np.zeros((c2.shape[0], n_x * n_x))
+    full[:, dst] = c2[:, src]  # one gather/scatter: this runs on online steps
+    unknown = np.isnan(c2).any(axis=1)
     if unknown.any():
         full[unknown] = np.nan
-    return full
+    return full.reshape(*lead, n_x, n_x)
+
+
+@functools.cache
+def _block_index(n_a: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(dst, src)``: ``full.reshape(n_x * n_x)[dst] = blocks.reshape(3 * n_a)[src]`` puts the
+    per-axis ``[p00, p01, p11]`` of ``blocks (n_a, 3)`` into the ``(n_x, n_x)`` covariance."""
+    n_x = 2 * n_a
+    i = 2 * np.arange(n_a)
+    a = np.arange(n_a)
+    dst = np.concatenate([i * n_x + i, i * n_x + i + 1, (i + 1) * n_x + i, (i + 1) * n_x + i + 1])
+    src = np.concatenate([3 * a, 3 * a + 1, 3 * a + 1, 3 * a + 2])
+    return dst, src
 
 
 def positions(mean: np.ndarray, H: np.ndarray) -> np.ndarray:

@@ -275,6 +275,10 @@ class EMKalmanFilter:
     ``result.distance`` is the NIS ``νᵀS⁻¹ν`` with the nominal ``S = H P⁻ Hᵀ + R``;
     ``result.R_em`` is ``R^{(N_EM)}``.
 
+    Trusted fast path: ``_filter_unchecked(z, state)`` is :meth:`filter` without input checks,
+    for kinefuse's own callers that validated ``z`` and pass back this filter's own state (see
+    :mod:`kinefuse.filters._base`); the public ``step`` / ``filter`` always validate.
+
     Deviations from the paper
     -------------------------
     * Ω mapping swapped back (SPEC §5.2-1): ``R ← Ω₁`` (3×3), ``P̄⁻ ← Ω₂`` (6×6); Eqs. 20-23 and
@@ -348,6 +352,10 @@ class EMKalmanFilter:
     def step(self, state: EMKalmanState, z) -> tuple[EMKalmanState, EMKalmanResult]:
         """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis."""
         return run_step(self, state, z)
+
+    def _filter_unchecked(self, z: np.ndarray, state: EMKalmanState):
+        """:meth:`filter` on the trusted fast path: no checks (contract: :mod:`._base`)."""
+        return self._run(z, state)
 
     def _check_state(self, state, bs):
         n_x, n_z = self.model.n_x, self.model.n_z

@@ -122,6 +122,10 @@ class IntegratedFilter:
     iterative form when it holds missing samples). The first valid row initialises an element
     (mode 0, no update).
 
+    Trusted fast path: ``_filter_unchecked(z, state)`` is :meth:`filter` without input checks,
+    for kinefuse's own callers that validated ``z`` and pass back this filter's own state (see
+    :mod:`kinefuse.filters._base`); the public ``step`` / ``filter`` always validate.
+
     Deviations from the paper
     -------------------------
     * EM branch as corrected in SPEC §5.3 (swapped Ω₁→R / Ω₂→P⁻ mapping restored, posterior
@@ -198,6 +202,10 @@ class IntegratedFilter:
     def step(self, state: IntegratedState, z) -> tuple[IntegratedState, IntegratedResult]:
         """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis."""
         return run_step(self, state, z)
+
+    def _filter_unchecked(self, z: np.ndarray, state: IntegratedState):
+        """:meth:`filter` on the trusted fast path: no checks (contract: :mod:`._base`)."""
+        return self._run(z, state)
 
     def _check_state(self, state, bs):
         n_x, n_z = self.model.n_x, self.model.n_z

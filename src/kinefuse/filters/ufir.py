@@ -65,6 +65,18 @@ class UFIRState(NamedTuple):
     P_buf: np.ndarray
 
 
+class _SharedBlocksState(UFIRState):
+    """A :class:`UFIRState` returned by the constant-velocity route (:meth:`UFIRFilter._run_cv`):
+    every initialised ``P`` holds one 2x2 block on every axis, so the next call takes that route
+    without re-checking (``state_blocks_shared``). ``_replace`` returns a plain ``UFIRState``
+    (a changed state is checked again)."""
+
+    __slots__ = ()
+
+    def _replace(self, **kwargs) -> UFIRState:
+        return UFIRState(*self)._replace(**kwargs)
+
+
 def _warn_failed(n_fail: int) -> None:
     """ONE warning per call when the stored-init KF update could not factorise S."""
     if n_fail:
@@ -225,6 +237,10 @@ class UFIRFilter:
 
     ``result.innovation`` is ``z_k − H F x̂_{k−1}``.
 
+    Trusted fast path: ``_filter_unchecked(z, state)`` is :meth:`filter` without input checks,
+    for kinefuse's own callers that validated ``z`` and pass back this filter's own state (see
+    :mod:`kinefuse.filters._base`); the public ``step`` / ``filter`` always validate.
+
     Deviations from the paper
     -------------------------
     * Gain: ``G = (HᵀH + (F G Fᵀ)⁻¹)⁻¹``, ``K = G Hᵀ`` (Shmaliy & Simon 2013); paper A's Eq. 26
@@ -345,6 +361,10 @@ class UFIRFilter:
         """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis."""
         return run_step(self, state, z)
 
+    def _filter_unchecked(self, z: np.ndarray, state: UFIRState):
+        """:meth:`filter` on the trusted fast path: no checks (contract: :mod:`._base`)."""
+        return self._run(z, state)
+
     def _check_state(self, state, bs):
         n_x, n_z, N, ns = self.model.n_x, self.model.n_z, self.horizon, self._n_stored
         check_state(
@@ -363,6 +383,8 @@ class UFIRFilter:
     def _run(self, z: np.ndarray, state: UFIRState, fast: bool = True, outputs=None):
         a = self._arrays
         if fast and "cv" in a and self.init_mode == "batch":
+            if type(state) is _SharedBlocksState:  # the route's own output: shared blocks
+                return self._run_cv(z, state, outputs)
             P = np.asarray(state.P).reshape(-1, self.model.n_x, self.model.n_x)
             if state_blocks_shared(P, np.asarray(state.initialized).reshape(-1)):
                 return self._run_cv(z, state, outputs)
@@ -438,7 +460,7 @@ class UFIRFilter:
         )  # fmt: skip
         _warn_failed(n_fail)
         ns = self._n_stored
-        new_state = UFIRState(
+        new_state = _SharedBlocksState(
             x.reshape(*bs, n_x),
             P.reshape(*bs, n_x, n_x),
             init.reshape(bs),
