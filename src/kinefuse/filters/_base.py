@@ -175,7 +175,11 @@ def expand_cov_blocks(cov_blocks: np.ndarray) -> np.ndarray:
     lead, n_a = cb.shape[:-2], cb.shape[-2]
     n_x = 2 * n_a
     dst, src = _block_index(n_a)
-    c2 = cb.reshape(math.prod(lead), 3 * n_a)  # (a copy only for a broadcast view)
+    if n_a > 1 and cb.strides[-2] == 0:  # one block broadcast to every axis: read it once
+        c2 = cb[..., 0, :].reshape(math.prod(lead), 3)
+        src = src % 3
+    else:
+        c2 = cb.reshape(math.prod(lead), 3 * n_a)
     full = np.zeros((c2.shape[0], n_x * n_x))
     full[:, dst] = c2[:, src]  # one gather/scatter: this runs on online steps
     unknown = np.isnan(c2).any(axis=1)

@@ -509,8 +509,9 @@ def _run_filter(flt, z: np.ndarray, state):
     """
     J, L, _ = z.shape
     bad = None
-    if isinstance(flt, UFIRFilter):
-        bad = ~np.asarray(state.initialized) & ~np.any(np.all(np.isfinite(z), axis=-1), axis=-1)
+    init = state.initialized
+    if isinstance(flt, UFIRFilter) and not init.all():
+        bad = ~init & ~np.any(np.all(np.isfinite(z), axis=-1), axis=-1)
     if bad is None or not bad.any():
         state, r = flt._filter_unchecked(z, state)
         return state, r.mean, r.cov
