@@ -48,23 +48,10 @@ OPTIONAL_DEPENDENCIES = frozenset(
 )
 
 # ---- ratchet: the violations left after the redesign merge (issue 14); remove entries as they
-# are fixed. The streaming kernel entries sit behind the interpreted-kernel switch of
-# `kinefuse demo`/`stream`.
+# are fixed.
 
 #: ``path::function -> imported module`` for imports inside functions.
-ALLOWED_FUNCTION_IMPORTS: frozenset[str] = frozenset(
-    {
-        "kinefuse/streaming/alignment.py::Chain.__init__ -> kinefuse.streaming._kernels",
-        "kinefuse/streaming/alignment.py::FrameAssembler.__init__ -> kinefuse.streaming._kernels",
-        "kinefuse/streaming/lsl.py::_pull_options -> inspect",
-        "kinefuse/streaming/processors.py::KalmanFusionProcessor._fast_step -> kinefuse.streaming._kernels",
-        "kinefuse/streaming/replay.py::demo_recording -> kinefuse.data",
-        "kinefuse/streaming/replay.py::demo_recording -> kinefuse.sim",
-        "kinefuse/streaming/replay.py::load_recording -> kinefuse.io",
-        "kinefuse/streaming/runner.py::build_engine -> kinefuse.pipelines.vision_assisted",
-        "kinefuse/streaming/runner.py::build_engine -> kinefuse.streaming.paper_b",
-    }
-)
+ALLOWED_FUNCTION_IMPORTS: frozenset[str] = frozenset()
 
 #: Modules above MAX_MODULE_LINES without a stated reason.
 ALLOWED_LONG_MODULES: frozenset[str] = frozenset()

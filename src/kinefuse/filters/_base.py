@@ -1,12 +1,27 @@
 """Shared pieces of the filter objects: result container, state container, input checks.
 
 No numerics here beyond initialisation; kernels live in ``_kernels*.py``.
+
+Trusted fast path
+-----------------
+The public ``step`` / ``filter`` of every filter validate their inputs (shapes, dtypes, ±inf,
+the state's type and shapes): tens to hundreds of µs a call, more than the compiled step itself
+on one frame of a few joints. Code inside kinefuse that has validated its data already and
+passes back a state the filter returned itself (the streaming processors,
+:class:`kinefuse.pipelines.paper_b.PaperBCore`) calls ``flt._filter_unchecked(z, state)``
+instead: the compiled loop of ``filter`` (the same numbers) without any check. Its contract:
+``z`` is a float64 array ``(..., T, n_z)`` (the IMM: ``(..., T, M, n_z)``) without ±inf, and
+``state`` comes from this filter's ``init`` / ``step`` / ``filter`` / ``_filter_unchecked``
+with ``z``'s batch shape. Anything else is undefined (no error; wrong numbers or an error inside
+a kernel). Users call ``step`` / ``filter``, which stay checked.
 """
 
 from __future__ import annotations
 
+import functools
+import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import numpy as np
@@ -157,24 +172,90 @@ def expand_cov_blocks(cov_blocks: np.ndarray) -> np.ndarray:
     ``(..., n_a, 3)`` of :attr:`FilterResult.cov_blocks`; entries outside the blocks are 0
     (NaN where a block is NaN: an element without a state yet)."""
     cb = np.asarray(cov_blocks)
-    n_a = cb.shape[-2]
+    lead, n_a = cb.shape[:-2], cb.shape[-2]
     n_x = 2 * n_a
-    full = np.zeros((*cb.shape[:-2], n_x, n_x))
-    for a in range(n_a):
-        i = 2 * a
-        full[..., i, i] = cb[..., a, 0]
-        full[..., i, i + 1] = cb[..., a, 1]
-        full[..., i + 1, i] = cb[..., a, 1]
-        full[..., i + 1, i + 1] = cb[..., a, 2]
-    unknown = np.isnan(cb).any(axis=(-2, -1))
+    dst, src = _block_index(n_a)
+    if n_a > 1 and cb.strides[-2] == 0:  # one block broadcast to every axis: read it once
+        c2 = cb[..., 0, :].reshape(math.prod(lead), 3)
+        src = src % 3
+    else:
+        c2 = cb.reshape(math.prod(lead), 3 * n_a)
+    full = np.zeros((c2.shape[0], n_x * n_x))
+    full[:, dst] = c2[:, src]  # one gather/scatter: this runs on online steps
+    unknown = np.isnan(c2).any(axis=1)
     if unknown.any():
         full[unknown] = np.nan
-    return full
+    return full.reshape(*lead, n_x, n_x)
+
+
+@functools.cache
+def _block_index(n_a: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(dst, src)``: ``full.reshape(n_x * n_x)[dst] = blocks.reshape(3 * n_a)[src]`` puts the
+    per-axis ``[p00, p01, p11]`` of ``blocks (n_a, 3)`` into the ``(n_x, n_x)`` covariance."""
+    n_x = 2 * n_a
+    i = 2 * np.arange(n_a)
+    a = np.arange(n_a)
+    dst = np.concatenate([i * n_x + i, i * n_x + i + 1, (i + 1) * n_x + i, (i + 1) * n_x + i + 1])
+    src = np.concatenate([3 * a, 3 * a + 1, 3 * a + 1, 3 * a + 2])
+    return dst, src
 
 
 def positions(mean: np.ndarray, H: np.ndarray) -> np.ndarray:
     """``H @ mean`` over leading axes: ``(..., n_x) -> (..., n_z)``."""
     return mean @ H.T  # (an einsum costs ~10 us more per call: this runs on every online step)
+
+
+def flat(a: np.ndarray, nb: int, dtype=np.float64) -> np.ndarray:
+    """Copy of ``a`` with its ``nb`` leading (batch) axes flattened into one, C-contiguous."""
+    a = np.asarray(a)
+    B = math.prod(a.shape[:nb])  # (np.prod costs ~10 us a call: this runs on every step)
+    return np.array(a.reshape((B, *a.shape[nb:])), dtype=dtype, order="C")  # always a copy
+
+
+def flat_run(z: np.ndarray, state, names: tuple[str, ...]):
+    """The kernel inputs of a single-model filter's ``_run``.
+
+    Returns ``(batch_shape, z (B, T, n_z), *arrays)``: ``z`` C-contiguous, and a flattened copy
+    (:func:`flat`, updated in place by the kernel) of each state field in ``names``
+    (``"initialized"`` as bool, the others float64).
+    """
+    bs = z.shape[:-2]
+    nb = len(bs)
+    T, n_z = z.shape[-2:]
+    zf = np.ascontiguousarray(z.reshape(-1, T, n_z))
+    arrays = (
+        flat(getattr(state, n), nb, bool if n == "initialized" else np.float64) for n in names
+    )
+    return (bs, zf, *arrays)
+
+
+def run_outputs(B: int, T: int, n_x: int, n_z: int):
+    """Empty kernel outputs every single-model filter writes: ``mean (B, T, n_x)``,
+    ``cov (B, T, n_x, n_x)``, ``observed (B, T)`` bool, ``innovation (B, T, n_z)``."""
+    return (
+        np.empty((B, T, n_x)),
+        np.empty((B, T, n_x, n_x)),
+        np.empty((B, T), bool),
+        np.empty((B, T, n_z)),
+    )
+
+
+def unflat(bs: tuple[int, ...], *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Arrays ``(B, ...)`` back to ``(*bs, ...)`` (the inverse of :func:`flat`)."""
+    return tuple(a.reshape((*bs, *a.shape[1:])) for a in arrays)
+
+
+def run_result(bs: tuple[int, ...], H: np.ndarray, mean, cov, observed, innovation) -> dict:
+    """The :class:`FilterResult` fields of :func:`run_outputs` (batch axes restored) with
+    ``position = H mean``, as keyword arguments."""
+    mean, cov, observed, innovation = unflat(bs, mean, cov, observed, innovation)
+    return {
+        "mean": mean,
+        "cov": cov,
+        "position": positions(mean, H),
+        "observed": observed,
+        "innovation": innovation,
+    }
 
 
 def initial_covariance(model, sigma_v0: float = SIGMA_V0_M_S) -> np.ndarray:
@@ -288,3 +369,92 @@ def make_initial_state(model, batch_shape=(), mean=None, cov=None) -> GaussianSt
     c = initial_covariance(model) if cov is None else as_float_array(cov, "cov")
     P = broadcast_copy(c, (*batch_shape, n_x, n_x), "cov", finite=True)
     return GaussianState(x, P, np.ones(batch_shape, dtype=bool), 0)
+
+
+def batch_shape_of(state) -> tuple[int, ...]:
+    """The batch shape of a filter state (the shape of its ``initialized``)."""
+    return tuple(np.shape(state.initialized))
+
+
+def check_state(state, cls, batch_shape, extra=None) -> None:
+    """Type and batch-shape check of a state passed back by the user.
+
+    ``batch_shape=None`` accepts the state's own batch shape (``step``).
+    """
+    if not isinstance(state, cls):
+        raise InputError(
+            f"expected state as a {cls.__name__} (from this filter's init/filter), got {type(state).__name__}"
+        )
+    want = batch_shape_of(state) if batch_shape is None else tuple(batch_shape)
+    if batch_shape_of(state) != want:
+        raise InputError(
+            f"expected state with batch shape {want} (z's leading axes), got {batch_shape_of(state)}"
+        )
+    for name, shape in (extra or {}).items():
+        got = tuple(np.shape(getattr(state, name)))
+        if got != (*want, *shape):
+            raise InputError(f"expected state.{name} with shape {(*want, *shape)}, got {got}")
+
+
+def take_step(result, nb: int):
+    """The single time slice of a ``T = 1`` result (``(..., 1, ...) -> (..., ...)``)."""
+    kw = {}
+    for f in fields(result):
+        v = getattr(result, f.name)
+        kw[f.name] = None if v is None else v[(slice(None),) * nb + (0,)]
+    return type(result)(**kw)
+
+
+def run_filter(flt, z, state, **kwargs):
+    """``filter`` of the single-model filters: validate ``z`` and the state, then ``flt._run``
+    (``kwargs`` passed on)."""
+    z = check_measurements(z, flt.model.n_z)
+    if state is None:
+        state = flt.init(z.shape[:-2])
+    else:
+        flt._check_state(state, z.shape[:-2])
+    check_not_all_missing(z, state)
+    return flt._run(z, state, **kwargs)
+
+
+def run_step(flt, state, z):
+    """``step`` of the single-model filters: one ``T = 1`` run of ``flt._run``, T axis dropped."""
+    flt._check_state(state, None)
+    bs = batch_shape_of(state)
+    z = check_step_measurement(z, flt.model.n_z, bs)
+    state, res = flt._run(z[..., None, :], state)
+    return state, take_step(res, len(bs))
+
+
+class SingleModelFilter:
+    """``step`` and the trusted ``_filter_unchecked`` shared by the single-model filters.
+
+    A subclass (:class:`~kinefuse.filters.EMKalmanFilter`, :class:`~kinefuse.filters.UFIRFilter`,
+    :class:`~kinefuse.filters.IntegratedFilter`) has ``model``, ``_check_state(state,
+    batch_shape)`` and the unchecked compiled run ``_run(z (..., T, n_z), state)``.
+    """
+
+    __slots__ = ()
+
+    def step(self, state, z):
+        """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis.
+
+        Parameters
+        ----------
+        state : NamedTuple
+            This filter's state (from ``init``, ``filter`` or a previous ``step``).
+        z : array_like of float, shape (..., n_z)
+            The measurement at this step, m; a row with NaN is missing.
+
+        Returns
+        -------
+        state : NamedTuple
+            The state after the step (the input state is not modified).
+        result : FilterResult
+            This filter's result type, without the time axis.
+        """
+        return run_step(self, state, z)
+
+    def _filter_unchecked(self, z: np.ndarray, state):
+        """``filter`` on the trusted fast path: no checks (contract: module docstring)."""
+        return self._run(z, state)

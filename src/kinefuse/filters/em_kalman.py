@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -12,12 +12,15 @@ import numpy as np
 from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.filters._base import (
     FilterResult,
-    check_measurements,
-    check_not_all_missing,
-    check_step_measurement,
+    SingleModelFilter,
+    check_state,
+    flat_run,
     initial_covariance,
     make_initial_state,
-    positions,
+    run_filter,
+    run_outputs,
+    run_result,
+    unflat,
 )
 from kinefuse.filters._kernels_common import EMModel, model_structure, size_tuple
 from kinefuse.filters._kernels_em import EMOptions, EMOutputs, em_kf_run
@@ -69,7 +72,7 @@ class EMKalmanResult(FilterResult):
 
 
 # ---------------------------------------------------------------------------------------------
-# helpers shared with ufir.py / integrated.py
+# helpers shared with ufir.py / integrated.py (the generic ones are in _base.py)
 
 
 def check_model(model) -> LinearGaussianModel:
@@ -139,67 +142,6 @@ def model_arrays(model: LinearGaussianModel) -> dict:
     return a
 
 
-def batch_shape_of(state) -> tuple[int, ...]:
-    return tuple(np.shape(state.initialized))
-
-
-def check_state(state, cls, batch_shape, extra=None) -> None:
-    """Type and batch-shape check of a state passed back by the user.
-
-    ``batch_shape=None`` accepts the state's own batch shape (``step``).
-    """
-    if not isinstance(state, cls):
-        raise InputError(
-            f"expected state as a {cls.__name__} (from this filter's init/filter), got {type(state).__name__}"
-        )
-    want = batch_shape_of(state) if batch_shape is None else tuple(batch_shape)
-    if batch_shape_of(state) != want:
-        raise InputError(
-            f"expected state with batch shape {want} (z's leading axes), got {batch_shape_of(state)}"
-        )
-    for name, shape in (extra or {}).items():
-        got = tuple(np.shape(getattr(state, name)))
-        if got != (*want, *shape):
-            raise InputError(f"expected state.{name} with shape {(*want, *shape)}, got {got}")
-
-
-def flat(a: np.ndarray, nb: int, dtype=np.float64) -> np.ndarray:
-    """Copy of ``a`` with its ``nb`` leading (batch) axes flattened into one, C-contiguous."""
-    a = np.asarray(a)
-    B = math.prod(a.shape[:nb])  # (np.prod costs ~10 us a call: this runs on every step)
-    return np.array(a.reshape((B, *a.shape[nb:])), dtype=dtype, order="C")  # always a copy
-
-
-def take_step(result, nb: int):
-    """The single time slice of a ``T = 1`` result (``(..., 1, ...) -> (..., ...)``)."""
-    kw = {}
-    for f in fields(result):
-        v = getattr(result, f.name)
-        kw[f.name] = None if v is None else v[(slice(None),) * nb + (0,)]
-    return type(result)(**kw)
-
-
-def run_filter(flt, z, state, **kwargs):
-    """``filter`` of the single-model filters: validate ``z`` and the state, then ``flt._run``
-    (``kwargs`` passed on)."""
-    z = check_measurements(z, flt.model.n_z)
-    if state is None:
-        state = flt.init(z.shape[:-2])
-    else:
-        flt._check_state(state, z.shape[:-2])
-    check_not_all_missing(z, state)
-    return flt._run(z, state, **kwargs)
-
-
-def run_step(flt, state, z):
-    """``step`` of the single-model filters: one ``T = 1`` run of ``flt._run``, T axis dropped."""
-    flt._check_state(state, None)
-    bs = batch_shape_of(state)
-    z = check_step_measurement(z, flt.model.n_z, bs)
-    state, res = flt._run(z[..., None, :], state)
-    return state, take_step(res, len(bs))
-
-
 def warn_counts(counts, what: str, *, floor_fraction: float = FLOOR_FRACTION) -> None:
     """One :class:`NumericalWarning` per call summarising the kernel's trouble counters."""
     n_r, n_p, n_reg, n_fail = counts.tolist() if hasattr(counts, "tolist") else counts
@@ -224,7 +166,7 @@ def warn_counts(counts, what: str, *, floor_fraction: float = FLOOR_FRACTION) ->
 
 
 @dataclass(frozen=True, eq=False)
-class EMKalmanFilter:
+class EMKalmanFilter(SingleModelFilter):
     r"""EM-adaptive Kalman filter (paper A §3.2, Eqs. 10-23, Algorithm 2; SPEC §5.3).
 
     At every step the prediction ``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q`` is followed by ``n_iter``
@@ -274,6 +216,10 @@ class EMKalmanFilter:
 
     ``result.distance`` is the NIS ``νᵀS⁻¹ν`` with the nominal ``S = H P⁻ Hᵀ + R``;
     ``result.R_em`` is ``R^{(N_EM)}``.
+
+    Trusted fast path: ``_filter_unchecked(z, state)`` is :meth:`filter` without input checks,
+    for kinefuse's own callers that validated ``z`` and pass back this filter's own state (see
+    :mod:`kinefuse.filters._base`); the public ``step`` / ``filter`` always validate.
 
     Deviations from the paper
     -------------------------
@@ -345,10 +291,6 @@ class EMKalmanFilter:
         """
         return run_filter(self, z, state)
 
-    def step(self, state: EMKalmanState, z) -> tuple[EMKalmanState, EMKalmanResult]:
-        """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis."""
-        return run_step(self, state, z)
-
     def _check_state(self, state, bs):
         n_x, n_z = self.model.n_x, self.model.n_z
         check_state(
@@ -357,42 +299,18 @@ class EMKalmanFilter:
 
     def _run(self, z: np.ndarray, state: EMKalmanState):
         a = self._arrays
-        bs = z.shape[:-2]
-        nb = len(bs)
-        T, n_z = z.shape[-2:]
-        n_x = self.model.n_x
-        zf = np.ascontiguousarray(z.reshape(-1, T, n_z))
-        B = zf.shape[0]
-        x = flat(state.x, nb)
-        P = flat(state.P, nb)
-        init = flat(state.initialized, nb, bool)
-        u = flat(state.u, nb)
-        U = flat(state.U, nb)
-        o_mean = np.empty((B, T, n_x))
-        o_cov = np.empty((B, T, n_x, n_x))
-        o_obs = np.empty((B, T), bool)
-        o_nu = np.empty((B, T, n_z))
+        bs, zf, x, P, init, u, U = flat_run(z, state, ("x", "P", "initialized", "u", "U"))
+        B, T, n_z = zf.shape
+        o_mean, o_cov, o_obs, o_nu = run_outputs(B, T, self.model.n_x, n_z)
         o_dist = np.empty((B, T))
         o_Rem = np.empty((B, T, n_z, n_z))
         opt = EMOptions(self.n_iter, self.regularized, self.tau, self.rho, FLOOR_FRACTION)
         out = EMOutputs(o_mean, o_cov, o_obs, o_nu, o_dist, o_Rem)
         counts = em_kf_run(a["em"], opt, zf, x, P, init, u, U, out)
         warn_counts(counts, "EMKalmanFilter")
-        new_state = EMKalmanState(
-            x.reshape(*bs, n_x),
-            P.reshape(*bs, n_x, n_x),
-            init.reshape(bs),
-            int(state.k) + T,
-            u.reshape(bs),
-            U.reshape(*bs, n_z, n_z),
-        )
-        mean = o_mean.reshape(*bs, T, n_x)
+        new_state = EMKalmanState(*unflat(bs, x, P, init), int(state.k) + T, *unflat(bs, u, U))
         res = EMKalmanResult(
-            mean=mean,
-            cov=o_cov.reshape(*bs, T, n_x, n_x),
-            position=positions(mean, self.model.H),
-            observed=o_obs.reshape(*bs, T),
-            innovation=o_nu.reshape(*bs, T, n_z),
+            **run_result(bs, self.model.H, o_mean, o_cov, o_obs, o_nu),
             distance=o_dist.reshape(*bs, T),
             R_em=o_Rem.reshape(*bs, T, n_z, n_z),
         )

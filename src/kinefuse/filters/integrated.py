@@ -11,8 +11,14 @@ import numpy as np
 from kinefuse.exceptions import InputError
 from kinefuse.filters._base import (
     FilterResult,
+    SingleModelFilter,
+    check_state,
+    flat_run,
     make_initial_state,
-    positions,
+    run_filter,
+    run_outputs,
+    run_result,
+    unflat,
 )
 from kinefuse.filters._kernels_integrated import (
     FIRModel,
@@ -26,10 +32,6 @@ from kinefuse.filters.em_kalman import (
     check_float,
     check_int,
     check_model,
-    check_state,
-    flat,
-    run_filter,
-    run_step,
     warn_counts,
 )
 from kinefuse.filters.ufir import check_horizon, ufir_model_arrays
@@ -81,7 +83,7 @@ class IntegratedResult(FilterResult):
 
 
 @dataclass(frozen=True, eq=False)
-class IntegratedFilter:
+class IntegratedFilter(SingleModelFilter):
     r"""EM-based KF/FIR integrated filter (paper A §3.4, Eq. 29, Fig. 2; SPEC §7.3).
 
     Parameters
@@ -121,6 +123,10 @@ class IntegratedFilter:
     only when its branch is chosen (precomputed taps for a complete horizon, per-axis
     iterative form when it holds missing samples). The first valid row initialises an element
     (mode 0, no update).
+
+    Trusted fast path: ``_filter_unchecked(z, state)`` is :meth:`filter` without input checks,
+    for kinefuse's own callers that validated ``z`` and pass back this filter's own state (see
+    :mod:`kinefuse.filters._base`); the public ``step`` / ``filter`` always validate.
 
     Deviations from the paper
     -------------------------
@@ -195,10 +201,6 @@ class IntegratedFilter:
         """
         return run_filter(self, z, state)
 
-    def step(self, state: IntegratedState, z) -> tuple[IntegratedState, IntegratedResult]:
-        """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis."""
-        return run_step(self, state, z)
-
     def _check_state(self, state, bs):
         n_x, n_z = self.model.n_x, self.model.n_z
         check_state(
@@ -207,20 +209,10 @@ class IntegratedFilter:
 
     def _run(self, z: np.ndarray, state: IntegratedState):
         a = self._arrays
-        bs = z.shape[:-2]
-        nb = len(bs)
-        T, n_z = z.shape[-2:]
-        n_x, N = self.model.n_x, self.horizon
-        zf = np.ascontiguousarray(z.reshape(-1, T, n_z))
-        B = zf.shape[0]
-        x = flat(state.x, nb)
-        P = flat(state.P, nb)
-        init = flat(state.initialized, nb, bool)
-        zring = flat(state.z_buf, nb)
-        o_mean = np.empty((B, T, n_x))
-        o_cov = np.empty((B, T, n_x, n_x))
-        o_obs = np.empty((B, T), bool)
-        o_nu = np.empty((B, T, n_z))
+        N = self.horizon
+        bs, zf, x, P, init, zring = flat_run(z, state, ("x", "P", "initialized", "z_buf"))
+        B, T, n_z = zf.shape
+        o_mean, o_cov, o_obs, o_nu = run_outputs(B, T, self.model.n_x, n_z)
         o_d1 = np.empty((B, T))
         o_d2 = np.empty((B, T))
         o_mode = np.empty((B, T), np.int8)
@@ -236,20 +228,9 @@ class IntegratedFilter:
         out = IntegratedOutputs(o_mean, o_cov, o_obs, o_nu, o_d1, o_d2, o_mode)
         counts = integrated_run(a["em"], fir, opt, zf, x, P, init, zring, int(state.k), out)
         warn_counts(counts, "IntegratedFilter")
-        new_state = IntegratedState(
-            x.reshape(*bs, n_x),
-            P.reshape(*bs, n_x, n_x),
-            init.reshape(bs),
-            int(state.k) + T,
-            zring.reshape(*bs, N, n_z),
-        )
-        mean = o_mean.reshape(*bs, T, n_x)
+        new_state = IntegratedState(*unflat(bs, x, P, init), int(state.k) + T, *unflat(bs, zring))
         res = IntegratedResult(
-            mean=mean,
-            cov=o_cov.reshape(*bs, T, n_x, n_x),
-            position=positions(mean, self.model.H),
-            observed=o_obs.reshape(*bs, T),
-            innovation=o_nu.reshape(*bs, T, n_z),
+            **run_result(bs, self.model.H, o_mean, o_cov, o_obs, o_nu),
             distance=o_d1.reshape(*bs, T),
             mode=o_mode.reshape(*bs, T),
             distance2=o_d2.reshape(*bs, T),

@@ -40,12 +40,18 @@ __all__ = ["KalmanFilter", "check_gaussian_state"]
 class _AxisState(GaussianState):
     """A :class:`GaussianState` produced by the per-axis kernels of this module: finite,
     block-diagonal per axis, float64, C-contiguous. ``step`` trusts it without re-validating
-    (the online hot path); any other state is validated first."""
+    (the online hot path); any other state is validated first. ``_replace`` returns a plain
+    ``GaussianState`` (a changed state is validated again)."""
 
     __slots__ = ()
 
+    def _replace(self, **kwargs) -> GaussianState:
+        return GaussianState(*self)._replace(**kwargs)
+
 
 _METHODS = ("auto", "axis", "dense")
+_F64 = np.dtype(np.float64)
+_new_tuple = tuple.__new__  # _AxisState(...) without the NamedTuple __new__ (hot path)
 
 # Zero-length stand-ins for outputs a caller does not want (same dtypes/ranks: one compiled
 # specialisation of the kernel serves every choice of outputs).
@@ -138,6 +144,13 @@ class KalmanFilter:
 
     ``filter`` runs the same compiled loop as ``step``, so ``filter`` equals repeated ``step``
     and split-and-resume equals one run, to the bit.
+
+    Trusted fast path: a state returned by ``step`` / ``filter`` on the per-axis path is marked
+    as the filter's own (a private ``GaussianState`` subclass); ``step`` validates any other
+    state, and takes a marked one with a float64, C-contiguous ``z`` of the right shape straight
+    to one compiled call (±inf still raises). ``_filter_unchecked(z, state)`` is :meth:`filter`
+    without input checks, for kinefuse's own callers that validated ``z`` and pass back this
+    filter's own state (see :mod:`kinefuse.filters._base`).
 
     Deviations from the paper
     -------------------------
@@ -267,20 +280,21 @@ class KalmanFilter:
         state; ``z`` is checked by type/shape attributes (anything unusual takes the validated
         path: returns None) and for ±inf by the kernel."""
         x = state.x
+        zshape = z.shape if type(z) is np.ndarray else None
         if not (
-            type(z) is np.ndarray
-            and z.dtype == np.float64
-            and z.shape[:-1] == x.shape[:-1]
-            and z.shape[-1] == self.model.n_z
+            zshape is not None
+            and zshape[:-1] == x.shape[:-1]
+            and zshape[-1] == self.model.n_z
+            and z.dtype is _F64
             and z.flags.c_contiguous
         ):
             return None
         par, p0, shared = self._packed
         P = state.P
         init = state.initialized
-        n_x, n_z = x.shape[-1], z.shape[-1]
+        n_x, n_z = x.shape[-1], zshape[-1]
         if x.ndim == 2:
-            bshape = x.shape[:1]
+            bshape = None
             z2, x2, P2, i1 = z, x, P, init
         else:
             bshape = x.shape[:-1]
@@ -288,20 +302,21 @@ class KalmanFilter:
             x2, P2, i1 = x.reshape(-1, n_x), P.reshape(-1, n_x, n_x), init.reshape(-1)
         B = z2.shape[0]
         n_a = par.shape[0]
-        x_new = np.empty((B, n_x))
-        P_new = np.empty((B, n_x, n_x))
-        init_new = np.empty(B, dtype=bool)
-        mean = np.empty((B, n_x))
-        covb = np.empty((B, n_a, 3))
-        pos = np.empty((B, n_z))
-        obs = np.empty(B, dtype=bool)
-        nu = np.empty((B, n_z))
-        dist = np.empty(B)
+        empty = np.empty
+        x_new = empty((B, n_x))
+        P_new = empty((B, n_x, n_x))
+        init_new = empty(B, np.bool_)
+        mean = empty((B, n_x))
+        covb = empty((B, n_a, 3))
+        pos = empty((B, n_z))
+        obs = empty(B, np.bool_)
+        nu = empty((B, n_z))
+        dist = empty(B)
         if kf_step_blocks(
             z2, x2, P2, i1, par, p0, shared, x_new, P_new, init_new, mean, covb, pos, obs, nu, dist
         ):
             raise InputError("expected z finite or NaN (missing), got ±inf")  # fmt: skip
-        if x.ndim != 2:
+        if bshape is not None:
             x_new, P_new, init_new = (
                 x_new.reshape(*bshape, n_x), P_new.reshape(*bshape, n_x, n_x), init_new.reshape(bshape)
             )  # fmt: skip
@@ -312,7 +327,7 @@ class KalmanFilter:
             )
             obs, nu, dist = obs.reshape(bshape), nu.reshape(*bshape, n_z), dist.reshape(bshape)
         out = FilterResult.fast(mean, pos, obs, nu, dist, covb)
-        return _AxisState(x_new, P_new, init_new, state.k + 1), out
+        return _new_tuple(_AxisState, (x_new, P_new, init_new, state.k + 1)), out
 
     def filter(
         self, z, state: GaussianState | None = None, outputs=None
@@ -359,6 +374,10 @@ class KalmanFilter:
         if state is None and not np.all(new_state.initialized):
             check_not_all_missing(zz, None)  # raises, naming the first all-NaN element
         return new_state, result
+
+    def _filter_unchecked(self, z: np.ndarray, state: GaussianState):
+        """:meth:`filter` on the trusted fast path: no checks (contract: :mod:`._base`)."""
+        return self._run(z, state)
 
     # ---------------------------------------------------------------------------------------
     def _use_axis(self, P: np.ndarray, init: np.ndarray) -> bool:

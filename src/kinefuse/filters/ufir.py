@@ -12,10 +12,16 @@ import numpy as np
 from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.filters._base import (
     FilterResult,
+    SingleModelFilter,
     check_batch_shape,
     check_outputs,
+    check_state,
+    flat_run,
     make_initial_state,
-    positions,
+    run_filter,
+    run_outputs,
+    run_result,
+    unflat,
 )
 from kinefuse.filters._kernels_axis import pack_axis_params, state_blocks_shared
 from kinefuse.filters._kernels_ufir import ufir_gains
@@ -23,11 +29,7 @@ from kinefuse.filters._kernels_ufir_run import ufir_run, ufir_run_cv
 from kinefuse.filters.em_kalman import (
     check_int,
     check_model,
-    check_state,
-    flat,
     model_arrays,
-    run_filter,
-    run_step,
 )
 from kinefuse.models import LinearGaussianModel
 
@@ -63,6 +65,18 @@ class UFIRState(NamedTuple):
     z_buf: np.ndarray
     x_buf: np.ndarray
     P_buf: np.ndarray
+
+
+class _SharedBlocksState(UFIRState):
+    """A :class:`UFIRState` returned by the constant-velocity route (:meth:`UFIRFilter._run_cv`):
+    every initialised ``P`` holds one 2x2 block on every axis, so the next call takes that route
+    without re-checking (``state_blocks_shared``). ``_replace`` returns a plain ``UFIRState``
+    (a changed state is checked again)."""
+
+    __slots__ = ()
+
+    def _replace(self, **kwargs) -> UFIRState:
+        return UFIRState(*self)._replace(**kwargs)
 
 
 def _warn_failed(n_fail: int) -> None:
@@ -181,7 +195,7 @@ def check_buffer_memory(batch_shape, n_values: int, what: str) -> None:
 
 
 @dataclass(frozen=True, eq=False, init=False)
-class UFIRFilter:
+class UFIRFilter(SingleModelFilter):
     r"""Iterative unbiased FIR filter with KF dead zone (paper A §3.3, Eqs. 24-28, Algorithm 3).
 
     Parameters
@@ -224,6 +238,10 @@ class UFIRFilter:
     iterative form; the dense ``n_x``-state iterative form is the reference.
 
     ``result.innovation`` is ``z_k − H F x̂_{k−1}``.
+
+    Trusted fast path: ``_filter_unchecked(z, state)`` is :meth:`filter` without input checks,
+    for kinefuse's own callers that validated ``z`` and pass back this filter's own state (see
+    :mod:`kinefuse.filters._base`); the public ``step`` / ``filter`` always validate.
 
     Deviations from the paper
     -------------------------
@@ -341,10 +359,6 @@ class UFIRFilter:
             )
         return out
 
-    def step(self, state: UFIRState, z) -> tuple[UFIRState, UFIRResult]:
-        """One time step: ``z (..., n_z)`` with the state's batch shape; fields lose the T axis."""
-        return run_step(self, state, z)
-
     def _check_state(self, state, bs):
         n_x, n_z, N, ns = self.model.n_x, self.model.n_z, self.horizon, self._n_stored
         check_state(
@@ -363,25 +377,16 @@ class UFIRFilter:
     def _run(self, z: np.ndarray, state: UFIRState, fast: bool = True, outputs=None):
         a = self._arrays
         if fast and "cv" in a and self.init_mode == "batch":
+            if type(state) is _SharedBlocksState:  # the route's own output: shared blocks
+                return self._run_cv(z, state, outputs)
             P = np.asarray(state.P).reshape(-1, self.model.n_x, self.model.n_x)
             if state_blocks_shared(P, np.asarray(state.initialized).reshape(-1)):
                 return self._run_cv(z, state, outputs)
-        bs = z.shape[:-2]
-        nb = len(bs)
-        T, n_z = z.shape[-2:]
-        n_x, N, ns = self.model.n_x, self.horizon, self._n_stored
-        zf = np.ascontiguousarray(z.reshape(-1, T, n_z))
-        B = zf.shape[0]
-        x = flat(state.x, nb)
-        P = flat(state.P, nb)
-        init = flat(state.initialized, nb, bool)
-        zring = flat(state.z_buf, nb)
-        xring = flat(state.x_buf, nb)
-        Pring = flat(state.P_buf, nb)
-        o_mean = np.empty((B, T, n_x))
-        o_cov = np.empty((B, T, n_x, n_x))
-        o_obs = np.empty((B, T), bool)
-        o_nu = np.empty((B, T, n_z))
+        N = self.horizon
+        names = ("x", "P", "initialized", "z_buf", "x_buf", "P_buf")
+        bs, zf, x, P, init, zring, xring, Pring = flat_run(z, state, names)
+        B, T, n_z = zf.shape
+        o_mean, o_cov, o_obs, o_nu = run_outputs(B, T, self.model.n_x, n_z)
         o_ready = np.empty((B, T), bool)
         n_fail = ufir_run(
             zf, x, P, init, zring, xring, Pring, int(state.k), N, a["K"], self.init_mode == "stored", bool(fast),
@@ -391,21 +396,10 @@ class UFIRFilter:
         )  # fmt: skip
         _warn_failed(n_fail)
         new_state = UFIRState(
-            x.reshape(*bs, n_x),
-            P.reshape(*bs, n_x, n_x),
-            init.reshape(bs),
-            int(state.k) + T,
-            zring.reshape(*bs, N, n_z),
-            xring.reshape(*bs, ns, n_x),
-            Pring.reshape(*bs, ns, n_x, n_x),
+            *unflat(bs, x, P, init), int(state.k) + T, *unflat(bs, zring, xring, Pring)
         )
-        mean = o_mean.reshape(*bs, T, n_x)
         res = UFIRResult(
-            mean=mean,
-            cov=o_cov.reshape(*bs, T, n_x, n_x),
-            position=positions(mean, self.model.H),
-            observed=o_obs.reshape(*bs, T),
-            innovation=o_nu.reshape(*bs, T, n_z),
+            **run_result(bs, self.model.H, o_mean, o_cov, o_obs, o_nu),
             fir_ready=o_ready.reshape(*bs, T),
         )
         return new_state, res
@@ -415,16 +409,9 @@ class UFIRFilter:
         a = self._arrays
         cv = a["cv"]
         w = check_outputs(None) if outputs is None else outputs
-        bs = z.shape[:-2]
-        nb = len(bs)
-        T, n_z = z.shape[-2:]
         n_x, N = self.model.n_x, self.horizon
-        zf = np.ascontiguousarray(z.reshape(-1, T, n_z))
-        B = zf.shape[0]
-        x = flat(state.x, nb)
-        P = flat(state.P, nb)
-        init = flat(state.initialized, nb, bool)
-        zring = flat(state.z_buf, nb)
+        bs, zf, x, P, init, zring = flat_run(z, state, ("x", "P", "initialized", "z_buf"))
+        B, T, n_z = zf.shape
         o_mean = np.empty((B, T, n_x))
         o_covb = np.empty((B, T, 1, 3)) if "cov" in w else np.empty((0, 0, 0, 0))
         o_obs = np.empty((B, T), bool)
@@ -438,12 +425,10 @@ class UFIRFilter:
         )  # fmt: skip
         _warn_failed(n_fail)
         ns = self._n_stored
-        new_state = UFIRState(
-            x.reshape(*bs, n_x),
-            P.reshape(*bs, n_x, n_x),
-            init.reshape(bs),
+        new_state = _SharedBlocksState(
+            *unflat(bs, x, P, init),
             int(state.k) + T,
-            zring.reshape(*bs, N, n_z),
+            *unflat(bs, zring),
             np.asarray(state.x_buf).reshape(*bs, ns, n_x),
             np.asarray(state.P_buf).reshape(*bs, ns, n_x, n_x),
         )

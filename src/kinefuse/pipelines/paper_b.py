@@ -313,8 +313,17 @@ class PaperBCore:
         -------
         PaperBStep
 
+        Raises
+        ------
+        InputError
+            ``z_imu`` (or ``features``) holds ±inf.
+
         Notes
         -----
+        The filters run on their trusted fast path (``_filter_unchecked``, see
+        :class:`~kinefuse.filters.UFIRFilter`): the block is checked here once, and the filter
+        states are their own.
+
         At an outage onset a of joint j (SPEC §10.3)::
 
             win = last W available frames before a with finite ELM-1 input
@@ -325,6 +334,8 @@ class PaperBCore:
                   ELM-2.fit(ẑ or FIR-3, RTS − FIR-3) (seed + 1) on that segment ∩ win
         In the episode: out = FIR-3 + clip(ELM-2(ẑ or FIR-3)), cov = FIR-3 cov + cov_add.
         """
+        if np.isinf(z_imu).any() or (features is not None and np.isinf(features).any()):
+            raise InputError("expected z_imu and features finite or NaN (missing), got ±inf")
         av = available & np.all(np.isfinite(z_cam), axis=-1)
         z_cam = np.where(av[..., None], z_cam, np.nan)
         x = z_imu if features is None else np.concatenate([z_imu, features], axis=-1)
@@ -337,7 +348,7 @@ class PaperBCore:
         pP = np.concatenate([state.prev_P, post_P[:, :-1]], axis=1)
         state.prev_x, state.prev_P = post_x[:, -1:].copy(), post_P[:, -1:].copy()
         zz = np.stack([z_imu, z_cam], axis=-2)
-        state.imm, r_imm = self.imm.filter(zz, state.imm, prev=(px, pP))
+        state.imm, r_imm = self.imm._filter_unchecked(zz, state.imm, prev=(px, pP))
         state.history.append(self.params.train_window, x, z_cam, r_imm.mean, r_imm.cov, av)
         J, L = av.shape
         pos = r_imm.position.copy()
@@ -488,31 +499,34 @@ class PaperBStep(NamedTuple):
 
 
 def _run_filter(flt, z: np.ndarray, state):
-    """``(state, mean, cov)`` of ``flt.filter(z (J, L, n_z), state)``.
+    """``(state, mean, cov)`` of ``flt.filter(z (J, L, n_z), state)``, on the filters' trusted
+    fast path (``_filter_unchecked``: ``z`` is float64 without ±inf, checked by the callers of
+    :meth:`PaperBCore.advance`, and ``state`` is the filter's own).
 
     Elements not yet initialised whose block holds no measurement (which
     :meth:`UFIRFilter.filter` refuses, :meth:`UFIRFilter.step` takes) are stepped frame by
     frame, the others filtered in one call; per element the numbers are the same.
     """
     J, L, _ = z.shape
-    bad = np.zeros(J, bool)
-    if isinstance(flt, UFIRFilter):
-        bad = ~np.asarray(state.initialized) & ~np.any(np.all(np.isfinite(z), axis=-1), axis=-1)
-    if not bad.any():
-        state, r = flt.filter(z, state)
+    bad = None
+    init = state.initialized
+    if isinstance(flt, UFIRFilter) and not init.all():
+        bad = ~init & ~np.any(np.all(np.isfinite(z), axis=-1), axis=-1)
+    if bad is None or not bad.any():
+        state, r = flt._filter_unchecked(z, state)
         return state, r.mean, r.cov
     n_x = flt.model.n_x
     mean, cov = np.empty((J, L, n_x)), np.empty((J, L, n_x, n_x))
     parts = []
     good = ~bad
     if good.any():
-        s_good, r = flt.filter(z[good], _rows(state, good))
+        s_good, r = flt._filter_unchecked(z[good], _rows(state, good))
         mean[good], cov[good] = r.mean, r.cov
         parts.append((good, s_good))
     s_bad = _rows(state, bad)
     for t in range(L):
-        s_bad, r = flt.step(s_bad, z[bad, t])
-        mean[bad, t], cov[bad, t] = r.mean, r.cov
+        s_bad, r = flt._filter_unchecked(z[bad, t : t + 1], s_bad)
+        mean[bad, t], cov[bad, t] = r.mean[:, 0], r.cov[:, 0]
     parts.append((bad, s_bad))
     return _merge_rows(state, parts), mean, cov
 

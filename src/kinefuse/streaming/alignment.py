@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kinefuse.exceptions import InputError
+from kinefuse.streaming._kernels import chain_positions, joint_flags
 from kinefuse.streaming.engine_types import (
     FLAG_CAMERA_MISSING,
     FLAG_FORCED,
@@ -110,10 +111,6 @@ class Chain:
         self._seg = np.array(segs, np.int64)
         self._vec = np.array(vecs, dtype=float).reshape(-1, 3)
         self._out_node = np.array([node.get(j, -1) for j in config.joints], np.int64)
-        # compiled kernels: imported on first use, after kinefuse._compile.interpret_kernels
-        # had its chance to switch to interpreted mode (it must run before kernel imports)
-        from kinefuse.streaming._kernels import chain_positions
-
         self._kernel = chain_positions
         Rc = config.R_world_from_camera
         self._use_cam = Rc is not None
@@ -206,9 +203,6 @@ class FrameAssembler:
     """Per frame: orientations from the buffers, camera joints, IMU chain, status and flags."""
 
     def __init__(self, config: EngineConfig):
-        # compiled kernel: imported on first use (see Chain)
-        from kinefuse.streaming._kernels import joint_flags
-
         self.config = config
         self.chain = Chain(config)
         self._joint_flags = joint_flags

@@ -27,6 +27,7 @@ dejittering changes them, so they are no longer the sender's).
 
 from __future__ import annotations
 
+import inspect
 import logging
 import time
 from dataclasses import dataclass, field
@@ -189,8 +190,6 @@ _AS_NUMPY: dict = {}
 
 
 def _pull_options(pylsl) -> None:
-    import inspect
-
     if "as_numpy" in inspect.signature(pylsl.StreamInlet.pull_chunk).parameters:
         _AS_NUMPY["as_numpy"] = True
 

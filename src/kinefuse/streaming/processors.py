@@ -17,8 +17,9 @@ initial state, offline and causal (equal to ``step`` repeated then ``flush``); `
 The causal paper-B pipeline (:func:`kinefuse.pipelines.vision_assisted` with ``causal=True``)
 is :class:`kinefuse.streaming.paper_b.VisionAssistedProcessor`.
 
-Speed: ``step`` validates the frame once, then calls the filters' unchecked ``_run`` (the same
-compiled loop as their ``step``/``filter``) on all joints at once.
+Speed: ``step`` validates the frame once, then takes the filters' trusted fast path
+(``_filter_unchecked``, see :mod:`kinefuse.filters._base`: the same compiled loop as their
+``step``/``filter``, without the input checks) on all joints at once.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from kinefuse.filters.kalman import KalmanFilter
 from kinefuse.filters.smoothing import fixed_lag_smooth
 from kinefuse.models import constant_velocity
 from kinefuse.pipelines.upper_limb import paper_a_filter
+from kinefuse.streaming._kernels import fusion_step
 
 __all__ = [
     "SOURCE_PREDICT",
@@ -338,7 +340,7 @@ class IntegratedProcessor(_LinearProcessor):
 
     def _filter_step(self, z_imu, z_cam, available):
         # unchecked: the frame was validated by step and the state is the filter's own
-        self._state, res = self.filter._run(z_imu[:, None, :], self._state)
+        self._state, res = self.filter._filter_unchecked(z_imu[:, None, :], self._state)
         self.last_mode = res.mode[:, 0]
         source = np.where(res.observed[:, 0], np.int8(SOURCE_IMU), np.int8(SOURCE_PREDICT))
         return res.mean[:, 0], res.cov[:, 0], source
@@ -430,7 +432,7 @@ class KalmanFusionProcessor(_LinearProcessor):
             z = (z_cam * wc + z_imu * wi) / (wc + wi) if kf is self._kf_both else (
                 z_cam if kf is self._kf_cam else z_imu
             )  # fmt: skip
-            self._state, res = kf._run(z[:, None, :], st)  # unchecked: validated by step
+            self._state, res = kf._filter_unchecked(z[:, None, :], st)  # validated by step
             mean, cov = res.mean[:, 0], res.cov[:, 0]
         else:
             x, P, init = st.x.copy(), st.P.copy(), st.initialized.copy()
@@ -441,7 +443,7 @@ class KalmanFusionProcessor(_LinearProcessor):
                     z_cam[idx] if kf is self._kf_cam else z_imu[idx]
                 )  # fmt: skip
                 sub = GaussianState(st.x[idx], st.P[idx], st.initialized[idx], st.k)
-                sub, res = kf._run(z[:, None, :], sub)
+                sub, res = kf._filter_unchecked(z[:, None, :], sub)
                 x[idx], P[idx], init[idx] = sub.x, sub.P, sub.initialized
                 mean[idx], cov[idx] = res.mean[:, 0], res.cov[:, 0]
             self._state = GaussianState(x, P, init, st.k + 1)
@@ -458,8 +460,6 @@ class KalmanFusionProcessor(_LinearProcessor):
     def _fast_step(self, z_imu, z_cam, available, wi, wc):
         """:meth:`_filter_step` as one compiled call (the same per-axis filter kernel, the
         same numbers: tested against the grouped form)."""
-        from kinefuse.streaming._kernels import fusion_step
-
         r, P0b, Fb, Qb, Hb = self._fast
         J, n_x = z_imu.shape[0], self.model.n_x
         st = self._state

@@ -21,8 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from kinefuse.data import demo_motion
 from kinefuse.exceptions import InputError
+from kinefuse.io import load
 from kinefuse.io.recording import Recording
+from kinefuse.sim import virtual_recording
 from kinefuse.streaming.config import import_pylsl
 from kinefuse.streaming.engine_types import SummaryMapping
 from kinefuse.streaming.lsl import (
@@ -42,9 +45,6 @@ log = logging.getLogger("kinefuse.streaming")
 def demo_recording(stop_s: float | None = None, seed: int = 0) -> Recording:
     """The packaged CMU clip as a virtual recording: 9 IMUs at 100 Hz, a camera at 30 Hz with
     occlusions and dropouts (:func:`kinefuse.sim.virtual_recording`), first ``stop_s`` s."""
-    from kinefuse.data import demo_motion
-    from kinefuse.sim import virtual_recording
-
     return virtual_recording(demo_motion(None, stop_s), seed=seed)
 
 
@@ -55,8 +55,6 @@ def load_recording(recording) -> Recording:
     if isinstance(recording, str) and recording == "demo":
         return demo_recording()
     if isinstance(recording, (str, Path)):
-        from kinefuse.io import load
-
         return load(Path(recording))
     raise InputError(f"expected a Recording, a path or 'demo', got {type(recording).__name__}")
 

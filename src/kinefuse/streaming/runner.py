@@ -52,6 +52,7 @@ from rich.table import Table
 from kinefuse.conventions import SOURCE_NAMES
 from kinefuse.exceptions import ConfigError, InputError
 from kinefuse.kinematics import full_body
+from kinefuse.pipelines.vision_params import VisionParams
 from kinefuse.sim.camera import bone_edges
 from kinefuse.streaming.config import (
     StreamConfig,
@@ -64,6 +65,7 @@ from kinefuse.streaming.engine_types import SummaryMapping
 from kinefuse.streaming.liveview import LiveView
 from kinefuse.streaming.loop import run_loop
 from kinefuse.streaming.lsl import IMU_TYPE, FusedOutlet, Input, resolve_many
+from kinefuse.streaming.paper_b import VisionAssistedProcessor
 from kinefuse.streaming.processors import SOURCE_PREDICT, IntegratedProcessor, KalmanFusionProcessor
 
 __all__ = ["StreamSummary", "build_engine", "run_loop", "run_stream", "stream_config", "warm_up"]
@@ -97,9 +99,6 @@ def build_engine(
     if cfg.processor == "paper-a":
         proc = IntegratedProcessor(1.0 / rate, q=cfg.q, r=cfg.r_imu, lag=cfg.lag)
     elif cfg.processor in ("elm-fir", "elm-kf"):
-        from kinefuse.pipelines.vision_assisted import VisionParams
-        from kinefuse.streaming.paper_b import VisionAssistedProcessor
-
         if cfg.lag:
             raise ConfigError(
                 f"[stream] lag = {cfg.lag}: the paper-B processor runs without lag; set lag = 0"
