@@ -424,3 +424,17 @@ def test_cli_and_apps_agree_on_the_trial_experiments():
     from kinefuse.cli.offline import TRIAL_EXPERIMENTS as CLI_TRIAL_EXPERIMENTS
 
     assert CLI_TRIAL_EXPERIMENTS == TRIAL_EXPERIMENTS
+
+
+def test_summary_says_which_rows_equal_the_reference(first_run):
+    from kinefuse.batch.report import summary_table
+
+    _, summary, _ = first_run
+    ok = [r for r in summary["results"] if r["status"] != "failed"]
+    table = summary_table(ok, "all", "Over recordings, all samples (m)")
+    zero = {row.labels[0] for row in table.rows if row.values[0] == 0.0}
+    nonzero = {row.labels[0] for row in table.rows if row.values[0]}
+    assert zero, "the UTD-MHAD sessions use the Kinect as camera and reference"
+    (note,) = table.notes
+    assert all(name in note for name in zero)
+    assert not any(name in note.split(":")[0] for name in nonzero)

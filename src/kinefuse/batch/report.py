@@ -105,6 +105,19 @@ def summary_table(results: Sequence[Mapping], subset: str, title: str):
         ),
         rows=tuple(rows),
         digits=4,
+        notes=_zero_note(cols["rmse_3d"]),
+    )
+
+
+def _zero_note(rmse_3d: Mapping) -> tuple[str, ...]:
+    """A note for estimates that equal the reference on every recording (their rows say nothing)."""
+    zero = sorted({est for (est, _), v in rmse_3d.items() if v.size and not np.any(v)})
+    if not zero:
+        return ()
+    return (
+        f"{', '.join(zero)}: exactly 0 on every recording: the reference is the input these "
+        "follow (e.g. the camera used as the reference, with no outage), so these rows say "
+        "nothing about accuracy.",
     )
 
 
