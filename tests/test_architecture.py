@@ -61,7 +61,6 @@ ALLOWED_LONG_FUNCTIONS: frozenset[str] = frozenset(
     {
         "kinefuse/filters/_kernels_axis.py::kf_filter_axis",
         "kinefuse/filters/_kernels_blocks.py::rts_blocks",
-        "kinefuse/filters/_kernels_em.py::em_update_sparse",
         "kinefuse/filters/_kernels_ufir.py::ufir_horizon_axes",
         "kinefuse/filters/_kernels_ufir.py::ufir_horizon_axis",
         "kinefuse/filters/_kernels_ufir_run.py::ufir_run",

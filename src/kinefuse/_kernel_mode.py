@@ -72,7 +72,7 @@ KERNEL_MODULES = (
 _SENTINELS = (
     ("filters", "_kernels_integrated.integrated_run-*.nbi"),
     ("filters", "_kernels_ufir_run.ufir_run-*.nbi"),
-    ("filters", "_kernels_imm.imm_run-*.nbi"),
+    ("filters", "_kernels_imm.imm_run_paper_b-*.nbi"),
 )
 
 

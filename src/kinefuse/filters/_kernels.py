@@ -24,18 +24,29 @@ def symmetrize(P):
 # wrappers (the cold-start compile time of every filter depends on it).
 
 
+@njit_inline
+def matmul_into(A, B, C, n, k, m, at=False):
+    """``C[:n, :m] = A[:n, :k] @ B[:k, :m]`` in place, skipping the zero entries of ``A``.
+
+    ``at``: ``A`` is given transposed (``C = Aᵀ B`` with ``A (k, n)``).
+    """
+    for i in range(n):
+        for j in range(m):
+            C[i, j] = 0.0
+        for p in range(k):
+            a = A[p, i] if at else A[i, p]
+            if a != 0.0:
+                for j in range(m):
+                    C[i, j] += a * B[p, j]
+
+
 @njit
 def matmul(A, B):
     """``A @ B`` for small dense 2-D arrays."""
     n, k = A.shape
     m = B.shape[1]
-    C = np.zeros((n, m))
-    for i in range(n):
-        for p in range(k):
-            a = A[i, p]
-            if a != 0.0:
-                for j in range(m):
-                    C[i, j] += a * B[p, j]
+    C = np.empty((n, m))
+    matmul_into(A, B, C, n, k, m)
     return C
 
 

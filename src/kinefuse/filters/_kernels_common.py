@@ -318,6 +318,18 @@ def copy_matrix(src, dst, n):
 
 
 @njit_inline
+def writable_copy(A, n):
+    """A new ``(n, n)`` array holding ``A[:n, :n]``.
+
+    The run loops pass the model's (possibly read-only) ``R`` to :func:`._kernels_em.em_update`
+    through such a copy, so that the update is compiled for one signature, not one per loop.
+    """
+    B = np.empty((n, n))
+    copy_matrix(A, B, n)
+    return B
+
+
+@njit_inline
 def copy_state(xs, Ps, xd, Pd, n):
     """``xd = xs``, ``Pd = Ps`` (e.g. predict only: the posterior is the prediction)."""
     for i in range(n):

@@ -42,6 +42,7 @@ from kinefuse.filters._kernels_common import (
     sparse_times,
     step_arrays_jit,
     store_element,
+    writable_copy,
 )
 from kinefuse.filters._kernels_linalg import (
     CHOL_FAILED,
@@ -125,23 +126,12 @@ class EMScratch(NamedTuple):
 
 def em_scratch(n_x, n_z):
     """An :class:`EMScratch` for sizes ``n_x``, ``n_z``."""
+    xx, zx, zz, xz = (n_x, n_x), (n_z, n_x), (n_z, n_z), (n_x, n_z)
     return EMScratch(
-        np.zeros((n_x, n_x)),
-        np.zeros((n_z, n_x)),
-        np.zeros((n_z, n_z)),
-        np.zeros((n_z, n_z)),
-        np.zeros((n_z, n_x)),
-        np.zeros((n_x, n_x)),
-        np.zeros((n_x, n_z)),
-        np.zeros((n_x, n_x)),
-        np.zeros((n_x, n_x)),
-        np.zeros((n_z, n_z)),
-        np.zeros((n_z, n_z)),
-        np.zeros((n_z, n_z)),
-        np.zeros(n_z),
-        np.zeros(n_z),
-        np.zeros(n_x),
-    )
+        np.zeros(xx), np.zeros(zx), np.zeros(zz), np.zeros(zz), np.zeros(zx), np.zeros(xx),
+        np.zeros(xz), np.zeros(xx), np.zeros(xx), np.zeros(zz), np.zeros(zz), np.zeros(zz),
+        np.zeros(n_z), np.zeros(n_z), np.zeros(n_x),
+    )  # fmt: skip
 
 
 em_scratch_jit = njit_inline(em_scratch)
@@ -212,6 +202,37 @@ def _residual(Hr, Hc, Hv, z, x, out, n_z):
         out[Hr[t]] -= Hv[t] * x[Hc[t]]
 
 
+@njit_inline
+def _h_m_ht(Hr, Hc, Hv, M, A, out, n_z):
+    """``out = A + M Hᵀ`` (``M = H X``: ``H X Hᵀ``), symmetrised, for ``H`` given by its non-zeros."""
+    for r1 in range(n_z):
+        for r2 in range(n_z):
+            out[r1, r2] = A[r1, r2]
+    add_times_sparse_t(Hr, Hc, Hv, M, out, n_z)
+    symmetrize_into(out, n_z)
+
+
+@njit_inline
+def _kr(Kt, Rj, i, r2, n_z):
+    """``(K R)[i, r2]`` from ``Kᵀ``."""
+    acc = 0.0
+    for r1 in range(n_z):
+        acc += Kt[r1, i] * Rj[r1, r2]
+    return acc
+
+
+@njit_inline
+def _ap_plus_dkt(AP, D, Kt, P, n, n_z):
+    """Joseph form ``P = AP + D Kᵀ`` (upper triangle, mirrored: ``P`` exactly symmetric)."""
+    for i in range(n):
+        for j in range(i, n):
+            acc = AP[i, j]
+            for r in range(n_z):
+                acc += D[i, r] * Kt[r, j]
+            P[i, j] = acc
+            P[j, i] = acc
+
+
 @njit
 def em_update_sparse(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x, P, sc):
     """EM-KF measurement update at one time step, any ``H`` (SPEC §5.3; paper A Alg. 2 lines 5-17).
@@ -260,16 +281,9 @@ def em_update_sparse(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x
     Pm, M, S, LS, Kt, AP, D, W, L6 = sc.Pm, sc.M, sc.S, sc.LS, sc.Kt, sc.AP, sc.D, sc.W, sc.L6
     Rj, Om1, nu, e, tmp = sc.Rj, sc.Om1, sc.nu, sc.e, sc.tmp
     Hr, Hc, Hv = struct.Hr, struct.Hc, struct.Hv
-    n_iter, regularized, tau, floor_c, want_R = (
-        it.n_iter,
-        it.regularized,
-        it.tau,
-        it.floor_c,
-        it.want_R,
-    )
+    n_iter, regularized, tau, floor_c, want_R, _defer = it
     n_x = len(tx)
     n_z = len(tz)
-    nnz = len(Hv)
     status = 0
     nis = np.nan
     # ν = z − H x⁻ (fixed: x⁻ does not change through the iterations, SPEC §5.3)
@@ -277,12 +291,7 @@ def em_update_sparse(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x
     _em_start(xp, Pp, R0, x, P, Pm, Rj, n_x, n_z)  # P̄⁻^(0) = P⁻, R^(0) reset every step
     for jit in range(n_iter):
         sparse_times(Hr, Hc, Hv, Pm, M, n_z, n_x)  # M = H Pm
-        # S = H P̄⁻ Hᵀ + R^{(j)}
-        for r1 in range(n_z):
-            for r2 in range(n_z):
-                S[r1, r2] = Rj[r1, r2]
-        add_times_sparse_t(Hr, Hc, Hv, M, S, n_z)  # S += M Hᵀ
-        symmetrize_into(S, n_z)
+        _h_m_ht(Hr, Hc, Hv, M, Rj, S, n_z)  # S = H P̄⁻ Hᵀ + R^{(j)}
         st = chol_status(S, LS, n_z)
         if st == CHOL_FAILED:  # SPEC §13: skip the update; later iterations keep the previous one
             status |= S_FAILED if jit == 0 else S_REGULARISED
@@ -307,26 +316,12 @@ def em_update_sparse(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x
         # D = K R^{(j)} − AP Hᵀ  (n_x, n_z)
         for i in range(n_x):
             for r2 in range(n_z):
-                acc = 0.0
-                for r1 in range(n_z):
-                    acc += Kt[r1, i] * Rj[r1, r2]
-                D[i, r2] = acc
-        for t in range(nnz):
-            r = Hr[t]
-            cc = Hc[t]
-            v = Hv[t]
+                D[i, r2] = _kr(Kt, Rj, i, r2, n_z)
+        for t in range(len(Hv)):
             for i in range(n_x):
-                D[i, r] -= v * AP[i, cc]
+                D[i, Hr[t]] -= Hv[t] * AP[i, Hc[t]]
         # P^{(j+1)} = AP (I − K H)ᵀ + K R Kᵀ = AP + D Kᵀ  (Joseph, Eq. 9; SPEC §5.3)
-        for i in range(n_x):
-            for j in range(i, n_x):
-                acc = AP[i, j]
-                for r in range(n_z):
-                    acc += D[i, r] * Kt[r, j]
-                P[i, j] = acc
-        for i in range(n_x):
-            for j in range(i + 1, n_x):
-                P[j, i] = P[i, j]  # upper triangle computed: P is exactly symmetric
+        _ap_plus_dkt(AP, D, Kt, P, n_x, n_z)
         if jit == n_iter - 1 and not want_R:
             break
         # e = z − H x^{(j+1)}  (posterior residual, SPEC §5.2-2)
@@ -336,8 +331,7 @@ def em_update_sparse(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x
         for r1 in range(n_z):
             for r2 in range(n_z):
                 Om1[r1, r2] = e[r1] * e[r2]
-        add_times_sparse_t(Hr, Hc, Hv, M, Om1, n_z)  # Om1 += M Hᵀ
-        symmetrize_into(Om1, n_z)
+        _h_m_ht(Hr, Hc, Hv, M, Om1, Om1, n_z)  # Om1 += M Hᵀ
         _r_from_omega1(Om1, Uprior, u_prior, regularized, Rj, n_z)  # R^(j+1)
         if floor_binds(Rj, Rnom, floor_c, W, LS, n_z):  # SPEC §5.4 floor
             if floor_clip(Rj, Rnom, floor_c, n_z):
@@ -372,10 +366,7 @@ def joseph_cv(tx, tz, Pm, Kt, Rj, AP, D, P, pos_only):
                     acc -= Kt[r, i] * Pm[2 * r, c]
                 AP[i, c] = acc
             for r2 in range(n_a):
-                acc = 0.0
-                for r1 in range(n_a):
-                    acc += Kt[r1, i] * Rj[r1, r2]
-                D[i, r2] = acc - AP[i, 2 * r2]
+                D[i, r2] = _kr(Kt, Rj, i, r2, n_a) - AP[i, 2 * r2]
         for a in range(n_a):
             i = 2 * a
             for b in range(a, n_a):
@@ -394,20 +385,11 @@ def joseph_cv(tx, tz, Pm, Kt, Rj, AP, D, P, pos_only):
             AP[i, c] = acc
     for i in range(n):
         for r2 in range(n_a):
-            acc = 0.0
-            for r1 in range(n_a):
-                acc += Kt[r1, i] * Rj[r1, r2]
-            D[i, r2] = acc - AP[i, 2 * r2]
-    for i in range(n):
-        for j in range(i, n):
-            acc = AP[i, j]
-            for r in range(n_a):
-                acc += D[i, r] * Kt[r, j]
-            P[i, j] = acc
-            P[j, i] = acc
+            D[i, r2] = _kr(Kt, Rj, i, r2, n_a) - AP[i, 2 * r2]
+    _ap_plus_dkt(AP, D, Kt, P, n, n_a)
 
 
-@njit_inline
+@njit
 def em_update_cv(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x, P, sc):
     """:func:`em_update_sparse` for the CV structure (SPEC §5.3; paper A Alg. 2 lines 5-17).
 
@@ -419,14 +401,7 @@ def em_update_cv(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x, P,
     """
     Rj, Rl, Om1, Pm, S, LS, Kt = sc.Rj, sc.Rl, sc.Om1, sc.Pm, sc.S, sc.LS, sc.Kt
     AP, D, W, nu, e, tmp = sc.AP, sc.D, sc.W, sc.nu, sc.e, sc.tmp
-    n_iter, regularized, tau, floor_c, want_R = (
-        it.n_iter,
-        it.regularized,
-        it.tau,
-        it.floor_c,
-        it.want_R,
-    )
-    defer = it.defer
+    n_iter, regularized, tau, floor_c, want_R, defer = it
     n_a = len(tz)
     n = len(tx)
     status = 0
@@ -497,8 +472,17 @@ if not interpreting():
 
     @overload(em_update, inline="always")
     def _em_update(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x, P, sc):
+        # A call of the compiled form, not its body: inlining the large update into each run
+        # loop compiled it three times (once on its own for the overload's typing, once per
+        # loop) and made the run loops slow to compile; one call per step costs nothing
+        # measurable beside the N_EM iterations of 6×6 arithmetic.
         cv = getattr(struct, "instance_class", None) is CVStructure
-        return (em_update_cv if cv else em_update_sparse).py_func
+        impl = em_update_cv if cv else em_update_sparse
+
+        def call(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x, P, sc):
+            return impl(struct, tx, tz, xp, Pp, z, R0, Rnom, Uprior, u_prior, it, x, P, sc)
+
+        return call
 
 
 @njit_inline
@@ -596,6 +580,7 @@ def em_kf_run(m, opt, z, x, P, init, u, U, out):
     xb, Pb, zt, xp, Pp, FP = step_arrays_jit(n, n_a)
     R0 = np.empty((n_a, n_a))
     Ub = np.empty((n_a, n_a))
+    Rn = writable_copy(Rnom, n_a)  # em_update: one compiled signature for both run loops
     counts = np.zeros(4, np.int64)
     for b in range(B):
         load_element(x, P, b, xb, Pb, tx)
@@ -618,7 +603,7 @@ def em_kf_run(m, opt, z, x, P, init, u, U, out):
                 if valid:
                     _initial_R(regularized, Ub, u_pr, Rnom, R0, n_a)  # R^{(0)}
                     status, nis = em_update(
-                        struct, tx, tz, xp, Pp, zt, R0, Rnom, Ub, u_pr, it, xb, Pb, sc
+                        struct, tx, tz, xp, Pp, zt, R0, Rn, Ub, u_pr, it, xb, Pb, sc
                     )
                     count_status(counts, status)
                     ok = not (status & S_FAILED)

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit, njit_inline
-from kinefuse.filters._kernels import chol_lower, chol_solve_into
+from kinefuse.filters._kernels import chol_lower, chol_solve_into, matmul_into
 from kinefuse.filters._kernels_linalg import (
     CHOL_FAILED,
     CHOL_REGULARISED,
@@ -58,6 +58,17 @@ def _finite2(a, n):
 
 
 @njit_inline
+def _matmul_bt_add(A, B, Q, C, n, m, k):
+    """``C[:n, :m] = A[:n, :k] B[:m, :k]ᵀ + Q[:n, :m]`` (each sum from 0, then ``+ Q``)."""
+    for i in range(n):
+        for j in range(m):
+            s = 0.0
+            for p in range(k):
+                s += A[i, p] * B[j, p]
+            C[i, j] = s + Q[i, j]
+
+
+@njit_inline
 def _kf_predict_into(x, P, F, Q, x_pred, P_pred, FP, n):
     """KF prediction, SPEC §4.2 (as :func:`._kernels.kf_predict`); ``FP (n, n)`` scratch."""
     for i in range(n):
@@ -65,20 +76,8 @@ def _kf_predict_into(x, P, F, Q, x_pred, P_pred, FP, n):
         for p in range(n):
             s += F[i, p] * x[p]
         x_pred[i] = s  # SPEC §4.2: x⁻ = F x
-    for i in range(n):
-        for j in range(n):
-            FP[i, j] = 0.0
-        for p in range(n):
-            a = F[i, p]
-            if a != 0.0:
-                for j in range(n):
-                    FP[i, j] += a * P[p, j]
-    for i in range(n):
-        for j in range(n):
-            s = 0.0
-            for p in range(n):
-                s += FP[i, p] * F[j, p]
-            P_pred[i, j] = s + Q[i, j]  # SPEC §4.2: P⁻ = F P Fᵀ + Q
+    matmul_into(F, P, FP, n, n, n)
+    _matmul_bt_add(FP, F, Q, P_pred, n, n, n)  # SPEC §4.2: P⁻ = F P Fᵀ + Q
     symmetrize_into(P_pred, n)
 
 
@@ -95,20 +94,8 @@ def _kf_update_into(x_pred, P_pred, z, H, R, x, P, nu, S, L, HP, Kt, A, AP, KR, 
         for p in range(n_x):
             s += H[i, p] * x_pred[p]
         nu[i] = z[i] - s  # SPEC §4.2: ν = z − H x⁻
-    for i in range(n_z):
-        for j in range(n_x):
-            HP[i, j] = 0.0
-        for p in range(n_x):
-            a = H[i, p]
-            if a != 0.0:
-                for j in range(n_x):
-                    HP[i, j] += a * P_pred[p, j]  # H P⁻ = (P⁻ Hᵀ)ᵀ
-    for i in range(n_z):
-        for j in range(n_z):
-            s = 0.0
-            for p in range(n_x):
-                s += HP[i, p] * H[j, p]
-            S[i, j] = s + R[i, j]  # SPEC §4.2: S = H P⁻ Hᵀ + R
+    matmul_into(H, P_pred, HP, n_z, n_x, n_x)  # H P⁻ = (P⁻ Hᵀ)ᵀ
+    _matmul_bt_add(HP, H, R, S, n_z, n_z, n_x)  # SPEC §4.2: S = H P⁻ Hᵀ + R
     status = chol_status(S, L, n_z)
     if status == CHOL_FAILED:
         return status
@@ -118,33 +105,13 @@ def _kf_update_into(x_pred, P_pred, z, H, R, x, P, nu, S, L, HP, Kt, A, AP, KR, 
         for p in range(n_z):
             s += Kt[p, i] * nu[p]
         x[i] = x_pred[i] + s  # SPEC §4.2: x = x⁻ + K ν
-    for i in range(n_x):  # A = I − K H
-        for j in range(n_x):
-            A[i, j] = 0.0
-        for p in range(n_z):
-            a = Kt[p, i]
-            if a != 0.0:
-                for j in range(n_x):
-                    A[i, j] += a * H[p, j]
+    matmul_into(Kt, H, A, n_x, n_z, n_x, True)  # A = I − K H
+    for i in range(n_x):
         for j in range(n_x):
             A[i, j] = -A[i, j]
         A[i, i] += 1.0
-    for i in range(n_x):
-        for j in range(n_x):
-            AP[i, j] = 0.0
-        for p in range(n_x):
-            a = A[i, p]
-            if a != 0.0:
-                for j in range(n_x):
-                    AP[i, j] += a * P_pred[p, j]
-    for i in range(n_x):
-        for j in range(n_z):
-            KR[i, j] = 0.0
-        for p in range(n_z):
-            a = Kt[p, i]
-            if a != 0.0:
-                for j in range(n_z):
-                    KR[i, j] += a * R[p, j]
+    matmul_into(A, P_pred, AP, n_x, n_x, n_x)
+    matmul_into(Kt, R, KR, n_x, n_z, n_z, True)  # K R
     for i in range(n_x):
         for j in range(n_x):
             s = 0.0
@@ -245,6 +212,23 @@ def _imm_mix_into(mu, Gamma, xs, Ps, cbar, x0, P0, w, d, M, n_x):
         symmetrize_into(P0[m], n_x)
 
 
+@njit_inline
+def _logsumexp_masked(a, mask, masked, M):
+    """``log Σ_m exp(a[m])`` over ``m`` with ``mask[m]`` (all ``m`` unless ``masked``); ``−inf``
+    when every such entry is ``−inf``."""
+    mx = -np.inf
+    for m in range(M):
+        if (mask[m] or not masked) and a[m] > mx:
+            mx = a[m]
+    if mx == -np.inf:
+        return -np.inf
+    s = 0.0
+    for m in range(M):
+        if mask[m] or not masked:
+            s += np.exp(a[m] - mx)
+    return mx + np.log(s)
+
+
 @njit
 def _imm_probabilities_into(loglik, updated, cbar, mu_floor, mu, ll, lw, fixed, M):
     """:func:`imm_probabilities` writing ``mu (M,)``; scratch ``ll, lw (M,)``, ``fixed (M,)``."""
@@ -254,18 +238,7 @@ def _imm_probabilities_into(loglik, updated, cbar, mu_floor, mu, ll, lw, fixed, 
             n_upd += 1
     fill = 0.0
     if n_upd > 0:  # log-mean-exp of the updated models' log-likelihoods
-        mx = -np.inf
-        for m in range(M):
-            if updated[m] and loglik[m] > mx:
-                mx = loglik[m]
-        if mx == -np.inf:
-            fill = -np.inf
-        else:
-            s = 0.0
-            for m in range(M):
-                if updated[m]:
-                    s += np.exp(loglik[m] - mx)
-            fill = mx + np.log(s) - np.log(n_upd)
+        fill = _logsumexp_masked(loglik, updated, True, M) - np.log(n_upd)
     if n_upd == 0 or fill == -np.inf:
         for m in range(M):
             ll[m] = 0.0
@@ -279,17 +252,7 @@ def _imm_probabilities_into(loglik, updated, cbar, mu_floor, mu, ll, lw, fixed, 
             ll[m] -= ref  # shift so that max log Λ = 0 before adding log c̄ (no absorption)
     for m in range(M):
         lw[m] = ll[m] + np.log(cbar[m]) if cbar[m] > 0.0 else -np.inf  # log(Λ_m c̄_m)
-    mx = -np.inf  # Eq. 45: log c = log Σ_m Λ_m c̄_m
-    for m in range(M):
-        if lw[m] > mx:
-            mx = lw[m]
-    if mx == -np.inf:
-        lc = -np.inf
-    else:
-        s = 0.0
-        for m in range(M):
-            s += np.exp(lw[m] - mx)
-        lc = mx + np.log(s)
+    lc = _logsumexp_masked(lw, updated, False, M)  # Eq. 45: log c = log Σ_m Λ_m c̄_m
     total = 0.0
     for m in range(M):
         mu[m] = np.exp(lw[m] - lc)  # Eq. 46 (corrected): μ_m = Λ_m c̄_m / c
@@ -555,34 +518,39 @@ def _imm_loop(
 
 
 @njit
+def imm_run_paper_b(
+    z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
+    out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis,
+):  # fmt: skip
+    """:func:`imm_run` for two 3-D constant-velocity models (``M, n_x, n_z = 2, 6, 3``).
+
+    The sizes are compile-time constants, so the compiler unrolls the small matrix loops of
+    the KF predict/update (inlined).
+    """
+    return _imm_loop(
+        z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
+        out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis, 2, 6, 3
+    )  # fmt: skip
+
+
+@njit
+def imm_run_any(
+    z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
+    out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis,
+):  # fmt: skip
+    """:func:`imm_run` for any sizes (read from the arrays)."""
+    M, n_z = z.shape[2], z.shape[3]
+    n_x = F.shape[1]
+    return _imm_loop(
+        z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
+        out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis, M, n_x, n_z
+    )  # fmt: skip
+
+
 def imm_run(
-    z,
-    has_prev,
-    prev_x,
-    prev_P,
-    F,
-    Q,
-    H,
-    R,
-    Hpinv,
-    P_init,
-    Gamma,
-    mu_floor,
-    xs,
-    Ps,
-    mu,
-    init,
-    out_x,
-    out_P,
-    out_mu,
-    out_xm,
-    out_Pm,
-    out_obs,
-    out_mobs,
-    out_ll,
-    out_nu,
-    out_nis,
-):
+    z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
+    out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis,
+):  # fmt: skip
     """Run the IMM over ``z (B, T, M, n_z)`` for every batch element ``b``; SPEC §8.3.
 
     State ``xs (B, M, n_x)``, ``Ps (B, M, n_x, n_x)``, ``mu (B, M)``, ``init (B,)`` is updated in
@@ -594,20 +562,16 @@ def imm_run(
 
     Every temporary is allocated once per call (no allocation inside the loops); the arithmetic
     is that of :func:`imm_mix`, :func:`._kernels.kf_predict`, :func:`._kernels.kf_update`,
-    :func:`gauss_loglik`, :func:`imm_probabilities` and :func:`imm_combine`. The loop is compiled
-    twice from one source: for two 3-D constant-velocity models (``M, n_x, n_z = 2, 6, 3``, the
-    IMM of paper B) with the sizes as compile-time constants, so the compiler unrolls the small
-    matrix loops of the KF predict/update (inlined), and for any other sizes. Both give the same
+    :func:`gauss_loglik`, :func:`imm_probabilities` and :func:`imm_combine`. One source, two
+    compiled loops chosen here (in Python, so that only the one a run needs is compiled):
+    :func:`imm_run_paper_b` for two 3-D constant-velocity models (the IMM of paper B) with the
+    sizes as compile-time constants, :func:`imm_run_any` for any other sizes. Both give the same
     numbers.
     """
     M, n_z = z.shape[2], z.shape[3]
     n_x = F.shape[1]
-    if M == 2 and n_x == 6 and n_z == 3:
-        return _imm_loop(
-            z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
-            out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis, 2, 6, 3
-        )  # fmt: skip
-    return _imm_loop(
+    run = imm_run_paper_b if (M, n_x, n_z) == (2, 6, 3) else imm_run_any
+    return run(
         z, has_prev, prev_x, prev_P, F, Q, H, R, Hpinv, P_init, Gamma, mu_floor, xs, Ps, mu, init,
-        out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis, M, n_x, n_z
+        out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis,
     )  # fmt: skip

@@ -34,6 +34,7 @@ from kinefuse.filters._kernels_common import (
     read_row,
     step_arrays_jit,
     store_element,
+    writable_copy,
 )
 from kinefuse.filters._kernels_em import (
     P_DEFERRED,
@@ -113,9 +114,12 @@ def _fir(zr, k, fir, Q, R, K, idx, xx, xs, Ps, xf, Pf):
         )
     if code != 0:
         return code == 1
+    # fast = True, stored = False, as run-time bools (k >= N - 1 holds here): constants would
+    # make numba compile a second specialisation of fir_estimate beside the UFIR filter's
+    fast = k >= N - 1
     return fir_estimate(
-        zr, k, N, K, True, fir.axis_blocks, fir.W, fir.P_full, fir.F, fir.Finv, fir.H, Q, R,
-        fir.Fa, fir.Finva, fir.Ha, fir.Qa, fir.Ra, xs, Ps, False, xf, Pf,
+        zr, k, N, K, fast, fir.axis_blocks, fir.W, fir.P_full, fir.F, fir.Finv, fir.H, Q, R,
+        fir.Fa, fir.Finva, fir.Ha, fir.Qa, fir.Ra, xs, Ps, not fast, xf, Pf,
     )  # fmt: skip
 
 
@@ -199,6 +203,7 @@ def integrated_run(m, fir, opt, z, x, P, init, zring, k0, out):
     em_it = EMIteration(n_em, False, 0.0, floor_c, True, feedback)
     xb, Pb, zt, xp, Pp, FP = step_arrays_jit(n, n_a)
     xf, Pf, LRj, Sg, xs, Ps, idx, xx = _scratch_jit(n, n_a, fir)
+    Rn = writable_copy(Rnom, n_a)  # em_update: one compiled signature for both run loops
     counts = np.zeros(4, np.int64)
     for b in range(B):
         load_element(x, P, b, xb, Pb, tx)
@@ -229,7 +234,7 @@ def integrated_run(m, fir, opt, z, x, P, init, zring, k0, out):
                     out.d1[b, t] = d1
                     mode = 0 if d1 < th1 else 1  # KF update, else EM-KF from P̄⁻^{(0)} = P⁻
                     status, _nis = em_update(
-                        struct, tx, tz, xp, Pp, zt, Rnom, Rnom, Rnom, 0.0,
+                        struct, tx, tz, xp, Pp, zt, Rn, Rn, Rn, 0.0,
                         kf_it if mode == 0 else em_it, xb, Pb, sc,
                     )  # fmt: skip
                     count_status(counts, status)
