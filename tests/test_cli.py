@@ -483,3 +483,48 @@ def test_bench_quick_runs_the_real_benchmark(tmp_path):
     rows = {(r["case"], r["joints"]) for r in data["results"]["kf_rts"]}
     assert ("KF", 8) in rows and ("RTS", 8) in rows
     assert (res.exit_code == 0) == data["passed"]
+
+
+# ---- first run on a machine without compiled kernels (issue 15) -------------------------------
+
+
+def test_first_run_kernels_interprets_small_inputs_and_compiles_for_large(monkeypatch, tmp_path):
+    from kinefuse import _kernel_mode
+    from kinefuse.cli import offline
+    from kinefuse.filters import warm_up as warm_up_mod
+
+    small = tmp_path / "imu.csv"
+    small.write_bytes(b"x" * 1000)
+    calls = []
+    monkeypatch.setattr(_kernel_mode, "kernels_cached", lambda: True)
+    monkeypatch.setattr(_kernel_mode, "interpret_kernels", lambda: calls.append("interp") or True)
+    monkeypatch.setattr(warm_up_mod, "warm_up", lambda report=None: calls.append("compile"))
+    assert offline.first_run_kernels([small], quiet=True) == "compiled"
+    assert calls == []
+    monkeypatch.setattr(_kernel_mode, "kernels_cached", lambda: False)
+    assert offline.first_run_kernels([small, tmp_path / "missing"], quiet=True) == "interpreted"
+    assert calls == ["interp"]
+    monkeypatch.setattr(offline, "INTERPRET_MAX_BYTES", 999)
+    assert offline.first_run_kernels([tmp_path], quiet=True) == "compiling"  # a folder: 1000 B
+    assert calls == ["interp", "compile"]
+
+
+def test_first_kinefuse_run_without_compiled_kernels_runs_interpreted(shared_data, tmp_path):
+    """A fresh process with an empty numba cache: `kinefuse run` on the Neura walk runs the
+    kernels interpreted (no compile) and writes the same files as the compiled back-end here."""
+    from kinefuse.pipelines.run import run_session
+
+    session = Path(__file__).parent / "data" / "sessions" / "neura_walk.toml"
+    run_session(session, tmp_path / "compiled")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "empty-cache")}
+    proc = subprocess.run(
+        [sys.executable, "-m", "kinefuse", "run", str(session), "--out", str(tmp_path / "first")],
+        env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "run interpreted" in " ".join(proc.stderr.split())
+    assert not list((tmp_path / "empty-cache").rglob("*.nbi"))  # nothing was compiled
+    for name in ("neura-walk_joints.csv", "neura-walk_joints.trc", "neura-walk_orientations.sto"):
+        assert (tmp_path / "first" / name).read_bytes() == (
+            tmp_path / "compiled" / name
+        ).read_bytes(), name
