@@ -504,6 +504,9 @@ def test_first_run_kernels_interprets_small_inputs_and_compiles_for_large(monkey
     monkeypatch.setattr(_kernel_mode, "kernels_cached", lambda: False)
     assert offline.first_run_kernels([small, tmp_path / "missing"], quiet=True) == "interpreted"
     assert calls == ["interp"]
+    monkeypatch.setattr(_kernel_mode, "interpret_kernels", lambda: False)  # kernels loaded here
+    assert offline.first_run_kernels([small], quiet=True) == "compiled"
+    assert calls == ["interp"]  # no up-front compile for a small input
     monkeypatch.setattr(offline, "INTERPRET_MAX_BYTES", 999)
     assert offline.first_run_kernels([tmp_path], quiet=True) == "compiling"  # a folder: 1000 B
     assert calls == ["interp", "compile"]

@@ -99,14 +99,17 @@ def first_run_kernels(inputs, quiet: bool) -> str:
     """Before a command's back-end is imported: on a machine without compiled kernels, run a
     small recording interpreted, else compile the kernels now with progress (issue 15).
 
-    Returns ``"compiled"`` (kernels already cached), ``"interpreted"`` (inputs up to
+    Returns ``"compiled"`` (kernels already cached, or already loaded in this process: they
+    compile as they are used), ``"interpreted"`` (inputs up to
     :data:`INTERPRET_MAX_BYTES`: identical results without the compile wait) or ``"compiling"``
     (larger inputs: ``kinefuse warm-up``'s steps are printed, then the run uses them).
     """
     if _kernel_mode.kernels_cached():
         return "compiled"
     size = _input_bytes(inputs)
-    if size <= INTERPRET_MAX_BYTES and _kernel_mode.interpret_kernels():
+    if size <= INTERPRET_MAX_BYTES:
+        if not _kernel_mode.interpret_kernels():
+            return "compiled"  # kernel modules already loaded here: they compile as used
         if not quiet:
             stderr().print(
                 f"[yellow]First run on this machine: the filter kernels run interpreted for "
