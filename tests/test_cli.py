@@ -508,7 +508,9 @@ def test_first_run_kernels_interprets_small_inputs_and_compiles_for_large(monkey
     assert offline.first_run_kernels([small], quiet=True) == "compiled"
     assert calls == ["interp"]  # no up-front compile for a small input
     monkeypatch.setattr(offline, "INTERPRET_MAX_BYTES", 999)
-    assert offline.first_run_kernels([tmp_path], quiet=True) == "compiling"  # a folder: 1000 B
+    assert offline.first_run_kernels([tmp_path], quiet=True) == "compile"  # a folder: 1000 B
+    assert calls == ["interp"]  # compiling waits for the command's input checks
+    offline.compile_kernels_now(quiet=True)
     assert calls == ["interp", "compile"]
 
 

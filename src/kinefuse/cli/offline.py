@@ -34,6 +34,7 @@ __all__ = [
     "bench",
     "demo",
     "evaluate",
+    "compile_kernels_now",
     "experiment",
     "first_run_kernels",
     "init_session",
@@ -97,38 +98,42 @@ def _input_bytes(paths) -> int:
 
 def first_run_kernels(inputs, quiet: bool) -> str:
     """Before a command's back-end is imported: on a machine without compiled kernels, run a
-    small recording interpreted, else compile the kernels now with progress (issue 15).
+    small recording interpreted; a large one is to be compiled first (issue 15).
 
     Returns ``"compiled"`` (kernels already cached, or already loaded in this process: they
-    compile as they are used), ``"interpreted"`` (inputs up to
-    :data:`INTERPRET_MAX_BYTES`: identical results without the compile wait) or ``"compiling"``
-    (larger inputs: ``kinefuse warm-up``'s steps are printed, then the run uses them).
+    compile as they are used), ``"interpreted"`` (inputs up to :data:`INTERPRET_MAX_BYTES`:
+    identical results without the compile wait) or ``"compile"`` (larger inputs: the caller
+    runs :func:`compile_kernels_now` once its input checks have passed).
     """
     if _kernel_mode.kernels_cached():
         return "compiled"
     size = _input_bytes(inputs)
-    if size <= INTERPRET_MAX_BYTES:
-        if not _kernel_mode.interpret_kernels():
-            return "compiled"  # kernel modules already loaded here: they compile as used
-        if not quiet:
-            stderr().print(
-                f"[yellow]First run on this machine: the filter kernels run interpreted for "
-                f"these {size / 1e6:.1f} MB of input (identical results, no compile wait); "
-                "`kinefuse warm-up` compiles them once (about 2 min) for long recordings."
-                "[/yellow]"
-            )
-        return "interpreted"
-    # lazy: loads the kernel modules, after the interpreted-kernel decision above
+    if size > INTERPRET_MAX_BYTES:
+        return "compile"
+    if not _kernel_mode.interpret_kernels():
+        return "compiled"  # kernel modules already loaded here: they compile as used
+    if not quiet:
+        stderr().print(
+            f"[yellow]First run on this machine: the filter kernels run interpreted for these "
+            f"{size / 1e6:.1f} MB of input (identical results, no compile wait); `kinefuse "
+            "warm-up` compiles them once (about 2 min) for long recordings.[/yellow]"
+        )
+    return "interpreted"
+
+
+def compile_kernels_now(quiet: bool) -> None:
+    """Compile every kernel once, printing ``kinefuse warm-up``'s progress lines (a first run on
+    a large input; see :func:`first_run_kernels`)."""
+    # lazy: loads the kernel modules, after the interpreted-kernel decision
     from kinefuse.filters.warm_up import warm_up as compile_kernels
 
     console = stderr()
     if not quiet:
         console.print(
-            f"First run on this machine with {size / 1e6:.0f} MB of input: compiling the filter "
-            "kernels once (about 2 min on 2 cores; cached for later runs)"
+            "First run on this machine with a large input: compiling the filter kernels once "
+            "(about 2 min on 2 cores; cached for later runs)"
         )
     compile_kernels(report=None if quiet else (lambda line: console.print(line)))
-    return "compiling"
 
 
 def run(
@@ -150,11 +155,12 @@ def run(
     cfg = load_session(session)
     out_dir = cfg.out_dir if out is None else out
     check_report_free(out_dir, force)
-    check_json(json_file, force, cfg.inputs)  # never an input (results: below)
-    first_run_kernels(cfg.inputs, quiet)  # before the back-end imports any kernel module
+    kernels = first_run_kernels(cfg.inputs, quiet)  # before the back-end imports any kernel
     run_session = backend("run")
     results = importlib.import_module(run_session.__module__).output_paths(cfg, out_dir)
-    check_json(json_file, force, results)  # nor a result
+    check_json(json_file, force, (*cfg.inputs, *results))  # never an input nor a result
+    if kernels == "compile":
+        compile_kernels_now(quiet)
     # the back-end checks every earlier result and writability before any processing
     with progress(f"Processing {cfg.name}", quiet=quiet):
         summary = run_session(cfg.path, out_dir, force)
@@ -287,7 +293,8 @@ def evaluate(
     ):
         if value not in choices:
             raise InputError(f"{opt}: expected one of {', '.join(choices)}, got {value!r}")
-    first_run_kernels((recording,), quiet)  # before the back-end imports any kernel module
+    if first_run_kernels((recording,), quiet) == "compile":  # before any kernel is imported
+        compile_kernels_now(quiet)
     summary = backend("evaluate")(
         recording,
         method,
