@@ -322,16 +322,18 @@ def test_cli_stream_view_in_chromium(lsl_env, tmp_path):
                    "--record-inputs", "--no-status", "--view", "--json", str(summary_json)]  # fmt: skip
     procs = {}
     seen = {}
-    try:
-        procs["replay"] = _start(replay_args, env, tmp_path, "replay")
-        procs["stream"] = _start(stream_args, env, tmp_path, "stream")
-        url = _view_url(tmp_path, procs["stream"], CHILD_TIMEOUT_S)
-        if url is None:
-            _skip_if_no_lsl_stream(tmp_path)
-            pytest.fail("no live view address:\n" + _text(tmp_path, "stream"))
-        assert url.startswith("http://127.0.0.1:")
-        with browser() as (ctx, log):
-            first, second = ctx.new_page(), ctx.new_page()
+    # the browser starts before the streams: the replay lasts 10 s, and a cold Chromium start
+    # (seen taking longer than that in CI) must not outlast the stream it is to watch
+    with browser() as (ctx, log):
+        first, second = ctx.new_page(), ctx.new_page()
+        try:
+            procs["replay"] = _start(replay_args, env, tmp_path, "replay")
+            procs["stream"] = _start(stream_args, env, tmp_path, "stream")
+            url = _view_url(tmp_path, procs["stream"], CHILD_TIMEOUT_S)
+            if url is None:
+                _skip_if_no_lsl_stream(tmp_path)
+                pytest.fail("no live view address:\n" + _text(tmp_path, "stream"))
+            assert url.startswith("http://127.0.0.1:")
             t0 = time.monotonic()
             first.goto(url)
             first.wait_for_function("window.kfViewer && kfViewer.frames > 0", timeout=5_000)
@@ -348,13 +350,13 @@ def test_cli_stream_view_in_chromium(lsl_env, tmp_path):
             second.wait_for_function(f"kfViewer.frames > {n2 + 10}", timeout=10_000)
             seen["second"] = second.evaluate("kfViewer.frames")
             canvas2 = second.locator("#kf-viewer canvas").screenshot()
-        print(f"\nlive view screenshot: {tmp_path / 'live_view.png'}; first frame after "
-              f"{seen['first_frame_s']:.2f} s; frames seen {seen['first']} / {seen['second']}")  # fmt: skip
-        for name in ("stream", "replay"):
-            procs[name].wait(CHILD_TIMEOUT_S)
-    finally:
-        for p in procs.values():
-            _stop(p)
+            print(f"\nlive view screenshot: {tmp_path / 'live_view.png'}; first frame after "
+                  f"{seen['first_frame_s']:.2f} s; frames seen {seen['first']} / {seen['second']}")  # fmt: skip
+            for name in ("stream", "replay"):
+                procs[name].wait(CHILD_TIMEOUT_S)
+        finally:
+            for p in procs.values():
+                _stop(p)
     for name, p in procs.items():
         assert p.returncode == 0, f"{name} exited {p.returncode}:\n" + _text(tmp_path, name)
     assert log["errors"] == [] and log["blocked"] == []
