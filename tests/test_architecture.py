@@ -59,8 +59,6 @@ ALLOWED_LONG_MODULES: frozenset[str] = frozenset()
 #: ``path::qualified.name`` of public functions above MAX_FUNCTION_LINES lines of code.
 ALLOWED_LONG_FUNCTIONS: frozenset[str] = frozenset(
     {
-        "kinefuse/filters/_kernels_axis.py::kf_filter_axis",
-        "kinefuse/filters/_kernels_blocks.py::rts_blocks",
         "kinefuse/filters/_kernels_ufir.py::ufir_horizon_axes",
         "kinefuse/filters/_kernels_ufir.py::ufir_horizon_axis",
         "kinefuse/filters/_kernels_ufir_run.py::ufir_run",

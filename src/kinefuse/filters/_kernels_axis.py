@@ -21,8 +21,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinefuse._compile import njit
+from kinefuse._compile import njit, njit_inline
 from kinefuse.filters._kernels import chol_solve_spd, kf_predict, kf_update_status, mahalanobis
+from kinefuse.filters._kernels_blocks import _cov_step, rts2_step
 from kinefuse.filters._kernels_linalg import CHOL_FAILED, CHOL_REGULARISED
 
 __all__ = [
@@ -132,7 +133,8 @@ def kf_filter_axis(z, x, P, init, Fb, Qb, Hb, r, P0b, mean, cov, pos, obs, nu, d
 
     Outputs (preallocated; ``cov`` zero-filled by the caller): ``mean (B, T, n_x)``,
     ``cov (B, T, n_x, n_x)``, ``pos (B, T, n_z)``, ``obs (B, T)``, ``nu (B, T, n_z)``,
-    ``dist (B, T)`` (NIS ``νᵀS⁻¹ν = Σ_a ν_a²/S_a``, S diagonal).
+    ``dist (B, T)`` (NIS ``νᵀS⁻¹ν = Σ_a ν_a²/S_a``, S diagonal). The covariance arithmetic is
+    :func:`._kernels_blocks._cov_step` (general form), that of the block layout.
     """
     B, T, n_z = z.shape
     n_a = Fb.shape[0]
@@ -156,86 +158,12 @@ def kf_filter_axis(z, x, P, init, Fb, Qb, Hb, r, P0b, mean, cov, pos, obs, nu, d
                 if not valid:
                     _fill_nan_step(mean, cov, pos, obs, nu, dist, b, t)
                     continue
-                # SPEC §4.2 initialisation [J]: x₀ = H⁺ z (positions = z, velocities = 0), P₀
-                for a in range(n_a):
-                    h0 = Hb[a, 0]
-                    h1 = Hb[a, 1]
-                    hh = h0 * h0 + h1 * h1
-                    xs[a, 0] = h0 * z[b, t, a] / hh
-                    xs[a, 1] = h1 * z[b, t, a] / hh
-                    Ps[a, 0] = P0b[a, 0, 0]
-                    Ps[a, 1] = P0b[a, 0, 1]
-                    Ps[a, 2] = P0b[a, 1, 1]
-                    nu[b, t, a] = np.nan
+                _init_axes(z, b, t, Hb, P0b, xs, Ps, nu)
                 ini = True
                 obs[b, t] = True
                 dist[b, t] = np.nan
             else:
-                d = 0.0
-                updated = valid
-                for a in range(n_a):
-                    f00 = Fb[a, 0, 0]
-                    f01 = Fb[a, 0, 1]
-                    f10 = Fb[a, 1, 0]
-                    f11 = Fb[a, 1, 1]
-                    x0 = xs[a, 0]
-                    x1 = xs[a, 1]
-                    p00 = Ps[a, 0]
-                    p01 = Ps[a, 1]
-                    p11 = Ps[a, 2]
-                    # SPEC §4.2 kf_predict / paper A Eq. 5 (no noise term): x⁻ = F x
-                    xp0 = f00 * x0 + f01 * x1
-                    xp1 = f10 * x0 + f11 * x1
-                    # paper A Eq. 6 with P_{k-1}: P⁻ = F P Fᵀ + Q
-                    fp00 = f00 * p00 + f01 * p01
-                    fp01 = f00 * p01 + f01 * p11
-                    fp10 = f10 * p00 + f11 * p01
-                    fp11 = f10 * p01 + f11 * p11
-                    pp00 = fp00 * f00 + fp01 * f01 + Qb[a, 0, 0]
-                    pp01 = fp00 * f10 + fp01 * f11 + Qb[a, 0, 1]
-                    pp11 = fp10 * f10 + fp11 * f11 + Qb[a, 1, 1]
-                    if valid:
-                        h0 = Hb[a, 0]
-                        h1 = Hb[a, 1]
-                        ra = r[a]
-                        ph0 = pp00 * h0 + pp01 * h1  # P⁻ Hᵀ
-                        ph1 = pp01 * h0 + pp11 * h1
-                        S = h0 * ph0 + h1 * ph1 + ra  # Eq. 7: S = H P⁻ Hᵀ + R (scalar)
-                        if not (S > 0.0 and np.isfinite(S)):
-                            updated = False  # SPEC §13: cannot factorise S -> predict only
-                            xs[a, 0] = xp0
-                            xs[a, 1] = xp1
-                            Ps[a, 0] = pp00
-                            Ps[a, 1] = pp01
-                            Ps[a, 2] = pp11
-                            continue
-                        iS = 1.0 / S  # scalar S: its inverse is exact, no solve needed
-                        k0 = ph0 * iS  # Eq. 7: K = P⁻ Hᵀ S⁻¹
-                        k1 = ph1 * iS
-                        v = z[b, t, a] - (h0 * xp0 + h1 * xp1)  # ν = z − H x⁻
-                        xs[a, 0] = xp0 + k0 * v  # Eq. 8: x = x⁻ + K ν
-                        xs[a, 1] = xp1 + k1 * v
-                        a00 = 1.0 - k0 * h0  # A = I − K H
-                        a01 = -k0 * h1
-                        a10 = -k1 * h0
-                        a11 = 1.0 - k1 * h1
-                        ap00 = a00 * pp00 + a01 * pp01
-                        ap01 = a00 * pp01 + a01 * pp11
-                        ap10 = a10 * pp00 + a11 * pp01
-                        ap11 = a10 * pp01 + a11 * pp11
-                        # Eq. 9 (Joseph): P = A P⁻ Aᵀ + K R Kᵀ
-                        Ps[a, 0] = ap00 * a00 + ap01 * a01 + ra * k0 * k0
-                        Ps[a, 1] = ap00 * a10 + ap01 * a11 + ra * k0 * k1
-                        Ps[a, 2] = ap10 * a10 + ap11 * a11 + ra * k1 * k1
-                        nu[b, t, a] = v
-                        d += v * v * iS  # NIS νᵀS⁻¹ν, S diagonal across axes
-                    else:
-                        xs[a, 0] = xp0
-                        xs[a, 1] = xp1
-                        Ps[a, 0] = pp00
-                        Ps[a, 1] = pp01
-                        Ps[a, 2] = pp11
-                        nu[b, t, a] = np.nan
+                updated, d = _kf_axes_step(z, b, t, valid, Fb, Qb, Hb, r, xs, Ps, nu)
                 obs[b, t] = updated
                 if updated:
                     dist[b, t] = d
@@ -264,6 +192,64 @@ def kf_filter_axis(z, x, P, init, Fb, Qb, Hb, r, P0b, mean, cov, pos, obs, nu, d
                 P[b, i, i + 1] = Ps[a, 1]
                 P[b, i + 1, i] = Ps[a, 1]
                 P[b, i + 1, i + 1] = Ps[a, 2]
+
+
+@njit_inline
+def _init_axes(z, b, t, Hb, P0b, xs, Ps, nu):
+    """SPEC §4.2 initialisation [J]: ``x₀ = H⁺ z`` (positions = z, velocities = 0), ``P₀``."""
+    for a in range(xs.shape[0]):
+        h0 = Hb[a, 0]
+        h1 = Hb[a, 1]
+        hh = h0 * h0 + h1 * h1
+        xs[a, 0] = h0 * z[b, t, a] / hh
+        xs[a, 1] = h1 * z[b, t, a] / hh
+        Ps[a, 0] = P0b[a, 0, 0]
+        Ps[a, 1] = P0b[a, 0, 1]
+        Ps[a, 2] = P0b[a, 1, 1]
+        nu[b, t, a] = np.nan
+
+
+@njit_inline
+def _kf_axes_step(z, b, t, valid, Fb, Qb, Hb, r, xs, Ps, nu):
+    """One KF step of every axis in ``xs``/``Ps``; returns ``(updated, NIS)``.
+
+    ``updated`` is False if ``z`` is missing or an axis' ``S`` cannot be factorised (SPEC
+    §13: that axis predicts only; the caller then marks the whole step unobserved).
+    """
+    d = 0.0
+    updated = valid
+    for a in range(xs.shape[0]):
+        f00 = Fb[a, 0, 0]
+        f01 = Fb[a, 0, 1]
+        f10 = Fb[a, 1, 0]
+        f11 = Fb[a, 1, 1]
+        h0 = Hb[a, 0]
+        h1 = Hb[a, 1]
+        x0 = xs[a, 0]
+        x1 = xs[a, 1]
+        # SPEC §4.2 kf_predict / paper A Eq. 5 (no noise term): x⁻ = F x
+        xp0 = f00 * x0 + f01 * x1
+        xp1 = f10 * x0 + f11 * x1
+        p00, p01, p11, k0, k1, iS, upd = _cov_step(
+            Ps[a, 0], Ps[a, 1], Ps[a, 2], valid, False,
+            f00, f01, f10, f11, Qb[a, 0, 0], Qb[a, 0, 1], Qb[a, 1, 1], h0, h1, r[a],
+        )  # fmt: skip
+        Ps[a, 0] = p00
+        Ps[a, 1] = p01
+        Ps[a, 2] = p11
+        if upd:
+            v = z[b, t, a] - (h0 * xp0 + h1 * xp1)  # ν = z − H x⁻
+            xp0 = xp0 + k0 * v  # Eq. 8: x = x⁻ + K ν
+            xp1 = xp1 + k1 * v
+            nu[b, t, a] = v
+            d += v * v * iS  # NIS νᵀS⁻¹ν, S diagonal across axes
+        elif valid:
+            updated = False  # S could not be factorised
+        else:
+            nu[b, t, a] = np.nan
+        xs[a, 0] = xp0
+        xs[a, 1] = xp1
+    return updated, d
 
 
 @njit
@@ -382,50 +368,23 @@ def _rts_axis_pass(mean, cov, cov2, off, Fb, Qb, b, e, t0, sx, sP, sm_mean, sm_c
                 f11 = Fb[a, 1, 1]
                 m0 = mean[b, t, i]
                 m1 = mean[b, t, i + 1]
-                p00 = cov[b, t, i, i]
-                p01 = cov[b, t, i, i + 1]
-                p11 = cov[b, t, i + 1, i + 1]
-                # SPEC §9: P⁻_{t+1} = F P̂_t Fᵀ + Q (the filter's own prediction, recomputed)
-                fp00 = f00 * p00 + f01 * p01  # M = F P̂_t
-                fp01 = f00 * p01 + f01 * p11
-                fp10 = f10 * p00 + f11 * p01
-                fp11 = f10 * p01 + f11 * p11
-                pp00 = fp00 * f00 + fp01 * f01 + Qb[a, 0, 0]
-                pp01 = fp00 * f10 + fp01 * f11 + Qb[a, 0, 1]
-                pp11 = fp10 * f10 + fp11 * f11 + Qb[a, 1, 1]
-                # C_t = P̂_t Fᵀ (P⁻)⁻¹: solve Cᵀ = (P⁻)⁻¹ M by LDLᵀ of P⁻ (Cholesky, no sqrt)
-                l10 = pp01 / pp00
-                d1 = pp11 - l10 * pp01
-                if not (pp00 > 0.0 and d1 > 0.0):
-                    # P⁻ not PD: restart from the filtered estimate at t
+                ok, c00, c01, c10, c11, n00, n01, n11 = rts2_step(
+                    cov[b, t, i, i], cov[b, t, i, i + 1], cov[b, t, i + 1, i + 1],
+                    sP[a, 0], sP[a, 1], sP[a, 2], False,
+                    f00, f01, f10, f11, Qb[a, 0, 0], Qb[a, 0, 1], Qb[a, 1, 1],
+                )  # fmt: skip
+                sP[a, 0] = n00
+                sP[a, 1] = n01
+                sP[a, 2] = n11
+                if not ok:  # P⁻ not PD: restart from the filtered estimate at t
                     sx[a, 0] = m0
                     sx[a, 1] = m1
-                    sP[a, 0] = p00
-                    sP[a, 1] = p01
-                    sP[a, 2] = p11
                     continue
-                id0 = 1.0 / pp00
-                id1 = 1.0 / d1
-                c01 = (fp10 - l10 * fp00) * id1
-                c00 = fp00 * id0 - l10 * c01
-                c11 = (fp11 - l10 * fp01) * id1
-                c10 = fp01 * id0 - l10 * c11
                 # x̃_t = x̂_t + C (x̃_{t+1} − F x̂_t)
                 e0 = sx[a, 0] - (f00 * m0 + f01 * m1)
                 e1 = sx[a, 1] - (f10 * m0 + f11 * m1)
                 sx[a, 0] = m0 + c00 * e0 + c01 * e1
                 sx[a, 1] = m1 + c10 * e0 + c11 * e1
-                # P̃_t = P̂_t + C (P̃_{t+1} − P⁻_{t+1}) Cᵀ
-                d00 = sP[a, 0] - pp00
-                d01 = sP[a, 1] - pp01
-                d11 = sP[a, 2] - pp11
-                cd00 = c00 * d00 + c01 * d01
-                cd01 = c00 * d01 + c01 * d11
-                cd10 = c10 * d00 + c11 * d01
-                cd11 = c10 * d01 + c11 * d11
-                sP[a, 0] = p00 + cd00 * c00 + cd01 * c01
-                sP[a, 1] = p01 + cd00 * c10 + cd01 * c11
-                sP[a, 2] = p11 + cd10 * c10 + cd11 * c11
         if store:
             for a in range(n_a):
                 i = 2 * a

@@ -23,9 +23,9 @@ independent joints per time step hides the latency of each joint's serial recurs
 writes stay a few sequential streams (a vectorisation across the batch axis by the CPU's
 out-of-order engine; the output layout ``(B, T, ...)`` rules out SIMD lanes over joints).
 
-The per-axis arithmetic is line for line that of :func:`._kernels_axis.kf_filter_axis` (which
-keeps the full-matrix layout and is the reference the tests compare against, together with the
-dense :func:`._kernels_axis.kf_filter_dense` and filterpy).
+The 2x2 block arithmetic (:func:`_cov_step` forward, :func:`rts2_step` backward) is written
+once here and shared with :mod:`._kernels_axis` (the full-matrix layout, which the tests compare
+against, together with the dense :func:`._kernels_axis.kf_filter_dense` and filterpy).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ import numpy as np
 
 from kinefuse._compile import njit, njit_inline
 
-__all__ = ["CHUNK", "kf_filter_blocks", "rts_blocks"]
+__all__ = ["CHUNK", "kf_filter_blocks", "rts2_step", "rts_blocks"]
 
 #: Joints interleaved per time step.
 CHUNK = 8
@@ -103,6 +103,79 @@ def _cov_step(p00, p01, p11, valid, cv, f00, f01, f10, f11, q00, q01, q11, h0, h
     n01 = ap00 * a10 + ap01 * a11 + ra * k0 * k1
     n11 = ap10 * a10 + ap11 * a11 + ra * k1 * k1
     return n00, n01, n11, k0, k1, iS, True
+
+
+@njit_inline
+def rts2_step(p00, p01, p11, s00, s01, s11, cv, f00, f01, f10, f11, q00, q01, q11):
+    """One backward RTS step of a 2x2 covariance block (SPEC §9).
+
+    ``p``: the filtered ``P̂_t``; ``s``: the smoothed ``P̃_{t+1}``; ``cv`` as in
+    :func:`_cov_step`. Returns ``(ok, c00, c01, c10, c11, n00, n01, n11)``: the gain ``C_t``
+    and ``P̃_t``; ``ok`` False when ``P⁻_{t+1}`` is not positive definite (``n`` is then ``p``:
+    the caller restarts the pass from the filtered estimate at ``t``).
+    """
+    # P⁻_{t+1} = F P̂_t Fᵀ + Q (the filter's own prediction, recomputed), M = F P̂_t;
+    # constant-velocity blocks with the exact 0/1 terms dropped
+    if cv:
+        fp00 = p00 + f01 * p01
+        fp01 = p01 + f01 * p11
+        fp10 = p01
+        fp11 = p11
+        pp00 = fp00 + fp01 * f01 + q00
+        pp01 = fp01 + q01
+        pp11 = p11 + q11
+    else:
+        fp00 = f00 * p00 + f01 * p01
+        fp01 = f00 * p01 + f01 * p11
+        fp10 = f10 * p00 + f11 * p01
+        fp11 = f10 * p01 + f11 * p11
+        pp00 = fp00 * f00 + fp01 * f01 + q00
+        pp01 = fp00 * f10 + fp01 * f11 + q01
+        pp11 = fp10 * f10 + fp11 * f11 + q11
+    # C_t = P̂_t Fᵀ (P⁻)⁻¹: solve Cᵀ = (P⁻)⁻¹ M by LDLᵀ of P⁻ (no sqrt)
+    l10 = pp01 / pp00
+    d1 = pp11 - l10 * pp01
+    if not (pp00 > 0.0 and d1 > 0.0):
+        return False, 0.0, 0.0, 0.0, 0.0, p00, p01, p11
+    id0 = 1.0 / pp00
+    id1 = 1.0 / d1
+    c01 = (fp10 - l10 * fp00) * id1
+    c00 = fp00 * id0 - l10 * c01
+    c11 = (fp11 - l10 * fp01) * id1
+    c10 = fp01 * id0 - l10 * c11
+    # P̃_t = P̂_t + C (P̃_{t+1} − P⁻_{t+1}) Cᵀ
+    d00 = s00 - pp00
+    d01 = s01 - pp01
+    d11 = s11 - pp11
+    cd00 = c00 * d00 + c01 * d01
+    cd01 = c00 * d01 + c01 * d11
+    cd10 = c10 * d00 + c11 * d01
+    cd11 = c10 * d01 + c11 * d11
+    n00 = p00 + cd00 * c00 + cd01 * c01
+    n01 = p01 + cd00 * c10 + cd01 * c11
+    n11 = p11 + cd10 * c10 + cd11 * c11
+    return True, c00, c01, c10, c11, n00, n01, n11
+
+
+@njit_inline
+def _rts_mean_step(mean, b, t, par, cv, C, n_c, sx):
+    """``x̃_t = x̂_t + C (x̃_{t+1} − F x̂_t)`` per axis, in ``sx``; ``C[c, 4] == 0``: restart."""
+    for a in range(par.shape[0]):
+        c = 0 if n_c == 1 else a
+        m0 = mean[b, t, 2 * a]
+        m1 = mean[b, t, 2 * a + 1]
+        if C[c, 4] == 0.0:
+            sx[a, 0] = m0
+            sx[a, 1] = m1
+            continue
+        if cv[a]:
+            e0 = sx[a, 0] - (m0 + par[a, 1] * m1)
+            e1 = sx[a, 1] - m1
+        else:
+            e0 = sx[a, 0] - (par[a, 0] * m0 + par[a, 1] * m1)
+            e1 = sx[a, 1] - (par[a, 2] * m0 + par[a, 3] * m1)
+        sx[a, 0] = m0 + C[c, 0] * e0 + C[c, 1] * e1
+        sx[a, 1] = m1 + C[c, 2] * e0 + C[c, 3] * e1
 
 
 @njit
@@ -282,7 +355,7 @@ def rts_blocks(mean, covb, mask, par, sm_mean, sm_covb, sm_pos):
     other samples are copied. Outputs ``sm_mean``, ``sm_covb`` (same shapes) and ``sm_pos
     (B, T, n_a)`` (``H x̃``; zero-length first axis = not wanted). A step whose ``P⁻`` is not
     positive definite restarts the pass from the filtered estimate at that sample (as
-    :func:`._kernels_axis.rts_axis`, whose arithmetic this is).
+    :func:`._kernels_axis.rts_axis`; both step with :func:`rts2_step`).
     """
     B, T, n_x = mean.shape
     n_a = par.shape[0]
@@ -315,79 +388,20 @@ def rts_blocks(mean, covb, mask, par, sm_mean, sm_covb, sm_pos):
                 nxt_ok = True
             else:
                 for c in range(n_c):
-                    f00 = par[c, 0]
-                    f01 = par[c, 1]
-                    f10 = par[c, 2]
-                    f11 = par[c, 3]
-                    p00 = covb[b, t, c, 0]
-                    p01 = covb[b, t, c, 1]
-                    p11 = covb[b, t, c, 2]
-                    # SPEC §9: P⁻_{t+1} = F P̂_t Fᵀ + Q (the filter's own prediction, recomputed),
-                    # M = F P̂_t; constant-velocity blocks with the exact 0/1 terms dropped
-                    if cv[c]:
-                        fp00 = p00 + f01 * p01
-                        fp01 = p01 + f01 * p11
-                        fp10 = p01
-                        fp11 = p11
-                        pp00 = fp00 + fp01 * f01 + par[c, 4]
-                        pp01 = fp01 + par[c, 5]
-                        pp11 = p11 + par[c, 6]
-                    else:
-                        fp00 = f00 * p00 + f01 * p01
-                        fp01 = f00 * p01 + f01 * p11
-                        fp10 = f10 * p00 + f11 * p01
-                        fp11 = f10 * p01 + f11 * p11
-                        pp00 = fp00 * f00 + fp01 * f01 + par[c, 4]
-                        pp01 = fp00 * f10 + fp01 * f11 + par[c, 5]
-                        pp11 = fp10 * f10 + fp11 * f11 + par[c, 6]
-                    # C_t = P̂_t Fᵀ (P⁻)⁻¹: solve Cᵀ = (P⁻)⁻¹ M by LDLᵀ of P⁻ (no sqrt)
-                    l10 = pp01 / pp00
-                    d1 = pp11 - l10 * pp01
-                    if not (pp00 > 0.0 and d1 > 0.0):
-                        C[c, 4] = 0.0  # P⁻ not PD: restart from the filtered estimate at t
-                        sP[c, 0] = p00
-                        sP[c, 1] = p01
-                        sP[c, 2] = p11
-                        continue
-                    id0 = 1.0 / pp00
-                    id1 = 1.0 / d1
-                    c01 = (fp10 - l10 * fp00) * id1
-                    c00 = fp00 * id0 - l10 * c01
-                    c11 = (fp11 - l10 * fp01) * id1
-                    c10 = fp01 * id0 - l10 * c11
+                    ok, c00, c01, c10, c11, n00, n01, n11 = rts2_step(
+                        covb[b, t, c, 0], covb[b, t, c, 1], covb[b, t, c, 2],
+                        sP[c, 0], sP[c, 1], sP[c, 2], cv[c],
+                        par[c, 0], par[c, 1], par[c, 2], par[c, 3], par[c, 4], par[c, 5], par[c, 6],
+                    )  # fmt: skip
                     C[c, 0] = c00
                     C[c, 1] = c01
                     C[c, 2] = c10
                     C[c, 3] = c11
-                    C[c, 4] = 1.0
-                    # P̃_t = P̂_t + C (P̃_{t+1} − P⁻_{t+1}) Cᵀ
-                    d00 = sP[c, 0] - pp00
-                    d01 = sP[c, 1] - pp01
-                    d11 = sP[c, 2] - pp11
-                    cd00 = c00 * d00 + c01 * d01
-                    cd01 = c00 * d01 + c01 * d11
-                    cd10 = c10 * d00 + c11 * d01
-                    cd11 = c10 * d01 + c11 * d11
-                    sP[c, 0] = p00 + cd00 * c00 + cd01 * c01
-                    sP[c, 1] = p01 + cd00 * c10 + cd01 * c11
-                    sP[c, 2] = p11 + cd10 * c10 + cd11 * c11
-                for a in range(n_a):
-                    c = 0 if n_c == 1 else a
-                    m0 = mean[b, t, 2 * a]
-                    m1 = mean[b, t, 2 * a + 1]
-                    if C[c, 4] == 0.0:
-                        sx[a, 0] = m0
-                        sx[a, 1] = m1
-                        continue
-                    # x̃_t = x̂_t + C (x̃_{t+1} − F x̂_t)
-                    if cv[a]:
-                        e0 = sx[a, 0] - (m0 + par[a, 1] * m1)
-                        e1 = sx[a, 1] - m1
-                    else:
-                        e0 = sx[a, 0] - (par[a, 0] * m0 + par[a, 1] * m1)
-                        e1 = sx[a, 1] - (par[a, 2] * m0 + par[a, 3] * m1)
-                    sx[a, 0] = m0 + C[c, 0] * e0 + C[c, 1] * e1
-                    sx[a, 1] = m1 + C[c, 2] * e0 + C[c, 3] * e1
+                    C[c, 4] = 1.0 if ok else 0.0  # not ok: restart from the filtered estimate
+                    sP[c, 0] = n00
+                    sP[c, 1] = n01
+                    sP[c, 2] = n11
+                _rts_mean_step(mean, b, t, par, cv, C, n_c, sx)
             if usable:
                 for a in range(n_a):
                     sm_mean[b, t, 2 * a] = sx[a, 0]
