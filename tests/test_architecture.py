@@ -57,14 +57,7 @@ ALLOWED_FUNCTION_IMPORTS: frozenset[str] = frozenset()
 ALLOWED_LONG_MODULES: frozenset[str] = frozenset()
 
 #: ``path::qualified.name`` of public functions above MAX_FUNCTION_LINES lines of code.
-ALLOWED_LONG_FUNCTIONS: frozenset[str] = frozenset(
-    {
-        "kinefuse/filters/_kernels_ufir.py::ufir_horizon_axes",
-        "kinefuse/filters/_kernels_ufir.py::ufir_horizon_axis",
-        "kinefuse/filters/_kernels_ufir_run.py::ufir_run",
-        "kinefuse/filters/_kernels_ufir_run.py::ufir_run_cv",
-    }
-)
+ALLOWED_LONG_FUNCTIONS: frozenset[str] = frozenset()
 
 
 # ---- the source model ------------------------------------------------------------------------

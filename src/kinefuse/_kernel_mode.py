@@ -57,6 +57,7 @@ _interpret = False
 KERNEL_MODULES = (
     "kinefuse.filters._kernels",
     "kinefuse.filters._kernels_axis",
+    "kinefuse.filters._kernels_block2",
     "kinefuse.filters._kernels_blocks",
     "kinefuse.filters._kernels_common",
     "kinefuse.filters._kernels_em",

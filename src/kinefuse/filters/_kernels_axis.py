@@ -171,14 +171,8 @@ def kf_filter_axis(z, x, P, init, Fb, Qb, Hb, r, P0b, mean, cov, pos, obs, nu, d
                     dist[b, t] = np.nan
                     for a in range(n_z):
                         nu[b, t, a] = np.nan
+            _put_axis_states(mean, cov, b, t, xs, Ps)
             for a in range(n_a):
-                i = 2 * a
-                mean[b, t, i] = xs[a, 0]
-                mean[b, t, i + 1] = xs[a, 1]
-                cov[b, t, i, i] = Ps[a, 0]
-                cov[b, t, i, i + 1] = Ps[a, 1]
-                cov[b, t, i + 1, i] = Ps[a, 1]
-                cov[b, t, i + 1, i + 1] = Ps[a, 2]
                 pos[b, t, a] = Hb[a, 0] * xs[a, 0] + Hb[a, 1] * xs[a, 1]
         init[b] = ini
         if ini:
@@ -192,6 +186,20 @@ def kf_filter_axis(z, x, P, init, Fb, Qb, Hb, r, P0b, mean, cov, pos, obs, nu, d
                 P[b, i, i + 1] = Ps[a, 1]
                 P[b, i + 1, i] = Ps[a, 1]
                 P[b, i + 1, i + 1] = Ps[a, 2]
+
+
+@njit_inline
+def _put_axis_states(mean, cov, b, t, xs, Ps):
+    """Per-axis states ``xs (n_a, 2)`` and blocks ``Ps (n_a, 3)`` into ``mean[b, t]`` and the
+    axis blocks of ``cov[b, t]`` (full-matrix layout)."""
+    for a in range(xs.shape[0]):
+        i = 2 * a
+        mean[b, t, i] = xs[a, 0]
+        mean[b, t, i + 1] = xs[a, 1]
+        cov[b, t, i, i] = Ps[a, 0]
+        cov[b, t, i, i + 1] = Ps[a, 1]
+        cov[b, t, i + 1, i] = Ps[a, 1]
+        cov[b, t, i + 1, i + 1] = Ps[a, 2]
 
 
 @njit_inline
@@ -386,14 +394,7 @@ def _rts_axis_pass(mean, cov, cov2, off, Fb, Qb, b, e, t0, sx, sP, sm_mean, sm_c
                 sx[a, 0] = m0 + c00 * e0 + c01 * e1
                 sx[a, 1] = m1 + c10 * e0 + c11 * e1
         if store:
-            for a in range(n_a):
-                i = 2 * a
-                sm_mean[b, t, i] = sx[a, 0]
-                sm_mean[b, t, i + 1] = sx[a, 1]
-                sm_cov[b, t, i, i] = sP[a, 0]
-                sm_cov[b, t, i, i + 1] = sP[a, 1]
-                sm_cov[b, t, i + 1, i] = sP[a, 1]
-                sm_cov[b, t, i + 1, i + 1] = sP[a, 2]
+            _put_axis_states(sm_mean, sm_cov, b, t, sx, sP)
     return True
 
 

@@ -33,6 +33,7 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit, njit_inline
+from kinefuse.filters._kernels_block2 import cov2_predict, joseph2
 
 __all__ = ["CHUNK", "kf_filter_blocks", "rts2_step", "rts_blocks"]
 
@@ -56,13 +57,9 @@ def _cov_step(p00, p01, p11, valid, cv, f00, f01, f10, f11, q00, q01, q11, h0, h
         pp01 = fp01 + q01
         pp11 = p11 + q11
     else:
-        fp00 = f00 * p00 + f01 * p01
-        fp01 = f00 * p01 + f01 * p11
-        fp10 = f10 * p00 + f11 * p01
-        fp11 = f10 * p01 + f11 * p11
-        pp00 = fp00 * f00 + fp01 * f01 + q00
-        pp01 = fp00 * f10 + fp01 * f11 + q01
-        pp11 = fp10 * f10 + fp11 * f11 + q11
+        pp00, pp01, pp11, _, _, _, _ = cov2_predict(
+            p00, p01, p11, f00, f01, f10, f11, q00, q01, q11
+        )
     if not valid:
         return pp00, pp01, pp11, 0.0, 0.0, 0.0, False
     if cv:
@@ -90,18 +87,7 @@ def _cov_step(p00, p01, p11, valid, cv, f00, f01, f10, f11, q00, q01, q11, h0, h
     iS = 1.0 / S  # scalar S: its inverse is exact, no solve needed
     k0 = ph0 * iS  # Eq. 7: K = P⁻ Hᵀ S⁻¹
     k1 = ph1 * iS
-    a00 = 1.0 - k0 * h0  # A = I − K H
-    a01 = -k0 * h1
-    a10 = -k1 * h0
-    a11 = 1.0 - k1 * h1
-    ap00 = a00 * pp00 + a01 * pp01
-    ap01 = a00 * pp01 + a01 * pp11
-    ap10 = a10 * pp00 + a11 * pp01
-    ap11 = a10 * pp01 + a11 * pp11
-    # Eq. 9 (Joseph): P = A P⁻ Aᵀ + K R Kᵀ
-    n00 = ap00 * a00 + ap01 * a01 + ra * k0 * k0
-    n01 = ap00 * a10 + ap01 * a11 + ra * k0 * k1
-    n11 = ap10 * a10 + ap11 * a11 + ra * k1 * k1
+    n00, n01, n11 = joseph2(pp00, pp01, pp11, k0, k1, h0, h1, ra)  # Eq. 9 (Joseph)
     return n00, n01, n11, k0, k1, iS, True
 
 
@@ -125,13 +111,9 @@ def rts2_step(p00, p01, p11, s00, s01, s11, cv, f00, f01, f10, f11, q00, q01, q1
         pp01 = fp01 + q01
         pp11 = p11 + q11
     else:
-        fp00 = f00 * p00 + f01 * p01
-        fp01 = f00 * p01 + f01 * p11
-        fp10 = f10 * p00 + f11 * p01
-        fp11 = f10 * p01 + f11 * p11
-        pp00 = fp00 * f00 + fp01 * f01 + q00
-        pp01 = fp00 * f10 + fp01 * f11 + q01
-        pp11 = fp10 * f10 + fp11 * f11 + q11
+        pp00, pp01, pp11, fp00, fp01, fp10, fp11 = cov2_predict(
+            p00, p01, p11, f00, f01, f10, f11, q00, q01, q11
+        )
     # C_t = P̂_t Fᵀ (P⁻)⁻¹: solve Cᵀ = (P⁻)⁻¹ M by LDLᵀ of P⁻ (no sqrt)
     l10 = pp01 / pp00
     d1 = pp11 - l10 * pp01

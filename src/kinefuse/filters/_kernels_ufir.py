@@ -29,6 +29,7 @@ import numpy as np
 # of the array arguments (see :mod:`._kernels_common`)
 from kinefuse._compile import njit, njit_inline
 from kinefuse.filters._kernels import symmetrize
+from kinefuse.filters._kernels_block2 import cov2_predict, info2_back, joseph2, mat2_finv
 from kinefuse.filters._kernels_linalg import chol_shifted
 
 #: Relative pivot below which ``CᵀC`` is declared rank deficient (SPEC §6.3).
@@ -183,6 +184,60 @@ def ufir_horizon(zr, k, N, K, F, Finv, H, Q, R, xs, Ps, stored, x_out, P_out):
     return True
 
 
+@njit_inline
+def _axis_params(Fa, Finva, Ha, Qa, Ra, a):
+    """The 2×2 model blocks of axis ``a`` as scalars: ``F``, ``F⁻¹``, ``h``, ``Q``, ``r``."""
+    return (
+        Fa[a, 0, 0], Fa[a, 0, 1], Fa[a, 1, 0], Fa[a, 1, 1],
+        Finva[a, 0, 0], Finva[a, 0, 1], Finva[a, 1, 0], Finva[a, 1, 1],
+        Ha[a, 0, 0], Ha[a, 0, 1], Qa[a, 0, 0], Qa[a, 0, 1], Qa[a, 1, 1], Ra[a, 0, 0],
+    )  # fmt: skip
+
+
+@njit_inline
+def _first_valid(zr, col, m, k, N, K, idx):
+    """The first ``K`` valid times of ``[m, k]`` (column ``col`` of the ring) into ``idx``;
+    returns how many were found (``< K``: the horizon is not usable)."""
+    nv = 0
+    for t in range(m, k + 1):
+        if not np.isnan(zr[t % N, col]):
+            idx[nv] = t
+            nv += 1
+            if nv == K:
+                break
+    return nv
+
+
+@njit_inline
+def _c_row(t, tcur, p00, p01, p10, p11, o00, o01, o11, i00, i01, i10, i11, h0, h1):
+    """Batch init (SPEC §6.3): the row ``c = h F^{-(s-t)}`` of ``C`` for valid time ``t``.
+
+    ``Φ = [p]`` is ``F^{-(s-tcur)}``, stepped back to ``t`` (rows come newest first); ``c cᵀ``
+    is added to ``CᵀC = [o]``. Returns ``(t, Φ, CᵀC, c0, c1)``.
+    """
+    while tcur > t:
+        p00, p01, p10, p11 = mat2_finv(p00, p01, p10, p11, i00, i01, i10, i11)
+        tcur -= 1
+    c0 = h0 * p00 + h1 * p10
+    c1 = h0 * p01 + h1 * p11
+    return tcur, p00, p01, p10, p11, o00 + c0 * c0, o01 + c0 * c1, o11 + c1 * c1, c0, c1
+
+
+@njit_inline
+def _info_gain(o00, o01, o11, h0, h1):
+    """``G⁻¹ = hᵀh + inv(F G Fᵀ)`` and the UFIR gain ``k = G hᵀ`` (Eq. 26 corrected).
+
+    Returns ``(o00, o01, o11, k0, k1)``.
+    """
+    o00 += h0 * h0
+    o01 += h0 * h1
+    o11 += h1 * h1
+    det = o00 * o11 - o01 * o01
+    k0 = (o11 * h0 - o01 * h1) / det
+    k1 = (o00 * h1 - o01 * h0) / det
+    return o00, o01, o11, k0, k1
+
+
 @njit
 def ufir_horizon_axis(zr, a, k, N, K, Fa, Finva, Ha, Qa, Ra, xs, Ps, stored, idx):
     """Per-axis 2-state form of :func:`ufir_horizon` in scalar arithmetic (no allocation).
@@ -194,111 +249,49 @@ def ufir_horizon_axis(zr, a, k, N, K, Fa, Finva, Ha, Qa, Ra, xs, Ps, stored, idx
 
     Returns ``(ok, x0, x1, p00, p01, p11)``.
     """
-    f00, f01, f10, f11 = Fa[a, 0, 0], Fa[a, 0, 1], Fa[a, 1, 0], Fa[a, 1, 1]
-    i00, i01, i10, i11 = Finva[a, 0, 0], Finva[a, 0, 1], Finva[a, 1, 0], Finva[a, 1, 1]
-    h0, h1 = Ha[a, 0, 0], Ha[a, 0, 1]
-    q00, q01, q11 = Qa[a, 0, 0], Qa[a, 0, 1], Qa[a, 1, 1]
-    r = Ra[a, 0, 0]
-    m = k - N + 1
-    nv = 0
-    for t in range(m, k + 1):
-        if not np.isnan(zr[t % N, a]):
-            idx[nv] = t
-            nv += 1
-            if nv == K:
-                break
-    if nv < K:
+    f00, f01, f10, f11, i00, i01, i10, i11, h0, h1, q00, q01, q11, r = _axis_params(
+        Fa, Finva, Ha, Qa, Ra, a
+    )
+    if _first_valid(zr, a, k - N + 1, k, N, K, idx) < K:
         return False, 0.0, 0.0, 0.0, 0.0, 0.0
     s = idx[K - 1]
     # CᵀC and Cᵀ Z with rows c = h F^{-(s-t)}, walking back from s (Φ = F^{-(s-t)})
     p00, p01, p10, p11 = 1.0, 0.0, 0.0, 1.0
     tcur = s
-    o00 = 0.0
-    o01 = 0.0
-    o11 = 0.0
-    y0 = 0.0
-    y1 = 0.0
+    o00 = o01 = o11 = y0 = y1 = 0.0
     for q in range(K - 1, -1, -1):
         t = idx[q]
-        while tcur > t:
-            n00 = p00 * i00 + p01 * i10
-            n01 = p00 * i01 + p01 * i11
-            n10 = p10 * i00 + p11 * i10
-            n11 = p10 * i01 + p11 * i11
-            p00, p01, p10, p11 = n00, n01, n10, n11
-            tcur -= 1
-        c0 = h0 * p00 + h1 * p10
-        c1 = h0 * p01 + h1 * p11
+        tcur, p00, p01, p10, p11, o00, o01, o11, c0, c1 = _c_row(
+            t, tcur, p00, p01, p10, p11, o00, o01, o11, i00, i01, i10, i11, h0, h1
+        )
         zv = zr[t % N, a]
-        o00 += c0 * c0
-        o01 += c0 * c1
-        o11 += c1 * c1
         y0 += c0 * zv
         y1 += c1 * zv
     det = o00 * o11 - o01 * o01
     if not (o00 > 0.0) or not (det > RANK_TOL * o00 * o11):
         return False, 0.0, 0.0, 0.0, 0.0, 0.0  # rank(C) < 2
-    g00 = o11 / det
-    g01 = -o01 / det
-    g11 = o00 / det
+    g00, g01, g11 = o11 / det, -o01 / det, o00 / det
     x0 = g00 * y0 + g01 * y1  # x̂_s = G_s Cᵀ Z
     x1 = g01 * y0 + g11 * y1
-    P00 = r * g00  # P_s = G_s Cᵀ (I⊗r) C G_s = r G_s
-    P01 = r * g01
-    P11 = r * g11
+    P00, P01, P11 = r * g00, r * g01, r * g11  # P_s = G_s Cᵀ (I⊗r) C G_s = r G_s
     lo = 2 * a
-    if stored and s < k:
+    if stored and s < k and np.isfinite(xs[s % N, lo]):  # init="stored": x̂_s, P̂_s
         sl = s % N
-        if np.isfinite(xs[sl, lo]):
-            x0 = xs[sl, lo]
-            x1 = xs[sl, lo + 1]
-            P00 = Ps[sl, lo, lo]
-            P01 = 0.5 * (Ps[sl, lo, lo + 1] + Ps[sl, lo + 1, lo])
-            P11 = Ps[sl, lo + 1, lo + 1]
+        x0, x1 = xs[sl, lo], xs[sl, lo + 1]
+        P00, P01 = Ps[sl, lo, lo], 0.5 * (Ps[sl, lo, lo + 1] + Ps[sl, lo + 1, lo])
+        P11 = Ps[sl, lo + 1, lo + 1]
     for l in range(s + 1, k + 1):
-        # Eqs. 24-25: x⁻ = F x, P⁻ = F P Fᵀ + Q
-        n0 = f00 * x0 + f01 * x1
-        n1 = f10 * x0 + f11 * x1
-        x0, x1 = n0, n1
-        a00 = f00 * P00 + f01 * P01
-        a01 = f00 * P01 + f01 * P11
-        a10 = f10 * P00 + f11 * P01
-        a11 = f10 * P01 + f11 * P11
-        P00 = a00 * f00 + a01 * f01 + q00
-        P01 = a00 * f10 + a01 * f11 + q01
-        P11 = a10 * f10 + a11 * f11 + q11
-        # inv(F G Fᵀ) = F⁻ᵀ G⁻¹ F⁻¹
-        b00 = i00 * o00 + i10 * o01
-        b01 = i00 * o01 + i10 * o11
-        b10 = i01 * o00 + i11 * o01
-        b11 = i01 * o01 + i11 * o11
-        o00 = b00 * i00 + b01 * i10
-        o01 = b00 * i01 + b01 * i11
-        o11 = b10 * i01 + b11 * i11
+        x0, x1 = f00 * x0 + f01 * x1, f10 * x0 + f11 * x1  # Eq. 24: x⁻ = F x
+        P00, P01, P11, _, _, _, _ = cov2_predict(P00, P01, P11, f00, f01, f10, f11, q00, q01, q11)
+        o00, o01, o11 = info2_back(o00, o01, o11, i00, i01, i10, i11)  # inv(F G Fᵀ)
         zv = zr[l % N, a]
         if np.isnan(zv):
             continue
-        o00 += h0 * h0  # G⁻¹ = HᵀH + inv(F G Fᵀ)
-        o01 += h0 * h1
-        o11 += h1 * h1
-        det = o00 * o11 - o01 * o01
-        k0 = (o11 * h0 - o01 * h1) / det  # K = G Hᵀ (Eq. 26 corrected)
-        k1 = (o00 * h1 - o01 * h0) / det
+        o00, o01, o11, k0, k1 = _info_gain(o00, o01, o11, h0, h1)
         inn = zv - (h0 * x0 + h1 * x1)
         x0 += k0 * inn  # Eq. 27
         x1 += k1 * inn
-        # Eq. 28 Joseph: A P Aᵀ + K r Kᵀ, A = I − K h
-        m00 = 1.0 - k0 * h0
-        m01 = -k0 * h1
-        m10 = -k1 * h0
-        m11 = 1.0 - k1 * h1
-        a00 = m00 * P00 + m01 * P01
-        a01 = m00 * P01 + m01 * P11
-        a10 = m10 * P00 + m11 * P01
-        a11 = m10 * P01 + m11 * P11
-        P00 = a00 * m00 + a01 * m01 + r * k0 * k0
-        P01 = a00 * m10 + a01 * m11 + r * k0 * k1
-        P11 = a10 * m10 + a11 * m11 + r * k1 * k1
+        P00, P01, P11 = joseph2(P00, P01, P11, k0, k1, h0, h1, r)  # Eq. 28
     return True, x0, x1, P00, P01, P11
 
 
@@ -320,6 +313,31 @@ def _same_blocks(Fa, Finva, Ha, Qa, Ra):
 
 
 @njit_inline
+def _same_missing(zr, m, k, N):
+    """True when every row of the horizon ``[m, k]`` is missing on all axes or on none."""
+    for t in range(m, k + 1):
+        miss = np.isnan(zr[t % N, 0])
+        for a in range(1, zr.shape[1]):
+            if np.isnan(zr[t % N, a]) != miss:
+                return False
+    return True
+
+
+@njit_inline
+def _put_axes(xx, P00, P01, P11, x_out, P_out):
+    """Write the per-axis states ``xx (2, n_axes)`` and the shared block into ``x_out, P_out``."""
+    P_out[:, :] = 0.0
+    for a in range(xx.shape[1]):
+        lo = 2 * a
+        x_out[lo] = xx[0, a]
+        x_out[lo + 1] = xx[1, a]
+        P_out[lo, lo] = P00
+        P_out[lo, lo + 1] = P01
+        P_out[lo + 1, lo] = P01
+        P_out[lo + 1, lo + 1] = P11
+
+
+@njit_inline
 def ufir_horizon_axes(zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, x_out, P_out):
     """:func:`ufir_horizon_axis` for all axes at once when they share blocks and missing samples.
 
@@ -336,50 +354,23 @@ def ufir_horizon_axes(zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, x_out, P_out)
     """
     n_ax = Fa.shape[0]
     m = k - N + 1
-    if not _same_blocks(Fa, Finva, Ha, Qa, Ra):
+    if not _same_blocks(Fa, Finva, Ha, Qa, Ra) or not _same_missing(zr, m, k, N):
         return 0
-    for t in range(m, k + 1):
-        miss = np.isnan(zr[t % N, 0])
-        for a in range(1, n_ax):
-            if np.isnan(zr[t % N, a]) != miss:
-                return 0
-    f00, f01, f10, f11 = Fa[0, 0, 0], Fa[0, 0, 1], Fa[0, 1, 0], Fa[0, 1, 1]
-    i00, i01, i10, i11 = Finva[0, 0, 0], Finva[0, 0, 1], Finva[0, 1, 0], Finva[0, 1, 1]
-    h0, h1 = Ha[0, 0, 0], Ha[0, 0, 1]
-    q00, q01, q11 = Qa[0, 0, 0], Qa[0, 0, 1], Qa[0, 1, 1]
-    r = Ra[0, 0, 0]
-    nv = 0
-    for t in range(m, k + 1):
-        if not np.isnan(zr[t % N, 0]):
-            idx[nv] = t
-            nv += 1
-            if nv == K:
-                break
-    if nv < K:
+    f00, f01, f10, f11, i00, i01, i10, i11, h0, h1, q00, q01, q11, r = _axis_params(
+        Fa, Finva, Ha, Qa, Ra, 0
+    )
+    if _first_valid(zr, 0, m, k, N, K, idx) < K:
         return 2
     s = idx[K - 1]
-    for a in range(n_ax):  # per-axis Cᵀ Z, then the state [position, velocity]
-        xx[0, a] = 0.0
-        xx[1, a] = 0.0
+    xx[:, :] = 0.0  # per-axis Cᵀ Z, then the state [position, velocity]
     p00, p01, p10, p11 = 1.0, 0.0, 0.0, 1.0
     tcur = s
-    o00 = 0.0
-    o01 = 0.0
-    o11 = 0.0
+    o00 = o01 = o11 = 0.0
     for q in range(K - 1, -1, -1):
         t = idx[q]
-        while tcur > t:
-            n00 = p00 * i00 + p01 * i10
-            n01 = p00 * i01 + p01 * i11
-            n10 = p10 * i00 + p11 * i10
-            n11 = p10 * i01 + p11 * i11
-            p00, p01, p10, p11 = n00, n01, n10, n11
-            tcur -= 1
-        c0 = h0 * p00 + h1 * p10
-        c1 = h0 * p01 + h1 * p11
-        o00 += c0 * c0
-        o01 += c0 * c1
-        o11 += c1 * c1
+        tcur, p00, p01, p10, p11, o00, o01, o11, c0, c1 = _c_row(
+            t, tcur, p00, p01, p10, p11, o00, o01, o11, i00, i01, i10, i11, h0, h1
+        )
         for a in range(n_ax):
             zv = zr[t % N, a]
             xx[0, a] += c0 * zv
@@ -387,72 +378,28 @@ def ufir_horizon_axes(zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, x_out, P_out)
     det = o00 * o11 - o01 * o01
     if not (o00 > 0.0) or not (det > RANK_TOL * o00 * o11):
         return 2  # rank(C) < 2
-    g00 = o11 / det
-    g01 = -o01 / det
-    g11 = o00 / det
+    g00, g01, g11 = o11 / det, -o01 / det, o00 / det
     for a in range(n_ax):  # x̂_s = G_s Cᵀ Z
-        y0 = xx[0, a]
-        y1 = xx[1, a]
+        y0, y1 = xx[0, a], xx[1, a]
         xx[0, a] = g00 * y0 + g01 * y1
         xx[1, a] = g01 * y0 + g11 * y1
-    P00 = r * g00  # P_s = r G_s
-    P01 = r * g01
-    P11 = r * g11
+    P00, P01, P11 = r * g00, r * g01, r * g11  # P_s = r G_s
     for l in range(s + 1, k + 1):
         for a in range(n_ax):  # Eq. 24: x⁻ = F x
-            x0 = xx[0, a]
-            x1 = xx[1, a]
+            x0, x1 = xx[0, a], xx[1, a]
             xx[0, a] = f00 * x0 + f01 * x1
             xx[1, a] = f10 * x0 + f11 * x1
-        a00 = f00 * P00 + f01 * P01  # Eq. 25: P⁻ = F P Fᵀ + Q
-        a01 = f00 * P01 + f01 * P11
-        a10 = f10 * P00 + f11 * P01
-        a11 = f10 * P01 + f11 * P11
-        P00 = a00 * f00 + a01 * f01 + q00
-        P01 = a00 * f10 + a01 * f11 + q01
-        P11 = a10 * f10 + a11 * f11 + q11
-        b00 = i00 * o00 + i10 * o01  # inv(F G Fᵀ) = F⁻ᵀ G⁻¹ F⁻¹
-        b01 = i00 * o01 + i10 * o11
-        b10 = i01 * o00 + i11 * o01
-        b11 = i01 * o01 + i11 * o11
-        o00 = b00 * i00 + b01 * i10
-        o01 = b00 * i01 + b01 * i11
-        o11 = b10 * i01 + b11 * i11
+        P00, P01, P11, _, _, _, _ = cov2_predict(P00, P01, P11, f00, f01, f10, f11, q00, q01, q11)
+        o00, o01, o11 = info2_back(o00, o01, o11, i00, i01, i10, i11)  # inv(F G Fᵀ)
         if np.isnan(zr[l % N, 0]):
             continue
-        o00 += h0 * h0  # G⁻¹ = HᵀH + inv(F G Fᵀ)
-        o01 += h0 * h1
-        o11 += h1 * h1
-        det = o00 * o11 - o01 * o01
-        k0 = (o11 * h0 - o01 * h1) / det  # K = G Hᵀ (Eq. 26 corrected)
-        k1 = (o00 * h1 - o01 * h0) / det
+        o00, o01, o11, k0, k1 = _info_gain(o00, o01, o11, h0, h1)
         for a in range(n_ax):  # Eq. 27
             inn = zr[l % N, a] - (h0 * xx[0, a] + h1 * xx[1, a])
             xx[0, a] += k0 * inn
             xx[1, a] += k1 * inn
-        m00 = 1.0 - k0 * h0  # Eq. 28 Joseph: A P Aᵀ + K r Kᵀ, A = I − K h
-        m01 = -k0 * h1
-        m10 = -k1 * h0
-        m11 = 1.0 - k1 * h1
-        a00 = m00 * P00 + m01 * P01
-        a01 = m00 * P01 + m01 * P11
-        a10 = m10 * P00 + m11 * P01
-        a11 = m10 * P01 + m11 * P11
-        P00 = a00 * m00 + a01 * m01 + r * k0 * k0
-        P01 = a00 * m10 + a01 * m11 + r * k0 * k1
-        P11 = a10 * m10 + a11 * m11 + r * k1 * k1
-    n_x = x_out.shape[0]
-    for i in range(n_x):
-        for j in range(n_x):
-            P_out[i, j] = 0.0
-    for a in range(n_ax):
-        lo = 2 * a
-        x_out[lo] = xx[0, a]
-        x_out[lo + 1] = xx[1, a]
-        P_out[lo, lo] = P00
-        P_out[lo, lo + 1] = P01
-        P_out[lo + 1, lo] = P01
-        P_out[lo + 1, lo + 1] = P11
+        P00, P01, P11 = joseph2(P00, P01, P11, k0, k1, h0, h1, r)  # Eq. 28
+    _put_axes(xx, P00, P01, P11, x_out, P_out)
     return 1
 
 

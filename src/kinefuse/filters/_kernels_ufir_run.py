@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinefuse._compile import njit
+from kinefuse._compile import njit, njit_inline
 from kinefuse.filters._kernels import kf_predict, kf_update
 from kinefuse.filters._kernels_blocks import _cov_step
 from kinefuse.filters._kernels_ufir import RANK_TOL, fir_estimate, ufir_horizon_axes, ufir_taps
@@ -24,39 +24,9 @@ from kinefuse.filters._kernels_ufir import RANK_TOL, fir_estimate, ufir_horizon_
 
 @njit
 def ufir_run(
-    z,
-    x,
-    P,
-    init,
-    zring,
-    xring,
-    Pring,
-    k0,
-    N,
-    K,
-    stored,
-    fast,
-    axis_blocks,
-    W,
-    P_full,
-    F,
-    Finv,
-    H,
-    Q,
-    R,
-    Fa,
-    Finva,
-    Ha,
-    Qa,
-    Ra,
-    Hpinv,
-    P0,
-    o_mean,
-    o_cov,
-    o_obs,
-    o_nu,
-    o_ready,
-):
+    z, x, P, init, zring, xring, Pring, k0, N, K, stored, fast, axis_blocks, W, P_full,
+    F, Finv, H, Q, R, Fa, Finva, Ha, Qa, Ra, Hpinv, P0, o_mean, o_cov, o_obs, o_nu, o_ready,
+):  # fmt: skip
     """Run the UFIR (with dead-zone KF) over ``z (B, T, n_z)``; state arrays updated in place.
 
     Returns the number of KF updates skipped because ``S`` could not be factorised.
@@ -76,10 +46,8 @@ def ufir_run(
         zr = zring[b]
         xs = xring[b]
         Ps = Pring[b]
-        for i in range(n_x):
-            xb[i] = x[b, i]
-            for j in range(n_x):
-                Pb[i, j] = P[b, i, j]
+        xb[:] = x[b]
+        Pb[:, :] = P[b]
         initialized = init[b]
         for t in range(T):
             k = k0 + t
@@ -99,9 +67,7 @@ def ufir_run(
                 o_nu[b, t, r] = acc if (valid and initialized) else np.nan
             ready = False
             if k >= N - 1 and fast and not stored and ufir_taps(zr, k, N, W, axis_blocks, xf):
-                for i in range(n_x):  # complete horizon: taps inlined (as in fir_estimate)
-                    for j in range(n_x):
-                        Pf[i, j] = P_full[i, j]
+                Pf[:, :] = P_full  # complete horizon: taps inlined (as in fir_estimate)
                 ready = True
             elif k >= N - 1:
                 code = 0
@@ -114,42 +80,43 @@ def ufir_run(
                         Ps, stored, xf, Pf,
                     )  # fmt: skip
             if ready:
-                for i in range(n_x):
-                    xb[i] = xf[i]
-                    for j in range(n_x):
-                        Pb[i, j] = Pf[i, j]
+                xb[:] = xf
+                Pb[:, :] = Pf
                 initialized = True
             elif not initialized:
                 if valid:  # SPEC §4.2 initialisation: positions from z, zero velocity, P₀
                     xb[:] = Hpinv @ zt
                     Pb[:, :] = P0
                     initialized = True
-            else:  # dead zone / fallback: KF step (SPEC §6.2-5, §6.3)
-                xp, Pp = kf_predict(xb, Pb, F, Q)
-                if valid:
-                    xu, Pu, _nu, _S, ok = kf_update(xp, Pp, zt, H, R)
-                    if not ok:
-                        n_fail += 1
-                    xb[:] = xu
-                    Pb[:, :] = Pu
-                else:
-                    xb[:] = xp
-                    Pb[:, :] = Pp
+            elif not _kf_step_dense(xb, Pb, zt, valid, F, Q, H, R):  # dead zone / fallback
+                n_fail += 1
             if stored:
                 xs[sl] = xb
                 Ps[sl] = Pb
-            for i in range(n_x):
-                o_mean[b, t, i] = xb[i]
-                for j in range(n_x):
-                    o_cov[b, t, i, j] = Pb[i, j]
+            o_mean[b, t, :] = xb
+            o_cov[b, t, :, :] = Pb
             o_obs[b, t] = valid and initialized
             o_ready[b, t] = ready
-        for i in range(n_x):
-            x[b, i] = xb[i]
-            for j in range(n_x):
-                P[b, i, j] = Pb[i, j]
+        x[b, :] = xb
+        P[b, :, :] = Pb
         init[b] = initialized
     return n_fail
+
+
+@njit_inline
+def _kf_step_dense(xb, Pb, zt, valid, F, Q, H, R):
+    """KF step in place on ``xb, Pb`` (dead zone and fallback, SPEC §6.2-5, §6.3); returns
+    False when ``S`` could not be factorised (predict only)."""
+    xp, Pp = kf_predict(xb, Pb, F, Q)
+    ok = True
+    if valid:
+        xu, Pu, _nu, _S, ok = kf_update(xp, Pp, zt, H, R)
+        xb[:] = xu
+        Pb[:, :] = Pu
+    else:
+        xb[:] = xp
+        Pb[:, :] = Pp
+    return ok
 
 
 # --------------------------------------------------------------------------------------------
@@ -229,143 +196,171 @@ def ufir_run_cv(
     n_fail = 0
     for b in range(B):
         zr = zring[b]
-        for a in range(n_a):
-            xs[a, 0] = x[b, 2 * a]
-            xs[a, 1] = x[b, 2 * a + 1]
-        p00 = P[b, 0, 0]
-        p01 = 0.5 * (P[b, 0, 1] + P[b, 1, 0])
-        p11 = P[b, 1, 1]
+        p00, p01, p11 = _load_axes(x, P, b, xs)
         ini = init[b]
         # sums for the block of k0 from the ring (samples k0-N .. k0-1 are there)
         j = k0 // N
         _suffix_sums(zr, j, N, n_a, Qs)
-        for c in range(Wd):
-            Ps_[c] = 0.0
+        Ps_[:] = 0.0
         for t in range(j * N, k0):
-            sl = t % N
-            if not np.isnan(zr[sl, 0]):
-                u = float(t - j * N)
-                Ps_[0] += 1.0
-                Ps_[1] += u
-                Ps_[2] += u * u
-                for a in range(n_a):
-                    Ps_[3 + 2 * a] += zr[sl, a]
-                    Ps_[4 + 2 * a] += u * zr[sl, a]
+            if not np.isnan(zr[t % N, 0]):
+                _sums_add(Ps_, float(t - j * N), zr, t % N)
         for t in range(T):
             k = k0 + t
-            valid = True
-            for a in range(n_a):
-                if not np.isfinite(z[b, t, a]):
-                    valid = False
-            sl = k % N
-            for a in range(n_a):
-                zr[sl, a] = z[b, t, a] if valid else np.nan
+            valid = _push_row(z, b, t, zr, k % N)
             if k % N == 0 and k > 0:  # new block: suffixes of the finished one, empty prefix
                 j = k // N
                 _suffix_sums(zr, j, N, n_a, Qs)
-                for c in range(Wd):
-                    Ps_[c] = 0.0
+                Ps_[:] = 0.0
             u_k = float(k - j * N)
             if valid:
-                Ps_[0] += 1.0
-                Ps_[1] += u_k
-                Ps_[2] += u_k * u_k
-                for a in range(n_a):
-                    Ps_[3 + 2 * a] += z[b, t, a]
-                    Ps_[4 + 2 * a] += u_k * z[b, t, a]
+                _sums_add(Ps_, u_k, zr, k % N)
             for a in range(n_a):  # innovation z − H F x̂_{k−1}
                 o_nu[b, t, a] = (
                     z[b, t, a] - (xs[a, 0] + dt * xs[a, 1]) if (valid and ini) else np.nan
                 )
             ready = False
-            need_p = False
             if k >= N - 1:
                 im = int(u_k) + 1  # local index of m = k−N+1 in block j−1 (N: empty suffix)
-                e = u_k + N
                 n = Qs[im, 0] + Ps_[0]
-                if n >= K:
-                    # Σd, Σd² with d = k − t: block j part d = u_k − u, block j−1 part e − u
-                    D1 = u_k * Ps_[0] - Ps_[1] + e * Qs[im, 0] - Qs[im, 1]
-                    D2 = (u_k * u_k * Ps_[0] - 2.0 * u_k * Ps_[1] + Ps_[2]
-                          + e * e * Qs[im, 0] - 2.0 * e * Qs[im, 1] + Qs[im, 2])  # fmt: skip
-                    # normal equations in (position p, change per sample β): z_t = p − β d
-                    det = n * D2 - D1 * D1
-                    if det > RANK_TOL * n * D2:
-                        ready = True
-                        for a in range(n_a):
-                            Z0 = Ps_[3 + 2 * a] + Qs[im, 3 + 2 * a]
-                            Z1 = (
-                                u_k * Ps_[3 + 2 * a]
-                                - Ps_[4 + 2 * a]
-                                + e * Qs[im, 3 + 2 * a]
-                                - Qs[im, 4 + 2 * a]
-                            )
-                            pos = (D2 * Z0 - D1 * Z1) / det  # x̂ = (CᵀC)⁻¹ Cᵀ Z
-                            beta = (D1 * Z0 - n * Z1) / det
-                            xs[a, 0] = pos
-                            xs[a, 1] = beta / dt
-                        if n == N:  # complete horizon: data-independent covariance
-                            p00 = pfull[0]
-                            p01 = pfull[1]
-                            p11 = pfull[2]
-                        else:
-                            need_p = w_cov or n == K or t == T - 1
-                            if need_p:
-                                code = ufir_horizon_axes(
-                                    zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, xf, Pf
-                                )
-                                if code == 1:
-                                    p00 = Pf[0, 0]
-                                    p01 = Pf[0, 1]
-                                    p11 = Pf[1, 1]
-                                else:
-                                    p00 = p01 = p11 = np.nan
-                            else:
-                                p00 = p01 = p11 = np.nan  # not needed: not computed
-                        ini = True
+                if n >= K and _ls_line(Ps_, Qs, im, u_k, u_k + N, n, dt, xs):
+                    ready = True
+                    ini = True
+                    if n == N:  # complete horizon: data-independent covariance
+                        p00, p01, p11 = pfull[0], pfull[1], pfull[2]
+                    elif w_cov or n == K or t == T - 1:  # wanted: O(N) (Notes)
+                        code = ufir_horizon_axes(
+                            zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, xf, Pf
+                        )
+                        p00, p01, p11 = (Pf[0, 0], Pf[0, 1], Pf[1, 1]) if code == 1 else _NAN3
+                    else:
+                        p00, p01, p11 = _NAN3  # not needed: not computed
             if not ready:
                 if not ini:
                     if valid:  # SPEC §4.2 initialisation: positions from z, zero velocity, P₀
                         for a in range(n_a):
                             xs[a, 0] = z[b, t, a]
                             xs[a, 1] = 0.0
-                        p00 = p0[0]
-                        p01 = p0[1]
-                        p11 = p0[2]
+                        p00, p01, p11 = p0[0], p0[1], p0[2]
                         ini = True
                 else:  # dead zone / fallback: per-axis KF step (SPEC §6.2-5, §6.3)
-                    p00, p01, p11, g0, g1, iS, upd = _cov_step(
-                        p00, p01, p11, valid, True, 1.0, dt, 0.0, 1.0, q00, q01, q11, 1.0, 0.0, r
+                    p00, p01, p11, upd = _kf_step_cv(
+                        z, b, t, valid, xs, p00, p01, p11, dt, q00, q01, q11, r
                     )
                     if valid and not upd:
                         n_fail += 1
-                    for a in range(n_a):
-                        xp0 = xs[a, 0] + dt * xs[a, 1]
-                        xp1 = xs[a, 1]
-                        if upd:
-                            v = z[b, t, a] - xp0
-                            xp0 += g0 * v
-                            xp1 += g1 * v
-                        xs[a, 0] = xp0
-                        xs[a, 1] = xp1
-            for a in range(n_a):
-                o_mean[b, t, 2 * a] = xs[a, 0] if ini else np.nan
-                o_mean[b, t, 2 * a + 1] = xs[a, 1] if ini else np.nan
-            if w_cov:
-                o_covb[b, t, 0, 0] = p00 if ini else np.nan
-                o_covb[b, t, 0, 1] = p01 if ini else np.nan
-                o_covb[b, t, 0, 2] = p11 if ini else np.nan
+            _write_cv(o_mean, o_covb, b, t, xs, p00, p01, p11, ini, w_cov)
             o_obs[b, t] = valid and ini
             o_ready[b, t] = ready
         init[b] = ini
         if ini:
-            P[b, :, :] = 0.0
-            for a in range(n_a):
-                i = 2 * a
-                x[b, i] = xs[a, 0]
-                x[b, i + 1] = xs[a, 1]
-                P[b, i, i] = p00
-                P[b, i, i + 1] = p01
-                P[b, i + 1, i] = p01
-                P[b, i + 1, i + 1] = p11
+            _store_axes(x, P, b, xs, p00, p01, p11)
     return n_fail
+
+
+_NAN3 = (np.nan, np.nan, np.nan)
+
+
+@njit_inline
+def _load_axes(x, P, b, xs):
+    """``xs (n_a, 2)`` from the state ``x[b]``; returns axis 0's covariance block."""
+    for a in range(xs.shape[0]):
+        xs[a, 0] = x[b, 2 * a]
+        xs[a, 1] = x[b, 2 * a + 1]
+    return P[b, 0, 0], 0.5 * (P[b, 0, 1] + P[b, 1, 0]), P[b, 1, 1]
+
+
+@njit_inline
+def _store_axes(x, P, b, xs, p00, p01, p11):
+    """State ``x[b], P[b]`` from ``xs`` and the covariance block shared by all axes."""
+    P[b, :, :] = 0.0
+    for a in range(xs.shape[0]):
+        i = 2 * a
+        x[b, i] = xs[a, 0]
+        x[b, i + 1] = xs[a, 1]
+        P[b, i, i] = p00
+        P[b, i, i + 1] = p01
+        P[b, i + 1, i] = p01
+        P[b, i + 1, i + 1] = p11
+
+
+@njit_inline
+def _push_row(z, b, t, zr, sl):
+    """Store ``z[b, t]`` in ring slot ``sl`` (all NaN when any axis is missing); returns valid."""
+    n_a = zr.shape[1]
+    valid = True
+    for a in range(n_a):
+        if not np.isfinite(z[b, t, a]):
+            valid = False
+    for a in range(n_a):
+        zr[sl, a] = z[b, t, a] if valid else np.nan
+    return valid
+
+
+@njit_inline
+def _sums_add(S, u, zr, sl):
+    """Add the valid ring row ``sl`` at local index ``u`` to ``S = [n, Σu, Σu², Σz_a, Σu z_a]``."""
+    S[0] += 1.0
+    S[1] += u
+    S[2] += u * u
+    for a in range(zr.shape[1]):
+        zv = zr[sl, a]
+        S[3 + 2 * a] += zv
+        S[4 + 2 * a] += u * zv
+
+
+@njit_inline
+def _ls_line(Ps_, Qs, im, u_k, e, n, dt, xs):
+    """Least-squares line through the horizon's valid samples, from the window sums, into ``xs``.
+
+    ``Ps_``: prefix sums of the current block; ``Qs[im]``: suffix sums of the previous one from
+    the horizon's start; ``u_k``, ``e = u_k + N``: the newest sample's local index in each.
+    Returns False (``xs`` untouched) when ``CᵀC`` is rank deficient.
+    """
+    # Σd, Σd² with d = k − t: block j part d = u_k − u, block j−1 part e − u
+    D1 = u_k * Ps_[0] - Ps_[1] + e * Qs[im, 0] - Qs[im, 1]
+    D2 = (u_k * u_k * Ps_[0] - 2.0 * u_k * Ps_[1] + Ps_[2]
+          + e * e * Qs[im, 0] - 2.0 * e * Qs[im, 1] + Qs[im, 2])  # fmt: skip
+    # normal equations in (position p, change per sample β): z_t = p − β d
+    det = n * D2 - D1 * D1
+    if not det > RANK_TOL * n * D2:
+        return False
+    for a in range(xs.shape[0]):
+        Z0 = Ps_[3 + 2 * a] + Qs[im, 3 + 2 * a]
+        Z1 = u_k * Ps_[3 + 2 * a] - Ps_[4 + 2 * a] + e * Qs[im, 3 + 2 * a] - Qs[im, 4 + 2 * a]
+        pos = (D2 * Z0 - D1 * Z1) / det  # x̂ = (CᵀC)⁻¹ Cᵀ Z
+        beta = (D1 * Z0 - n * Z1) / det
+        xs[a, 0] = pos
+        xs[a, 1] = beta / dt
+    return True
+
+
+@njit_inline
+def _kf_step_cv(z, b, t, valid, xs, p00, p01, p11, dt, q00, q01, q11, r):
+    """Per-axis constant-velocity KF step on ``xs`` (shared covariance block); returns
+    ``(p00, p01, p11, updated)``."""
+    p00, p01, p11, g0, g1, iS, upd = _cov_step(
+        p00, p01, p11, valid, True, 1.0, dt, 0.0, 1.0, q00, q01, q11, 1.0, 0.0, r
+    )
+    for a in range(xs.shape[0]):
+        xp0 = xs[a, 0] + dt * xs[a, 1]
+        xp1 = xs[a, 1]
+        if upd:
+            v = z[b, t, a] - xp0
+            xp0 += g0 * v
+            xp1 += g1 * v
+        xs[a, 0] = xp0
+        xs[a, 1] = xp1
+    return p00, p01, p11, upd
+
+
+@njit_inline
+def _write_cv(o_mean, o_covb, b, t, xs, p00, p01, p11, ini, w_cov):
+    """The mean and (if wanted) covariance-block outputs of one sample (NaN before init)."""
+    for a in range(xs.shape[0]):
+        o_mean[b, t, 2 * a] = xs[a, 0] if ini else np.nan
+        o_mean[b, t, 2 * a + 1] = xs[a, 1] if ini else np.nan
+    if w_cov:
+        o_covb[b, t, 0, 0] = p00 if ini else np.nan
+        o_covb[b, t, 0, 1] = p01 if ini else np.nan
+        o_covb[b, t, 0, 2] = p11 if ini else np.nan
