@@ -6,6 +6,9 @@ from __future__ import annotations
 import functools
 import os
 import re
+import subprocess
+import sys
+import time
 import uuid
 from pathlib import Path
 
@@ -109,3 +112,47 @@ def pytest_collection_modifyitems(config, items):
         group = xdist_group_of(item)
         if group is not None and item.get_closest_marker("xdist_group") is None:
             item.add_marker(pytest.mark.xdist_group(group))
+
+
+# ---- the kernels compiled once, before the workers start (pytest -n N) -----------------------
+# Serially, each numba kernel compiles on its first use and every later use loads it from the
+# on-disk cache. With xdist, two workers reaching the same cold kernel at once would both compile
+# it; so the controller compiles them first, with the steps of ``kinefuse warm-up`` in two
+# processes: the first compiles the UFIR (and with it the KF step functions), then the KF and the
+# IMM; the second starts once the UFIR is cached and compiles the EM-KF and the integrated
+# filter, which use the UFIR's and the KF's kernels (loaded, not compiled again).
+_WARM_UP_FIRST = (1, 0, 3)  # indices into WARM_UP_STEPS: UFIR, KF/RTS, IMM
+_WARM_UP_AFTER_FIRST = (2,)  # EM-KF and the integrated filter, once the UFIR is cached
+_WARM_UP_CODE = (
+    "import sys, warnings; warnings.simplefilter('ignore')\n"
+    "from kinefuse.filters.warm_up import WARM_UP_STEPS\n"
+    "for i in map(int, sys.argv[1:]):\n"
+    "    WARM_UP_STEPS[i][1](); print('done', i, flush=True)\n"
+)
+
+
+def _warm_up_process(steps):
+    return subprocess.Popen(
+        [sys.executable, "-c", _WARM_UP_CODE, *map(str, steps)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def pytest_sessionstart(session):
+    config = session.config
+    if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None):
+        return  # an xdist worker (the controller compiled), or a serial run
+    tr = config.pluginmanager.get_plugin("terminalreporter")
+    say = tr.write_line if tr is not None else print
+    say("conftest: compiling the numba kernels in 2 processes before the workers start ...")
+    t0 = time.perf_counter()
+    first = _warm_up_process(_WARM_UP_FIRST)
+    lines = [first.stdout.readline()]  # "done 1": the UFIR is compiled and cached
+    second = _warm_up_process(_WARM_UP_AFTER_FIRST)
+    for proc, head in ((first, lines), (second, [])):
+        out = "".join(head) + proc.communicate()[0]
+        if proc.returncode:  # the tests then compile what they use, and fail where it breaks
+            say(f"conftest: kernel warm-up exited {proc.returncode}:\n{out[-2000:]}")
+    say(f"conftest: kernels ready in {time.perf_counter() - t0:.1f} s")
