@@ -316,14 +316,16 @@ def test_cli_stream_view_in_chromium(lsl_env, tmp_path):
         encoding="utf-8",
     )
     out, summary_json, replay_json = tmp_path / "live", tmp_path / "s.json", tmp_path / "r.json"
-    replay_args = [*KINEFUSE, "replay", "demo", "--loop", "--duration", "20", "--rate", "2",
+    replay_args = [*KINEFUSE, "replay", "demo", "--loop", "--duration", "60", "--rate", "2",
                    "--prefix", prefix, "--wait-for-consumers", "60", "--json", str(replay_json)]  # fmt: skip
     stream_args = [*KINEFUSE, "stream", str(session), "--idle-timeout", "2", "--out", str(out),
                    "--record-inputs", "--no-status", "--view", "--json", str(summary_json)]  # fmt: skip
     procs = {}
     seen = {}
-    # the browser starts before the streams: the replay lasts 10 s, and a cold Chromium start
-    # (seen taking longer than that in CI) must not outlast the stream it is to watch
+    # the browser starts before the streams, and the replay lasts 30 s: a cold Chromium start
+    # (seen taking longer than 10 s in CI), or the pages' steps on a machine busy with the other
+    # test worker (a 10 s replay ended before the second page saw 10 more frames), must not
+    # outlast the stream they are to watch
     with browser() as (ctx, log):
         first, second = ctx.new_page(), ctx.new_page()
         try:
