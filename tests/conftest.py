@@ -149,10 +149,10 @@ def pytest_sessionstart(session):
     say("conftest: compiling the numba kernels in 2 processes before the workers start ...")
     t0 = time.perf_counter()
     first = _warm_up_process(_WARM_UP_FIRST)
-    lines = [first.stdout.readline()]  # "done 1": the UFIR is compiled and cached
+    ready = first.stdout.readline()  # "done 1": the UFIR is compiled and cached
     second = _warm_up_process(_WARM_UP_AFTER_FIRST)
-    for proc, head in ((first, lines), (second, [])):
-        out = "".join(head) + proc.communicate()[0]
+    for proc, head in ((first, ready), (second, "")):
+        out = head + proc.communicate()[0]
         if proc.returncode:  # the tests then compile what they use, and fail where it breaks
             say(f"conftest: kernel warm-up exited {proc.returncode}:\n{out[-2000:]}")
     say(f"conftest: kernels ready in {time.perf_counter() - t0:.1f} s")
