@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import difflib
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -41,6 +43,29 @@ def as_float(value, message: str) -> float:
         return float(value)
     except (TypeError, ValueError):
         raise InputError(message) from None
+
+
+def did_you_mean(name: str, choices: Sequence[str], otherwise: str | None = None) -> str:
+    """The fix for an unknown ``name``: the closest of ``choices``, else a list of them.
+
+    Parameters
+    ----------
+    name : str
+        The unknown name as given.
+    choices : sequence of str
+        The names that are allowed, in the order a list of them should show.
+    otherwise : str, optional
+        What to say when no choice is close; default ``"expected one of <choices>"``.
+
+    Returns
+    -------
+    str
+        ``"did you mean 'x'?"`` or ``otherwise``.
+    """
+    close = difflib.get_close_matches(name, choices, n=1)
+    if close:
+        return f"did you mean {close[0]!r}?"
+    return otherwise if otherwise is not None else f"expected one of {', '.join(choices)}"
 
 
 def readonly_array(a) -> np.ndarray:

@@ -23,9 +23,9 @@ Examples
 
 from __future__ import annotations
 
-import difflib
 from dataclasses import dataclass
 
+from kinefuse._validation import did_you_mean
 from kinefuse.exceptions import ConfigError
 
 __all__ = [
@@ -175,9 +175,7 @@ def get(name: str) -> Method:
     """
     method = REGISTRY.get(name)
     if method is None:
-        close = difflib.get_close_matches(str(name), list(REGISTRY), n=1)
-        fix = f"did you mean {close[0]!r}?" if close else f"expected one of {', '.join(REGISTRY)}"
-        raise ConfigError(f"unknown method {name!r} ({fix})")
+        raise ConfigError(f"unknown method {name!r} ({did_you_mean(str(name), list(REGISTRY))})")
     return method
 
 

@@ -6,11 +6,11 @@ Every problem is a :class:`~kinefuse.exceptions.ConfigError`
 
 from __future__ import annotations
 
-import difflib
 import math
 from collections.abc import Mapping
 from pathlib import Path
 
+from kinefuse._validation import did_you_mean
 from kinefuse.conventions import SEGMENTS
 from kinefuse.exceptions import ConfigError
 
@@ -68,12 +68,7 @@ class _Ctx:
     def check_keys(self, table: Mapping, section: str, allowed: tuple[str, ...]) -> None:
         for key in table:
             if key not in allowed:
-                close = difflib.get_close_matches(key, allowed, n=1)
-                fix = (
-                    f"did you mean {close[0]!r}?"
-                    if close
-                    else f"allowed keys: {', '.join(allowed)}"
-                )
+                fix = did_you_mean(key, allowed, f"allowed keys: {', '.join(allowed)}")
                 raise self.error(section, key, "unknown key", fix)
 
     def string(
@@ -140,8 +135,5 @@ class _Ctx:
     def segment(self, section: str, name: str) -> None:
         """``name`` must be a canonical segment (:data:`kinefuse.conventions.SEGMENTS`)."""
         if name not in SEGMENTS:
-            close = difflib.get_close_matches(name, SEGMENTS, n=1)
-            fix = (
-                f"did you mean {close[0]!r}?" if close else f"expected one of {', '.join(SEGMENTS)}"
-            )
+            fix = did_you_mean(name, SEGMENTS)
             raise self.error(section, repr(name), "unknown segment", fix)

@@ -9,12 +9,12 @@ key, what was wrong and how to fix it, e.g.::
 
 from __future__ import annotations
 
-import difflib
 import sys
 from collections.abc import Mapping
 from pathlib import Path
 
 from kinefuse import methods
+from kinefuse._validation import did_you_mean
 from kinefuse.conventions import SEGMENTS
 from kinefuse.exceptions import ConfigError
 from kinefuse.session_file._checks import _Ctx
@@ -357,9 +357,7 @@ def _method(c: _Ctx, doc: Mapping, calibration, root, camera, reference) -> Meth
     c.check_keys(m, "method", ("name", "parameters"))
     mname = c.string(m, "method", "name")
     if mname not in methods.REGISTRY:
-        known = methods.names()
-        close = difflib.get_close_matches(mname, known, n=1)
-        fix = f"did you mean {close[0]!r}?" if close else f"expected one of {', '.join(known)}"
+        fix = did_you_mean(mname, methods.names())
         raise c.error("method", "name", f"unknown method {mname!r}", fix)
     _check_needs(c, mname, calibration, root, camera, reference)
     params = m.get("parameters", {})

@@ -7,12 +7,12 @@ method without a camera, a pelvis root without thighs...).
 
 from __future__ import annotations
 
-import difflib
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from kinefuse import methods
+from kinefuse._validation import did_you_mean
 from kinefuse.exceptions import ConfigError
 from kinefuse.kinematics import calibrate
 from kinefuse.pipelines.run.chain import SEGMENT_JOINTS
@@ -86,8 +86,7 @@ def _check_params(params: Mapping, method: str) -> None:
     allowed = set(_GENERAL_KEYS) | set(_PAPER_A_KEYS) | set(_VISION_KEYS)
     unknown = sorted(set(params) - allowed)
     if unknown:
-        close = difflib.get_close_matches(unknown[0], sorted(allowed), n=1)
-        hint = f"did you mean {close[0]!r}?" if close else f"allowed: {', '.join(sorted(allowed))}"
+        hint = did_you_mean(unknown[0], sorted(allowed), f"allowed: {', '.join(sorted(allowed))}")
         raise ConfigError(f"[method.parameters] {unknown[0]}: unknown parameter ({hint})")
     for key, choices in (
         ("calibration", _CALIBRATIONS),
