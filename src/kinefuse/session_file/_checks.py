@@ -71,6 +71,19 @@ class _Ctx:
                 fix = did_you_mean(key, allowed, f"allowed keys: {', '.join(allowed)}")
                 raise self.error(section, key, "unknown key", fix)
 
+    def given(
+        self, table: Mapping, section: str, key: str, *, required: bool, example: str
+    ) -> bool:
+        """Whether ``key`` is in ``table``; a missing ``required`` key is a ConfigError.
+
+        The fix it suggests is ``add <key> = <example>``.
+        """
+        if key in table:
+            return True
+        if required:
+            raise self.error(section, key, "missing", f"add {key} = {example}")
+        return False
+
     def string(
         self,
         table: Mapping,
@@ -80,9 +93,7 @@ class _Ctx:
         required: bool = True,
         default: str | None = None,
     ) -> str | None:
-        if key not in table:
-            if required:
-                raise self.error(section, key, "missing", f'add {key} = "..."')
+        if not self.given(table, section, key, required=required, example='"..."'):
             return default
         value = table[key]
         if not isinstance(value, str) or not value.strip():
@@ -101,9 +112,7 @@ class _Ctx:
         positive: bool = True,
         minimum: float | None = None,
     ) -> float | None:
-        if key not in table:
-            if required:
-                raise self.error(section, key, "missing", f"add {key} = <number>")
+        if not self.given(table, section, key, required=required, example="<number>"):
             return None
         value = table[key]
         if (
