@@ -153,3 +153,25 @@ def test_floor_clip_equals_lapack_reference():
             a1, a2 = A.copy(), A.copy()
             assert floor_clip(a1, nom, 1e-3, n) and floor_clip_lapack(a2, nom, 1e-3, n)
             np.testing.assert_allclose(a1, a2, rtol=0, atol=1e-10 * np.abs(a2).max())
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_expand_cov_blocks_equals_explicit_blocks(shared):
+    """Oracle: the full matrix written block by block with Python loops; a NaN block (an
+    element without a state) makes its whole matrix NaN; off-block zeros are +0.0."""
+    rng = np.random.default_rng(11)
+    n_a, lead = 3, (4, 5)
+    own = rng.normal(size=(*lead, 1 if shared else n_a, 3))
+    own[1, 2] = np.nan
+    cb = np.broadcast_to(own, (*lead, n_a, 3)) if shared else own
+    want = np.zeros((*lead, 2 * n_a, 2 * n_a))
+    for idx in np.ndindex(*lead):
+        for a in range(n_a):
+            p00, p01, p11 = cb[idx][a]
+            want[idx][2 * a : 2 * a + 2, 2 * a : 2 * a + 2] = [[p00, p01], [p01, p11]]
+        if np.isnan(cb[idx]).any():
+            want[idx] = np.nan
+    got = expand_cov_blocks(cb)
+    np.testing.assert_array_equal(got, want)
+    finite = np.isfinite(got)
+    assert not np.signbit(got[finite & (want == 0)]).any()

@@ -14,6 +14,12 @@ instead: the compiled loop of ``filter`` (the same numbers) without any check. I
 ``state`` comes from this filter's ``init`` / ``step`` / ``filter`` / ``_filter_unchecked``
 with ``z``'s batch shape. Anything else is undefined (no error; wrong numbers or an error inside
 a kernel). Users call ``step`` / ``filter``, which stay checked.
+
+In place: an owner that keeps a state to itself and steps it every frame may skip even the
+state copy. ``UFIRFilter._run_cv_inplace`` (constant-velocity route) and ``IMM._run_inplace``
+run the same compiled loop on the state's own flat arrays ``(B, ...)``, updated in place, and
+return only the outputs; the owner (:class:`kinefuse.pipelines.paper_b.PaperBCore`) keeps the
+time index and never hands those arrays to anyone else (a checkpoint is a deep copy).
 """
 
 from __future__ import annotations
@@ -174,18 +180,30 @@ def expand_cov_blocks(cov_blocks: np.ndarray) -> np.ndarray:
     cb = np.asarray(cov_blocks)
     lead, n_a = cb.shape[:-2], cb.shape[-2]
     n_x = 2 * n_a
-    dst, src = _block_index(n_a)
     if n_a > 1 and cb.strides[-2] == 0:  # one block broadcast to every axis: read it once
-        c2 = cb[..., 0, :].reshape(math.prod(lead), 3)
-        src = src % 3
-    else:
-        c2 = cb.reshape(math.prod(lead), 3 * n_a)
+        # block (..., 2, 2) times the axis identity: (..., a, i, b, j) = [a == b] block[i, j]
+        # is the interleaved (..., n_x, n_x); a NaN block makes the whole matrix NaN (NaN * 0)
+        blk = cb[..., 0, _BLOCK_2X2].reshape(*lead, 1, 2, 1, 2)
+        full = blk * _axis_eye(n_a)
+        full += 0.0  # -0.0 (a negative p01 times 0) -> +0.0, as the zeros of the scatter below
+        return full.reshape(*lead, n_x, n_x)
+    dst, src = _block_index(n_a)
+    c2 = cb.reshape(math.prod(lead), 3 * n_a)
     full = np.zeros((c2.shape[0], n_x * n_x))
     full[:, dst] = c2[:, src]  # one gather/scatter: this runs on online steps
     unknown = np.isnan(c2).any(axis=1)
     if unknown.any():
         full[unknown] = np.nan
     return full.reshape(*lead, n_x, n_x)
+
+
+_BLOCK_2X2 = np.array([0, 1, 1, 2])  # [p00, p01, p11] -> [[p00, p01], [p01, p11]]
+
+
+@functools.cache
+def _axis_eye(n_a: int) -> np.ndarray:
+    """``(n_a, 1, n_a, 1)`` identity: the block pattern of an axis-blocked covariance."""
+    return np.eye(n_a).reshape(n_a, 1, n_a, 1)
 
 
 @functools.cache

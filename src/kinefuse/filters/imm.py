@@ -478,21 +478,47 @@ class IMM:
         T = z.shape[-3]
         B = math.prod(batch)  # (np.prod costs ~5 µs: this runs on every online step)
         zf = np.ascontiguousarray(z.reshape(B, T, M, n_z))
-        if prev is None:
-            has_prev = False
-            px = np.empty((0, 0, M, n_x))
-            pP = np.empty((0, 0, M, n_x, n_x))
-        else:
-            has_prev = True
-            px = np.ascontiguousarray(prev[0].reshape(B, T, M, n_x))
-            pP = np.ascontiguousarray(prev[1].reshape(B, T, M, n_x, n_x))
-        models = self.models
+        if prev is not None:
+            prev = (
+                np.ascontiguousarray(prev[0].reshape(B, T, M, n_x)),
+                np.ascontiguousarray(prev[1].reshape(B, T, M, n_x, n_x)),
+            )
         # C order throughout: one compiled specialisation of the kernel (an F-ordered mu, e.g.
         # from a transposed state, would compile the whole loop a second time)
         xs = np.array(state.x, dtype=float, order="C").reshape(B, M, n_x)
         Ps = np.array(state.P, dtype=float, order="C").reshape(B, M, n_x, n_x)
         mu = np.array(state.mu, dtype=float, order="C").reshape(B, M)
         init = np.array(state.initialized, dtype=bool, order="C").reshape(B)
+        result = self._run_inplace(zf, prev, xs, Ps, mu, init, batch)
+        new_state = IMMState(
+            xs.reshape(*batch, M, n_x),
+            Ps.reshape(*batch, M, n_x, n_x),
+            mu.reshape(*batch, M),
+            init.reshape(batch),
+            state.k + T,
+        )
+        return new_state, result
+
+    def _run_inplace(self, z, prev, xs, Ps, mu, init, batch=None) -> IMMResult:
+        """The kernel call of :meth:`_run` on flat arrays updated in place.
+
+        ``z (B, T, M, n_z)`` C-contiguous float64 without ±inf; ``prev`` None or C-contiguous
+        ``(x (B, T, M, n_x), P (B, T, M, n_x, n_x))``; state ``xs (B, M, n_x)``, ``Ps (B, M,
+        n_x, n_x)``, ``mu (B, M)`` float64 and ``init (B,)`` bool, C-contiguous, updated in
+        place. For owners of such arrays that step them without copies
+        (:class:`kinefuse.pipelines.paper_b.PaperBCore`); ``filter`` and ``step`` copy the
+        state first. Returns the result with leading axes ``batch`` (default ``(B,)``).
+        """
+        M, n_x, n_z = self.n_models, self.n_x, self.n_z
+        B, T = z.shape[:2]
+        batch = (B,) if batch is None else batch
+        if prev is None:
+            has_prev = False
+            px = np.empty((0, 0, M, n_x))
+            pP = np.empty((0, 0, M, n_x, n_x))
+        else:
+            has_prev = True
+            px, pP = prev
         out_x = np.empty((B, T, n_x))
         out_P = np.empty((B, T, n_x, n_x))
         out_mu = np.empty((B, T, M))
@@ -505,24 +531,17 @@ class IMM:
         out_nis = np.empty((B, T, M))
         if B > 0 and T > 0:
             n_reg = imm_run(
-                zf, has_prev, px, pP, self._F, self._Q, self._H, self._R, self._Hpinv, self._P_init,
+                z, has_prev, px, pP, self._F, self._Q, self._H, self._R, self._Hpinv, self._P_init,
                 self.transition,
                 self.mu_floor, xs, Ps, mu, init,
                 out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis,
             )  # fmt: skip
             warn_regularised(n_reg, "IMM")
-        new_state = IMMState(
-            xs.reshape(*batch, M, n_x),
-            Ps.reshape(*batch, M, n_x, n_x),
-            mu.reshape(*batch, M),
-            init.reshape(batch),
-            state.k + T,
-        )
         mean = out_x.reshape(*batch, T, n_x)
-        result = IMMResult(
+        return IMMResult(
             mean=mean,
             cov=out_P.reshape(*batch, T, n_x, n_x),
-            position=positions(mean, models[0].H),
+            position=positions(mean, self.models[0].H),
             observed=out_obs.reshape(*batch, T),
             mu=out_mu.reshape(*batch, T, M),
             model_mean=out_xm.reshape(*batch, T, M, n_x),
@@ -532,7 +551,6 @@ class IMM:
             model_innovation=out_nu.reshape(*batch, T, M, n_z),
             model_distance=out_nis.reshape(*batch, T, M),
         )
-        return new_state, result
 
 
 def lag_posteriors(mean, cov) -> tuple[np.ndarray, np.ndarray]:

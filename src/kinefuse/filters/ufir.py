@@ -79,13 +79,13 @@ class _SharedBlocksState(UFIRState):
         return UFIRState(*self)._replace(**kwargs)
 
 
-def _warn_failed(n_fail: int) -> None:
+def _warn_failed(n_fail: int, stacklevel: int = 4) -> None:
     """ONE warning per call when the stored-init KF update could not factorise S."""
     if n_fail:
         warnings.warn(
             f"UFIRFilter: KF update skipped on {n_fail} step(s): S could not be factorised (SPEC §13)",
             NumericalWarning,
-            stacklevel=4,  # the caller of UFIRFilter.filter / step, as before
+            stacklevel=stacklevel,  # 4: the caller of UFIRFilter.filter / step, as before
         )
 
 
@@ -376,7 +376,7 @@ class UFIRFilter(SingleModelFilter):
 
     def _run(self, z: np.ndarray, state: UFIRState, fast: bool = True, outputs=None):
         a = self._arrays
-        if fast and "cv" in a and self.init_mode == "batch":
+        if fast and self._cv_route:
             if type(state) is _SharedBlocksState:  # the route's own output: shared blocks
                 return self._run_cv(z, state, outputs)
             P = np.asarray(state.P).reshape(-1, self.model.n_x, self.model.n_x)
@@ -406,24 +406,13 @@ class UFIRFilter(SingleModelFilter):
 
     def _run_cv(self, z: np.ndarray, state: UFIRState, outputs):
         """The O(1)-per-step constant-velocity route (:func:`._kernels_ufir_run.ufir_run_cv`)."""
-        a = self._arrays
-        cv = a["cv"]
         w = check_outputs(None) if outputs is None else outputs
-        n_x, N = self.model.n_x, self.horizon
+        n_x = self.model.n_x
         bs, zf, x, P, init, zring = flat_run(z, state, ("x", "P", "initialized", "z_buf"))
-        B, T, n_z = zf.shape
-        o_mean = np.empty((B, T, n_x))
-        o_covb = np.empty((B, T, 1, 3)) if "cov" in w else np.empty((0, 0, 0, 0))
-        o_obs = np.empty((B, T), bool)
-        o_nu = np.empty((B, T, n_z))
-        o_ready = np.empty((B, T), bool)
-        q00, q01, q11 = cv["q"]
-        n_fail = ufir_run_cv(
-            zf, x, P, init, zring, int(state.k), N, a["K"], cv["dt"], q00, q01, q11, cv["r"],
-            cv["p0"], cv["pfull"], a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"],
-            o_mean, o_covb, o_obs, o_nu, o_ready,
-        )  # fmt: skip
-        _warn_failed(n_fail)
+        T, n_z = zf.shape[1:]
+        o_mean, o_covb, o_obs, o_nu, o_ready = self._run_cv_inplace(
+            zf, x, P, init, zring, int(state.k), "cov" in w
+        )
         ns = self._n_stored
         new_state = _SharedBlocksState(
             *unflat(bs, x, P, init),
@@ -446,3 +435,40 @@ class UFIRFilter(SingleModelFilter):
             fir_ready=o_ready.reshape(*bs, T),
         )
         return new_state, res
+
+    def _run_cv_inplace(self, z, x, P, init, zring, k: int, want_cov: bool = True):
+        """The kernel call of :meth:`_run_cv` on flat arrays updated in place.
+
+        ``z (B, T, n_z)`` C-contiguous float64 without ±inf; ``x (B, n_x)``, ``P (B, n_x, n_x)``,
+        ``init (B,)`` and ``zring (B, N, n_z)`` C-contiguous, every initialised ``P`` holding one
+        2x2 block on every axis (a fresh state, or this route's output); ``k`` the time index of
+        ``z[:, 0]``. For owners of such arrays that step them without copies
+        (:class:`kinefuse.pipelines.paper_b.PaperBCore`); the filter's ``filter``/``step`` copy
+        the state first.
+
+        Returns
+        -------
+        mean (B, T, n_x), cov_blocks (B, T, 1, 3) (empty without ``want_cov``), observed (B, T),
+        innovation (B, T, n_z), fir_ready (B, T)
+        """
+        a = self._arrays
+        cv = a["cv"]
+        B, T, n_z = z.shape
+        o_mean = np.empty((B, T, self.model.n_x))
+        o_covb = np.empty((B, T, 1, 3)) if want_cov else np.empty((0, 0, 0, 0))
+        o_obs = np.empty((B, T), bool)
+        o_nu = np.empty((B, T, n_z))
+        o_ready = np.empty((B, T), bool)
+        q00, q01, q11 = cv["q"]
+        n_fail = ufir_run_cv(
+            z, x, P, init, zring, k, self.horizon, a["K"], cv["dt"], q00, q01, q11, cv["r"],
+            cv["p0"], cv["pfull"], a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"],
+            o_mean, o_covb, o_obs, o_nu, o_ready,
+        )  # fmt: skip
+        _warn_failed(n_fail, 5)
+        return o_mean, o_covb, o_obs, o_nu, o_ready
+
+    @property
+    def _cv_route(self) -> bool:
+        """True when :meth:`_run` takes the constant-velocity route for shared-block states."""
+        return "cv" in self._arrays and self.init_mode == "batch"

@@ -68,9 +68,11 @@ from kinefuse.filters import (
     IMMResult,
     KalmanFilter,
     UFIRFilter,
+    UFIRState,
     fixed_lag_smooth,
     rts_smooth_segments,
 )
+from kinefuse.filters._base import expand_cov_blocks
 from kinefuse.learning import ELMRegressor
 from kinefuse.models import LinearGaussianModel
 from kinefuse.pipelines._outages import SOURCE_NONE, OutageEpisode, segment_start
@@ -339,27 +341,30 @@ class PaperBCore:
         av = available & np.all(np.isfinite(z_cam), axis=-1)
         z_cam = np.where(av[..., None], z_cam, np.nan)
         x = z_imu if features is None else np.concatenate([z_imu, features], axis=-1)
+        J, L = av.shape
         state.fir1, m1, P1 = _run_filter(self.fir1, z_imu, state.fir1)
         state.fir2, m2, P2 = _run_filter(self.fir3, z_cam, state.fir2)
-        # IMM, reading R2: mixing from the FIR posteriors at t-1
-        post_x = np.stack([m1, m2], axis=-2)
-        post_P = np.stack([P1, P2], axis=-3)
-        px = np.concatenate([state.prev_x, post_x[:, :-1]], axis=1)
-        pP = np.concatenate([state.prev_P, post_P[:, :-1]], axis=1)
-        state.prev_x, state.prev_P = post_x[:, -1:].copy(), post_P[:, -1:].copy()
-        zz = np.stack([z_imu, z_cam], axis=-2)
-        state.imm, r_imm = self.imm._filter_unchecked(zz, state.imm, prev=(px, pP))
+        # IMM, reading R2: mixing from the FIR posteriors at t-1 (the last frame's carried in)
+        px, pP = _lagged(state.prev_x, m1, m2), _lagged(state.prev_P, P1, P2)
+        state.prev_x[:, 0, 0], state.prev_x[:, 0, 1] = m1[:, -1], m2[:, -1]
+        state.prev_P[:, 0, 0], state.prev_P[:, 0, 1] = P1[:, -1], P2[:, -1]
+        zz = np.empty((J, L, 2, 3))
+        zz[:, :, 0], zz[:, :, 1] = z_imu, z_cam
+        im = state.imm  # stepped in place (trusted fast path, see kinefuse.filters._base)
+        r_imm = self.imm._run_inplace(zz, (px, pP), im.x, im.P, im.mu, im.initialized)
+        state.imm = im._replace(k=im.k + L)
         state.history.append(self.params.train_window, x, z_cam, r_imm.mean, r_imm.cov, av)
-        J, L = av.shape
         pos = r_imm.position.copy()
         cov = pos_cov(r_imm.cov).copy()
         src = np.where(av, SOURCE_FUSED, SOURCE_NONE).astype(np.int8)
         flags = np.zeros((2, J, L), bool)  # imu_fallback, elm2_skipped
         out = (pos, cov, src, flags)
-        for j in np.flatnonzero((state.mode != MODE_NONE) | ~av.all(axis=1)):
-            self._episodes_of_joint(state, j, x[j], av[j], (m1[j], P1[j]), out)
+        if state.mode.any() or not av.all():  # (the common frame has no episode: skip the scan)
+            for j in np.flatnonzero((state.mode != MODE_NONE) | ~av.all(axis=1)):
+                self._episodes_of_joint(state, j, x[j], av[j], (m1[j], P1[j]), out)
         state.k += L
-        cov[~np.all(np.isfinite(pos), axis=-1)] = np.nan
+        if not np.isfinite(pos).all():
+            cov[~np.all(np.isfinite(pos), axis=-1)] = np.nan
         return PaperBStep(pos, cov, src, flags[0], flags[1], r_imm)
 
     # ------------------------------------------------------------------ episodes
@@ -498,16 +503,36 @@ class PaperBStep(NamedTuple):
     """The block's IMM filtered output (the offline form smooths it)."""
 
 
+def _lagged(prev: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(J, L, 2, ...)``: frame t holds ``a``, ``b`` of frame t − 1 (``prev (J, 1, 2, ...)`` at
+    t = 0), the IMM's mixing input (reading R2)."""
+    J, L = a.shape[:2]
+    out = np.empty((J, L, 2, *a.shape[2:]))
+    out[:, :1] = prev
+    out[:, 1:, 0], out[:, 1:, 1] = a[:, :-1], b[:, :-1]
+    return out
+
+
 def _run_filter(flt, z: np.ndarray, state):
     """``(state, mean, cov)`` of ``flt.filter(z (J, L, n_z), state)``, on the filters' trusted
     fast path (``_filter_unchecked``: ``z`` is float64 without ±inf, checked by the callers of
     :meth:`PaperBCore.advance`, and ``state`` is the filter's own).
 
-    Elements not yet initialised whose block holds no measurement (which
-    :meth:`UFIRFilter.filter` refuses, :meth:`UFIRFilter.step` takes) are stepped frame by
-    frame, the others filtered in one call; per element the numbers are the same.
+    A constant-velocity UFIR (paper B's FIRs) runs its compiled loop on the state's own arrays,
+    updated in place (``UFIRFilter._run_cv_inplace``: the core owns its states, a checkpoint is
+    a deep copy), with the same numbers as ``filter``. Otherwise, elements not yet initialised
+    whose block holds no measurement (which :meth:`UFIRFilter.filter` refuses,
+    :meth:`UFIRFilter.step` takes) are stepped frame by frame, the others filtered in one call;
+    per element the numbers are the same.
     """
-    J, L, _ = z.shape
+    J, L, n_z = z.shape
+    if type(state) is UFIRState and flt._cv_route and state.x.ndim == 2:
+        z = np.ascontiguousarray(z)
+        mean, covb = flt._run_cv_inplace(
+            z, state.x, state.P, state.initialized, state.z_buf, state.k
+        )[:2]
+        cov = expand_cov_blocks(np.broadcast_to(covb, (J, L, n_z, 3)))
+        return state._replace(k=state.k + L), mean, cov
     bad = None
     init = state.initialized
     if isinstance(flt, UFIRFilter) and not init.all():
