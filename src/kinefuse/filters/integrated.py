@@ -164,7 +164,17 @@ class IntegratedFilter(SingleModelFilter):
         if not isinstance(self.gate, str) or self.gate not in _GATES:
             raise InputError(f"expected gate one of {_GATES}, got {self.gate!r}")
         object.__setattr__(self, "fir_feedback", check_bool(self.fir_feedback, "fir_feedback"))
-        object.__setattr__(self, "_arrays", ufir_model_arrays(self.model, self.horizon))
+        a = ufir_model_arrays(self.model, self.horizon)
+        th1 = self.threshold1 if math.isfinite(self.threshold1) else np.inf
+        a["fir"] = FIRModel(
+            self.horizon, a["K"], bool(self.model.axis_blocks), a["W"], a["P_full"], a["F"],
+            a["Finv"], a["H"], a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"],
+        )  # fmt: skip
+        a["opt"] = IntegratedOptions(
+            self.n_em_iter, th1, self.threshold2, self.gate == "S", self.fir_feedback,
+            FLOOR_FRACTION, a["LR"],
+        )  # fmt: skip
+        object.__setattr__(self, "_arrays", a)
 
     def init(self, batch_shape=(), mean=None, cov=None) -> IntegratedState:
         """Initial state for ``batch_shape`` elements (empty horizon).
@@ -208,26 +218,11 @@ class IntegratedFilter(SingleModelFilter):
         )
 
     def _run(self, z: np.ndarray, state: IntegratedState):
-        a = self._arrays
-        N = self.horizon
         bs, zf, x, P, init, zring = flat_run(z, state, ("x", "P", "initialized", "z_buf"))
-        B, T, n_z = zf.shape
-        o_mean, o_cov, o_obs, o_nu = run_outputs(B, T, self.model.n_x, n_z)
-        o_d1 = np.empty((B, T))
-        o_d2 = np.empty((B, T))
-        o_mode = np.empty((B, T), np.int8)
-        th1 = self.threshold1 if math.isfinite(self.threshold1) else np.inf
-        fir = FIRModel(
-            N, a["K"], bool(self.model.axis_blocks), a["W"], a["P_full"], a["F"], a["Finv"],
-            a["H"], a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"],
-        )  # fmt: skip
-        opt = IntegratedOptions(
-            self.n_em_iter, th1, self.threshold2, self.gate == "S", self.fir_feedback,
-            FLOOR_FRACTION, a["LR"],
-        )  # fmt: skip
-        out = IntegratedOutputs(o_mean, o_cov, o_obs, o_nu, o_d1, o_d2, o_mode)
-        counts = integrated_run(a["em"], fir, opt, zf, x, P, init, zring, int(state.k), out)
-        warn_counts(counts, "IntegratedFilter")
+        T = zf.shape[1]
+        o_mean, o_cov, o_obs, o_nu, o_d1, o_d2, o_mode = self._run_inplace(
+            zf, x, P, init, zring, int(state.k)
+        )
         new_state = IntegratedState(*unflat(bs, x, P, init), int(state.k) + T, *unflat(bs, zring))
         res = IntegratedResult(
             **run_result(bs, self.model.H, o_mean, o_cov, o_obs, o_nu),
@@ -236,3 +231,23 @@ class IntegratedFilter(SingleModelFilter):
             distance2=o_d2.reshape(*bs, T),
         )
         return new_state, res
+
+    def _run_inplace(self, z, x, P, init, zring, k: int):
+        """The kernel call of :meth:`_run` on flat arrays updated in place (the in-place form of
+        the trusted fast path, :mod:`kinefuse.filters._base`).
+
+        ``z (B, T, n_z)`` C-contiguous float64 without ±inf; state ``x (B, n_x)``, ``P (B, n_x,
+        n_x)``, ``init (B,)``, ``zring (B, N, n_z)`` C-contiguous, updated in place; ``k`` the
+        time index of ``z[:, 0]``. Returns ``mean, cov, observed, innovation, distance,
+        distance2, mode``, each with leading axes ``(B, T)``.
+        """
+        a = self._arrays
+        B, T, n_z = z.shape
+        o_mean, o_cov, o_obs, o_nu = run_outputs(B, T, self.model.n_x, n_z)
+        o_d1 = np.empty((B, T))
+        o_d2 = np.empty((B, T))
+        o_mode = np.empty((B, T), np.int8)
+        out = IntegratedOutputs(o_mean, o_cov, o_obs, o_nu, o_d1, o_d2, o_mode)
+        counts = integrated_run(a["em"], a["fir"], a["opt"], z, x, P, init, zring, k, out)
+        warn_counts(counts, "IntegratedFilter")
+        return o_mean, o_cov, o_obs, o_nu, o_d1, o_d2, o_mode

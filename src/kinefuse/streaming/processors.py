@@ -339,11 +339,17 @@ class IntegratedProcessor(_LinearProcessor):
         return self.filter.init((n_joints,))
 
     def _filter_step(self, z_imu, z_cam, available):
-        # unchecked: the frame was validated by step and the state is the filter's own
-        self._state, res = self.filter._filter_unchecked(z_imu[:, None, :], self._state)
-        self.last_mode = res.mode[:, 0]
-        source = np.where(res.observed[:, 0], np.int8(SOURCE_IMU), np.int8(SOURCE_PREDICT))
-        return res.mean[:, 0], res.cov[:, 0], source
+        # unchecked and in place: the frame was validated by step and the state is this
+        # processor's own (a checkpoint is a deep copy; kinefuse.filters._base, trusted fast path)
+        st = self._state
+        z = np.ascontiguousarray(z_imu).reshape(-1, 1, z_imu.shape[-1])
+        mean, cov, obs, _, _, _, mode = self.filter._run_inplace(
+            z, st.x, st.P, st.initialized, st.z_buf, st.k
+        )
+        self._state = st._replace(k=st.k + 1)
+        self.last_mode = mode[:, 0]
+        source = np.where(obs[:, 0], np.int8(SOURCE_IMU), np.int8(SOURCE_PREDICT))
+        return mean[:, 0], cov[:, 0], source
 
     def _filter_batch(self, t, z_imu, z_cam, available):
         z = np.ascontiguousarray(np.swapaxes(z_imu, 0, 1))  # (J, T, 3)
