@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from kinefuse._validation import as_float_array
 from kinefuse.exceptions import InputError
@@ -54,7 +53,48 @@ def slerp_resample(t_src_s, q_src, t_dst_s, *, max_gap_s: float | None = None) -
     exact = np.isin(t_dst, ts)
     use = inside & ((gap <= max_gap_s + 1e-12) | exact)
     if np.any(use):
-        out[use] = Slerp(ts, Rotation.from_quat(qs, scalar_first=True))(t_dst[use]).as_quat(
-            scalar_first=True
-        )
+        if np.any(np.diff(ts) <= 0):
+            raise InputError("expected t_src_s strictly increasing where q_src is valid")
+        out[use] = _slerp(ts, qs, t_dst[use])
     return out
+
+
+def _slerp(ts: np.ndarray, qs: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """SLERP of ``qs (T, 4)`` (``wxyz``, any norm) at ``t (M,)`` inside ``[ts[0], ts[-1]]``.
+
+    The arithmetic of :class:`scipy.spatial.transform.Slerp` (its interval choice: a target on
+    a source time ``ts[k]``, ``k > 0``, is the end of interval ``k − 1``; the shortest rotation
+    ``q₀* q₁`` scaled by the fraction; the output's sign follows ``q₀``), computed only on the
+    intervals the targets fall in: O(M) instead of O(T) rotation products (tested against
+    scipy to 1e-12).
+    """
+    k = np.searchsorted(ts, t) - 1
+    k[t == ts[0]] = 0
+    alpha = (t - ts[k]) / (ts[k + 1] - ts[k])
+    q0 = qs[k] / np.linalg.norm(qs[k], axis=1, keepdims=True)
+    q1 = qs[k + 1] / np.linalg.norm(qs[k + 1], axis=1, keepdims=True)
+    d = _mul(q0 * [1.0, -1.0, -1.0, -1.0], q1)  # q0* q1
+    d[d[:, 0] < 0] *= -1.0  # the shorter way round
+    v = d[:, 1:]
+    vn = np.linalg.norm(v, axis=1)
+    half = alpha * np.arctan2(vn, d[:, 0])  # fraction of half the rotation angle
+    small = vn < 1e-8  # sin(half)/vn -> alpha / w (error O(angle²) < 1e-16)
+    ratio = np.where(small, alpha / d[:, 0], np.sin(half) / np.where(small, 1.0, vn))
+    e = np.concatenate([np.cos(half)[:, None], v * ratio[:, None]], axis=1)
+    out = _mul(q0, e)
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def _mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products ``a b`` of ``wxyz`` quaternions, row by row: ``(M, 4)``."""
+    aw, ax, ay, az = a.T
+    bw, bx, by, bz = b.T
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=1,
+    )
