@@ -63,3 +63,24 @@ def test_episodes_follow_the_closed_form_recovery_rule():
     for j, eps in enumerate(state.episodes()):
         expected = find_episodes(av[:, j] & np.isfinite(z_cam[:, j]).all(-1), params.horizon)
         assert [(e.start, e.stop, e.recovery_start, e.recovered) for e in eps] == expected
+
+
+def test_recovery_rule_blocks_equal_an_explicit_count():
+    """Oracle: the recovery rule as a frame-by-frame count (N consecutive available frames end
+    an episode), for blocks of one frame (the online step) and longer blocks."""
+    from kinefuse.pipelines.paper_b import _recovery, _run_length
+
+    rng = np.random.default_rng(5)
+    blocks = [np.array([a]) for a in (True, False)] + [rng.random(n) < 0.7 for n in (2, 9, 40)]
+    for av in blocks:
+        for run0 in (0, 3, 6, 19):
+            for N in (7, 10, 20):
+                run, want = run0, (av.size, False)
+                for i, a in enumerate(av):
+                    run = run + 1 if a else 0
+                    if run >= N:
+                        want = (i + 1, True)
+                        break
+                assert _recovery(av, run0, N) == want
+                if not want[1]:
+                    assert _run_length(av, run0) == run

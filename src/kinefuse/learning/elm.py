@@ -264,12 +264,23 @@ class ELMRegressor:
             )
         if not np.all(np.isfinite(X)):
             raise InputError("expected X finite, got NaN or ±inf")
-        Y = self._hidden(X) @ self.output_weights_ * self.y_scale_ + self.y_mean_
+        c = None
         if clip_factor is not None:
             c = float(clip_factor)
             if not (np.isfinite(c) and c > 0):
                 raise InputError(f"expected clip_factor finite and > 0, got {clip_factor!r}")
-            Y = clip_norm(Y, c * self.train_rms_)
+        return self._predict_unchecked(X, c)
+
+    def _predict_unchecked(self, X: np.ndarray, clip_factor: float | None = None) -> np.ndarray:
+        """:meth:`predict` on the trusted fast path (the same arithmetic, no checks): the
+        model is fitted, ``X`` is a finite float64 ``(n_samples, n_features_in_)`` array and
+        ``clip_factor`` None or finite > 0. For kinefuse's per-frame callers that validated
+        their data (:class:`kinefuse.pipelines.paper_b.PaperBCore`)."""
+        Y = self._hidden(X) @ self.output_weights_ * self.y_scale_ + self.y_mean_
+        if clip_factor is not None:
+            Y = _scale_to_norm(
+                Y, np.linalg.norm(Y, axis=-1, keepdims=True), clip_factor * self.train_rms_
+            )
         return Y[:, 0] if self._y_1d else Y
 
     # ------------------------------------------------------------------ internals
@@ -444,7 +455,11 @@ def clip_norm(v, max_norm, axis: int = -1) -> np.ndarray:
     if np.any(~np.isfinite(m)) or np.any(m < 0):
         raise InputError(f"expected max_norm finite and >= 0, got {max_norm!r}")
     norm = np.linalg.norm(v, axis=axis, keepdims=True)
-    m = np.expand_dims(m, axis) if m.ndim > 0 else m
+    return _scale_to_norm(v, norm, np.expand_dims(m, axis) if m.ndim > 0 else m)
+
+
+def _scale_to_norm(v: np.ndarray, norm: np.ndarray, m) -> np.ndarray:
+    """``v * min(1, m / norm)`` (``norm`` the vectors' norms, broadcast; NaN norms keep v)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         scale = np.where(norm > m, m / norm, 1.0)
     return v * scale

@@ -472,7 +472,7 @@ class PaperBCore:
         ok = np.all(np.isfinite(x), axis=-1)
         zhat = np.full((x.shape[0], 3), np.nan)
         if ok.any():
-            zhat[ok] = b.elm1.predict(x[ok])
+            zhat[ok] = b.elm1._predict_unchecked(x[ok])  # rows checked finite here
         b.fir3, m3, P3 = _run_filter(self.fir3, zhat[None], b.fir3)
         p3 = m3[0, :, 0::2]
         c = pos_cov(P3[0]) + b.cov_add
@@ -482,7 +482,7 @@ class PaperBCore:
         okc = np.all(np.isfinite(e2_in), axis=-1)
         corr = np.zeros_like(p3)
         if okc.any():
-            corr[okc] = b.elm2.predict(e2_in[okc], clip_factor=self.params.clip_factor)
+            corr[okc] = b.elm2._predict_unchecked(e2_in[okc], self.params.clip_factor)
         return p3 + corr, c
 
 
@@ -578,6 +578,8 @@ def _merge_rows(like, parts):
 def _recovery(av: np.ndarray, run0: int, N: int) -> tuple[int, bool]:
     """Frames of ``av`` the episode still covers and whether the recovery rule ends it there:
     the first frame at which ``N`` consecutive available frames (``run0`` carried in) are seen."""
+    if av.size == 1:  # one frame (the online step): the rule below in closed form
+        return 1, bool(av[0]) and run0 + 1 >= N
     t = np.arange(av.size)
     last_gap = np.maximum.accumulate(np.where(av, -1, t))
     run = np.where(last_gap >= 0, t - last_gap, t + 1 + run0)
@@ -587,6 +589,8 @@ def _recovery(av: np.ndarray, run0: int, N: int) -> tuple[int, bool]:
 
 def _run_length(av: np.ndarray, run0: int) -> int:
     """Consecutive available frames at the end of ``av`` (``run0`` carried in if all are)."""
+    if av.size == 1:
+        return run0 + 1 if av[0] else 0
     gaps = np.flatnonzero(~av)
     return av.size - 1 - int(gaps[-1]) if gaps.size else run0 + av.size
 
