@@ -181,12 +181,7 @@ def expand_cov_blocks(cov_blocks: np.ndarray) -> np.ndarray:
     lead, n_a = cb.shape[:-2], cb.shape[-2]
     n_x = 2 * n_a
     if n_a > 1 and cb.strides[-2] == 0:  # one block broadcast to every axis: read it once
-        # block (..., 2, 2) times the axis identity: (..., a, i, b, j) = [a == b] block[i, j]
-        # is the interleaved (..., n_x, n_x); a NaN block makes the whole matrix NaN (NaN * 0)
-        blk = cb[..., 0, _BLOCK_2X2].reshape(*lead, 1, 2, 1, 2)
-        full = blk * _axis_eye(n_a)
-        full += 0.0  # -0.0 (a negative p01 times 0) -> +0.0, as the zeros of the scatter below
-        return full.reshape(*lead, n_x, n_x)
+        return expand_shared_block(cb[..., 0, :], n_a)
     dst, src = _block_index(n_a)
     c2 = cb.reshape(math.prod(lead), 3 * n_a)
     full = np.zeros((c2.shape[0], n_x * n_x))
@@ -195,6 +190,17 @@ def expand_cov_blocks(cov_blocks: np.ndarray) -> np.ndarray:
     if unknown.any():
         full[unknown] = np.nan
     return full.reshape(*lead, n_x, n_x)
+
+
+def expand_shared_block(block: np.ndarray, n_a: int) -> np.ndarray:
+    """Full covariances ``(..., 2 n_a, 2 n_a)`` with the one block ``(..., 3)`` ``[p00, p01,
+    p11]`` on every axis (:func:`expand_cov_blocks` of a block broadcast to all axes)."""
+    lead = block.shape[:-1]
+    # block (..., 2, 2) times the axis identity: (..., a, i, b, j) = [a == b] block[i, j] is the
+    # interleaved (..., n_x, n_x); a NaN block makes the whole matrix NaN (NaN * 0)
+    full = block[..., _BLOCK_2X2].reshape(*lead, 1, 2, 1, 2) * _axis_eye(n_a)
+    full += 0.0  # -0.0 (a negative p01 times 0) -> +0.0, as the zeros of the general layout
+    return full.reshape(*lead, 2 * n_a, 2 * n_a)
 
 
 _BLOCK_2X2 = np.array([0, 1, 1, 2])  # [p00, p01, p11] -> [[p00, p01], [p01, p11]]

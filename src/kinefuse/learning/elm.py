@@ -460,6 +460,6 @@ def clip_norm(v, max_norm, axis: int = -1) -> np.ndarray:
 
 def _scale_to_norm(v: np.ndarray, norm: np.ndarray, m) -> np.ndarray:
     """``v * min(1, m / norm)`` (``norm`` the vectors' norms, broadcast; NaN norms keep v)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.where(norm > m, m / norm, 1.0)
+    over = norm > m
+    scale = np.divide(m, norm, out=np.ones(over.shape), where=over)  # (no 0/0: only where over)
     return v * scale

@@ -72,7 +72,7 @@ from kinefuse.filters import (
     fixed_lag_smooth,
     rts_smooth_segments,
 )
-from kinefuse.filters._base import expand_cov_blocks
+from kinefuse.filters._base import expand_shared_block
 from kinefuse.learning import ELMRegressor
 from kinefuse.models import LinearGaussianModel
 from kinefuse.pipelines._outages import SOURCE_NONE, OutageEpisode, segment_start
@@ -345,14 +345,17 @@ class PaperBCore:
         state.fir1, m1, P1 = _run_filter(self.fir1, z_imu, state.fir1)
         state.fir2, m2, P2 = _run_filter(self.fir3, z_cam, state.fir2)
         # IMM, reading R2: mixing from the FIR posteriors at t-1 (the last frame's carried in)
-        px, pP = _lagged(state.prev_x, m1, m2), _lagged(state.prev_P, P1, P2)
-        state.prev_x[:, 0, 0], state.prev_x[:, 0, 1] = m1[:, -1], m2[:, -1]
-        state.prev_P[:, 0, 0], state.prev_P[:, 0, 1] = P1[:, -1], P2[:, -1]
+        if L == 1:  # read by the IMM before they are overwritten below
+            px, pP = state.prev_x, state.prev_P
+        else:
+            px, pP = _lagged(state.prev_x, m1, m2), _lagged(state.prev_P, P1, P2)
         zz = np.empty((J, L, 2, 3))
         zz[:, :, 0], zz[:, :, 1] = z_imu, z_cam
         im = state.imm  # stepped in place (trusted fast path, see kinefuse.filters._base)
         r_imm = self.imm._run_inplace(zz, (px, pP), im.x, im.P, im.mu, im.initialized)
         state.imm = im._replace(k=im.k + L)
+        state.prev_x[:, 0, 0], state.prev_x[:, 0, 1] = m1[:, -1], m2[:, -1]
+        state.prev_P[:, 0, 0], state.prev_P[:, 0, 1] = P1[:, -1], P2[:, -1]
         state.history.append(self.params.train_window, x, z_cam, r_imm.mean, r_imm.cov, av)
         pos = r_imm.position.copy()
         cov = pos_cov(r_imm.cov).copy()
@@ -473,9 +476,9 @@ class PaperBCore:
         zhat = np.full((x.shape[0], 3), np.nan)
         if ok.any():
             zhat[ok] = b.elm1._predict_unchecked(x[ok])  # rows checked finite here
-        b.fir3, m3, P3 = _run_filter(self.fir3, zhat[None], b.fir3)
+        b.fir3, m3, C3 = _run_filter(self.fir3, zhat[None], b.fir3, position_cov=True)
         p3 = m3[0, :, 0::2]
-        c = pos_cov(P3[0]) + b.cov_add
+        c = C3[0] + b.cov_add
         if b.elm2 is None:
             return p3, c
         e2_in = p3 if b.elm2_on_fir3 else zhat
@@ -513,10 +516,11 @@ def _lagged(prev: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def _run_filter(flt, z: np.ndarray, state):
+def _run_filter(flt, z: np.ndarray, state, position_cov: bool = False):
     """``(state, mean, cov)`` of ``flt.filter(z (J, L, n_z), state)``, on the filters' trusted
     fast path (``_filter_unchecked``: ``z`` is float64 without ±inf, checked by the callers of
-    :meth:`PaperBCore.advance`, and ``state`` is the filter's own).
+    :meth:`PaperBCore.advance`, and ``state`` is the filter's own). With ``position_cov``,
+    ``cov`` is the position block ``(J, L, n_z, n_z)`` only (:func:`pos_cov`, the same numbers).
 
     A constant-velocity UFIR (paper B's FIRs) runs its compiled loop on the state's own arrays,
     updated in place (``UFIRFilter._run_cv_inplace``: the core owns its states, a checkpoint is
@@ -531,7 +535,10 @@ def _run_filter(flt, z: np.ndarray, state):
         mean, covb = flt._run_cv_inplace(
             z, state.x, state.P, state.initialized, state.z_buf, state.k
         )[:2]
-        cov = expand_cov_blocks(np.broadcast_to(covb, (J, L, n_z, 3)))
+        if position_cov:  # p00 on the diagonal (the position rows of every axis block)
+            cov = covb[:, :, 0, 0, None, None] * np.eye(n_z)
+        else:
+            cov = expand_shared_block(covb[:, :, 0], n_z)
         return state._replace(k=state.k + L), mean, cov
     bad = None
     init = state.initialized
@@ -539,7 +546,7 @@ def _run_filter(flt, z: np.ndarray, state):
         bad = ~init & ~np.any(np.all(np.isfinite(z), axis=-1), axis=-1)
     if bad is None or not bad.any():
         state, r = flt._filter_unchecked(z, state)
-        return state, r.mean, r.cov
+        return state, r.mean, pos_cov(r.cov) if position_cov else r.cov
     n_x = flt.model.n_x
     mean, cov = np.empty((J, L, n_x)), np.empty((J, L, n_x, n_x))
     parts = []
@@ -553,7 +560,7 @@ def _run_filter(flt, z: np.ndarray, state):
         s_bad, r = flt._filter_unchecked(z[bad, t : t + 1], s_bad)
         mean[bad, t], cov[bad, t] = r.mean[:, 0], r.cov[:, 0]
     parts.append((bad, s_bad))
-    return _merge_rows(state, parts), mean, cov
+    return _merge_rows(state, parts), mean, pos_cov(cov) if position_cov else cov
 
 
 def _rows(state, rows):
