@@ -22,6 +22,10 @@ Loop order: joints in chunks of :data:`CHUNK`, time, joints within the chunk. In
 independent joints per time step hides the latency of each joint's serial recursion while the
 writes stay a few sequential streams (a vectorisation across the batch axis by the CPU's
 out-of-order engine; the output layout ``(B, T, ...)`` rules out SIMD lanes over joints).
+The common case, three axes sharing one covariance block (3-D positions), has its own pass
+(:func:`_kf_pass3`): element by element, the state in local variables, which the compiler keeps
+in registers (the general pass keeps it in arrays that any output store could alias); the same
+arithmetic through the same helpers, about 2.5x faster, byte-identical (tested).
 
 The 2x2 block arithmetic (:func:`_cov_step` forward, :func:`rts2_step` backward) is written
 once here and shared with :mod:`._kernels_axis` (the full-matrix layout, which the tests compare
@@ -89,6 +93,19 @@ def _cov_step(p00, p01, p11, valid, cv, f00, f01, f10, f11, q00, q01, q11, h0, h
     k1 = ph1 * iS
     n00, n01, n11 = joseph2(pp00, pp01, pp11, k0, k1, h0, h1, ra)  # Eq. 9 (Joseph)
     return n00, n01, n11, k0, k1, iS, True
+
+
+@njit_inline
+def _axis_step(x0, x1, zv, upd, k0, k1, iS, f00, f01, f10, f11, h0, h1):
+    """The mean of one axis in a KF step: ``x⁻ = F x`` (paper A Eq. 5, no noise term), then, if
+    ``upd``, ``ν = z − H x⁻`` and ``x = x⁻ + K ν`` (Eq. 8). Returns ``(x0, x1, ν, ν²/S)``
+    (``ν`` NaN and ``ν²/S`` 0 without an update)."""
+    xp0 = f00 * x0 + f01 * x1
+    xp1 = f10 * x0 + f11 * x1
+    if upd:
+        v = zv - (h0 * xp0 + h1 * xp1)
+        return xp0 + k0 * v, xp1 + k1 * v, v, v * v * iS
+    return xp0, xp1, np.nan, 0.0
 
 
 @njit_inline
@@ -178,6 +195,13 @@ def kf_filter_blocks(z, x, P, init, par, p0, mean, covb, pos, obs, nu, dist):
     x_in = x.copy()
     P_in = P.copy()
     init_in = init.copy()
+    if n_c == 1 and n_a == 3:  # 3-D positions, one shared covariance: the common case
+        return _kf_pass3(
+            z, x_in, P_in, init_in, x, P, init,
+            par[0, 0], par[0, 1], par[0, 2], par[0, 3], par[0, 4], par[0, 5], par[0, 6],
+            par[0, 7], par[0, 8], par[0, 9], p0[0, 0], p0[0, 1], p0[0, 2],
+            mean, covb, pos, obs, nu, dist,
+        )  # fmt: skip
     for c in range(n_c):
         a0, a1 = (0, n_a) if n_c == 1 else (c, c + 1)
         err = _kf_pass(
@@ -240,20 +264,7 @@ def _kf_pass(
                         return 1
                 if not ini[j]:
                     if not valid:  # no state yet: NaN outputs
-                        if w_mean:
-                            for a in range(a0, a1):
-                                mean[b, t, 2 * a] = np.nan
-                                mean[b, t, 2 * a + 1] = np.nan
-                        if w_cov:
-                            covb[b, t, c, :] = np.nan
-                        if w_pos:
-                            pos[b, t, a0:a1] = np.nan
-                        if w_obs and first:
-                            obs[b, t] = False
-                        if w_nu:
-                            nu[b, t, a0:a1] = np.nan
-                        if w_dist and first:
-                            dist[b, t] = np.nan
+                        _no_state_outputs(mean, covb, pos, obs, nu, dist, b, t, a0, a1, c, first)
                         continue
                     # SPEC §4.2 initialisation [J]: x₀ = H⁺ z (positions = z, velocities = 0), P₀
                     for a in range(a0, a1):
@@ -274,22 +285,13 @@ def _kf_pass(
                         Ps[j, 0], Ps[j, 1], Ps[j, 2], valid, cv,
                         f00, f01, f10, f11, q00, q01, q11, h0, h1, ra,
                     )  # fmt: skip
-                    d = 0.0
+                    d = 0.0  # NIS νᵀS⁻¹ν, S diagonal across axes
                     for a in range(a0, a1):
-                        x0 = xs[j, a - a0, 0]
-                        x1 = xs[j, a - a0, 1]
-                        # SPEC §4.2 kf_predict / paper A Eq. 5 (no noise term): x⁻ = F x
-                        xp0 = f00 * x0 + f01 * x1
-                        xp1 = f10 * x0 + f11 * x1
-                        if updated:
-                            v = z[b, t, a] - (h0 * xp0 + h1 * xp1)  # ν = z − H x⁻
-                            xp0 += k0 * v  # Eq. 8: x = x⁻ + K ν
-                            xp1 += k1 * v
-                            d += v * v * iS  # NIS νᵀS⁻¹ν, S diagonal across axes
-                        else:
-                            v = np.nan
-                        xs[j, a - a0, 0] = xp0
-                        xs[j, a - a0, 1] = xp1
+                        xs[j, a - a0, 0], xs[j, a - a0, 1], v, dv = _axis_step(
+                            xs[j, a - a0, 0], xs[j, a - a0, 1], z[b, t, a], updated, k0, k1, iS,
+                            f00, f01, f10, f11, h0, h1,
+                        )  # fmt: skip
+                        d += dv
                         if w_nu:
                             nu[b, t, a] = v
                     if w_obs:
@@ -325,6 +327,102 @@ def _kf_pass(
                     P[b, i, i + 1] = Ps[j, 1]
                     P[b, i + 1, i] = Ps[j, 1]
                     P[b, i + 1, i + 1] = Ps[j, 2]
+    return 0
+
+
+@njit_inline
+def _no_state_outputs(mean, covb, pos, obs, nu, dist, b, t, a0, a1, c, first):
+    """The outputs of row ``(b, t)`` for axes ``a0..a1-1`` before the element's first
+    measurement: NaN (``obs`` False); ``obs`` and ``dist`` are written by the first pass only."""
+    if mean.shape[0] > 0:
+        for a in range(a0, a1):
+            mean[b, t, 2 * a] = np.nan
+            mean[b, t, 2 * a + 1] = np.nan
+    if covb.shape[0] > 0:
+        covb[b, t, c, :] = np.nan
+    if pos.shape[0] > 0:
+        pos[b, t, a0:a1] = np.nan
+    if obs.shape[0] > 0 and first:
+        obs[b, t] = False
+    if nu.shape[0] > 0:
+        nu[b, t, a0:a1] = np.nan
+    if dist.shape[0] > 0 and first:
+        dist[b, t] = np.nan
+
+
+@njit
+def _kf_pass3(
+    z, x_in, P_in, init_in, x, P, init,
+    f00, f01, f10, f11, q00, q01, q11, h0, h1, ra, p000, p001, p011,
+    mean, covb, pos, obs, nu, dist,
+):  # fmt: skip
+    """:func:`_kf_pass` for three axes sharing one covariance block (3-D positions).
+
+    The same arithmetic (byte-identical outputs, tested), element by element: one element's
+    state lives in local variables (registers) over its whole series, where the general pass
+    keeps it in arrays that every output store could alias; about 2.5x faster.
+    """
+    B, T, n_z = z.shape
+    w_mean, w_cov, w_pos = mean.shape[0] > 0, covb.shape[0] > 0, pos.shape[0] > 0
+    w_obs, w_nu, w_dist = obs.shape[0] > 0, nu.shape[0] > 0, dist.shape[0] > 0
+    hh = h0 * h0 + h1 * h1
+    cv = f00 == 1.0 and f10 == 0.0 and f11 == 1.0 and h0 == 1.0 and h1 == 0.0
+    for b in range(B):
+        ini = init_in[b]
+        xa0, xa1, xb0, xb1, xc0, xc1 = x_in[b, 0], x_in[b, 1], x_in[b, 2], x_in[b, 3], x_in[b, 4], x_in[b, 5]  # fmt: skip
+        p00, p01, p11 = P_in[b, 0, 0], 0.5 * (P_in[b, 0, 1] + P_in[b, 1, 0]), P_in[b, 1, 1]
+        for t in range(T):
+            za, zb, zc = z[b, t, 0], z[b, t, 1], z[b, t, 2]
+            if np.isinf(za) or np.isinf(zb) or np.isinf(zc):
+                return 1
+            valid = not (np.isnan(za) or np.isnan(zb) or np.isnan(zc))
+            if not ini:
+                if not valid:
+                    _no_state_outputs(mean, covb, pos, obs, nu, dist, b, t, 0, 3, 0, True)
+                    continue
+                # SPEC §4.2 initialisation [J]: x₀ = H⁺ z (positions = z, velocities = 0), P₀
+                xa0, xa1 = h0 * za / hh, h1 * za / hh
+                xb0, xb1 = h0 * zb / hh, h1 * zb / hh
+                xc0, xc1 = h0 * zc / hh, h1 * zc / hh
+                p00, p01, p11 = p000, p001, p011
+                ini = True
+                va = vb = vc = dd = np.nan
+                upd = True  # (obs: the first measurement counts as observed)
+            else:
+                p00, p01, p11, k0, k1, iS, upd = _cov_step(
+                    p00, p01, p11, valid, cv, f00, f01, f10, f11, q00, q01, q11, h0, h1, ra
+                )
+                xa0, xa1, va, da = _axis_step(
+                    xa0, xa1, za, upd, k0, k1, iS, f00, f01, f10, f11, h0, h1
+                )
+                xb0, xb1, vb, db = _axis_step(
+                    xb0, xb1, zb, upd, k0, k1, iS, f00, f01, f10, f11, h0, h1
+                )
+                xc0, xc1, vc, dc = _axis_step(
+                    xc0, xc1, zc, upd, k0, k1, iS, f00, f01, f10, f11, h0, h1
+                )
+                dd = ((0.0 + da) + db) + dc if upd else np.nan
+            if w_nu:
+                nu[b, t, 0], nu[b, t, 1], nu[b, t, 2] = va, vb, vc
+            if w_obs:
+                obs[b, t] = upd
+            if w_dist:
+                dist[b, t] = dd
+            if w_mean:
+                mean[b, t, 0], mean[b, t, 1], mean[b, t, 2] = xa0, xa1, xb0
+                mean[b, t, 3], mean[b, t, 4], mean[b, t, 5] = xb1, xc0, xc1
+            if w_cov:
+                covb[b, t, 0, 0], covb[b, t, 0, 1], covb[b, t, 0, 2] = p00, p01, p11
+            if w_pos:
+                pos[b, t, 0] = h0 * xa0 + h1 * xa1
+                pos[b, t, 1] = h0 * xb0 + h1 * xb1
+                pos[b, t, 2] = h0 * xc0 + h1 * xc1
+        init[b] = ini
+        if ini:
+            P[b, :, :] = 0.0
+            x[b, 0], x[b, 1], x[b, 2], x[b, 3], x[b, 4], x[b, 5] = xa0, xa1, xb0, xb1, xc0, xc1
+            for i in range(0, 6, 2):
+                P[b, i, i], P[b, i, i + 1], P[b, i + 1, i], P[b, i + 1, i + 1] = p00, p01, p01, p11
     return 0
 
 
