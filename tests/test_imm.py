@@ -485,3 +485,29 @@ def test_bad_models_and_inputs():
         imm.filter(np.zeros((10, 2, 3)), prev=(np.zeros((10, 6)), np.zeros((10, 2, 6, 6))))
     with pytest.raises(InputError, match="batch shape"):
         imm.filter(np.zeros((4, 10, 2, 3)), state=imm.init(batch_shape=(3,)))
+
+
+def test_run_inplace_without_per_model_outputs_gives_the_same_combined_output():
+    """``per_model=False`` (paper B's core: the per-model outputs are most of the memory) skips
+    only the per-model fields: the combined output and the updated state are byte-identical."""
+
+    rng = np.random.default_rng(8)
+    imm = IMM(constant_velocity(1 / 30, q=0.5, r=1e-3), constant_velocity(1 / 30, q=0.5, r=4e-3))
+    z = np.cumsum(rng.normal(0, 0.01, (3, 120, 2, 3)), axis=1)
+    z[:, 30:50, 1] = np.nan
+    z[1, :8] = np.nan
+
+    def run(per_model):
+        s = imm.init((3,))
+        x, P, mu, init = s.x.copy(), s.P.copy(), s.mu.copy(), s.initialized.copy()
+        r = imm._run_inplace(np.ascontiguousarray(z), None, x, P, mu, init, per_model=per_model)
+        return r, (x, P, mu, init)
+
+    full, s_full = run(True)
+    lean, s_lean = run(False)
+    for name in ("mean", "cov", "position", "observed", "mu", "model_observed"):
+        assert getattr(lean, name).tobytes() == getattr(full, name).tobytes(), name
+    for a, b in zip(s_lean, s_full, strict=True):
+        assert a.tobytes() == b.tobytes()
+    assert lean.model_cov is None and lean.log_likelihood is None
+    assert full.model_cov.shape == (3, 120, 2, 6, 6)

@@ -393,6 +393,9 @@ def _imm_loop(
     Returns the number of model updates whose ``S`` had to be regularised (SPEC §13).
     """
     B, T = z.shape[0], z.shape[1]
+    # per-model outputs with a zero-length first axis are not wanted (not written)
+    w_models = out_xm.shape[0] > 0  # out_xm, out_Pm
+    w_diag = out_ll.shape[0] > 0  # out_ll, out_nu, out_nis
     n_reg = 0
     valid = np.zeros(M, dtype=np.bool_)
     updated = np.zeros(M, dtype=np.bool_)
@@ -432,11 +435,12 @@ def _imm_loop(
                     n_valid += 1
                 updated[m] = False
                 loglik[m] = np.nan
-                out_ll[b, t, m] = np.nan
-                out_nis[b, t, m] = np.nan
                 out_mobs[b, t, m] = False
-                for k in range(n_z):
-                    out_nu[b, t, m, k] = np.nan
+                if w_diag:
+                    out_ll[b, t, m] = np.nan
+                    out_nis[b, t, m] = np.nan
+                    for k in range(n_z):
+                        out_nu[b, t, m, k] = np.nan
             # model-conditioned inputs at t−1: external (R2) where given, else own posteriors
             ready = True
             for i in range(M):
@@ -455,8 +459,9 @@ def _imm_loop(
                 if n_valid == 0:  # nothing to start from: outputs stay NaN
                     out_x[b, t] = np.nan
                     out_P[b, t] = np.nan
-                    out_xm[b, t] = np.nan
-                    out_Pm[b, t] = np.nan
+                    if w_models:
+                        out_xm[b, t] = np.nan
+                        out_Pm[b, t] = np.nan
                     out_mu[b, t] = mu[b]
                     out_obs[b, t] = False
                     continue
@@ -475,8 +480,9 @@ def _imm_loop(
                     out_mobs[b, t, m] = valid[m]
                 init[b] = True
                 _imm_combine_into(mu[b], xs[b], Ps[b], out_x[b, t], out_P[b, t], d, M, n_x)
-                out_xm[b, t] = xs[b]
-                out_Pm[b, t] = Ps[b]
+                if w_models:
+                    out_xm[b, t] = xs[b]
+                    out_Pm[b, t] = Ps[b]
                 out_mu[b, t] = mu[b]
                 out_obs[b, t] = True
                 continue
@@ -493,12 +499,13 @@ def _imm_loop(
                     n_reg += status == CHOL_REGULARISED
                     if status != CHOL_FAILED:
                         ll, nis = _loglik_chol(nu, L, y, n_z)  # Eqs. 39-44 (log form)
-                        out_nu[b, t, m] = nu
-                        out_nis[b, t, m] = nis
+                        if w_diag:
+                            out_nu[b, t, m] = nu
+                            out_nis[b, t, m] = nis
+                            out_ll[b, t, m] = ll
                         out_mobs[b, t, m] = True
                         updated[m] = True
                         loglik[m] = ll
-                        out_ll[b, t, m] = ll
             _imm_probabilities_into(
                 loglik, updated, cbar, mu_floor, mu_new, ll_s, lw, fixed, M
             )  # Eqs. 45-46
@@ -506,8 +513,9 @@ def _imm_loop(
             mu[b] = mu_new
             xs[b] = xm
             Ps[b] = Pm
-            out_xm[b, t] = xm
-            out_Pm[b, t] = Pm
+            if w_models:
+                out_xm[b, t] = xm
+                out_Pm[b, t] = Pm
             out_mu[b, t] = mu_new
             any_obs = False
             for m in range(M):

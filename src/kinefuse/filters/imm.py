@@ -499,7 +499,7 @@ class IMM:
         )
         return new_state, result
 
-    def _run_inplace(self, z, prev, xs, Ps, mu, init, batch=None) -> IMMResult:
+    def _run_inplace(self, z, prev, xs, Ps, mu, init, batch=None, per_model=True) -> IMMResult:
         """The kernel call of :meth:`_run` on flat arrays updated in place.
 
         ``z (B, T, M, n_z)`` C-contiguous float64 without ±inf; ``prev`` None or C-contiguous
@@ -507,7 +507,9 @@ class IMM:
         n_x, n_x)``, ``mu (B, M)`` float64 and ``init (B,)`` bool, C-contiguous, updated in
         place. For owners of such arrays that step them without copies
         (:class:`kinefuse.pipelines.paper_b.PaperBCore`); ``filter`` and ``step`` copy the
-        state first. Returns the result with leading axes ``batch`` (default ``(B,)``).
+        state first. Returns the result with leading axes ``batch`` (default ``(B,)``); without
+        ``per_model`` its ``model_*`` and ``log_likelihood`` fields are None (not computed:
+        they are most of the output's memory).
         """
         M, n_x, n_z = self.n_models, self.n_x, self.n_z
         B, T = z.shape[:2]
@@ -522,13 +524,14 @@ class IMM:
         out_x = np.empty((B, T, n_x))
         out_P = np.empty((B, T, n_x, n_x))
         out_mu = np.empty((B, T, M))
-        out_xm = np.empty((B, T, M, n_x))
-        out_Pm = np.empty((B, T, M, n_x, n_x))
+        Bm, Tm = (B, T) if per_model else (0, 0)  # zero-length: not written by the kernel
+        out_xm = np.empty((Bm, Tm, M, n_x))
+        out_Pm = np.empty((Bm, Tm, M, n_x, n_x))
         out_obs = np.zeros((B, T), dtype=bool)
         out_mobs = np.zeros((B, T, M), dtype=bool)
-        out_ll = np.empty((B, T, M))
-        out_nu = np.empty((B, T, M, n_z))
-        out_nis = np.empty((B, T, M))
+        out_ll = np.empty((Bm, Tm, M))
+        out_nu = np.empty((Bm, Tm, M, n_z))
+        out_nis = np.empty((Bm, Tm, M))
         if B > 0 and T > 0:
             n_reg = imm_run(
                 z, has_prev, px, pP, self._F, self._Q, self._H, self._R, self._Hpinv, self._P_init,
@@ -544,12 +547,18 @@ class IMM:
             position=positions(mean, self.models[0].H),
             observed=out_obs.reshape(*batch, T),
             mu=out_mu.reshape(*batch, T, M),
-            model_mean=out_xm.reshape(*batch, T, M, n_x),
-            model_cov=out_Pm.reshape(*batch, T, M, n_x, n_x),
             model_observed=out_mobs.reshape(*batch, T, M),
-            log_likelihood=out_ll.reshape(*batch, T, M),
-            model_innovation=out_nu.reshape(*batch, T, M, n_z),
-            model_distance=out_nis.reshape(*batch, T, M),
+            **(
+                {
+                    "model_mean": out_xm.reshape(*batch, T, M, n_x),
+                    "model_cov": out_Pm.reshape(*batch, T, M, n_x, n_x),
+                    "log_likelihood": out_ll.reshape(*batch, T, M),
+                    "model_innovation": out_nu.reshape(*batch, T, M, n_z),
+                    "model_distance": out_nis.reshape(*batch, T, M),
+                }
+                if per_model
+                else {}
+            ),
         )
 
 

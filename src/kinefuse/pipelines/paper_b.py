@@ -352,7 +352,9 @@ class PaperBCore:
         zz = np.empty((J, L, 2, 3))
         zz[:, :, 0], zz[:, :, 1] = z_imu, z_cam
         im = state.imm  # stepped in place (trusted fast path, see kinefuse.filters._base)
-        r_imm = self.imm._run_inplace(zz, (px, pP), im.x, im.P, im.mu, im.initialized)
+        r_imm = self.imm._run_inplace(
+            zz, (px, pP), im.x, im.P, im.mu, im.initialized, per_model=False
+        )
         state.imm = im._replace(k=im.k + L)
         state.prev_x[:, 0, 0], state.prev_x[:, 0, 1] = m1[:, -1], m2[:, -1]
         state.prev_P[:, 0, 0], state.prev_P[:, 0, 1] = P1[:, -1], P2[:, -1]
@@ -503,7 +505,8 @@ class PaperBStep(NamedTuple):
     elm2_skipped: np.ndarray
     """(J, L) bool: a bridged episode without ELM-2 (FIR-3 alone)."""
     imm: IMMResult
-    """The block's IMM filtered output (the offline form smooths it)."""
+    """The block's IMM filtered output (the offline form smooths it); its per-model fields are
+    None (not computed)."""
 
 
 def _lagged(prev: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
