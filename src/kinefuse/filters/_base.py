@@ -16,10 +16,12 @@ with ``z``'s batch shape. Anything else is undefined (no error; wrong numbers or
 a kernel). Users call ``step`` / ``filter``, which stay checked.
 
 In place: an owner that keeps a state to itself and steps it every frame may skip even the
-state copy. ``UFIRFilter._run_cv_inplace`` (constant-velocity route) and ``IMM._run_inplace``
-run the same compiled loop on the state's own flat arrays ``(B, ...)``, updated in place, and
-return only the outputs; the owner (:class:`kinefuse.pipelines.paper_b.PaperBCore`) keeps the
-time index and never hands those arrays to anyone else (a checkpoint is a deep copy).
+state copy. ``UFIRFilter._run_cv_inplace`` (constant-velocity route), ``IMM._run_inplace`` and
+``IntegratedFilter._run_inplace`` run the same compiled loop on the state's own flat arrays
+``(B, ...)``, updated in place, and return only the outputs; the owner
+(:class:`kinefuse.pipelines.paper_b.PaperBCore`,
+:class:`kinefuse.streaming.processors.IntegratedProcessor`) keeps the time index and never
+hands those arrays to anyone else (a checkpoint is a deep copy).
 """
 
 from __future__ import annotations
