@@ -64,3 +64,69 @@ def test_kernels_cached_looks_in_the_user_cache_dir(tmp_path, monkeypatch):
         d.mkdir(parents=True, exist_ok=True)
         (d / pattern.replace("*", "12.py311")).write_text("")
     assert _compile.kernels_cached() is True
+
+
+def _tree(tmp_path, sources):
+    """A fake ``kinefuse`` package under ``tmp_path`` with the given kernel module sources and a
+    cache file per module; returns the root."""
+    for name, text in sources.items():
+        path = tmp_path.joinpath(*name.split(".")).with_suffix(".py")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+        cache = path.parent / "__pycache__"
+        cache.mkdir(exist_ok=True)
+        (cache / f"{path.stem}.f-10.py311.nbi").write_text("index")
+        (cache / f"{path.stem}.f-10.py311.1.nbc").write_text("code")
+    return tmp_path
+
+
+def test_stale_kernel_caches_dropped_through_inlined_imports(tmp_path, monkeypatch):
+    """Numba checks a cached kernel against its own file only; a change in a module it imports
+    (an inlined helper) must drop its cache too, and leave unrelated modules' caches alone."""
+    from kinefuse._kernel_mode import drop_stale_kernel_caches
+
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    mods = ("kinefuse.a._helpers", "kinefuse.a._run", "kinefuse.a._top", "kinefuse.b._other")
+    root = _tree(
+        tmp_path,
+        {
+            mods[0]: "def h(): return 1\n",
+            mods[1]: "from kinefuse.a._helpers import h\n",
+            mods[2]: "from kinefuse.a._run import h\nfrom numpy import zeros\n",
+            mods[3]: "x = 1\n",
+        },
+    )
+    cache_a = root / "kinefuse" / "a" / "__pycache__"
+    # first run: no stamps yet, every existing cache is dropped once
+    assert drop_stale_kernel_caches(root, mods) == list(mods)
+    assert drop_stale_kernel_caches(root, mods) == []
+    for m in mods:  # numba compiles again
+        _tree(root, {m: root.joinpath(*m.split(".")).with_suffix(".py").read_text()})
+    assert drop_stale_kernel_caches(root, mods) == []
+    # a helper changes: it and both of its (transitive) importers are dropped, not the other
+    (root / "kinefuse" / "a" / "_helpers.py").write_text("def h(): return 2\n")
+    assert drop_stale_kernel_caches(root, mods) == list(mods[:3])
+    assert not list(cache_a.glob("_run.*.nb*")) and not list(cache_a.glob("_top.*.nb*"))
+    assert list((root / "kinefuse" / "b" / "__pycache__").glob("_other.*.nb*"))
+    assert drop_stale_kernel_caches(root, mods) == []
+
+
+def test_stale_kernel_caches_in_the_user_cache_dir(tmp_path, monkeypatch):
+    """With NUMBA_CACHE_DIR set, numba's mirror directory (``<dir>_<sha1 of the dir>``) is the
+    one checked and stamped."""
+    import hashlib
+
+    from kinefuse._kernel_mode import drop_stale_kernel_caches
+
+    user = tmp_path / "user"
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(user))
+    root = _tree(tmp_path / "src", {"kinefuse.a._k": "y = 1\n"})
+    src_dir = root / "kinefuse" / "a"
+    mirror = user / f"a_{hashlib.sha1(str(src_dir).encode()).hexdigest()}"
+    assert drop_stale_kernel_caches(root, ("kinefuse.a._k",)) == ["kinefuse.a._k"]  # in-tree
+    assert (mirror / "_k.kinefuse-deps").is_file()  # stamped before numba writes there
+    (mirror / "_k.f-1.py311.nbi").write_text("index")
+    assert drop_stale_kernel_caches(root, ("kinefuse.a._k",)) == []
+    (src_dir / "_k.py").write_text("y = 2\n")
+    assert drop_stale_kernel_caches(root, ("kinefuse.a._k",)) == ["kinefuse.a._k"]
+    assert not (mirror / "_k.f-1.py311.nbi").exists()

@@ -13,10 +13,14 @@ from __future__ import annotations
 from kinefuse._kernel_mode import (
     _SENTINELS,
     KERNEL_MODULES,
+    drop_stale_kernel_caches,
     interpret_kernels,
     interpreting,
     kernels_cached,
 )
+
+if not interpreting():
+    drop_stale_kernel_caches()  # before any kernel module loads its cached machine code
 
 # isort: split
 import numba  # after kinefuse._kernel_mode has set NUMBA_CACHE_DIR

@@ -15,6 +15,16 @@ directory; we make that explicit: unless ``NUMBA_CACHE_DIR`` is already set, it 
 directory is read-only. Paying the compile cost once per machine is expected; later processes
 load the cached machine code.
 
+Stale caches
+------------
+Numba checks a cached function against a hash of *its own* source file only. Most kernels
+inline helpers from other kernel modules (``njit_inline``), so after a change to a helper file
+alone (an upgrade, or a developer's edit) numba would load machine code built from the old
+helper. :func:`drop_stale_kernel_caches` (run by :mod:`kinefuse._compile` before any kernel is
+loaded) keeps, next to each kernel module's cache files, a hash of the module and every kernel
+module it imports, directly or not; when it no longer matches, that module's cache files are
+removed (it is compiled again), the others are kept.
+
 Interpreted kernels
 -------------------
 Compiling every kernel takes minutes on a small machine, which is far more than a small workload
@@ -27,7 +37,9 @@ when :func:`kernels_cached` says this machine has not compiled the kernels yet.
 from __future__ import annotations
 
 import glob
+import hashlib
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -75,6 +87,84 @@ _SENTINELS = (
     ("filters", "_kernels_ufir_run.ufir_run-*.nbi"),
     ("filters", "_kernels_imm.imm_run_paper_b-*.nbi"),
 )
+
+
+_IMPORT = re.compile(rb"^from (kinefuse\.[\w.]+) import", re.MULTILINE)
+
+#: Suffix of the stamp file kept next to a kernel module's numba cache files.
+STAMP_SUFFIX = ".kinefuse-deps"
+
+
+def _cache_dirs(src_dir: Path) -> list[Path]:
+    """Where numba keeps the cache of a module in ``src_dir``: ``__pycache__`` beside it and,
+    with ``NUMBA_CACHE_DIR`` set, numba's mirror of it there (``<dir name>_<sha1 of the dir>``).
+    The last one is where numba writes."""
+    dirs = [src_dir / "__pycache__"]
+    user = os.environ.get("NUMBA_CACHE_DIR")
+    if user:
+        hashed = hashlib.sha1(str(src_dir).encode()).hexdigest()
+        dirs.append(Path(user) / f"{src_dir.name}_{hashed}")
+    return dirs
+
+
+def drop_stale_kernel_caches(root: Path | None = None, modules=KERNEL_MODULES) -> list[str]:
+    """Remove the numba cache files of every kernel module whose source or kernel-module imports
+    changed since they were written (see "Stale caches" above).
+
+    Parameters
+    ----------
+    root : Path, optional
+        The directory holding the ``kinefuse`` package (default: this installation's).
+    modules : sequence of str
+        Dotted names of the kernel modules.
+
+    Returns
+    -------
+    list of str
+        The modules whose cache files were removed. Unreadable sources or unwritable cache
+        directories are skipped (numba then behaves as before).
+    """
+    if root is None:  # as numba spells the path (abspath, symlinks kept)
+        root = Path(os.path.abspath(__file__)).parent.parent
+    paths = {m: root.joinpath(*m.split(".")).with_suffix(".py") for m in modules}
+    try:
+        text = {m: p.read_bytes() for m, p in paths.items()}
+    except OSError:
+        return []
+    direct = {m: {d.decode() for d in _IMPORT.findall(t)} & set(modules) for m, t in text.items()}
+    dropped = []
+    for m in modules:
+        closure, todo = {m}, [m]
+        while todo:
+            for d in direct[todo.pop()] - closure:
+                closure.add(d)
+                todo.append(d)
+        digest = hashlib.sha256()
+        for d in sorted(closure):
+            digest.update(d.encode() + b"\0" + text[d] + b"\0")
+        stamp = digest.hexdigest()
+        base = paths[m].stem
+        dirs = _cache_dirs(paths[m].parent)
+        for cache in dirs:
+            mark = cache / (base + STAMP_SUFFIX)
+            try:
+                if mark.read_text() == stamp:
+                    continue
+            except OSError:
+                pass  # no stamp yet (or unreadable): rewrite it
+            stale = glob.glob(str(cache / f"{glob.escape(base)}.*.nb[ic]"))
+            try:
+                for f in stale:
+                    os.remove(f)
+                if cache == dirs[-1]:  # numba writes here: stamp it before it does
+                    cache.mkdir(parents=True, exist_ok=True)
+                if cache.is_dir():
+                    mark.write_text(stamp)
+            except OSError:
+                continue
+            if stale:
+                dropped.append(m)
+    return dropped
 
 
 def interpreting() -> bool:
