@@ -331,9 +331,11 @@ def check_state_batch(state: GaussianState, z: np.ndarray) -> None:
 
 def check_not_all_missing(z: np.ndarray, state: GaussianState | None) -> None:
     """Refuse series that never observe anything for an element that has no initial state."""
-    valid_any = np.any(np.all(np.isfinite(z), axis=-1), axis=-1)
     init = np.zeros(z.shape[:-2], dtype=bool) if state is None else np.asarray(state.initialized)
-    bad = ~valid_any & ~init
+    # an element whose first row is valid passes at once; the others are read whole
+    bad = np.asarray(~init & ~np.all(np.isfinite(z[..., 0, :]), axis=-1)).reshape(init.shape)
+    if np.any(bad):
+        bad[bad] = ~np.any(np.all(np.isfinite(z[bad]), axis=-1), axis=-1)
     if np.any(bad):
         idx = tuple(int(i) for i in np.argwhere(bad)[0])
         where = f" (batch element {idx})" if z.ndim > 2 else ""
