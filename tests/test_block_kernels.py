@@ -113,6 +113,32 @@ def test_rts_blocks_equal_filterpy_and_dense(isotropic):
         np.testing.assert_allclose(sm.cov[b], Ps, rtol=1e-8, atol=1e-12)
 
 
+@pytest.mark.parametrize(("N", "missing"), [(10, 0.05), (40, 0.02), (200, 0.02), (60, 0.3)])
+def test_ufir_cv_covariance_closed_form_equals_iterative(N, missing):
+    """Scattered missing samples: nearly every horizon has a gap, so the covariance comes from
+    the O(1) closed form (``_kernels_ufir_cov``) almost everywhere; the literal 6x6 iterative
+    UFIR is the oracle. Tolerance: the iterative Joseph recursion runs up to N steps, each
+    rounding at ~1e-16 relative on a well-conditioned 2x2 block."""
+    rng = np.random.default_rng(N)
+    model = constant_velocity(1 / 30, q=0.7, r=0.004)
+    z = _data(N, model, B=2, T=2 * N + 90)
+    z[:, rng.random(z.shape[1]) < missing] = np.nan  # frame-wide dropouts
+    z[1, rng.random(z.shape[1]) < missing] = np.nan  # and element-specific ones
+    z[:, 0] = np.where(np.isnan(z[:, 0]), 0.0, z[:, 0])
+    f = UFIRFilter(model, horizon=N)
+    _, fast = f.filter(z)
+    _, ref = f._run(z, f.init(z.shape[:1]), fast=False)
+    incomplete = ~np.isfinite(z).all(-1)
+    horizon_gap = np.array([[incomplete[b, max(0, k - N + 1) : k + 1].any() for k in range(z.shape[1])] for b in range(2)])  # fmt: skip
+    assert (fast.fir_ready & horizon_gap).sum() > z.shape[1] // 2  # the closed form is exercised
+    np.testing.assert_array_equal(fast.fir_ready, ref.fir_ready)
+    np.testing.assert_allclose(fast.cov, ref.cov, rtol=1e-9, atol=1e-14)
+    # split mid-block: the same covariance (to rounding: the last step of a call is iterative)
+    s1, r1 = f.filter(z[:, : N + 7])
+    _, r2 = f.filter(z[:, N + 7 :], state=s1)
+    np.testing.assert_allclose(np.concatenate([r1.cov, r2.cov], 1), fast.cov, rtol=1e-9, atol=1e-14)
+
+
 @pytest.mark.parametrize("N", [10, 40])
 def test_ufir_constant_velocity_o1_equals_iterative(N):
     model = constant_velocity(1 / 30, q=0.7, r=0.004)

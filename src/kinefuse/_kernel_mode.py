@@ -77,6 +77,7 @@ KERNEL_MODULES = (
     "kinefuse.filters._kernels_integrated",
     "kinefuse.filters._kernels_linalg",
     "kinefuse.filters._kernels_ufir",
+    "kinefuse.filters._kernels_ufir_cov",
     "kinefuse.filters._kernels_ufir_run",
     "kinefuse.pipelines._kinefuse_kernels",
     "kinefuse.streaming._kernels",

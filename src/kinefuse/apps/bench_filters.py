@@ -48,7 +48,7 @@ KF_OUTPUTS = ("mean", "cov")
 #: UFIR horizons timed; the O(1) claim is checked over these.
 UFIR_HORIZONS = (10, 40, 200)
 
-#: UFIR outputs without the covariance (the part that stays O(N) on horizons with gaps).
+#: UFIR outputs without the covariance (its closed form on horizons with gaps is the costlier part).
 UFIR_NO_COV = ("mean", "position", "observed", "innovation")
 
 #: Paper A (Sun 2024) Table 6, MATLAB, per step (one joint): KF 0.037 ms, FIR 0.237 ms, EM-KF/FIR 7.954 ms.

@@ -19,7 +19,21 @@ import numpy as np
 from kinefuse._compile import njit, njit_inline
 from kinefuse.filters._kernels import kf_predict, kf_update
 from kinefuse.filters._kernels_blocks import _cov_step
-from kinefuse.filters._kernels_ufir import RANK_TOL, fir_estimate, ufir_horizon_axes, ufir_taps
+from kinefuse.filters._kernels_ufir import (
+    RANK_TOL,
+    fir_estimate,
+    ufir_horizon_axes,
+    ufir_taps,
+)
+from kinefuse.filters._kernels_ufir_cov import (
+    N_CUR_COLS,
+    N_PREV_COLS,
+    cov_at,
+    cov_prefix_add,
+    cov_suffix_table,
+    kth_valid,
+    next_valid,
+)
 
 
 @njit
@@ -143,15 +157,13 @@ def _suffix_sums(zr, j, N, n_a, Qs):
     for i in range(N - 1, lo - 1, -1):
         for c in range(W):
             Qs[i, c] = Qs[i + 1, c]
-        t = (j - 1) * N + i
-        sl = t % N
-        if not np.isnan(zr[sl, 0]):
+        if not np.isnan(zr[i, 0]):  # time (j - 1) N + i, in ring slot i
             u = float(i)
             Qs[i, 0] += 1.0
             Qs[i, 1] += u
             Qs[i, 2] += u * u
             for a in range(n_a):
-                zv = zr[sl, a]
+                zv = zr[i, a]
                 Qs[i, 3 + 2 * a] += zv
                 Qs[i, 4 + 2 * a] += u * zv
 
@@ -174,74 +186,80 @@ def ufir_run_cv(
     split); no sum is carried over more than 2N samples (no drift).
 
     Covariance: a complete horizon has the data-independent ``P_full``; with missing samples
-    ``P̂_k`` depends on where they are and is computed by :func:`ufir_horizon_axes` (O(N)) only
-    when wanted: for the ``o_covb`` output, at the last step (the state) and where the horizon
-    holds exactly K valid samples (the next step may fall back to the KF, which needs it).
+    ``P̂_k`` depends on where they are. The state's covariance comes from the iterative form
+    (:func:`ufir_horizon_axes`, O(N)) at the last step and where the horizon holds exactly K
+    valid samples (the next step may fall back to the KF, which needs it): with or without the
+    ``o_covb`` output, so that asking for it changes no estimate, bit for bit. Everywhere else
+    the ``o_covb`` output comes in O(1) per step from the closed form of
+    :mod:`._kernels_ufir_cov` (window tables kept like the sums above; the same numbers to
+    rounding); without that output it is not computed.
     Dead zone and fallback: the per-axis KF step (Joseph form). State ``x (B, 6)``, ``P``,
     ``init``, ``zring (B, N, n_z)`` updated in place; ``o_covb (B, T, 1, 3)`` (one block for all
     axes) may have a zero-length first axis (not wanted). Returns the count of KF updates with
     ``S`` not factorisable.
     """
     B, T, n_a = z.shape
-    n_x = 2 * n_a
     w_cov = o_covb.shape[0] > 0
     Wd = 3 + 2 * n_a
     Qs = np.empty((N + 1, Wd))
     Ps_ = np.empty(Wd)  # prefix sums of the current block
-    idx = np.empty(K, np.int64)
-    xx = np.empty((2, n_a))
-    xf = np.empty(n_x)
-    Pf = np.empty((n_x, n_x))
     xs = np.empty((n_a, 2))
+    c_prev, c_cur, c_pre = _cov_tables(N if w_cov else -1)  # closed form, for o_covb only
+    idt2 = 1.0 / (dt * dt)  # det CᵀC in (position, velocity) = det in (p, β) / dt²
     n_fail = 0
     for b in range(B):
         zr = zring[b]
         p00, p01, p11 = _load_axes(x, P, b, xs)
         ini = init[b]
-        # sums for the block of k0 from the ring (samples k0-N .. k0-1 are there)
+        # sums for the block of k0 from the ring (samples k0-N .. k0-1 are there); blocks start
+        # at multiples of N, so the ring slot of a time is its index in its block
         j = k0 // N
-        _suffix_sums(zr, j, N, n_a, Qs)
-        Ps_[:] = 0.0
-        for t in range(j * N, k0):
-            if not np.isnan(zr[t % N, 0]):
-                _sums_add(Ps_, float(t - j * N), zr, t % N)
+        i_k = k0 - j * N
+        _start_block(zr, j, i_k, Qs, Ps_, w_cov, c_prev, c_cur, c_pre, dt, q00, q01, q11)
+        s_t = -1  # the horizon's K-th valid time (-1: not known), and its ring slot
+        s_sl = 0
         for t in range(T):
             k = k0 + t
-            valid = _push_row(z, b, t, zr, k % N)
-            if k % N == 0 and k > 0:  # new block: suffixes of the finished one, empty prefix
-                j = k // N
-                _suffix_sums(zr, j, N, n_a, Qs)
-                Ps_[:] = 0.0
-            u_k = float(k - j * N)
+            if i_k == N:  # new block
+                j += 1
+                i_k = 0
+            left = s_t >= 0 and not np.isnan(zr[i_k, 0])  # time k − N leaves: was it valid?
+            valid = _push_row(z, b, t, zr, i_k)
+            if i_k == 0 and t > 0:  # new block: suffixes of the finished one, empty prefix
+                _start_block(zr, j, 0, Qs, Ps_, w_cov, c_prev, c_cur, c_pre, dt, q00, q01, q11)
+            u_k = float(i_k)
             if valid:
-                _sums_add(Ps_, u_k, zr, k % N)
-            for a in range(n_a):  # innovation z − H F x̂_{k−1}
-                o_nu[b, t, a] = (
-                    z[b, t, a] - (xs[a, 0] + dt * xs[a, 1]) if (valid and ini) else np.nan
-                )
+                _sums_add(Ps_, u_k, zr, i_k)
+            if w_cov:
+                cov_prefix_add(c_cur, c_pre, i_k, valid, dt, q00, q01, q11)
+                if left:
+                    s_t, s_sl = next_valid(zr, s_t, s_sl, k)
+            _innovation(o_nu, z, b, t, xs, dt, valid and ini)
             ready = False
             if k >= N - 1:
                 im = int(u_k) + 1  # local index of m = k−N+1 in block j−1 (N: empty suffix)
                 n = Qs[im, 0] + Ps_[0]
-                if n >= K and _ls_line(Ps_, Qs, im, u_k, u_k + N, n, dt, xs):
+                idet = _ls_line(Ps_, Qs, im, u_k, u_k + N, n, dt, xs) if n >= K else 0.0
+                if idet > 0.0:
                     ready = True
                     ini = True
                     if n == N:  # complete horizon: data-independent covariance
                         p00, p01, p11 = pfull[0], pfull[1], pfull[2]
-                    elif w_cov or n == K or t == T - 1:  # wanted: O(N) (Notes)
-                        code = ufir_horizon_axes(
-                            zr, k, N, K, Fa, Finva, Ha, Qa, Ra, idx, xx, xf, Pf
+                    elif n == K or t == T - 1:  # the state's: iterative, O(N) (Notes)
+                        p00, p01, p11 = _iterative_cov(zr, k, N, K, Fa, Finva, Ha, Qa, Ra)
+                    elif w_cov:  # closed form, O(1) (the K-th valid time: O(K) when few miss)
+                        if s_t < 0:
+                            s_t, s_sl = kth_valid(zr, im, N, K, j)
+                        i_s = s_t - j * N
+                        p00, p01, p11 = cov_at(
+                            c_prev, c_cur, c_pre, N, im, i_s, i_k, dt, r, idet * idt2
                         )
-                        p00, p01, p11 = (Pf[0, 0], Pf[0, 1], Pf[1, 1]) if code == 1 else _NAN3
                     else:
                         p00, p01, p11 = _NAN3  # not needed: not computed
             if not ready:
                 if not ini:
                     if valid:  # SPEC §4.2 initialisation: positions from z, zero velocity, P₀
-                        for a in range(n_a):
-                            xs[a, 0] = z[b, t, a]
-                            xs[a, 1] = 0.0
-                        p00, p01, p11 = p0[0], p0[1], p0[2]
+                        p00, p01, p11 = _init_cv(z, b, t, xs, p0)
                         ini = True
                 else:  # dead zone / fallback: per-axis KF step (SPEC §6.2-5, §6.3)
                     p00, p01, p11, upd = _kf_step_cv(
@@ -249,9 +267,9 @@ def ufir_run_cv(
                     )
                     if valid and not upd:
                         n_fail += 1
-            _write_cv(o_mean, o_covb, b, t, xs, p00, p01, p11, ini, w_cov)
-            o_obs[b, t] = valid and ini
-            o_ready[b, t] = ready
+            p = (p00, p01, p11)
+            _write_cv(o_mean, o_covb, o_obs, o_ready, b, t, xs, p, ini, w_cov, valid, ready)
+            i_k += 1
         init[b] = ini
         if ini:
             _store_axes(x, P, b, xs, p00, p01, p11)
@@ -259,6 +277,34 @@ def ufir_run_cv(
 
 
 _NAN3 = (np.nan, np.nan, np.nan)
+
+
+@njit_inline
+def _start_block(zr, j, i_k, Qs, Ps_, w_cov, c_prev, c_cur, c_pre, dt, q00, q01, q11):
+    """Window sums (and covariance tables) for block ``j`` from the ring: the previous block's
+    suffixes, and the current block's prefix through index ``i_k − 1``."""
+    N, n_a = zr.shape
+    _suffix_sums(zr, j, N, n_a, Qs)
+    Ps_[:] = 0.0
+    if w_cov:
+        cov_suffix_table(zr, j, N, dt, q00, q01, q11, c_prev)
+        c_pre[:] = 0.0
+    for i in range(i_k):
+        ok = not np.isnan(zr[i, 0])
+        if ok:
+            _sums_add(Ps_, float(i), zr, i)
+        if w_cov:
+            cov_prefix_add(c_cur, c_pre, i, ok, dt, q00, q01, q11)
+
+
+@njit_inline
+def _init_cv(z, b, t, xs, p0):
+    """SPEC §4.2 initialisation of every axis from ``z[b, t]``: position, zero velocity; returns
+    ``P₀``'s block."""
+    for a in range(xs.shape[0]):
+        xs[a, 0] = z[b, t, a]
+        xs[a, 1] = 0.0
+    return p0[0], p0[1], p0[2]
 
 
 @njit_inline
@@ -315,7 +361,8 @@ def _ls_line(Ps_, Qs, im, u_k, e, n, dt, xs):
 
     ``Ps_``: prefix sums of the current block; ``Qs[im]``: suffix sums of the previous one from
     the horizon's start; ``u_k``, ``e = u_k + N``: the newest sample's local index in each.
-    Returns False (``xs`` untouched) when ``CᵀC`` is rank deficient.
+    Returns ``1 / det`` of the normal equations in ``(p, β)`` (the covariance's closed form
+    reuses it), or 0.0 (``xs`` untouched) when ``CᵀC`` is rank deficient.
     """
     # Σd, Σd² with d = k − t: block j part d = u_k − u, block j−1 part e − u
     D1 = u_k * Ps_[0] - Ps_[1] + e * Qs[im, 0] - Qs[im, 1]
@@ -324,15 +371,15 @@ def _ls_line(Ps_, Qs, im, u_k, e, n, dt, xs):
     # normal equations in (position p, change per sample β): z_t = p − β d
     det = n * D2 - D1 * D1
     if not det > RANK_TOL * n * D2:
-        return False
+        return 0.0
+    idet = 1.0 / det
+    idet_dt = idet / dt
     for a in range(xs.shape[0]):
         Z0 = Ps_[3 + 2 * a] + Qs[im, 3 + 2 * a]
         Z1 = u_k * Ps_[3 + 2 * a] - Ps_[4 + 2 * a] + e * Qs[im, 3 + 2 * a] - Qs[im, 4 + 2 * a]
-        pos = (D2 * Z0 - D1 * Z1) / det  # x̂ = (CᵀC)⁻¹ Cᵀ Z
-        beta = (D1 * Z0 - n * Z1) / det
-        xs[a, 0] = pos
-        xs[a, 1] = beta / dt
-    return True
+        xs[a, 0] = (D2 * Z0 - D1 * Z1) * idet  # x̂ = (CᵀC)⁻¹ Cᵀ Z: position
+        xs[a, 1] = (D1 * Z0 - n * Z1) * idet_dt  # velocity = β / dt
+    return idet
 
 
 @njit_inline
@@ -355,12 +402,42 @@ def _kf_step_cv(z, b, t, valid, xs, p00, p01, p11, dt, q00, q01, q11, r):
 
 
 @njit_inline
-def _write_cv(o_mean, o_covb, b, t, xs, p00, p01, p11, ini, w_cov):
-    """The mean and (if wanted) covariance-block outputs of one sample (NaN before init)."""
+def _write_cv(o_mean, o_covb, o_obs, o_ready, b, t, xs, p, ini, w_cov, valid, ready):
+    """The outputs of one sample: mean and (if wanted) covariance block ``p`` (NaN before init),
+    observed, FIR ready."""
     for a in range(xs.shape[0]):
         o_mean[b, t, 2 * a] = xs[a, 0] if ini else np.nan
         o_mean[b, t, 2 * a + 1] = xs[a, 1] if ini else np.nan
     if w_cov:
-        o_covb[b, t, 0, 0] = p00 if ini else np.nan
-        o_covb[b, t, 0, 1] = p01 if ini else np.nan
-        o_covb[b, t, 0, 2] = p11 if ini else np.nan
+        o_covb[b, t, 0, 0] = p[0] if ini else np.nan
+        o_covb[b, t, 0, 1] = p[1] if ini else np.nan
+        o_covb[b, t, 0, 2] = p[2] if ini else np.nan
+    o_obs[b, t] = valid and ini
+    o_ready[b, t] = ready
+
+
+@njit_inline
+def _innovation(o_nu, z, b, t, xs, dt, ok):
+    """``z − H F x̂_{k−1}`` per axis (NaN unless ``ok``: observed and initialised)."""
+    for a in range(xs.shape[0]):
+        o_nu[b, t, a] = z[b, t, a] - (xs[a, 0] + dt * xs[a, 1]) if ok else np.nan
+
+
+@njit
+def _iterative_cov(zr, k, N, K, Fa, Finva, Ha, Qa, Ra):
+    """The horizon's covariance block from the iterative form (:func:`ufir_horizon_axes`, O(N));
+    NaN when the horizon is not usable."""
+    n_a = zr.shape[1]
+    xf = np.empty(2 * n_a)
+    Pf = np.empty((2 * n_a, 2 * n_a))
+    code = ufir_horizon_axes(
+        zr, k, N, K, Fa, Finva, Ha, Qa, Ra, np.empty(K, np.int64), np.empty((2, n_a)), xf, Pf
+    )
+    return (Pf[0, 0], Pf[0, 1], Pf[1, 1]) if code == 1 else _NAN3
+
+
+@njit_inline
+def _cov_tables(N):
+    """The closed form's tables (:mod:`._kernels_ufir_cov`) for horizon ``N``; empty for −1."""
+    n = N + 1 if N >= 0 else 0
+    return np.zeros((n, N_PREV_COLS)), np.zeros((n, N_CUR_COLS)), np.zeros(3)

@@ -332,9 +332,10 @@ class UFIRFilter(SingleModelFilter):
             State to resume from (default: fresh state for ``z.shape[:-2]``).
         outputs : tuple of str, optional
             Fields to compute (see :meth:`KalmanFilter.filter
-            <kinefuse.filters.KalmanFilter.filter>`); default all. Leaving out ``"cov"`` makes
-            the constant-velocity fast path O(1) per step also on horizons with missing
-            samples (their covariance is the O(N) part).
+            <kinefuse.filters.KalmanFilter.filter>`); default all. The constant-velocity fast
+            path is O(1) per step for any horizon, its covariance included (a closed form on
+            horizons with missing samples, :mod:`kinefuse.filters._kernels_ufir_cov`); leaving
+            out ``"cov"`` skips that part.
 
         Returns
         -------
