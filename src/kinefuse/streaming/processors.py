@@ -117,12 +117,13 @@ class _LinearProcessor:
 
     lag_frames: int
 
-    def __init__(self, model, lag: int):
+    def __init__(self, state_filter, lag: int):
         if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 0:
             raise InputError(f"expected lag as an int >= 0 (frames), got {lag!r}")
-        self.model = model
+        self._state_filter = state_filter  # the filter whose state is kept: its init, its model
+        self.model = state_filter.model
         self.lag_frames = int(lag)
-        self._H = np.asarray(model.H)
+        self._H = np.asarray(self.model.H)
         # H is a 0/1 selector of the position components (constant-velocity models): H x and
         # H P Hᵀ are then plain gathers (the same numbers as the products, without the zeros)
         H = self._H
@@ -140,8 +141,9 @@ class _LinearProcessor:
     def _filter_step(self, z_imu, z_cam, available):  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def _init_state(self, n_joints: int):  # pragma: no cover - abstract
-        raise NotImplementedError
+    def _init_state(self, n_joints: int):
+        """A fresh state of the kept filter for ``n_joints`` joints (batch shape ``(J,)``)."""
+        return self._state_filter.init((n_joints,))
 
     def reset(self) -> None:
         """Back to the initial state (lazily sized on the next step)."""
@@ -333,10 +335,7 @@ class IntegratedProcessor(_LinearProcessor):
     ):
         self.filter = paper_a_filter(dt_s, q, r, **filter_kwargs)  # upper_limb's filter
         self.last_mode = None
-        super().__init__(self.filter.model, lag)
-
-    def _init_state(self, n_joints):
-        return self.filter.init((n_joints,))
+        super().__init__(self.filter, lag)
 
     def _filter_step(self, z_imu, z_cam, available):
         # unchecked and in place: the frame was validated by step and the state is this
@@ -412,10 +411,7 @@ class KalmanFusionProcessor(_LinearProcessor):
                           np.stack([kf._blocks[4] for kf in kfs]), Fb, Qb, Hb)  # fmt: skip
         else:
             self._fast = None
-        super().__init__(self._kf_imu.model, lag)
-
-    def _init_state(self, n_joints):
-        return self._kf_imu.init((n_joints,))
+        super().__init__(self._kf_imu, lag)
 
     def _filter_step(self, z_imu, z_cam, available):
         st = self._state
