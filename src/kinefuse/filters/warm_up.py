@@ -52,11 +52,18 @@ def _kf():
     KalmanFilter(m, method="dense").filter(_z())
 
 
-def _ufir():
-    for init in ("batch", "stored"):
-        f = UFIRFilter(_model(), horizon=20, init=init)
-        st, _ = f.filter(_z())
-        f.step(st, np.zeros((2, 3)))
+def _ufir(init: str) -> None:
+    f = UFIRFilter(_model(), horizon=20, init=init)
+    st, _ = f.filter(_z())
+    f.step(st, np.zeros((2, 3)))
+
+
+def _ufir_general():
+    _ufir("stored")  # the general loop (also the integrated filter's FIR kernels)
+
+
+def _ufir_cv():
+    _ufir("batch")  # the O(1)-per-step constant-velocity loop
 
 
 def _em():
@@ -78,7 +85,8 @@ def _imm():
 #: ``(what, function)``: the warm-up steps in the order they run.
 WARM_UP_STEPS: tuple[tuple[str, Callable[[], None]], ...] = (
     ("Kalman filter, RTS smoothers", _kf),
-    ("UFIR filter", _ufir),
+    ("UFIR filter (general form)", _ufir_general),
+    ("UFIR filter (constant-velocity form)", _ufir_cv),
     ("EM-KF and the integrated EM-KF/FIR filter", _em),
     ("IMM (paper B)", _imm),
 )
