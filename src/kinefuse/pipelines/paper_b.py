@@ -615,7 +615,7 @@ def _elm_bridge(ctx: FusionContext) -> FusionResult:
     state = core.init(ctx.shape[0])
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="ELM fitted on", category=UserWarning)
-        out = core.advance(state, ctx.z_imu, ctx.z_cam, ctx.available, ctx.features)
+        out = _advance_in_blocks(core, state, ctx)
     pos, cov = out.position, out.cov
     avail = ctx.available
     if not ctx.causal or p.fixed_lag > 0:
@@ -638,6 +638,43 @@ def _elm_bridge(ctx: FusionContext) -> FusionResult:
         elm2_skipped=out.elm2_skipped,
         episodes=state.episodes(),
     )
+
+
+#: Frames per :meth:`PaperBCore.advance` call of the batch form. The core's temporaries (the
+#: FIRs' full covariances, the IMM's lagged inputs, the history it keeps) then stay bounded
+#: whatever the recording's length; the core is split-invariant (the streaming form is the
+#: same core one frame at a time), so the result does not depend on this size beyond rounding.
+BATCH_BLOCK_FRAMES = 4096
+
+
+def _advance_in_blocks(core: PaperBCore, state: PaperBState, ctx: FusionContext) -> PaperBStep:
+    """:meth:`PaperBCore.advance` over the whole series in blocks of
+    :data:`BATCH_BLOCK_FRAMES`, the outputs written into arrays of the full length."""
+    J, T = ctx.shape
+    out = None
+    for a in range(0, T, BATCH_BLOCK_FRAMES):
+        sl = slice(a, min(a + BATCH_BLOCK_FRAMES, T))
+        feat = None if ctx.features is None else ctx.features[:, sl]
+        step = core.advance(state, ctx.z_imu[:, sl], ctx.z_cam[:, sl], ctx.available[:, sl], feat)
+        if out is None:
+            if sl.stop == T:
+                return step
+            imm = {f.name: getattr(step.imm, f.name) for f in dataclasses.fields(step.imm)}
+            out = (
+                [_full_length(arr, T) for arr in step[:-1]],
+                {k: None if v is None else _full_length(v, T) for k, v in imm.items()},
+            )
+        for dst, src in zip(out[0], step[:-1], strict=True):
+            dst[:, sl] = src
+        for k, dst in out[1].items():
+            if dst is not None:
+                dst[:, sl] = getattr(step.imm, k)
+    return PaperBStep(*out[0], type(step.imm)(**out[1]))
+
+
+def _full_length(a: np.ndarray, T: int) -> np.ndarray:
+    """An empty ``(J, T, ...)`` array like the block output ``a (J, L, ...)``."""
+    return np.empty((a.shape[0], T, *a.shape[2:]), a.dtype)
 
 
 def elm_fir(ctx: FusionContext) -> FusionResult:
