@@ -22,9 +22,14 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit, njit_inline
-from kinefuse.filters._kernels import chol_solve_spd, kf_predict, kf_update_status, mahalanobis
+from kinefuse.filters._kernels import kf_predict, kf_update_status, mahalanobis
 from kinefuse.filters._kernels_blocks import _cov_step, rts2_step
-from kinefuse.filters._kernels_linalg import CHOL_FAILED, CHOL_REGULARISED
+from kinefuse.filters._kernels_linalg import (
+    CHOL_FAILED,
+    CHOL_REGULARISED,
+    chol_solve_rows,
+    chol_status,
+)
 
 __all__ = [
     "axis_block_params",
@@ -454,18 +459,73 @@ def rts_axis(mean, cov, mask, Fb, Qb, lag, sm_mean, sm_cov):
     return True
 
 
-@njit
-def _rts_dense_step(F, Q, m, Pf, s, Ps):
-    """One backward RTS step (SPEC §9), dense; returns ``(x̃_t, P̃_t, CHOL_* status of P⁻)``."""
-    Pp = F @ Pf @ F.T + Q  # P⁻_{t+1} = F P̂_t Fᵀ + Q
-    Pp = 0.5 * (Pp + Pp.T)
-    Ct, status = chol_solve_spd(Pp, F @ Pf)  # Cᵀ = (P⁻)⁻¹ F P̂_t, i.e. C = P̂_t Fᵀ (P⁻)⁻¹
+@njit_inline
+def _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w):
+    """One backward RTS step (SPEC §9), dense, in place on ``s, Ps`` (``x̃_{t+1}, P̃_{t+1}`` in,
+    ``x̃_t, P̃_t`` out) from the filtered ``mean[b, t], cov[b, t]``; no allocation (``w``: the
+    scratch of :func:`_dense_scratch`). Returns the ``CHOL_*`` status of ``P⁻``; on
+    ``CHOL_FAILED`` the step returns the filtered estimate."""
+    n = s.shape[0]
+    FP, Pp, L, D, d = w[0], w[1], w[2], w[3], w[4, 0]
+    for i in range(n):  # F P̂_t
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += F[i, k] * cov[b, t, k, j]
+            FP[i, j] = acc
+    for i in range(n):  # P⁻_{t+1} = F P̂_t Fᵀ + Q (symmetrised)
+        for j in range(i + 1):
+            acc = 0.0
+            for k in range(n):
+                acc += FP[i, k] * F[j, k]
+            Pp[i, j] = acc + 0.5 * (Q[i, j] + Q[j, i])
+    for i in range(n):
+        for j in range(i + 1, n):
+            Pp[i, j] = Pp[j, i]
+    status = chol_status(Pp, L, n)
     if status == CHOL_FAILED:
-        return m.copy(), Pf.copy(), status
-    C = Ct.T.copy()
-    x = m + C @ (s - F @ m)  # x̃_t = x̂_t + C (x̃_{t+1} − F x̂_t)
-    Pn = Pf + C @ (Ps - Pp) @ C.T  # P̃_t = P̂_t + C (P̃_{t+1} − P⁻) Cᵀ
-    return x, 0.5 * (Pn + Pn.T), status
+        for i in range(n):
+            s[i] = mean[b, t, i]
+            for j in range(n):
+                Ps[i, j] = cov[b, t, i, j]
+        return status
+    chol_solve_rows(L, FP, n, n)  # FP ← Cᵀ = (P⁻)⁻¹ F P̂_t, i.e. C = P̂_t Fᵀ (P⁻)⁻¹
+    for i in range(n):  # d = x̃_{t+1} − F x̂_t;  D = P̃_{t+1} − P⁻
+        acc = s[i]
+        for k in range(n):
+            acc -= F[i, k] * mean[b, t, k]
+        d[i] = acc
+        for j in range(n):
+            D[i, j] = Ps[i, j] - Pp[i, j]
+    for i in range(n):  # x̃_t = x̂_t + C d
+        acc = mean[b, t, i]
+        for k in range(n):
+            acc += FP[k, i] * d[k]
+        s[i] = acc
+    for i in range(n):  # Pp ← C D (rows of C are the columns of FP)
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += FP[k, i] * D[k, j]
+            Pp[i, j] = acc
+    for i in range(n):  # P̃_t = P̂_t + C D Cᵀ (symmetrised)
+        for j in range(i + 1):
+            acc = 0.0
+            for k in range(n):
+                acc += Pp[i, k] * FP[k, j]
+            Ps[i, j] = acc
+    for i in range(n):
+        for j in range(i + 1):
+            v = 0.5 * (cov[b, t, i, j] + cov[b, t, j, i]) + Ps[i, j]
+            Ps[i, j] = v
+            Ps[j, i] = v
+    return status
+
+
+@njit_inline
+def _dense_scratch(n):
+    """Scratch of :func:`_rts_dense_step`: ``(5, n, n)``."""
+    return np.zeros((5, n, n))
 
 
 @njit
@@ -476,21 +536,21 @@ def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
     """
     B, T, n_x = mean.shape
     n_reg = 0
+    s = np.empty(n_x)
+    Ps = np.empty((n_x, n_x))
+    w = _dense_scratch(n_x)
     for b in range(B):
         end = _segment_ends(mean, mask, b)
-        s = np.empty(n_x)
-        Ps = np.empty((n_x, n_x))
         if lag < 0:
             for t in range(T - 1, -1, -1):
                 if end[t] < 0:
                     _copy_filtered(mean, cov, sm_mean, sm_cov, b, t)
                     continue
                 if t == end[t]:
-                    s = mean[b, t].copy()  # x̃_{t_end} = x̂_{t_end}
-                    Ps = cov[b, t].copy()
+                    s[:] = mean[b, t]  # x̃_{t_end} = x̂_{t_end}
+                    Ps[:, :] = cov[b, t]
                 else:
-                    s, Ps, st = _rts_dense_step(F, Q, mean[b, t].copy(), cov[b, t].copy(), s, Ps)
-                    n_reg += st == CHOL_REGULARISED
+                    n_reg += _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w) == CHOL_REGULARISED
                 sm_mean[b, t, :] = s
                 sm_cov[b, t, :, :] = Ps
         else:
@@ -499,11 +559,10 @@ def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
                     _copy_filtered(mean, cov, sm_mean, sm_cov, b, t)
                     continue
                 e = min(end[t], t + lag)
-                s = mean[b, e].copy()
-                Ps = cov[b, e].copy()
+                s[:] = mean[b, e]
+                Ps[:, :] = cov[b, e]
                 for u in range(e - 1, t - 1, -1):
-                    s, Ps, st = _rts_dense_step(F, Q, mean[b, u].copy(), cov[b, u].copy(), s, Ps)
-                    n_reg += st == CHOL_REGULARISED
+                    n_reg += _rts_dense_step(F, Q, mean, cov, b, u, s, Ps, w) == CHOL_REGULARISED
                 sm_mean[b, t, :] = s
                 sm_cov[b, t, :, :] = Ps
     return n_reg
