@@ -122,14 +122,25 @@ def pytest_collection_modifyitems(config, items):
 # the KF and the IMM; once both the general UFIR and that process are done, a third compiles
 # the EM-KF and the integrated filter, which use the UFIR's and the KF's kernels (loaded, not
 # compiled again). Cold, on 2 cores: about 44 s + 10 s | 25 s + 19 s, then 44 s.
-_WARM_UP_UFIR = (1, 2)  # indices into WARM_UP_STEPS: UFIR general, then constant-velocity
+# The first process then also compiles the IMM's loop for sizes other than paper B's
+# ("imm-any": about 25 s, used only by tests and non-standard IMMs, so not a step of
+# `kinefuse warm-up`); otherwise two workers running IMM tests would both compile it.
+_WARM_UP_UFIR = (1, 2, "imm-any")  # WARM_UP_STEPS indices: UFIR general, constant-velocity
 _WARM_UP_OTHER = (0, 4)  # KF/RTS, IMM
 _WARM_UP_LAST = (3,)  # EM-KF and the integrated filter: after the general UFIR and the KF
 _WARM_UP_CODE = (
     "import sys, warnings; warnings.simplefilter('ignore')\n"
+    "import numpy as np\n"
+    "from kinefuse.filters import IMM\n"
     "from kinefuse.filters.warm_up import WARM_UP_STEPS\n"
-    "for i in map(int, sys.argv[1:]):\n"
-    "    WARM_UP_STEPS[i][1](); print('done', i, flush=True)\n"
+    "from kinefuse.models import constant_velocity\n"
+    "def imm_any():  # two 2-D models: the IMM loop for any sizes (imm_run_any)\n"
+    "    imm = IMM(constant_velocity(0.1, 0.5, 0.01, n_axes=2), constant_velocity(0.1, 3.0, 0.002, n_axes=2))\n"
+    "    st, _ = imm.filter(np.zeros((1, 4, 2, 2)))\n"
+    "    imm.step(st, np.zeros((1, 2, 2)))\n"
+    "for a in sys.argv[1:]:\n"
+    "    imm_any() if a == 'imm-any' else WARM_UP_STEPS[int(a)][1]()\n"
+    "    print('done', a, flush=True)\n"
 )
 
 
