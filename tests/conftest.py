@@ -106,6 +106,23 @@ def xdist_group_of(item) -> str | None:
     return None
 
 
+def pytest_xdist_node_collection_finished(node, ids):
+    """Controller side of ``--dist loadgroup``: stop when no collected test carries its group
+    (the worker's ``nodeid@group``), as with pytest 9.2 (pytest-xdist issue #1386): the
+    scheduler would then split every group, running module fixtures once per worker and LSL
+    tests side by side."""
+    if node.config.getoption("dist") != "loadgroup" or any("@" in i for i in ids):
+        return
+    root = Path(str(node.config.rootpath))
+    files = {i.split("::", 1)[0] for i in ids}
+    if any(f.endswith(".py") and _module_shares_a_fixture(root / f) for f in files):
+        pytest.exit(
+            f"pytest-xdist --dist loadgroup does not group tests with pytest {pytest.__version__} "
+            "(pytest-xdist issue #1386): install the test extra as pinned in pyproject.toml",
+            returncode=4,
+        )
+
+
 @pytest.hookimpl(tryfirst=True)  # before xdist reads the marks (its hook adds @group to node ids)
 def pytest_collection_modifyitems(config, items):
     for item in items:
