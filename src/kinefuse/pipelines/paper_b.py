@@ -524,6 +524,7 @@ def _run_filter(flt, z: np.ndarray, state, position_cov: bool = False):
     fast path (``_filter_unchecked``: ``z`` is float64 without ±inf, checked by the callers of
     :meth:`PaperBCore.advance`, and ``state`` is the filter's own). With ``position_cov``,
     ``cov`` is the position block ``(J, L, n_z, n_z)`` only (:func:`pos_cov`, the same numbers).
+    For one frame the full covariance is the filter state's own (the same numbers).
 
     A constant-velocity UFIR (paper B's FIRs) runs its compiled loop on the state's own arrays,
     updated in place (``UFIRFilter._run_cv_inplace``: the core owns its states, a checkpoint is
@@ -540,6 +541,8 @@ def _run_filter(flt, z: np.ndarray, state, position_cov: bool = False):
         )[:2]
         if position_cov:  # p00 on the diagonal (the position rows of every axis block)
             cov = covb[:, :, 0, 0, None, None] * np.eye(n_z)
+        elif L == 1:  # the state's full covariance is that of the one frame (NaN: no estimate)
+            cov = np.where(state.initialized[:, None, None], state.P, np.nan)[:, None]
         else:
             cov = expand_shared_block(covb[:, :, 0], n_z)
         return state._replace(k=state.k + L), mean, cov
