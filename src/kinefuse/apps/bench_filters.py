@@ -80,24 +80,18 @@ def make_data(n_joints: int, n_steps: int, seed: int = 0, missing: float = 0.02)
 
 def measure(fn, repeats: int) -> tuple[float, float]:
     """Median (CPU seconds, wall seconds) of ``repeats`` calls (after one warm-up call)."""
-    fn()
-    cpu, wall = [], []
-    for _ in range(repeats):
-        w0, c0 = time.perf_counter(), time.thread_time()
-        fn()
-        cpu.append(time.thread_time() - c0)
-        wall.append(time.perf_counter() - w0)
-    return float(np.median(cpu)), float(np.median(wall))
+    return measure_interleaved({"fn": fn}, repeats)["fn"]
 
 
-def measure_interleaved(calls: dict, repeats: int) -> dict:
+def measure_interleaved(calls: dict, repeats: int, warm_up: bool = True) -> dict:
     """Median ``(CPU seconds, wall seconds)`` per call of each of ``calls`` (label -> callable),
-    timed in interleaved rounds: every round calls each once (after one warm-up call each).
+    timed in interleaved rounds: every round calls each once (after one warm-up call each,
+    unless the caller made it: ``warm_up=False``).
 
     Rows that are compared with each other (a filter and its peer, UFIR horizons) then see the
     same phases of a shared machine, instead of one burst each.
     """
-    for fn in calls.values():
+    for fn in calls.values() if warm_up else ():
         fn()
     times = {label: ([], []) for label in calls}
     for _ in range(repeats):
@@ -304,7 +298,7 @@ def other_filter_rows(quick: bool) -> list[dict]:
         calls[label] = call
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        times = measure_interleaved(calls, repeats)
+        times = measure_interleaved(calls, repeats, warm_up=False)  # each called above
     for row in rows:
         if row["case"] in times:
             cpu, wall = times[row["case"]]

@@ -157,25 +157,6 @@ def cov_prefix_add(cur, pre, i, valid, dt, q00, q01, q11):
 
 
 @njit_inline
-def kth_valid(zr, im, N, K, j):
-    """Time and ring slot of the K-th valid sample of the horizon starting at row ``im`` of the
-    previous block (block ``j − 1``; ``im = N``: at the current block's start). The horizon must
-    hold at least K valid samples."""
-    n = 0
-    i = im
-    sl = im if im < N else 0
-    while True:
-        if not np.isnan(zr[sl, 0]):
-            n += 1
-            if n == K:
-                return (j - 1) * N + i, sl
-        i += 1
-        sl += 1
-        if sl == N:
-            sl = 0
-
-
-@njit_inline
 def next_valid(zr, s_t, s_sl, k):
     """The first valid time after ``s_t`` (ring slot ``s_sl``) up to ``k``, and its slot;
     ``(-1, 0)`` when there is none."""

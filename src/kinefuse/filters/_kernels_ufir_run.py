@@ -21,6 +21,7 @@ from kinefuse.filters._kernels import kf_predict, kf_update
 from kinefuse.filters._kernels_blocks import _cov_step
 from kinefuse.filters._kernels_ufir import (
     RANK_TOL,
+    _first_valid,
     fir_estimate,
     ufir_horizon_axes,
     ufir_taps,
@@ -31,7 +32,6 @@ from kinefuse.filters._kernels_ufir_cov import (
     cov_at,
     cov_prefix_add,
     cov_suffix_table,
-    kth_valid,
     next_valid,
 )
 
@@ -237,7 +237,7 @@ def ufir_run_cv(
             _innovation(o_nu, z, b, t, xs, dt, valid and ini)
             ready = False
             if k >= N - 1:
-                im = int(u_k) + 1  # local index of m = k−N+1 in block j−1 (N: empty suffix)
+                im = i_k + 1  # local index of m = k−N+1 in block j−1 (N: empty suffix)
                 n = Qs[im, 0] + Ps_[0]
                 idet = _ls_line(Ps_, Qs, im, u_k, u_k + N, n, dt, xs) if n >= K else 0.0
                 if idet > 0.0:
@@ -247,9 +247,9 @@ def ufir_run_cv(
                         p00, p01, p11 = pfull[0], pfull[1], pfull[2]
                     elif n == K or t == T - 1:  # the state's: iterative, O(N) (Notes)
                         p00, p01, p11 = _iterative_cov(zr, k, N, K, Fa, Finva, Ha, Qa, Ra)
-                    elif w_cov:  # closed form, O(1) (the K-th valid time: O(K) when few miss)
-                        if s_t < 0:
-                            s_t, s_sl = kth_valid(zr, im, N, K, j)
+                    elif w_cov:  # closed form, O(1) (the K-th valid time tracked as it slides)
+                        if s_t < 0:  # not tracked yet: scan the horizon once
+                            s_t, s_sl = _kth_valid(zr, k, N, K)
                         i_s = s_t - j * N
                         p00, p01, p11 = cov_at(
                             c_prev, c_cur, c_pre, N, im, i_s, i_k, dt, r, idet * idt2
@@ -295,6 +295,15 @@ def _start_block(zr, j, i_k, Qs, Ps_, w_cov, c_prev, c_cur, c_pre, dt, q00, q01,
             _sums_add(Ps_, float(i), zr, i)
         if w_cov:
             cov_prefix_add(c_cur, c_pre, i, ok, dt, q00, q01, q11)
+
+
+@njit_inline
+def _kth_valid(zr, k, N, K):
+    """Time and ring slot of the K-th valid sample of the horizon ending at ``k`` (which holds at
+    least K): :func:`~._kernels_ufir._first_valid`."""
+    idx = np.empty(K, np.int64)
+    _first_valid(zr, 0, k - N + 1, k, N, K, idx)
+    return idx[K - 1], idx[K - 1] % N
 
 
 @njit_inline
