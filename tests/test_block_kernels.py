@@ -265,3 +265,37 @@ def test_rts_three_axis_pass_equals_the_general_pass_bit_for_bit():
     m3, c3, p3 = run(np.ascontiguousarray(np.repeat(cb1, 3, axis=2)))
     assert m1.tobytes() == m3.tobytes() and p1.tobytes() == p3.tobytes()
     assert c1[:, :, 0].tobytes() == np.ascontiguousarray(c3[:, :, 0]).tobytes()
+
+
+def test_ufir_cv_shared_missing_pattern_equals_one_element_at_a_time():
+    """Elements with the previous element's missing pattern copy its covariance blocks; the
+    oracle is each element filtered alone (nothing to share), resumed from its own state.
+    Element 2 differs from element 1 by one missing sample after the split, element 4 from
+    element 3 by the samples before it (in its ring), element 1 from element 0 by its starting
+    covariance only (the closed form does not depend on it): 2 and 4 must compute their own."""
+    from kinefuse.filters.ufir import UFIRState
+
+    N = 40
+    rng = np.random.default_rng(5)
+    model = constant_velocity(1 / 30, q=0.7, r=0.004)
+    _, z_all = simulate(model, rng, 4 * N, batch=(5,))
+    z = z_all.copy()
+    z[:, rng.random(z.shape[1]) < 0.05] = np.nan  # frame-wide dropouts: one pattern
+    z[:, 0] = np.where(np.isnan(z[:, 0]), 0.0, z[:, 0])
+    cut = N + 9
+    z[2, cut + N // 2, 1] = np.nan  # one element-specific sample after the split
+    z[4, : cut - 1] = np.nan  # element 4: another ring at the split
+    z[4, cut - 1] = z_all[4, cut - 1]
+    f = UFIRFilter(model, horizon=N)
+    s1, _ = f.filter(z[:, :cut])
+    s1.P[1] *= 3.0  # the fallback KF's start, not the closed form's
+    state, res = f.filter(z[:, cut:], state=s1)
+    assert np.isfinite(res.cov[2, N // 2]).all() and np.isfinite(res.cov[4, N // 2]).all()
+    for b in range(5):
+        sb = UFIRState(*(a if np.isscalar(a) else a[b : b + 1] for a in s1))
+        st_b, r_b = f.filter(z[b : b + 1, cut:], state=sb)
+        np.testing.assert_array_equal(res.cov[b], r_b.cov[0])
+        np.testing.assert_array_equal(res.mean[b], r_b.mean[0])
+        np.testing.assert_array_equal(state.P[b], st_b.P[0])
+    assert not np.array_equal(res.cov[2], res.cov[1]) and not np.array_equal(res.cov[4], res.cov[3])
+    np.testing.assert_array_equal(res.cov[1], res.cov[0])  # same pattern: the same blocks

@@ -15,9 +15,10 @@ Measures microseconds per joint-step (median of repeats) of
   normalised per joint-step; the table says how many);
 * the online path (one ``step`` / ``OnlineFilter.update`` call) against one filterpy
   predict/update;
-* UFIR (horizons 10/20/40), EM-KF (1/3/10 iterations) and the integrated EM-KF/FIR filter with
-  paper A's settings, if those classes exist in :mod:`kinefuse.filters` (rows are skipped
-  otherwise);
+* UFIR (horizons 10/40/200; with and without the covariance output; with frames lost for every
+  joint and, "own gaps", for each joint on its own), EM-KF (1/3/10 iterations) and the
+  integrated EM-KF/FIR filter with paper A's settings, if those classes exist in
+  :mod:`kinefuse.filters` (rows are skipped otherwise);
 * the online engine of ``kinefuse stream`` per camera frame (8 joints; KF fusion, paper A,
   paper B) on the packaged demo recording, next to filterpy's KF predict/update for 8 joints;
 * a second process: ``import kinefuse.filters`` + first filter/smoother call, with a warm
@@ -99,7 +100,7 @@ def _targets(results: dict) -> list[dict]:
                 continue
             add(f"{case} vs filterpy", f">= {need:.0f}x", f"{r['speedup']:.0f}x",
                 bool(r["speedup"] >= need), f"{j} joints x {r['steps']} steps")  # fmt: skip
-    for suffix in (" no cov", ""):
+    for suffix in (" no cov", "", " own gaps"):
         us = [other.get(f"UFIR(N={N}){suffix}", {}).get("kinefuse_us") for N in UFIR_HORIZONS]
         if all(u is not None for u in us):
             spread = max(us) / min(us) - 1.0

@@ -68,12 +68,21 @@ def paper_model():
     return constant_velocity(DT_S, q=Q_PAPER, r=R_PAPER)
 
 
-def make_data(n_joints: int, n_steps: int, seed: int = 0, missing: float = 0.02) -> np.ndarray:
-    """Random-walk joint positions with 1 cm noise and a few missing rows, ``(n_joints, T, 3)`` m."""
+def make_data(
+    n_joints: int, n_steps: int, seed: int = 0, missing: float = 0.02, own_gaps: bool = False
+) -> np.ndarray:
+    """Random-walk joint positions with 1 cm noise and a few missing rows, ``(n_joints, T, 3)`` m.
+
+    The missing rows are frames lost for every joint (a camera dropout), or with ``own_gaps``
+    drawn for each joint on its own (occlusions).
+    """
     rng = np.random.default_rng(seed)
     vel = np.cumsum(rng.normal(scale=0.05, size=(n_joints, n_steps, 3)), axis=1) * DT_S
     z = np.cumsum(vel, axis=1) + rng.normal(scale=0.01, size=(n_joints, n_steps, 3))
-    z[:, rng.random(n_steps) < missing] = np.nan
+    if own_gaps:
+        z[rng.random((n_joints, n_steps)) < missing] = np.nan
+    else:
+        z[:, rng.random(n_steps) < missing] = np.nan
     z[:, 0] = np.where(np.isnan(z[:, 0]), 0.0, z[:, 0])
     return z
 
@@ -266,9 +275,11 @@ def other_filter_rows(quick: bool) -> list[dict]:
     model = paper_model()
     T = 2_000 if quick else 20_000
     z = make_data(8, T, seed=8)
+    z_own = make_data(8, T, seed=8, own_gaps=True)  # the covariance is not shared between joints
     repeats = 3 if quick else 9
     specs = [("UFIRFilter", f"UFIR(N={N})", {"horizon": N}) for N in UFIR_HORIZONS]
     specs += [("UFIRFilter", f"UFIR(N={N}) no cov", {"horizon": N}) for N in UFIR_HORIZONS]
+    specs += [("UFIRFilter", f"UFIR(N={N}) own gaps", {"horizon": N}) for N in UFIR_HORIZONS]
     specs += [("EMKalmanFilter", f"EM-KF(n_iter={n})", {"n_iter": n}) for n in (1, 3, 10)]
     specs.append(
         (
@@ -288,7 +299,7 @@ def other_filter_rows(quick: bool) -> list[dict]:
         try:
             filt = cls(model, **kwargs)
             kw = {"outputs": UFIR_NO_COV} if label.endswith("no cov") else {}
-            call = functools.partial(filt.filter, z, **kw)
+            call = functools.partial(filt.filter, z_own if "own gaps" in label else z, **kw)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 call()  # warm-up (and the error, if any)

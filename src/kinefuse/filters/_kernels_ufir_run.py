@@ -192,7 +192,9 @@ def ufir_run_cv(
     ``o_covb`` output, so that asking for it changes no estimate, bit for bit. Everywhere else
     the ``o_covb`` output comes in O(1) per step from the closed form of
     :mod:`._kernels_ufir_cov` (window tables kept like the sums above; the same numbers to
-    rounding); without that output it is not computed.
+    rounding); without that output it is not computed. It depends on nothing but which samples
+    are valid, so an element with the previous element's pattern (a camera frame lost for every
+    joint) copies that element's blocks instead (the same numbers, bit for bit).
     Dead zone and fallback: the per-axis KF step (Joseph form). State ``x (B, 6)``, ``P``,
     ``init``, ``zring (B, N, n_z)`` updated in place; ``o_covb (B, T, 1, 3)`` (one block for all
     axes) may have a zero-length first axis (not wanted). Returns the count of KF updates with
@@ -207,15 +209,23 @@ def ufir_run_cv(
     c_prev, c_cur, c_pre = _cov_tables(N if w_cov else -1)  # closed form, for o_covb only
     idt2 = 1.0 / (dt * dt)  # det CᵀC in (position, velocity) = det in (p, β) / dt²
     n_fail = 0
+    # the closed form depends on nothing but which samples are valid: an element with the
+    # previous one's pattern (read before the loop updates the rings) copies its blocks
+    shared = np.zeros(B, np.bool_)
+    if w_cov:
+        for b in range(1, B):
+            shared[b] = _same_pattern(z, zring, b)
     for b in range(B):
         zr = zring[b]
         p00, p01, p11 = _load_axes(x, P, b, xs)
         ini = init[b]
+        share = shared[b]
+        tab = w_cov and not share  # keep the closed form's tables
         # sums for the block of k0 from the ring (samples k0-N .. k0-1 are there); blocks start
         # at multiples of N, so the ring slot of a time is its index in its block
         j = k0 // N
         i_k = k0 - j * N
-        _start_block(zr, j, i_k, Qs, Ps_, w_cov, c_prev, c_cur, c_pre, dt, q00, q01, q11)
+        _start_block(zr, j, i_k, Qs, Ps_, tab, c_prev, c_cur, c_pre, dt, q00, q01, q11)
         s_t = -1  # the horizon's K-th valid time (-1: not known), and its ring slot
         s_sl = 0
         for t in range(T):
@@ -226,11 +236,11 @@ def ufir_run_cv(
             left = s_t >= 0 and not np.isnan(zr[i_k, 0])  # time k − N leaves: was it valid?
             valid = _push_row(z, b, t, zr, i_k)
             if i_k == 0 and t > 0:  # new block: suffixes of the finished one, empty prefix
-                _start_block(zr, j, 0, Qs, Ps_, w_cov, c_prev, c_cur, c_pre, dt, q00, q01, q11)
+                _start_block(zr, j, 0, Qs, Ps_, tab, c_prev, c_cur, c_pre, dt, q00, q01, q11)
             u_k = float(i_k)
             if valid:
                 _sums_add(Ps_, u_k, zr, i_k)
-            if w_cov:
+            if tab:
                 cov_prefix_add(c_cur, c_pre, i_k, valid, dt, q00, q01, q11)
                 if left:
                     s_t, s_sl = next_valid(zr, s_t, s_sl, k)
@@ -247,6 +257,8 @@ def ufir_run_cv(
                         p00, p01, p11 = pfull[0], pfull[1], pfull[2]
                     elif n == K or t == T - 1:  # the state's: iterative, O(N) (Notes)
                         p00, p01, p11 = _iterative_cov(zr, k, N, K, Fa, Finva, Ha, Qa, Ra)
+                    elif share:  # the previous joint's block (the same pattern: see above)
+                        p00, p01, p11 = o_covb[b - 1, t, 0, 0], o_covb[b - 1, t, 0, 1], o_covb[b - 1, t, 0, 2]  # fmt: skip
                     elif w_cov:  # closed form, O(1) (the K-th valid time tracked as it slides)
                         if s_t < 0:  # not tracked yet: scan the horizon once
                             s_t, s_sl = _kth_valid(zr, k, N, K)
@@ -277,6 +289,27 @@ def ufir_run_cv(
 
 
 _NAN3 = (np.nan, np.nan, np.nan)
+
+
+@njit_inline
+def _same_pattern(z, zring, b):
+    """Whether element ``b`` has element ``b − 1``'s valid samples, in the ring and in ``z``:
+    then both take the same branches at every step, and the closed form's covariance (a
+    function of the horizon's valid times alone) is the same, bit for bit."""
+    N = zring.shape[1]
+    for sl in range(N):
+        if np.isnan(zring[b, sl, 0]) != np.isnan(zring[b - 1, sl, 0]):
+            return False
+    T, n_a = z.shape[1], z.shape[2]
+    for t in range(T):
+        va = True
+        vb = True
+        for a in range(n_a):
+            va = va and np.isfinite(z[b, t, a])
+            vb = vb and np.isfinite(z[b - 1, t, a])
+        if va != vb:
+            return False
+    return True
 
 
 @njit_inline
