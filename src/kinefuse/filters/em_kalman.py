@@ -33,17 +33,13 @@ FLOOR_FRACTION = 1e-3
 
 
 class EMKalmanState(NamedTuple):
-    """State of :class:`EMKalmanFilter`, batched over leading axes.
+    """State of :class:`EMKalmanFilter`, batched over leading axes: the fields of
+    :class:`~kinefuse.filters.GaussianState` followed by option B's inverse-Wishart pair.
 
     Attributes
     ----------
-    x : ndarray, shape (..., n_x)
-        Posterior mean (NaN until initialised).
-    P : ndarray, shape (..., n_x, n_x)
-        Posterior covariance.
-    initialized : ndarray of bool, shape (...)
-    k : int
-        Number of steps taken.
+    x, P, initialized, k
+        As in :class:`~kinefuse.filters.GaussianState`.
     u : ndarray, shape (...)
         Option B: inverse-Wishart degrees of freedom ``û`` (carried, unused by option A).
     U : ndarray, shape (..., n_z, n_z)
