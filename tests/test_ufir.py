@@ -327,6 +327,9 @@ def test_horizon_longer_than_series_warns(model):
 
 def test_state_memory_checked_against_the_machine(model):
     from kinefuse.exceptions import InputError
+    from kinefuse.filters.integrated import IntegratedFilter
 
     with pytest.raises(InputError, match="GiB"):
         UFIRFilter(model, horizon=2000).init((10**6, 10**3))
+    with pytest.raises(InputError, match="integrated filter horizon 2000: .* GiB"):
+        IntegratedFilter(model, horizon=2000).init((10**6, 10**3))

@@ -12,6 +12,7 @@ from kinefuse.exceptions import InputError
 from kinefuse.filters._base import (
     FilterResult,
     SingleModelFilter,
+    check_batch_shape,
     check_state,
     flat_run,
     make_initial_state,
@@ -34,7 +35,7 @@ from kinefuse.filters.em_kalman import (
     check_model,
     warn_counts,
 )
-from kinefuse.filters.ufir import check_horizon, ufir_model_arrays
+from kinefuse.filters.ufir import check_buffer_memory, check_horizon, ufir_model_arrays
 from kinefuse.models import LinearGaussianModel
 
 __all__ = ["IntegratedFilter", "IntegratedResult", "IntegratedState"]
@@ -185,10 +186,16 @@ class IntegratedFilter(SingleModelFilter):
         mean : array_like, shape (..., n_x), optional
         cov : array_like, shape (..., n_x, n_x), optional
         """
+        n_x, n_z = self.model.n_x, self.model.n_z
+        check_buffer_memory(
+            check_batch_shape(batch_shape),
+            self.horizon * n_z + n_x * (n_x + 1),
+            f"integrated filter horizon {self.horizon}",
+        )
         g = make_initial_state(self.model, batch_shape, mean, cov)
         bs = g.initialized.shape
         return IntegratedState(
-            g.x, g.P, g.initialized, g.k, np.full((*bs, self.horizon, self.model.n_z), np.nan)
+            g.x, g.P, g.initialized, g.k, np.full((*bs, self.horizon, n_z), np.nan)
         )
 
     def filter(
