@@ -511,3 +511,22 @@ def test_run_inplace_without_per_model_outputs_gives_the_same_combined_output():
         assert a.tobytes() == b.tobytes()
     assert lean.model_cov is None and lean.log_likelihood is None
     assert full.model_cov.shape == (3, 120, 2, 6, 6)
+
+
+def test_position_is_h_times_mean_for_selection_and_general_h():
+    """``position`` is ``H x̂``: taken by column selection when H is a 0/1 selection matrix
+    (the matrix product is the oracle), by the product otherwise."""
+    from kinefuse.filters.imm import _selected_columns
+
+    cv = constant_velocity(1 / 30, q=0.5, r=1e-3)
+    np.testing.assert_array_equal(_selected_columns(cv.H), [0, 2, 4])
+    for H in (2.0 * cv.H, cv.H + np.eye(3, 6, 1), 0.5 * np.ones((3, 6))):
+        assert _selected_columns(H) is None
+    rng = np.random.default_rng(3)
+    z = np.stack([_trajectory(rng, 50), _trajectory(rng, 50)], axis=-2)  # (T, M=2, 3)
+    res = IMM(cv, cv).filter(z)[1]
+    np.testing.assert_array_equal(res.position, res.mean @ cv.H.T)
+    # every field is set, as by the dataclass constructor (generic ones None)
+    assert res.cov.shape == (50, 6, 6) and res.model_mean.shape == (50, 2, 6)
+    assert res.innovation is None and res.mode is None and res.cov_blocks is None
+    assert dataclasses.replace(res, mu=None).cov is res.cov

@@ -6,6 +6,7 @@ Kinect position), so ``z`` carries a model axis: ``(..., T, M, n_z)``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import KW_ONLY, dataclass
 from typing import NamedTuple
@@ -131,6 +132,31 @@ class IMMResult(FilterResult):
     log_likelihood: np.ndarray | None = None
     model_innovation: np.ndarray | None = None
     model_distance: np.ndarray | None = None
+
+
+_IMM_RESULT_NONE = {f.name: None for f in dataclasses.fields(IMMResult)}
+
+
+def _imm_result(fields: dict) -> IMMResult:
+    """``IMMResult(**fields)`` without the dataclass ``__init__`` (about 4 µs of an online
+    step), as :meth:`FilterResult.fast`: the fields not given are None."""
+    r = object.__new__(IMMResult)
+    d = r.__dict__
+    d.update(_IMM_RESULT_NONE)
+    del d["cov"]
+    d["_cov"] = fields.pop("cov")
+    d.update(fields)
+    return r
+
+
+def _selected_columns(H: np.ndarray) -> np.ndarray | None:
+    """The column each row of ``H`` selects when ``H`` is a 0/1 selection matrix (one 1 per
+    row): then ``H x`` is ``x[..., cols]``, the same numbers; else None."""
+    H = np.asarray(H)
+    ones = H == 1.0
+    if not (np.all(ones | (H == 0.0)) and np.all(ones.sum(axis=1) == 1)):
+        return None
+    return np.argmax(ones, axis=1).astype(np.intp)
 
 
 def _readonly(a) -> np.ndarray:
@@ -293,6 +319,13 @@ class IMM:
         }
         for name, mats in stacked.items():
             object.__setattr__(self, name, _readonly(np.stack(mats)))
+        M, n_x, n_z = len(models), models[0].n_x, models[0].n_z
+        no_per_model = (  # the kernel's zero-length per-model outputs (see _run_inplace)
+            np.empty((0, 0, M, n_x)), np.empty((0, 0, M, n_x, n_x)), np.empty((0, 0, M)),
+            np.empty((0, 0, M, n_z)), np.empty((0, 0, M)),
+        )  # fmt: skip
+        object.__setattr__(self, "_no_per_model", no_per_model)
+        object.__setattr__(self, "_pos_cols", _selected_columns(models[0].H))
 
     # ------------------------------------------------------------------ properties
     @property
@@ -524,14 +557,16 @@ class IMM:
         out_x = np.empty((B, T, n_x))
         out_P = np.empty((B, T, n_x, n_x))
         out_mu = np.empty((B, T, M))
-        Bm, Tm = (B, T) if per_model else (0, 0)  # zero-length: not written by the kernel
-        out_xm = np.empty((Bm, Tm, M, n_x))
-        out_Pm = np.empty((Bm, Tm, M, n_x, n_x))
+        if per_model:
+            out_xm = np.empty((B, T, M, n_x))
+            out_Pm = np.empty((B, T, M, n_x, n_x))
+            out_ll = np.empty((B, T, M))
+            out_nu = np.empty((B, T, M, n_z))
+            out_nis = np.empty((B, T, M))
+        else:  # zero-length (not written by the kernel), one set per filter
+            out_xm, out_Pm, out_ll, out_nu, out_nis = self._no_per_model
         out_obs = np.zeros((B, T), dtype=bool)
         out_mobs = np.zeros((B, T, M), dtype=bool)
-        out_ll = np.empty((Bm, Tm, M))
-        out_nu = np.empty((Bm, Tm, M, n_z))
-        out_nis = np.empty((Bm, Tm, M))
         if B > 0 and T > 0:
             n_reg = imm_run(
                 z, has_prev, px, pP, self._F, self._Q, self._H, self._R, self._Hpinv, self._P_init,
@@ -541,25 +576,22 @@ class IMM:
             )  # fmt: skip
             warn_regularised(n_reg, "IMM")
         mean = out_x.reshape(*batch, T, n_x)
-        return IMMResult(
-            mean=mean,
-            cov=out_P.reshape(*batch, T, n_x, n_x),
-            position=positions(mean, self.models[0].H),
-            observed=out_obs.reshape(*batch, T),
-            mu=out_mu.reshape(*batch, T, M),
-            model_observed=out_mobs.reshape(*batch, T, M),
-            **(
-                {
-                    "model_mean": out_xm.reshape(*batch, T, M, n_x),
-                    "model_cov": out_Pm.reshape(*batch, T, M, n_x, n_x),
-                    "log_likelihood": out_ll.reshape(*batch, T, M),
-                    "model_innovation": out_nu.reshape(*batch, T, M, n_z),
-                    "model_distance": out_nis.reshape(*batch, T, M),
-                }
-                if per_model
-                else {}
-            ),
-        )
+        cols = self._pos_cols  # H selects state components: H x̂ without the matrix product
+        fields = {
+            "mean": mean,
+            "cov": out_P.reshape(*batch, T, n_x, n_x),
+            "position": positions(mean, self.models[0].H) if cols is None else mean[..., cols],
+            "observed": out_obs.reshape(*batch, T),
+            "mu": out_mu.reshape(*batch, T, M),
+            "model_observed": out_mobs.reshape(*batch, T, M),
+        }
+        if per_model:
+            fields["model_mean"] = out_xm.reshape(*batch, T, M, n_x)
+            fields["model_cov"] = out_Pm.reshape(*batch, T, M, n_x, n_x)
+            fields["log_likelihood"] = out_ll.reshape(*batch, T, M)
+            fields["model_innovation"] = out_nu.reshape(*batch, T, M, n_z)
+            fields["model_distance"] = out_nis.reshape(*batch, T, M)
+        return _imm_result(fields)
 
 
 def lag_posteriors(mean, cov) -> tuple[np.ndarray, np.ndarray]:

@@ -339,7 +339,8 @@ class PaperBCore:
         if np.isinf(z_imu).any() or (features is not None and np.isinf(features).any()):
             raise InputError("expected z_imu and features finite or NaN (missing), got ±inf")
         av = available & np.all(np.isfinite(z_cam), axis=-1)
-        z_cam = np.where(av[..., None], z_cam, np.nan)
+        if not av.all():
+            z_cam = np.where(av[..., None], z_cam, np.nan)
         x = z_imu if features is None else np.concatenate([z_imu, features], axis=-1)
         J, L = av.shape
         state.fir1, m1, P1 = _run_filter(self.fir1, z_imu, state.fir1)
@@ -361,7 +362,7 @@ class PaperBCore:
         state.history.append(self.params.train_window, x, z_cam, r_imm.mean, r_imm.cov, av)
         pos = r_imm.position.copy()
         cov = pos_cov(r_imm.cov).copy()
-        src = np.where(av, SOURCE_FUSED, SOURCE_NONE).astype(np.int8)
+        src = np.where(av, _FUSED_I8, _NONE_I8)
         flags = np.zeros((2, J, L), bool)  # imu_fallback, elm2_skipped
         out = (pos, cov, src, flags)
         if state.mode.any() or not av.all():  # (the common frame has no episode: skip the scan)
@@ -519,6 +520,9 @@ def _lagged(prev: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+_FUSED_I8, _NONE_I8 = np.int8(SOURCE_FUSED), np.int8(SOURCE_NONE)
+
+
 def _run_filter(flt, z: np.ndarray, state, position_cov: bool = False):
     """``(state, mean, cov)`` of ``flt.filter(z (J, L, n_z), state)``, on the filters' trusted
     fast path (``_filter_unchecked``: ``z`` is float64 without ±inf, checked by the callers of
@@ -541,11 +545,11 @@ def _run_filter(flt, z: np.ndarray, state, position_cov: bool = False):
         )[:2]
         if position_cov:  # p00 on the diagonal (the position rows of every axis block)
             cov = covb[:, :, 0, 0, None, None] * np.eye(n_z)
-        elif L == 1:  # the state's full covariance is that of the one frame (NaN: no estimate)
-            cov = np.where(state.initialized[:, None, None], state.P, np.nan)[:, None]
+        elif L == 1:  # the state's full covariance is that of the one frame (a state not
+            cov = state.P[:, None].copy()  # initialised keeps init()'s NaN: no estimate)
         else:
             cov = expand_shared_block(covb[:, :, 0], n_z)
-        return state._replace(k=state.k + L), mean, cov
+        return UFIRState(*state[:3], state.k + L, *state[4:]), mean, cov
     bad = None
     init = state.initialized
     if isinstance(flt, UFIRFilter) and not init.all():

@@ -434,8 +434,8 @@ class Engine:
                 buf.stale = True
                 self._event(t, "stream_stale", f"imu:{buf.name}",
                             f"no sample since {buf.last_t:.3f} s: joints predict-only")  # fmt: skip
-        self.counters["held"] += int(np.sum(status == IMU_HELD))
-        self.counters["stale"] += int(np.sum(status == IMU_STALE))
+        self.counters["held"] += int(np.count_nonzero(status == IMU_HELD))
+        self.counters["stale"] += int(np.count_nonzero(status == IMU_STALE))
         self._last_frame_t = t
         for buf in self._seg_list:
             buf.prune(t)
