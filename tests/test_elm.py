@@ -246,3 +246,15 @@ def test_get_set_params_roundtrip():
     with pytest.raises(InputError, match="unknown parameter"):
         elm.set_params(beta=1)
     assert "n_hidden=5" in repr(elm)
+
+
+def test_row_norms_equal_numpy_norm_bit_for_bit(rng):
+    """The clip's row norms are numpy's ``linalg.norm(axis=-1)`` (the oracle), to the bit,
+    with NaN, inf, zeros and huge and tiny values."""
+    from kinefuse.learning.elm import _row_norms
+
+    Y = rng.normal(size=(200, 3)) * 10.0 ** rng.integers(-150, 150, size=(200, 1))
+    Y[3] = np.nan
+    Y[4, 1] = np.inf
+    Y[5] = 0.0
+    np.testing.assert_array_equal(_row_norms(Y), np.linalg.norm(Y, axis=-1, keepdims=True))

@@ -575,22 +575,24 @@ class IMM:
                 out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis,
             )  # fmt: skip
             warn_regularised(n_reg, "IMM")
-        mean = out_x.reshape(*batch, T, n_x)
-        cols = self._pos_cols  # H selects state components: H x̂ without the matrix product
         fields = {
-            "mean": mean,
-            "cov": out_P.reshape(*batch, T, n_x, n_x),
-            "position": positions(mean, self.models[0].H) if cols is None else mean[..., cols],
-            "observed": out_obs.reshape(*batch, T),
-            "mu": out_mu.reshape(*batch, T, M),
-            "model_observed": out_mobs.reshape(*batch, T, M),
+            "mean": out_x,
+            "cov": out_P,
+            "observed": out_obs,
+            "mu": out_mu,
+            "model_observed": out_mobs,
         }
         if per_model:
-            fields["model_mean"] = out_xm.reshape(*batch, T, M, n_x)
-            fields["model_cov"] = out_Pm.reshape(*batch, T, M, n_x, n_x)
-            fields["log_likelihood"] = out_ll.reshape(*batch, T, M)
-            fields["model_innovation"] = out_nu.reshape(*batch, T, M, n_z)
-            fields["model_distance"] = out_nis.reshape(*batch, T, M)
+            fields["model_mean"] = out_xm
+            fields["model_cov"] = out_Pm
+            fields["log_likelihood"] = out_ll
+            fields["model_innovation"] = out_nu
+            fields["model_distance"] = out_nis
+        if batch != (B,):  # the batch axes back (every output is (B, T, ...))
+            fields = {k: v.reshape(*batch, *v.shape[1:]) for k, v in fields.items()}
+        mean = fields["mean"]
+        cols = self._pos_cols  # H selects state components: H x̂ without the matrix product
+        fields["position"] = positions(mean, self.models[0].H) if cols is None else mean[..., cols]
         return _imm_result(fields)
 
 

@@ -79,6 +79,9 @@ class _SharedBlocksState(UFIRState):
         return UFIRState(*self)._replace(**kwargs)
 
 
+_NO_COVB = np.empty((0, 0, 0, 0))  # ufir_run_cv's covariance output when it is not wanted
+
+
 def _warn_failed(n_fail: int, stacklevel: int = 4) -> None:
     """ONE warning per call when the stored-init KF update could not factorise S."""
     if n_fail:
@@ -140,6 +143,9 @@ def ufir_model_arrays(model: LinearGaussianModel, horizon: int) -> dict:
                 "p0": np.ascontiguousarray(p0[0]),
                 "pfull": np.array([Pf[0, 0], 0.5 * (Pf[0, 1] + Pf[1, 0]), Pf[1, 1]]),
             }
+            c = a["cv"]  # ufir_run_cv's model arguments, in order (one tuple per filter)
+            c["args"] = (horizon, K, c["dt"], *c["q"], c["r"], c["p0"], c["pfull"], a["Fa"],
+                         a["Finva"], a["Ha"], a["Qa"], a["Ra"])  # fmt: skip
     else:
         a["Fa"] = np.zeros((0, 2, 2))
         a["Finva"] = np.zeros((0, 2, 2))
@@ -452,21 +458,18 @@ class UFIRFilter(SingleModelFilter):
         mean (B, T, n_x), cov_blocks (B, T, 1, 3) (empty without ``want_cov``), observed (B, T),
         innovation (B, T, n_z), fir_ready (B, T)
         """
-        a = self._arrays
-        cv = a["cv"]
         B, T, n_z = z.shape
         o_mean = np.empty((B, T, self.model.n_x))
-        o_covb = np.empty((B, T, 1, 3)) if want_cov else np.empty((0, 0, 0, 0))
+        o_covb = np.empty((B, T, 1, 3)) if want_cov else _NO_COVB
         o_obs = np.empty((B, T), bool)
         o_nu = np.empty((B, T, n_z))
         o_ready = np.empty((B, T), bool)
-        q00, q01, q11 = cv["q"]
         n_fail = ufir_run_cv(
-            z, x, P, init, zring, k, self.horizon, a["K"], cv["dt"], q00, q01, q11, cv["r"],
-            cv["p0"], cv["pfull"], a["Fa"], a["Finva"], a["Ha"], a["Qa"], a["Ra"],
-            o_mean, o_covb, o_obs, o_nu, o_ready,
+            z, x, P, init, zring, k, *self._arrays["cv"]["args"], o_mean, o_covb, o_obs, o_nu,
+            o_ready,
         )  # fmt: skip
-        _warn_failed(n_fail, 5)
+        if n_fail:
+            _warn_failed(n_fail, 5)
         return o_mean, o_covb, o_obs, o_nu, o_ready
 
     @property

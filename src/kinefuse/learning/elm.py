@@ -278,9 +278,7 @@ class ELMRegressor:
         their data (:class:`kinefuse.pipelines.paper_b.PaperBCore`)."""
         Y = self._hidden(X) @ self.output_weights_ * self.y_scale_ + self.y_mean_
         if clip_factor is not None:
-            Y = _scale_to_norm(
-                Y, np.linalg.norm(Y, axis=-1, keepdims=True), clip_factor * self.train_rms_
-            )
+            Y = _scale_to_norm(Y, _row_norms(Y), clip_factor * self.train_rms_)
         return Y[:, 0] if self._y_1d else Y
 
     # ------------------------------------------------------------------ internals
@@ -458,8 +456,16 @@ def clip_norm(v, max_norm, axis: int = -1) -> np.ndarray:
     return _scale_to_norm(v, norm, np.expand_dims(m, axis) if m.ndim > 0 else m)
 
 
+def _row_norms(Y: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(Y, axis=-1, keepdims=True)`` for real ``Y``: numpy's own arithmetic for
+    that case (``sqrt(add.reduce(Y * Y))``) without its dispatch (a few µs per online frame)."""
+    return np.sqrt(np.add.reduce(Y * Y, axis=-1, keepdims=True))
+
+
 def _scale_to_norm(v: np.ndarray, norm: np.ndarray, m) -> np.ndarray:
     """``v * min(1, m / norm)`` (``norm`` the vectors' norms, broadcast; NaN norms keep v)."""
     over = norm > m
+    if not over.any():  # v * 1.0 is v: nothing to scale (the common case)
+        return v.copy()
     scale = np.divide(m, norm, out=np.ones(over.shape), where=over)  # (no 0/0: only where over)
     return v * scale

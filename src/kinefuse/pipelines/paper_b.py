@@ -391,13 +391,13 @@ class PaperBCore:
             if state.mode[j] == MODE_FALLBACK:
                 p = fir1[0][span, 0::2]
                 pos[j, span], cov[j, span] = p, pos_cov(fir1[1][span])
-                src[j, span] = np.where(np.all(np.isfinite(p), -1), SOURCE_IMU, SOURCE_NONE)
+                src[j, span] = np.where(np.isfinite(p).all(-1), _IMU_I8, _NONE_I8)
                 flags[0, j, span] = True
             else:
                 b = state.bridges[j]
                 p, c = self._bridge(b, x[span])
                 pos[j, span], cov[j, span] = p, c
-                src[j, span] = np.where(np.all(np.isfinite(p), -1), SOURCE_BRIDGED, SOURCE_NONE)
+                src[j, span] = np.where(np.isfinite(p).all(-1), _BRIDGED_I8, _NONE_I8)
                 flags[1, j, span] = b.elm2 is None
             i += end
             if recovered:
@@ -475,21 +475,27 @@ class PaperBCore:
     def _bridge(self, b: Bridge, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Bridged output over the frames of ``x (L, n_in)``: ``(position (L, 3), cov)``;
         advances ``b.fir3``."""
-        ok = np.all(np.isfinite(x), axis=-1)
-        zhat = np.full((x.shape[0], 3), np.nan)
-        if ok.any():
-            zhat[ok] = b.elm1._predict_unchecked(x[ok])  # rows checked finite here
+        zhat = _rows_or(b.elm1._predict_unchecked, x, np.nan)
         b.fir3, m3, C3 = _run_filter(self.fir3, zhat[None], b.fir3, position_cov=True)
         p3 = m3[0, :, 0::2]
         c = C3[0] + b.cov_add
         if b.elm2 is None:
             return p3, c
         e2_in = p3 if b.elm2_on_fir3 else zhat
-        okc = np.all(np.isfinite(e2_in), axis=-1)
-        corr = np.zeros_like(p3)
-        if okc.any():
-            corr[okc] = b.elm2._predict_unchecked(e2_in[okc], self.params.clip_factor)
-        return p3 + corr, c
+        return p3 + _rows_or(b.elm2._predict_unchecked, e2_in, 0.0, self.params.clip_factor), c
+
+
+def _rows_or(predict, X: np.ndarray, fill: float, *args) -> np.ndarray:
+    """``predict(X[ok], *args)`` on the rows of ``X (L, n)`` that are finite, ``fill`` on the
+    others, ``(L, 3)``. When every row is (the common case, and every online frame that has
+    one), ``X`` is passed whole: the same rows, the same numbers, without the copies."""
+    if np.isfinite(X).all():
+        return predict(X, *args)
+    ok = np.isfinite(X).all(axis=-1)
+    out = np.full((X.shape[0], 3), fill)
+    if ok.any():
+        out[ok] = predict(X[ok], *args)  # rows checked finite here
+    return out
 
 
 class PaperBStep(NamedTuple):
@@ -520,7 +526,15 @@ def _lagged(prev: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-_FUSED_I8, _NONE_I8 = np.int8(SOURCE_FUSED), np.int8(SOURCE_NONE)
+# source codes as int8 scalars: np.where of these is the int8 source array directly
+_FUSED_I8, _BRIDGED_I8, _IMU_I8 = (
+    np.int8(SOURCE_FUSED),
+    np.int8(SOURCE_BRIDGED),
+    np.int8(SOURCE_IMU),
+)
+_NONE_I8 = np.int8(SOURCE_NONE)
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
 
 
 def _run_filter(flt, z: np.ndarray, state, position_cov: bool = False):
@@ -544,7 +558,7 @@ def _run_filter(flt, z: np.ndarray, state, position_cov: bool = False):
             z, state.x, state.P, state.initialized, state.z_buf, state.k
         )[:2]
         if position_cov:  # p00 on the diagonal (the position rows of every axis block)
-            cov = covb[:, :, 0, 0, None, None] * np.eye(n_z)
+            cov = covb[:, :, 0, 0, None, None] * (_EYE3 if n_z == 3 else np.eye(n_z))
         elif L == 1:  # the state's full covariance is that of the one frame (a state not
             cov = state.P[:, None].copy()  # initialised keeps init()'s NaN: no estimate)
         else:
