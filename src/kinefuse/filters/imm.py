@@ -325,6 +325,7 @@ class IMM:
             np.empty((0, 0, M, n_z)), np.empty((0, 0, M)),
         )  # fmt: skip
         object.__setattr__(self, "_no_per_model", no_per_model)
+        object.__setattr__(self, "_sizes", (M, n_x, n_z))
         object.__setattr__(self, "_pos_cols", _selected_columns(models[0].H))
 
     # ------------------------------------------------------------------ properties
@@ -544,7 +545,7 @@ class IMM:
         ``per_model`` its ``model_*`` and ``log_likelihood`` fields are None (not computed:
         they are most of the output's memory).
         """
-        M, n_x, n_z = self.n_models, self.n_x, self.n_z
+        M, n_x, n_z = self._sizes
         B, T = z.shape[:2]
         batch = (B,) if batch is None else batch
         if prev is None:
@@ -574,7 +575,8 @@ class IMM:
                 self.mu_floor, xs, Ps, mu, init,
                 out_x, out_P, out_mu, out_xm, out_Pm, out_obs, out_mobs, out_ll, out_nu, out_nis,
             )  # fmt: skip
-            warn_regularised(n_reg, "IMM")
+            if n_reg:
+                warn_regularised(n_reg, "IMM")
         fields = {
             "mean": out_x,
             "cov": out_P,

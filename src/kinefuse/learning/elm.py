@@ -29,8 +29,11 @@ class NotFittedError(KinefuseError, ValueError, AttributeError):
 
 
 def _sigmoid(a: np.ndarray) -> np.ndarray:
-    # logistic σ(a) = 1 / (1 + e^{−a}), overflow-free via tanh
-    return 0.5 * (1.0 + np.tanh(0.5 * a))
+    # logistic σ(a) = 1 / (1 + e^{−a}), overflow-free via tanh: 0.5 (1 + tanh(a / 2)), in place
+    t = np.tanh(0.5 * a)
+    t += 1.0
+    t *= 0.5
+    return t
 
 
 def _rng(random_state) -> np.random.Generator:

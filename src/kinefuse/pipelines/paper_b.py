@@ -66,6 +66,7 @@ from kinefuse.filters import (
     IMM,
     FilterResult,
     IMMResult,
+    IMMState,
     KalmanFilter,
     UFIRFilter,
     UFIRState,
@@ -356,7 +357,7 @@ class PaperBCore:
         r_imm = self.imm._run_inplace(
             zz, (px, pP), im.x, im.P, im.mu, im.initialized, per_model=False
         )
-        state.imm = im._replace(k=im.k + L)
+        state.imm = IMMState(im.x, im.P, im.mu, im.initialized, im.k + L)
         state.prev_x[:, 0, 0], state.prev_x[:, 0, 1] = m1[:, -1], m2[:, -1]
         state.prev_P[:, 0, 0], state.prev_P[:, 0, 1] = P1[:, -1], P2[:, -1]
         state.history.append(self.params.train_window, x, z_cam, r_imm.mean, r_imm.cov, av)
