@@ -179,6 +179,20 @@ def test_slerp_resample_equals_scipy_slerp(step_rad):
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)  # unit quaternions: ~1e-16 each
 
 
+def test_slerp_resample_source_times_across_a_gap_are_kept():
+    """A target on a valid source time is that sample even where the interval before it is a
+    gap (np.isin over the valid times is the oracle for which targets are used)."""
+    t = np.arange(10) * 0.1
+    q = Rotation.from_rotvec(np.outer(t, [0, 0, 1.0])).as_quat(scalar_first=True)
+    q[4] = np.nan  # valid times 0.3 -> 0.5: a gap of 2 steps
+    t_dst = np.array([t[0], t[3], 0.35, 0.4, 0.45, t[5], 0.55, t[9], 0.95])
+    out = slerp_resample(t, q, t_dst)
+    used = np.isfinite(out).all(axis=1)
+    want = np.isin(t_dst, t[np.isfinite(q).all(axis=1)]) | (t_dst == 0.55)
+    np.testing.assert_array_equal(used, want)
+    np.testing.assert_allclose(out[5], q[5], atol=1e-15)
+
+
 def test_slerp_resample_refuses_unordered_times():
     q = np.tile([1.0, 0, 0, 0], (4, 1))
     with pytest.raises(InputError, match="strictly increasing"):

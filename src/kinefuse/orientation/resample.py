@@ -45,16 +45,17 @@ def slerp_resample(t_src_s, q_src, t_dst_s, *, max_gap_s: float | None = None) -
     if ok.sum() < 2:
         return out
     ts, qs = t_src[ok], q[ok]
+    if np.any(np.diff(ts) <= 0):
+        raise InputError("expected t_src_s strictly increasing where q_src is valid")
     if max_gap_s is None:
         max_gap_s = 1.5 * float(np.median(np.diff(t_src))) if t_src.size > 1 else np.inf
     inside = (t_dst >= ts[0]) & (t_dst <= ts[-1])
-    hi = np.clip(np.searchsorted(ts, t_dst, side="left"), 1, ts.size - 1)
+    left = np.searchsorted(ts, t_dst, side="left")
+    hi = np.clip(left, 1, ts.size - 1)
     gap = ts[hi] - ts[hi - 1]
-    exact = np.isin(t_dst, ts)
+    exact = ts[np.minimum(left, ts.size - 1)] == t_dst  # t_dst is a source time (ts sorted)
     use = inside & ((gap <= max_gap_s + 1e-12) | exact)
     if np.any(use):
-        if np.any(np.diff(ts) <= 0):
-            raise InputError("expected t_src_s strictly increasing where q_src is valid")
         out[use] = _slerp(ts, qs, t_dst[use])
     return out
 
