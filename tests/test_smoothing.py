@@ -252,3 +252,20 @@ def test_smoothing_bad_input(rng):
         rts_smooth(model2, res)
     with pytest.raises(ValueError, match="LinearGaussianModel"):
         rts_smooth(KalmanFilter(model), res)
+
+
+def test_segments_means_only_on_full_covariances(rng):
+    """``cov=False`` on cross-axis (dense) covariances: the same means, bit for bit, as the
+    full smoother, which matches filterpy's; ``cov`` None."""
+    model = constant_velocity(1 / 30, q=1.0, r=np.diag([0.01, 0.02, 0.005]))
+    twin = _full_r_twin(model)
+    _, z = simulate(model, rng, 200, batch=(3,))
+    z[:, 60:75] = np.nan  # an outage: two segments
+    _, res = KalmanFilter(twin).filter(z)  # covariances with cross-axis terms
+    full = rts_smooth_segments(model, res)
+    lean = rts_smooth_segments(model, res, cov=False)
+    assert lean.cov is None and full.cov is not None
+    np.testing.assert_array_equal(lean.mean, full.mean)
+    np.testing.assert_array_equal(lean.position, full.position)
+    xs_ref, _, _, _ = _filterpy_rts(res.mean[0, :60].copy(), res.cov[0, :60].copy(), model)
+    np.testing.assert_allclose(lean.mean[0, :60], xs_ref, atol=ATOL, rtol=0)

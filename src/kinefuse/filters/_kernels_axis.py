@@ -339,9 +339,10 @@ def _segment_ends(mean, mask, b):
 
 
 @njit
-def _copy_filtered(mean, cov, sm_mean, sm_cov, b, t):
+def _copy_filtered(mean, cov, sm_mean, sm_cov, b, t, want_cov):
     sm_mean[b, t, :] = mean[b, t, :]
-    sm_cov[b, t, :, :] = cov[b, t, :, :]
+    if want_cov:
+        sm_cov[b, t, :, :] = cov[b, t, :, :]
 
 
 @njit
@@ -434,7 +435,7 @@ def rts_axis(mean, cov, mask, Fb, Qb, lag, sm_mean, sm_cov):
             t = T - 1
             while t >= 0:
                 if end[t] < 0:
-                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t)
+                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t, True)
                     t -= 1
                     continue
                 t0 = t  # start of the run ending at t
@@ -448,7 +449,7 @@ def rts_axis(mean, cov, mask, Fb, Qb, lag, sm_mean, sm_cov):
         else:
             for t in range(T):
                 if end[t] < 0:
-                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t)
+                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t, True)
                     continue
                 if _offblock_abs_sum(cov2, b, t, off) != 0.0:
                     return False
@@ -460,11 +461,12 @@ def rts_axis(mean, cov, mask, Fb, Qb, lag, sm_mean, sm_cov):
 
 
 @njit_inline
-def _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w):
+def _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w, want_cov):
     """One backward RTS step (SPEC §9), dense, in place on ``s, Ps`` (``x̃_{t+1}, P̃_{t+1}`` in,
     ``x̃_t, P̃_t`` out) from the filtered ``mean[b, t], cov[b, t]``; no allocation (``w``: the
     scratch of :func:`_dense_scratch`). Returns the ``CHOL_*`` status of ``P⁻``; on
-    ``CHOL_FAILED`` the step returns the filtered estimate."""
+    ``CHOL_FAILED`` the step returns the filtered estimate. Without ``want_cov`` only the mean
+    is advanced (its recursion reads the filtered covariances, never ``P̃``)."""
     n = s.shape[0]
     FP, Pp, L, D, d = w[0], w[1], w[2], w[3], w[4, 0]
     for i in range(n):  # F P̂_t
@@ -486,8 +488,9 @@ def _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w):
     if status == CHOL_FAILED:
         for i in range(n):
             s[i] = mean[b, t, i]
-            for j in range(n):
-                Ps[i, j] = cov[b, t, i, j]
+            if want_cov:
+                for j in range(n):
+                    Ps[i, j] = cov[b, t, i, j]
         return status
     chol_solve_rows(L, FP, n, n)  # FP ← Cᵀ = (P⁻)⁻¹ F P̂_t, i.e. C = P̂_t Fᵀ (P⁻)⁻¹
     for i in range(n):  # d = x̃_{t+1} − F x̂_t;  D = P̃_{t+1} − P⁻
@@ -495,13 +498,16 @@ def _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w):
         for k in range(n):
             acc -= F[i, k] * mean[b, t, k]
         d[i] = acc
-        for j in range(n):
-            D[i, j] = Ps[i, j] - Pp[i, j]
+        if want_cov:
+            for j in range(n):
+                D[i, j] = Ps[i, j] - Pp[i, j]
     for i in range(n):  # x̃_t = x̂_t + C d
         acc = mean[b, t, i]
         for k in range(n):
             acc += FP[k, i] * d[k]
         s[i] = acc
+    if not want_cov:
+        return status
     for i in range(n):  # Pp ← C D (rows of C are the columns of FP)
         for j in range(n):
             acc = 0.0
@@ -530,11 +536,13 @@ def _dense_scratch(n):
 
 @njit
 def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
-    """Dense reference RTS; same contract as :func:`rts_axis`.
+    """Dense reference RTS; same contract as :func:`rts_axis`. A zero-length ``sm_cov`` (first
+    axis 0) asks for the smoothed means only: the covariance recursion is skipped.
 
     Returns the number of backward steps whose ``P⁻`` had to be regularised (SPEC §13).
     """
     B, T, n_x = mean.shape
+    want_cov = sm_cov.shape[0] > 0
     n_reg = 0
     s = np.empty(n_x)
     Ps = np.empty((n_x, n_x))
@@ -544,25 +552,29 @@ def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
         if lag < 0:
             for t in range(T - 1, -1, -1):
                 if end[t] < 0:
-                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t)
+                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t, want_cov)
                     continue
                 if t == end[t]:
                     s[:] = mean[b, t]  # x̃_{t_end} = x̂_{t_end}
                     Ps[:, :] = cov[b, t]
                 else:
-                    n_reg += _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w) == CHOL_REGULARISED
+                    st = _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w, want_cov)
+                    n_reg += st == CHOL_REGULARISED
                 sm_mean[b, t, :] = s
-                sm_cov[b, t, :, :] = Ps
+                if want_cov:
+                    sm_cov[b, t, :, :] = Ps
         else:
             for t in range(T):
                 if end[t] < 0:
-                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t)
+                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t, want_cov)
                     continue
                 e = min(end[t], t + lag)
                 s[:] = mean[b, e]
                 Ps[:, :] = cov[b, e]
                 for u in range(e - 1, t - 1, -1):
-                    n_reg += _rts_dense_step(F, Q, mean, cov, b, u, s, Ps, w) == CHOL_REGULARISED
+                    st = _rts_dense_step(F, Q, mean, cov, b, u, s, Ps, w, want_cov)
+                    n_reg += st == CHOL_REGULARISED
                 sm_mean[b, t, :] = s
-                sm_cov[b, t, :, :] = Ps
+                if want_cov:
+                    sm_cov[b, t, :, :] = Ps
     return n_reg

@@ -458,7 +458,7 @@ class PaperBCore:
             res = FilterResult(
                 mean, h.cov[j, s:hi][None], mean[..., 0::2], np.ones((1, hi - s), bool)
             )
-            rts_pos = rts_smooth_segments(self.model_imu, res).position[0]
+            rts_pos = rts_smooth_segments(self.model_imu, res, cov=False).position[0]
             tr = tr[np.all(np.isfinite(rts_pos[tr - s]), -1) & np.all(np.isfinite(p3[tr - w0]), -1)]
         on_fir3 = p.elm2_input != "elm1_out"
         if tr.size < self.n_min:
