@@ -269,3 +269,23 @@ def test_segments_means_only_on_full_covariances(rng):
     np.testing.assert_array_equal(lean.position, full.position)
     xs_ref, _, _, _ = _filterpy_rts(res.mean[0, :60].copy(), res.cov[0, :60].copy(), model)
     np.testing.assert_allclose(lean.mean[0, :60], xs_ref, atol=ATOL, rtol=0)
+
+
+def test_dense_rts_for_six_states_equals_the_general_loop(rng):
+    """rts_dense6 (the size a compile-time constant) is rts_dense's arithmetic: equal bit for
+    bit, with and without the covariances, fixed interval and fixed lag."""
+    from kinefuse.filters._kernels_axis import rts_dense, rts_dense6
+
+    model = constant_velocity(1 / 30, q=1.0, r=np.diag([0.01, 0.02, 0.005]))
+    _, z = simulate(model, rng, 150, batch=(2,))
+    z[:, 40:50] = np.nan
+    _, res = KalmanFilter(_full_r_twin(model)).filter(z)
+    args = (res.mean, res.cov, np.ones((2, 150), bool), model.F, model.Q)
+    for lag in (-1, 4):
+        for n_cov in (2, 0):
+            outs = []
+            for fn in (rts_dense, rts_dense6):
+                m, c = np.empty((2, 150, 6)), np.empty((n_cov, 150 if n_cov else 0, 6, 6))
+                outs.append((fn(*args, lag, m, c), m, c))
+            for a, b in zip(*outs, strict=True):
+                np.testing.assert_array_equal(a, b)

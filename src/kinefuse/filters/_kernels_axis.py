@@ -461,13 +461,13 @@ def rts_axis(mean, cov, mask, Fb, Qb, lag, sm_mean, sm_cov):
 
 
 @njit_inline
-def _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w, want_cov):
+def _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w, want_cov, n):
     """One backward RTS step (SPEC §9), dense, in place on ``s, Ps`` (``x̃_{t+1}, P̃_{t+1}`` in,
     ``x̃_t, P̃_t`` out) from the filtered ``mean[b, t], cov[b, t]``; no allocation (``w``: the
     scratch of :func:`_dense_scratch`). Returns the ``CHOL_*`` status of ``P⁻``; on
     ``CHOL_FAILED`` the step returns the filtered estimate. Without ``want_cov`` only the mean
-    is advanced (its recursion reads the filtered covariances, never ``P̃``)."""
-    n = s.shape[0]
+    is advanced (its recursion reads the filtered covariances, never ``P̃``). ``n``: the state
+    size (a compile-time constant in :func:`rts_dense6`)."""
     FP, Pp, L, D, d = w[0], w[1], w[2], w[3], w[4, 0]
     for i in range(n):  # F P̂_t
         for j in range(n):
@@ -534,14 +534,10 @@ def _dense_scratch(n):
     return np.zeros((5, n, n))
 
 
-@njit
-def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
-    """Dense reference RTS; same contract as :func:`rts_axis`. A zero-length ``sm_cov`` (first
-    axis 0) asks for the smoothed means only: the covariance recursion is skipped.
-
-    Returns the number of backward steps whose ``P⁻`` had to be regularised (SPEC §13).
-    """
-    B, T, n_x = mean.shape
+@njit_inline
+def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x):
+    """The loop of :func:`rts_dense` for states of size ``n_x``."""
+    B, T = mean.shape[:2]
     want_cov = sm_cov.shape[0] > 0
     n_reg = 0
     s = np.empty(n_x)
@@ -558,7 +554,7 @@ def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
                     s[:] = mean[b, t]  # x̃_{t_end} = x̂_{t_end}
                     Ps[:, :] = cov[b, t]
                 else:
-                    st = _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w, want_cov)
+                    st = _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w, want_cov, n_x)
                     n_reg += st == CHOL_REGULARISED
                 sm_mean[b, t, :] = s
                 if want_cov:
@@ -572,9 +568,26 @@ def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
                 s[:] = mean[b, e]
                 Ps[:, :] = cov[b, e]
                 for u in range(e - 1, t - 1, -1):
-                    st = _rts_dense_step(F, Q, mean, cov, b, u, s, Ps, w, want_cov)
+                    st = _rts_dense_step(F, Q, mean, cov, b, u, s, Ps, w, want_cov, n_x)
                     n_reg += st == CHOL_REGULARISED
                 sm_mean[b, t, :] = s
                 if want_cov:
                     sm_cov[b, t, :, :] = Ps
     return n_reg
+
+
+@njit
+def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
+    """Dense reference RTS; same contract as :func:`rts_axis`. A zero-length ``sm_cov`` (first
+    axis 0) asks for the smoothed means only: the covariance recursion is skipped.
+
+    Returns the number of backward steps whose ``P⁻`` had to be regularised (SPEC §13).
+    """
+    return _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, mean.shape[2])
+
+
+@njit
+def rts_dense6(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
+    """:func:`rts_dense` for 6 states (3-D constant velocity: paper B's IMM output), the size a
+    compile-time constant so that the compiler unrolls the 6x6 loops. The same arithmetic."""
+    return _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, 6)

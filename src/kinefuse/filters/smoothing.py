@@ -16,7 +16,13 @@ import numpy as np
 
 from kinefuse.exceptions import InputError
 from kinefuse.filters._base import FilterResult, initial_covariance, warn_regularised
-from kinefuse.filters._kernels_axis import axis_block_params, pack_axis_params, rts_axis, rts_dense
+from kinefuse.filters._kernels_axis import (
+    axis_block_params,
+    pack_axis_params,
+    rts_axis,
+    rts_dense,
+    rts_dense6,
+)
 from kinefuse.filters._kernels_blocks import rts_blocks
 from kinefuse.models import LinearGaussianModel
 
@@ -144,7 +150,8 @@ def _smooth(model, result, mask, lag: int, position: bool = True, cov: bool = Tr
         done = rts_axis(mean3, cov3, m2, Fb, Qb, lag, sm_mean, sm_cov)
     if not done:  # dense; a zero-length sm_cov: the means only (their recursion needs no P̃)
         sm_cov = np.empty((B, T, n_x, n_x) if cov else (0, 0, n_x, n_x))
-        n_reg = rts_dense(mean3, cov3, m2, model.F, model.Q, lag, sm_mean, sm_cov)
+        dense = rts_dense6 if n_x == 6 else rts_dense  # (6: the loops unrolled)
+        n_reg = dense(mean3, cov3, m2, model.F, model.Q, lag, sm_mean, sm_cov)
         warn_regularised(n_reg, "RTS smoother", "predicted covariance P⁻")
     sm_mean = sm_mean.reshape(*lead, n_x)
     return FilterResult(

@@ -78,8 +78,10 @@ def _em():
 def _imm():
     imm = IMM(_model(), constant_velocity(1 / 30, q=0.5, r=4e-4))
     z = _z()
-    st, _ = imm.filter(np.stack([z, z + 0.01], axis=-2))  # (B, T, sources, 3)
+    st, res = imm.filter(np.stack([z, z + 0.01], axis=-2))  # (B, T, sources, 3)
     imm.step(st, np.zeros((2, 2, 3)))
+    rts_smooth_segments(_model(), res)  # full covariances: the dense RTS (paper B's offline form)
+    rts_smooth_segments(_model(), res, cov=False)
 
 
 #: ``(what, function)``: the warm-up steps in the order they run.
@@ -88,7 +90,7 @@ WARM_UP_STEPS: tuple[tuple[str, Callable[[], None]], ...] = (
     ("UFIR filter (general form)", _ufir_general),
     ("UFIR filter (constant-velocity form)", _ufir_cv),
     ("EM-KF and the integrated EM-KF/FIR filter", _em),
-    ("IMM (paper B)", _imm),
+    ("IMM and its RTS (paper B)", _imm),
 )
 
 
