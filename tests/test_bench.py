@@ -40,3 +40,23 @@ def test_filterpy_peer_times():
     pytest.importorskip("filterpy")
     wall, cpu = filterpy_frame_times(n_frames=40, n_joints=2)
     assert wall.shape == cpu.shape == (10,) and np.all(wall > 0)
+
+
+def test_engine_rows_interleave_every_processor_and_the_peer(monkeypatch):
+    """The engine rows are timed in rounds: each processor and the peer advance round by round
+    (the recorded order of chunks is the oracle), and every row gets its frames."""
+    pytest.importorskip("filterpy")
+    from kinefuse.apps import bench_engine
+
+    order = []
+    real = bench_engine.itertools.islice
+
+    def islice(gen, k):
+        order.append(gen.gi_frame is not None and gen.gi_code.co_name)
+        return real(gen, k)
+
+    monkeypatch.setattr(bench_engine.itertools, "islice", islice)
+    rows = bench_engine.engine_rows(quick=True)
+    assert [r["processor"] for r in rows] == [*ENGINE_PROCESSORS, "filterpy KF (peer)"]
+    assert all(r["frames"] == 270 for r in rows)  # 300 timed, the first 30 skipped
+    assert len(order) >= 2 * len(rows) and order[: len(rows)] == order[len(rows) : 2 * len(rows)]

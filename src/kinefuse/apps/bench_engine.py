@@ -8,6 +8,7 @@ method on a long virtual recording in a fresh process (its own peak RSS).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import os
 import pickle
@@ -54,6 +55,13 @@ def engine_frame_times(rec, processor: str, n_frames: int = 600, loops: int = 1)
     onset : ndarray of bool, shape (n,)
         Frames in which a bridging processor trained at an outage onset.
     """
+    frames = list(itertools.islice(_engine_frames(rec, processor, loops), n_frames))
+    return _columns(frames[30:], 3)
+
+
+def _engine_frames(rec, processor: str, loops: int):
+    """Generator of ``(wall_s, cpu_s, onset)`` per emitted frame (see :func:`engine_frame_times`);
+    the engine is built and warmed up before the first frame is timed."""
     eng = build_engine(StreamConfig(processor=processor), camera=True, camera_rate_hz=30.0,
                        imu_rate_hz=100.0)  # fmt: skip
     v = rec.vision
@@ -72,7 +80,6 @@ def engine_frame_times(rec, processor: str, n_frames: int = 600, loops: int = 1)
     def episodes():
         return sum(len(e) for e in getattr(proc, "_episodes", None) or ())
 
-    times, cpu, onset = [], [], []
     for t, kind, key, q in ev:
         if kind == 0:
             eng.push_imu(key, t, q)
@@ -82,17 +89,21 @@ def engine_frame_times(rec, processor: str, n_frames: int = 600, loops: int = 1)
         a, c = time.perf_counter(), time.thread_time()
         outs = eng.poll()
         if outs:
-            times.append(time.perf_counter() - a)
-            cpu.append(time.thread_time() - c)
-            onset.append(episodes() > n_ep)
-        if len(times) >= n_frames:
-            break
-    return np.asarray(times[30:]), np.asarray(cpu[30:]), np.asarray(onset[30:], bool)
+            cpu = time.thread_time() - c
+            yield time.perf_counter() - a, cpu, episodes() > n_ep
 
 
 def filterpy_frame_times(n_frames: int = 600, n_joints: int = 8):
     """filterpy's KalmanFilter, ``n_joints`` x (predict + update) per frame: ``(wall_s, cpu_s)``
     per frame (first 30 skipped), or None without filterpy."""
+    gen = _filterpy_frames(n_frames, n_joints)
+    if gen is None:
+        return None
+    return _columns(list(gen)[30:], 2)
+
+
+def _filterpy_frames(n_frames: int, n_joints: int):
+    """Generator of ``(wall_s, cpu_s)`` per frame of filterpy's KF (None without filterpy)."""
     try:
         from filterpy.kalman import KalmanFilter as FKF
     except ImportError:
@@ -105,33 +116,65 @@ def filterpy_frame_times(n_frames: int = 600, n_joints: int = 8):
         f.F, f.Q, f.H, f.R = np.array(m.F), np.array(m.Q), np.array(m.H), np.array(m.R)
         kfs.append(f)
     z = np.random.default_rng(0).normal(0, 0.01, (n_frames, n_joints, 3))
-    out, cpu = [], []
-    for k in range(n_frames):
-        a, c = time.perf_counter(), time.thread_time()
-        for j, f in enumerate(kfs):
-            f.predict()
-            f.update(z[k, j])
-        out.append(time.perf_counter() - a)
-        cpu.append(time.thread_time() - c)
-    return np.asarray(out[30:]), np.asarray(cpu[30:])
+
+    def frames():
+        for k in range(n_frames):
+            a, c = time.perf_counter(), time.thread_time()
+            for j, f in enumerate(kfs):
+                f.predict()
+                f.update(z[k, j])
+            cpu = time.thread_time() - c
+            yield time.perf_counter() - a, cpu
+
+    return frames()
+
+
+def _columns(rows: list, n: int) -> tuple:
+    """``n`` arrays from a list of ``n``-tuples (float, the last of 3 bool)."""
+    cols = [np.asarray([r[i] for r in rows], dtype=float) for i in range(n)]
+    if n == 3:
+        cols[2] = cols[2].astype(bool)
+    return tuple(cols)
 
 
 def engine_rows(quick: bool) -> list[dict]:
-    """Per-frame thread CPU time (p50, p99, max) of each engine processor, next to filterpy."""
+    """Per-frame thread CPU time (p50, p99, max) of each engine processor, next to filterpy.
+
+    The processors and the peer are timed in interleaved rounds of ``ENGINE_ROUND_FRAMES``
+    frames each (every engine kept alive between its rounds), so that a slow phase of a
+    shared machine falls on all of them alike rather than on whichever was running.
+    """
     rec = demo_recording()
     n = 300 if quick else 3_000
+    gens = {name: _engine_frames(rec, name, 1 if quick else 8) for name in ENGINE_PROCESSORS}
+    peer = _filterpy_frames(300 if quick else 600, 8)
+    want = {name: n for name in gens}
+    if peer is not None:
+        gens["filterpy KF (peer)"] = peer
+        want["filterpy KF (peer)"] = 300 if quick else 600
+    got = {name: [] for name in gens}
+    live = dict(gens)
+    while live:
+        for name, gen in list(live.items()):
+            k = min(ENGINE_ROUND_FRAMES * want[name] // n, want[name] - len(got[name]))
+            chunk = list(itertools.islice(gen, max(k, 1)))
+            got[name] += chunk
+            if not chunk or len(got[name]) >= want[name]:
+                del live[name]
     rows = []
-    for name in ENGINE_PROCESSORS:
-        _, cpu, onset = engine_frame_times(rec, name, n_frames=n, loops=1 if quick else 8)
-        rows.append({"processor": name, "frames": int(cpu.size), "onset_frames": int(onset.sum()),
+    for name, frames in got.items():
+        cols = _columns(frames[30:], 3 if name in ENGINE_PROCESSORS else 2)
+        cpu = cols[1]
+        onset = int(cols[2].sum()) if len(cols) == 3 else 0
+        rows.append({"processor": name, "frames": int(cpu.size), "onset_frames": onset,
                      "p50_ms": float(1e3 * np.median(cpu)), "p99_ms": float(1e3 * np.percentile(cpu, 99)),
                      "max_ms": float(1e3 * cpu.max())})  # fmt: skip
-    peer = filterpy_frame_times(300 if quick else 600)
-    if peer is not None:
-        rows.append({"processor": "filterpy KF (peer)", "frames": int(peer[1].size),
-                     "onset_frames": 0, "p50_ms": float(1e3 * np.median(peer[1])),
-                     "p99_ms": float(1e3 * np.percentile(peer[1], 99)), "max_ms": float(1e3 * peer[1].max())})  # fmt: skip
     return rows
+
+
+#: Frames per processor and round in :func:`engine_rows` (the peer's rounds are scaled to its
+#: smaller total, so that all end together).
+ENGINE_ROUND_FRAMES = 100
 
 
 #: Session methods timed on a long recording (paper A, paper B, kinefuse fusion).
