@@ -217,7 +217,7 @@ def rts_smooth(
 
 
 def rts_smooth_segments(
-    model: LinearGaussianModel, result: FilterResult, available=None, cov: bool = True
+    model: LinearGaussianModel, result: FilterResult, available=None, *, cov: bool = True
 ) -> FilterResult:
     """Offline fixed-interval RTS per contiguous available segment (paper B default, SPEC §9).
 
