@@ -258,3 +258,19 @@ def test_row_norms_equal_numpy_norm_bit_for_bit(rng):
     Y[4, 1] = np.inf
     Y[5] = 0.0
     np.testing.assert_array_equal(_row_norms(Y), np.linalg.norm(Y, axis=-1, keepdims=True))
+
+
+@pytest.mark.parametrize("y_dims", [1, 3])
+def test_predict_finite_rows_fills_the_others(rng, y_dims):
+    """The fast path predicts the finite rows as ``predict`` does (the oracle) and fills the
+    others; all finite, it is ``predict`` itself."""
+    X = rng.normal(size=(200, 4))
+    y = X[:, :y_dims] ** 2 if y_dims > 1 else X[:, 0] ** 2
+    elm = ELMRegressor(20, random_state=0).fit(X, y)
+    Xq = rng.normal(size=(9, 4))
+    np.testing.assert_array_equal(elm._predict_finite_rows(Xq, np.nan), elm.predict(Xq))
+    Xq[[2, 5], 1] = np.nan
+    got = elm._predict_finite_rows(Xq, -7.0, 2.0)
+    ok = np.isfinite(Xq).all(axis=1)
+    np.testing.assert_array_equal(got[ok], elm.predict(Xq[ok], clip_factor=2.0))
+    assert np.all(got[~ok] == -7.0) and got.shape == ((9,) if y_dims == 1 else (9, 3))

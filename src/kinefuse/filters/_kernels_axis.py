@@ -590,4 +590,6 @@ def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
 def rts_dense6(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
     """:func:`rts_dense` for 6 states (3-D constant velocity: paper B's IMM output), the size a
     compile-time constant so that the compiler unrolls the 6x6 loops. The same arithmetic."""
+    if mean.shape[2] != 6:
+        raise ValueError("rts_dense6 takes 6 states")
     return _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, 6)

@@ -209,25 +209,16 @@ def ufir_run_cv(
     c_prev, c_cur, c_pre = _cov_tables(N if w_cov else -1)  # closed form, for o_covb only
     idt2 = 1.0 / (dt * dt)  # det CᵀC in (position, velocity) = det in (p, β) / dt²
     n_fail = 0
-    # the closed form depends on nothing but which samples are valid: an element with the
-    # previous one's pattern (read before the loop updates the rings) copies its blocks
-    shared = np.zeros(B, np.bool_)
-    if w_cov:
-        for b in range(1, B):
-            shared[b] = _same_pattern(z, zring, b)
+    shared = _shared_patterns(z, zring, w_cov)  # before the loop updates the rings
     for b in range(B):
-        zr = zring[b]
+        zr, ini = zring[b], init[b]
         p00, p01, p11 = _load_axes(x, P, b, xs)
-        ini = init[b]
-        share = shared[b]
-        tab = w_cov and not share  # keep the closed form's tables
-        # sums for the block of k0 from the ring (samples k0-N .. k0-1 are there); blocks start
-        # at multiples of N, so the ring slot of a time is its index in its block
+        tab = w_cov and not shared[b]  # keep the closed form's tables (else: copied)
+        # block j's sums from the ring (k0-N .. k0-1); a time's ring slot is its index in its block
         j = k0 // N
         i_k = k0 - j * N
         _start_block(zr, j, i_k, Qs, Ps_, tab, c_prev, c_cur, c_pre, dt, q00, q01, q11)
-        s_t = -1  # the horizon's K-th valid time (-1: not known), and its ring slot
-        s_sl = 0
+        s_t, s_sl = -1, 0  # the horizon's K-th valid time (-1: not known), and its ring slot
         for t in range(T):
             k = k0 + t
             if i_k == N:  # new block
@@ -257,14 +248,13 @@ def ufir_run_cv(
                         p00, p01, p11 = pfull[0], pfull[1], pfull[2]
                     elif n == K or t == T - 1:  # the state's: iterative, O(N) (Notes)
                         p00, p01, p11 = _iterative_cov(zr, k, N, K, Fa, Finva, Ha, Qa, Ra)
-                    elif share:  # the previous joint's block (the same pattern: see above)
+                    elif shared[b]:  # the previous element's block (the same pattern)
                         p00, p01, p11 = o_covb[b - 1, t, 0, 0], o_covb[b - 1, t, 0, 1], o_covb[b - 1, t, 0, 2]  # fmt: skip
                     elif w_cov:  # closed form, O(1) (the K-th valid time tracked as it slides)
                         if s_t < 0:  # not tracked yet: scan the horizon once
                             s_t, s_sl = _kth_valid(zr, k, N, K)
-                        i_s = s_t - j * N
                         p00, p01, p11 = cov_at(
-                            c_prev, c_cur, c_pre, N, im, i_s, i_k, dt, r, idet * idt2
+                            c_prev, c_cur, c_pre, N, im, s_t - j * N, i_k, dt, r, idet * idt2
                         )
                     else:
                         p00, p01, p11 = _NAN3  # not needed: not computed
@@ -289,6 +279,19 @@ def ufir_run_cv(
 
 
 _NAN3 = (np.nan, np.nan, np.nan)
+
+
+@njit_inline
+def _shared_patterns(z, zring, w_cov):
+    """Per element, whether it may copy the previous element's closed-form blocks: the closed
+    form depends on nothing but which samples are valid (:func:`_same_pattern`). All False
+    without the covariance output."""
+    B = z.shape[0]
+    shared = np.zeros(B, np.bool_)
+    if w_cov:
+        for b in range(1, B):
+            shared[b] = _same_pattern(z, zring, b)
+    return shared
 
 
 @njit_inline

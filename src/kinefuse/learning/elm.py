@@ -284,6 +284,19 @@ class ELMRegressor:
             Y = _scale_to_norm(Y, _row_norms(Y), clip_factor * self.train_rms_)
         return Y[:, 0] if self._y_1d else Y
 
+    def _predict_finite_rows(self, X: np.ndarray, fill: float, clip_factor=None) -> np.ndarray:
+        """:meth:`_predict_unchecked` on the rows of ``X`` that are finite, ``fill`` on the others
+        (the trusted fast path otherwise). When every row is finite (the common case, and every
+        online frame that has one) ``X`` is passed whole: the same rows and numbers, no copies."""
+        if np.isfinite(X).all():
+            return self._predict_unchecked(X, clip_factor)
+        ok = np.isfinite(X).all(axis=-1)
+        n_out = self.output_weights_.shape[1]
+        out = np.full((X.shape[0],) if self._y_1d else (X.shape[0], n_out), fill)
+        if ok.any():
+            out[ok] = self._predict_unchecked(X[ok], clip_factor)  # rows checked finite here
+        return out
+
     # ------------------------------------------------------------------ internals
     def _validate_params(self) -> None:
         n = self.n_hidden
@@ -468,7 +481,7 @@ def _row_norms(Y: np.ndarray) -> np.ndarray:
 def _scale_to_norm(v: np.ndarray, norm: np.ndarray, m) -> np.ndarray:
     """``v * min(1, m / norm)`` (``norm`` the vectors' norms, broadcast; NaN norms keep v)."""
     over = norm > m
-    if not over.any():  # v * 1.0 is v: nothing to scale (the common case)
+    if over.shape == norm.shape and not over.any():  # v * 1.0 is v: nothing to scale
         return v.copy()
     scale = np.divide(m, norm, out=np.ones(over.shape), where=over)  # (no 0/0: only where over)
     return v * scale

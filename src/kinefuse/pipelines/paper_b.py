@@ -476,27 +476,14 @@ class PaperBCore:
     def _bridge(self, b: Bridge, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Bridged output over the frames of ``x (L, n_in)``: ``(position (L, 3), cov)``;
         advances ``b.fir3``."""
-        zhat = _rows_or(b.elm1._predict_unchecked, x, np.nan)
+        zhat = b.elm1._predict_finite_rows(x, np.nan)
         b.fir3, m3, C3 = _run_filter(self.fir3, zhat[None], b.fir3, position_cov=True)
         p3 = m3[0, :, 0::2]
         c = C3[0] + b.cov_add
         if b.elm2 is None:
             return p3, c
         e2_in = p3 if b.elm2_on_fir3 else zhat
-        return p3 + _rows_or(b.elm2._predict_unchecked, e2_in, 0.0, self.params.clip_factor), c
-
-
-def _rows_or(predict, X: np.ndarray, fill: float, *args) -> np.ndarray:
-    """``predict(X[ok], *args)`` on the rows of ``X (L, n)`` that are finite, ``fill`` on the
-    others, ``(L, 3)``. When every row is (the common case, and every online frame that has
-    one), ``X`` is passed whole: the same rows, the same numbers, without the copies."""
-    if np.isfinite(X).all():
-        return predict(X, *args)
-    ok = np.isfinite(X).all(axis=-1)
-    out = np.full((X.shape[0], 3), fill)
-    if ok.any():
-        out[ok] = predict(X[ok], *args)  # rows checked finite here
-    return out
+        return p3 + b.elm2._predict_finite_rows(e2_in, 0.0, self.params.clip_factor), c
 
 
 class PaperBStep(NamedTuple):
@@ -528,12 +515,9 @@ def _lagged(prev: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 # source codes as int8 scalars: np.where of these is the int8 source array directly
-_FUSED_I8, _BRIDGED_I8, _IMU_I8 = (
-    np.int8(SOURCE_FUSED),
-    np.int8(SOURCE_BRIDGED),
-    np.int8(SOURCE_IMU),
+_FUSED_I8, _BRIDGED_I8, _IMU_I8, _NONE_I8 = map(
+    np.int8, (SOURCE_FUSED, SOURCE_BRIDGED, SOURCE_IMU, SOURCE_NONE)
 )
-_NONE_I8 = np.int8(SOURCE_NONE)
 _EYE3 = np.eye(3)
 _EYE3.setflags(write=False)
 
