@@ -139,10 +139,11 @@ def pytest_collection_modifyitems(config, items):
 # the KF and the IMM; once both the general UFIR and that process are done, a third compiles
 # the EM-KF and the integrated filter, which use the UFIR's and the KF's kernels (loaded, not
 # compiled again). Cold, on 2 cores: about 44 s + 10 s | 25 s + 19 s, then 44 s.
-# The first process then also compiles the IMM's loop for sizes other than paper B's
-# ("imm-any": about 25 s, used only by tests and non-standard IMMs, so not a step of
-# `kinefuse warm-up`); otherwise two workers running IMM tests would both compile it.
-_WARM_UP_UFIR = (1, 2, "imm-any")  # WARM_UP_STEPS indices: UFIR general, constant-velocity
+# The first process then also compiles the dense RTS for 6 states (about 20 s; off the path
+# the EM-KF waits on) and the IMM's loop for sizes other than paper B's ("imm-any": about 25 s,
+# used only by tests and non-standard IMMs, so not a step of `kinefuse warm-up`); otherwise two
+# workers running those tests would both compile them.
+_WARM_UP_UFIR = (1, 2, 5, "imm-any")  # WARM_UP_STEPS: UFIR general, constant-velocity, RTS dense
 _WARM_UP_OTHER = (0, 4)  # KF/RTS, IMM
 _WARM_UP_LAST = (3,)  # EM-KF and the integrated filter: after the general UFIR and the KF
 _WARM_UP_CODE = (

@@ -19,6 +19,7 @@ import numpy as np
 from kinefuse.filters import (
     IMM,
     EMKalmanFilter,
+    FilterResult,
     IntegratedFilter,
     KalmanFilter,
     UFIRFilter,
@@ -78,9 +79,21 @@ def _em():
 def _imm():
     imm = IMM(_model(), constant_velocity(1 / 30, q=0.5, r=4e-4))
     z = _z()
-    st, res = imm.filter(np.stack([z, z + 0.01], axis=-2))  # (B, T, sources, 3)
+    st, _ = imm.filter(np.stack([z, z + 0.01], axis=-2))  # (B, T, sources, 3)
     imm.step(st, np.zeros((2, 2, 3)))
-    rts_smooth_segments(_model(), res)  # full covariances: the dense RTS (paper B's offline form)
+
+
+def _rts_dense():
+    """The RTS on full covariances (paper B smooths the IMM output, whose covariances couple
+    the axes): filtered means and covariances with cross-axis terms, 6 states."""
+    z = _z()
+    rng = np.random.default_rng(1)
+    A = rng.normal(0.0, 0.1, (6, 6))
+    cov = np.broadcast_to(A @ A.T + 1e-3 * np.eye(6), (*z.shape[:2], 6, 6)).copy()
+    mean = np.zeros((*z.shape[:2], 6))
+    mean[..., 0::2] = np.nan_to_num(z)
+    res = FilterResult(mean, cov, mean[..., 0::2], np.ones(z.shape[:2], bool))
+    rts_smooth_segments(_model(), res)
     rts_smooth_segments(_model(), res, cov=False)
 
 
@@ -90,7 +103,8 @@ WARM_UP_STEPS: tuple[tuple[str, Callable[[], None]], ...] = (
     ("UFIR filter (general form)", _ufir_general),
     ("UFIR filter (constant-velocity form)", _ufir_cv),
     ("EM-KF and the integrated EM-KF/FIR filter", _em),
-    ("IMM and its RTS (paper B)", _imm),
+    ("IMM (paper B)", _imm),
+    ("RTS smoother on full covariances (paper B, offline)", _rts_dense),
 )
 
 
