@@ -332,17 +332,17 @@ class IMM:
     @property
     def n_models(self) -> int:
         """Number of models M."""
-        return len(self.models)
+        return self._sizes[0]
 
     @property
     def n_x(self) -> int:
         """State dimension."""
-        return self.models[0].n_x
+        return self._sizes[1]
 
     @property
     def n_z(self) -> int:
         """Measurement dimension (per model)."""
-        return self.models[0].n_z
+        return self._sizes[2]
 
     @property
     def step_measurement_shape(self) -> tuple[int, int]:

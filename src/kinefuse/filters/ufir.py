@@ -136,16 +136,12 @@ def ufir_model_arrays(model: LinearGaussianModel, horizon: int) -> dict:
         cv = shared and f[0] == 1.0 and f[2] == 0.0 and f[3] == 1.0 and f[7] == 1.0 and f[8] == 0.0
         if cv:
             Pf = a["P_full"]
-            a["cv"] = {
-                "dt": float(f[1]),
-                "q": (float(f[4]), float(f[5]), float(f[6])),
-                "r": float(f[9]),
-                "p0": np.ascontiguousarray(p0[0]),
-                "pfull": np.array([Pf[0, 0], 0.5 * (Pf[0, 1] + Pf[1, 0]), Pf[1, 1]]),
-            }
-            c = a["cv"]  # ufir_run_cv's model arguments, in order (one tuple per filter)
-            c["args"] = (horizon, K, c["dt"], *c["q"], c["r"], c["p0"], c["pfull"], a["Fa"],
-                         a["Finva"], a["Ha"], a["Qa"], a["Ra"])  # fmt: skip
+            pfull = np.array([Pf[0, 0], 0.5 * (Pf[0, 1] + Pf[1, 0]), Pf[1, 1]])
+            # ufir_run_cv's model arguments, in its order: N, K, dt, q00, q01, q11, r, p0, pfull,
+            # and the per-axis blocks of its iterative form
+            a["cv"] = (horizon, K, float(f[1]), float(f[4]), float(f[5]), float(f[6]),
+                       float(f[9]), np.ascontiguousarray(p0[0]), pfull, a["Fa"], a["Finva"],
+                       a["Ha"], a["Qa"], a["Ra"])  # fmt: skip
     else:
         a["Fa"] = np.zeros((0, 2, 2))
         a["Finva"] = np.zeros((0, 2, 2))
@@ -465,7 +461,7 @@ class UFIRFilter(SingleModelFilter):
         o_nu = np.empty((B, T, n_z))
         o_ready = np.empty((B, T), bool)
         n_fail = ufir_run_cv(
-            z, x, P, init, zring, k, *self._arrays["cv"]["args"], o_mean, o_covb, o_obs, o_nu,
+            z, x, P, init, zring, k, *self._arrays["cv"], o_mean, o_covb, o_obs, o_nu,
             o_ready,
         )  # fmt: skip
         if n_fail:
