@@ -20,6 +20,7 @@ from typer.testing import CliRunner
 
 from kinefuse import batch as kb
 from kinefuse import cli
+from kinefuse.batch.tasks import task_dir
 from kinefuse.exceptions import ConfigError
 
 runner = CliRunner()
@@ -148,6 +149,9 @@ def first_run(sessions, client, tmp_path_factory):
             pid = client.run(os.getpid, workers=busy[:1])[busy[0]]
             os.kill(pid, signal.SIGKILL)
             killed.append(pid)
+            # what a worker killed mid-write leaves (whether this one got that far is timing)
+            final = task_dir(out, study.tasks[0])
+            final.with_name(f".tmp-{final.name}-0dead000").mkdir(parents=True)
 
     summary = kb.run_study(study, client=client, quiet=True, on_event=on_event)
     return study, summary, killed

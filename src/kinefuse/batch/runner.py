@@ -375,6 +375,7 @@ def run_study(
             dashboard=dashboard, quiet=quiet, client=client, on_event=on_event,
         )  # fmt: skip
         results.update(fresh)
+        clean_temporaries(out_dir)  # a killed worker's half-written folder; its task was rerun
     ordered = [results[t.key] for t in study.tasks]
     summary = _summary(study, ordered, cluster_desc, link, tasks_wall)
     if report:
