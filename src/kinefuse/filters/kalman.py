@@ -53,6 +53,7 @@ class _AxisState(GaussianState):
 _METHODS = ("auto", "axis", "dense")
 _F64 = np.dtype(np.float64)
 _new_tuple = tuple.__new__  # _AxisState(...) without the NamedTuple __new__ (hot path)
+_fast_result = FilterResult.fast.__func__  # FilterResult.fast without the classmethod binding
 
 _step_entry = []  # kf_step_blocks' compiled entry point, once it is compiled (see _step_kernel)
 
@@ -307,53 +308,45 @@ class KalmanFilter:
         plan = self._step_plans.get(x.shape)
         if plan is None:
             plan = self._step_plan(x.shape)
-        zshape, flat, bshape, n_a = plan
+        zshape, bshape, sx, sP, sb, sc, sz = plan
         if not (
             type(z) is np.ndarray and z.shape == zshape and z.dtype is _F64 and z.flags.c_contiguous
         ):
             return None
-        par, p0, shared = self._packed
-        B, n_x = flat
-        n_z = zshape[-1]
         empty = np.empty
-        x_new = empty(flat)
-        P_new = empty((B, n_x, n_x))
-        init_new = empty(B, np.bool_)
-        mean = empty(flat)
-        covb = empty((B, n_a, 3))
-        pos = empty((B, n_z))
-        obs = empty(B, np.bool_)
-        nu = empty((B, n_z))
-        dist = empty(B)
+        x_new, P_new, init_new = empty(sx), empty(sP), empty(sb, np.bool_)
+        mean, covb, pos = empty(sx), empty(sc), empty(sz)
+        obs, nu, dist = empty(sb, np.bool_), empty(sz), empty(sb)
         if bshape is None:
             args = (z, x, state.P, state.initialized)
         else:
-            args = (z.reshape(B, n_z), x.reshape(flat), state.P.reshape(B, n_x, n_x),
-                    state.initialized.reshape(B))  # fmt: skip
-        args += (par, p0, shared, x_new, P_new, init_new, mean, covb, pos, obs, nu, dist)
-        if _step_kernel(args)(*args):
+            args = (z.reshape(sz), x.reshape(sx), state.P.reshape(sP),
+                    state.initialized.reshape(sb))  # fmt: skip
+        args += self._packed + (x_new, P_new, init_new, mean, covb, pos, obs, nu, dist)
+        if (_step_entry[0] if _step_entry else _step_kernel(args))(*args):
             raise InputError("expected z finite or NaN (missing), got ±inf")
         if bshape is not None:
+            n_x, n_z = sx[1], sz[1]
             x_new, P_new, init_new = (
                 x_new.reshape(*bshape, n_x), P_new.reshape(*bshape, n_x, n_x), init_new.reshape(bshape)
             )  # fmt: skip
             mean, covb, pos = (
                 mean.reshape(*bshape, n_x),
-                covb.reshape(*bshape, n_a, 3),
+                covb.reshape(*bshape, *sc[1:]),
                 pos.reshape(*bshape, n_z),
             )
             obs, nu, dist = obs.reshape(bshape), nu.reshape(*bshape, n_z), dist.reshape(bshape)
-        out = FilterResult.fast(mean, pos, obs, nu, dist, covb)
+        out = _fast_result(FilterResult, mean, pos, obs, nu, dist, covb)
         return _new_tuple(_AxisState, (x_new, P_new, init_new, state.k + 1)), out
 
     def _step_plan(self, x_shape: tuple) -> tuple:
         """What :meth:`_step_axis` needs for states of shape ``x_shape`` (cached per shape):
-        the measurement shape, the flat ``(B, n_x)``, the batch shape to restore (None when
-        already flat) and the axis count."""
+        the measurement shape, the batch shape to restore (None when already flat) and the
+        flat shapes ``(B, n_x)``, ``(B, n_x, n_x)``, ``(B,)``, ``(B, n_a, 3)``, ``(B, n_z)``."""
         bshape, n_x = x_shape[:-1], x_shape[-1]
-        B = math.prod(bshape)
-        plan = ((*bshape, self.model.n_z), (B, n_x), None if len(bshape) == 1 else bshape,
-                self._packed[0].shape[0])  # fmt: skip
+        B, n_z = math.prod(bshape), self.model.n_z
+        plan = ((*bshape, n_z), None if len(bshape) == 1 else bshape, (B, n_x), (B, n_x, n_x),
+                (B,), (B, self._packed[0].shape[0], 3), (B, n_z))  # fmt: skip
         self._step_plans[x_shape] = plan
         return plan
 
