@@ -539,8 +539,8 @@ def _run_filter(flt, z: np.ndarray, state, position_cov: bool = False):
     J, L, n_z = z.shape
     if type(state) is UFIRState and flt._cv_route and state.x.ndim == 2:
         z = np.ascontiguousarray(z)
-        mean, covb = flt._run_cv_inplace(
-            z, state.x, state.P, state.initialized, state.z_buf, state.k
+        mean, covb = flt._run_cv_inplace(  # one frame's full covariance is the state's own
+            z, state.x, state.P, state.initialized, state.z_buf, state.k, position_cov or L > 1
         )[:2]
         if position_cov:  # p00 on the diagonal (the position rows of every axis block)
             cov = covb[:, :, 0, 0, None, None] * (_EYE3 if n_z == 3 else np.eye(n_z))
