@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -181,8 +181,7 @@ class SegmentBuffer:
             del self.q[:i]
 
 
-@dataclass(frozen=True, eq=False)
-class FrameInputs:
+class FrameInputs(NamedTuple):
     """The processor's inputs of one frame and its per-joint diagnostics.
 
     ``z_imu, z_cam (J, 3)`` m (NaN = no measurement), ``available (J,)``, ``segment_status
@@ -208,7 +207,9 @@ class FrameAssembler:
         self._joint_flags = joint_flags
         if config.camera:
             cj = config.camera_joints
-            self._cam_out = np.array([cj.index(j) if j in cj else -1 for j in config.joints])
+            cam_out = np.array([cj.index(j) if j in cj else -1 for j in config.joints])
+            self._cam_seen = cam_out >= 0  # engine joints the camera tracks ...
+            self._cam_idx = cam_out[self._cam_seen]  # ... and their camera indices
             self._cam_root = cj.index(config.skeleton.root) if config.skeleton.root in cj else -1
 
     def assemble(self, t, cam_pos, cam_avail, buffers, root, forced: bool) -> FrameInputs:
@@ -231,8 +232,7 @@ class FrameAssembler:
         z_cam = np.full((J, 3), np.nan)
         avail = np.zeros(J, bool)
         if cam_pos is not None:
-            m = self._cam_out >= 0
-            idx = self._cam_out[m]
+            m, idx = self._cam_seen, self._cam_idx
             z_cam[m] = cam_pos[idx]
             avail[m] = cam_avail[idx]
             z_cam[~avail] = np.nan
