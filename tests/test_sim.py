@@ -214,6 +214,53 @@ def test_magnetic_disturbance_only_inside_episodes():
     assert dev.max() <= 30.0 * len(truth["mag_episodes"]) and dev.max() > 7.5
 
 
+def test_mount_magnet_is_a_sensor_frame_field_over_its_span():
+    """A magnet on the sensor's mount: the noise-free reading gains a constant sensor-frame vector
+    (the given direction, normalised) from the fraction ``from`` to ``to`` of the recorded span
+    (warm-up excluded), 1 s ramps, nothing elsewhere; the world field is untouched."""
+    from kinefuse.sim import simulate_imu_from_pose
+
+    t, q, p = _pose_trajectory(seconds=60.0, rate_hz=50.0)
+    base = dict(rate_hz=50.0, orientation="vqf", warmup_s=2.0, mag_inhomogeneity_ut=1.0)
+    plain = ImuConfig.ideal(**base)
+    magnet = ImuConfig.ideal(
+        **base,
+        mag_mount_magnet_ut=40.0,
+        mag_mount_magnet_from=0.25,
+        mag_mount_magnet_to=0.75,
+        mag_mount_magnet_dir=(0.0, 3.0, 4.0),
+    )
+    st0, tr0 = simulate_imu_from_pose(t, q, p, plain, np.random.default_rng(5))
+    st1, tr1 = simulate_imu_from_pose(t, q, p, magnet, np.random.default_rng(5))
+    np.testing.assert_array_equal(tr1["mag_world_ut"], tr0["mag_world_ut"])
+    diff = tr1["mag_ut"] - tr0["mag_ut"]
+    ts = st1.t_s
+    a = ts[0] + 0.25 * (ts[-1] - ts[0])
+    b = ts[0] + 0.75 * (ts[-1] - ts[0])
+    full = (ts >= a + 1.0) & (ts <= b - 1.0)
+    off = (ts <= a) | (ts >= b)
+    np.testing.assert_allclose(diff[full], np.broadcast_to([0.0, 24.0, 32.0], diff[full].shape),
+                               rtol=0, atol=1e-9)  # fmt: skip
+    assert np.all(np.abs(diff[off]) < 1e-9)
+    assert np.all(np.linalg.norm(diff, axis=1) <= 40.0 + 1e-9)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"mag_mount_magnet_from": 0.8, "mag_mount_magnet_to": 0.2},
+        {"mag_mount_magnet_to": 1.5},
+        {"mag_mount_magnet_dir": (0.0, 0.0, 0.0)},
+        {"mag_mount_magnet_dir": (1.0, 2.0)},
+    ],
+)
+def test_mount_magnet_bad_settings(kwargs):
+    from kinefuse.exceptions import InputError
+
+    with pytest.raises(InputError, match="ImuConfig.mag_mount_magnet"):
+        ImuConfig(**kwargs)
+
+
 def test_camera_tracking_error_std():
     motion = _static_motion(minutes=4.0)
     cfg = CameraConfig.ideal(tracking_error_std_m=0.03)

@@ -56,7 +56,11 @@ each lasting ``mag_disturbance_duration_s`` · U(0.5, 1.5) with 1 s raised-cosin
 constant world-frame vector of random direction and magnitude ``mag_disturbance_ut`` · U(0.25, 1)
 (the BROAD magnet trials reach 20-87 µT at most, 8-60 µT at the 95th percentile). Defaults 1
 episode per minute, up to 20 µT, 5 s mean: size and duration chosen on the BROAD magnet tuning
-trials 28 and 32 (where the protocol repeats them about 3 times a minute).
+trials 28 and 32 (an earlier model of both; see :mod:`kinefuse.apps.realism`). A magnet fixed to
+the sensor's mount (``mag_mount_magnet_ut``, default none) adds a constant *sensor*-frame field
+of random direction over a span of the recording, with the same ramps: BROAD's attached-magnet
+trials (trial 32, 1 cm: 57.7 µT, sd 1.6 µT per axis, constant in the sensor frame from 23 % to
+58 % of the trial).
 
 Orientation (what the virtual IMU outputs)
 ------------------------------------------
@@ -97,6 +101,7 @@ from kinefuse.sim.noise import (
     gauss_markov,
     norm_bounded_matrix,
     sensor_errors,
+    window_weight,
 )
 from kinefuse.sim.soft_tissue import STA_AMPLITUDE, joint_drive, neighbours, sta_kind
 
@@ -253,7 +258,8 @@ def simulate_imu_from_pose(
         ``soft_tissue_scale`` and ``motion_lowpass_hz`` are not applied here).
     rng : numpy.random.Generator
         Draw order: gyroscope errors, accelerometer errors, field inhomogeneity, disturbance
-        episodes, magnetometer errors, idealised-AHRS errors.
+        episodes, mount magnet direction (only with a mount magnet), magnetometer errors,
+        idealised-AHRS errors.
     t_s : ndarray, shape (n,), optional
         Output times, s, spaced ``1 / config.rate_hz``; default :func:`time_grid` of ``t_src``.
     name : str
@@ -303,7 +309,7 @@ def _readings(rng, t, rot_ws, gyr_true, acc_true, config: ImuConfig, dt: float, 
         gyr = gyr - offset
         gyr_err["bias"] = gyr_err["bias"] - offset
         gyr_err["startup_offset"] = offset
-    mag, mag_err, mag_true, m_world, episodes = _magnetometer(rng, t, rot_ws, config, dt)
+    mag, mag_err, mag_true, m_world, episodes = _magnetometer(rng, t, rot_ws, config, dt, n_warm)
     q_true = _continuous_quat(rot_ws.as_quat(scalar_first=True))
     q_out, frame, psi = _output_orientation(rng, t, rot_ws, acc, gyr, mag, config)
     out = {"q_world_from_sensor": q_out, "acc_m_s2": acc, "gyr_rad_s": gyr, "mag": mag}
@@ -388,8 +394,10 @@ def _inertial_readings(rng, gyr_true, acc_true, config: ImuConfig, dt: float):
     return gyr, gyr_err, acc, acc_err
 
 
-def _magnetometer(rng, t, rot_ws: Rotation, config: ImuConfig, dt: float):
-    """Earth field + slow indoor inhomogeneity + disturbance episodes, read by the sensor.
+def _magnetometer(rng, t, rot_ws: Rotation, config: ImuConfig, dt: float, n_warm: int = 0):
+    """Earth field + slow indoor inhomogeneity + disturbance episodes, read by the sensor,
+    + a magnet on the mount (sensor frame; its span counts from the first recorded sample,
+    after ``n_warm`` warm-up samples).
 
     Returns the reading, its error parameters, the noise-free reading, the world field and the
     episodes.
@@ -401,6 +409,15 @@ def _magnetometer(rng, t, rot_ws: Rotation, config: ImuConfig, dt: float):
     m_dist, episodes = disturbance_episodes(rng, t, config)
     m_world = config.mag_earth_ut + m_inh + m_dist
     mag_true = rot_ws.inv().apply(m_world)
+    if config.mag_mount_magnet_ut > 0.0:  # drawn only then: other configurations unchanged
+        u = rng.standard_normal(3)
+        if config.mag_mount_magnet_dir is not None:  # (drawn anyway: one draw order)
+            u = np.asarray(config.mag_mount_magnet_dir, dtype=float)
+        t_a, span = t[n_warm], t[-1] - t[n_warm]
+        w = window_weight(
+            t, t_a + config.mag_mount_magnet_from * span, t_a + config.mag_mount_magnet_to * span
+        )
+        mag_true = mag_true + w[:, None] * (config.mag_mount_magnet_ut * u / np.linalg.norm(u))
     mag, mag_err = sensor_errors(
         rng,
         mag_true,

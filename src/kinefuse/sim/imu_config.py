@@ -90,6 +90,13 @@ class ImuConfig:
         Std (µT, per world axis) and correlation time (s) of the slow indoor field changes.
     mag_disturbance_per_min, mag_disturbance_ut, mag_disturbance_duration_s : float
         Disturbance episodes: rate (per minute), largest magnitude (µT), mean duration (s).
+    mag_mount_magnet_ut, mag_mount_magnet_from, mag_mount_magnet_to : float
+        A magnet fixed to the sensor's mount for part of the recording (default none): a
+        constant field in the *sensor* frame (it moves with the sensor: a hard-iron offset
+        the user's calibration did not see) of this magnitude, µT, random direction, present
+        from the fraction ``from`` to the fraction ``to`` of the recording (1 s ramps).
+    mag_mount_magnet_dir : tuple of 3 float or None
+        That field's direction in the sensor frame (normalised here); None: random.
     orientation : {"vqf", "vqf-6d", "idealised-ahrs"}
         Where ``q_world_from_sensor`` comes from (:mod:`kinefuse.sim.imu`).
     warmup_s : float
@@ -131,6 +138,10 @@ class ImuConfig:
     mag_disturbance_per_min: float = 1.0
     mag_disturbance_ut: float = 20.0
     mag_disturbance_duration_s: float = 5.0
+    mag_mount_magnet_ut: float = 0.0
+    mag_mount_magnet_from: float = 0.0
+    mag_mount_magnet_to: float = 1.0
+    mag_mount_magnet_dir: tuple | None = None
     orientation: str = "vqf"
     warmup_s: float = 10.0
     gyr_startup_calibration: bool = True
@@ -149,6 +160,12 @@ class ImuConfig:
                     )
                 continue
             if f.name == "motion_lowpass_hz" and v is None:
+                continue
+            if f.name == "mag_mount_magnet_dir":
+                if v is not None and not _is_direction(v):
+                    raise InputError(
+                        f"ImuConfig.{f.name}: expected None or 3 finite numbers, not all 0, got {v!r}"
+                    )
                 continue
             if f.name == "gyr_startup_calibration":
                 if not isinstance(v, bool):
@@ -172,6 +189,11 @@ class ImuConfig:
             raise InputError(
                 f"ImuConfig.position_along_segment: expected in [0, 1], got {self.position_along_segment!r}"
             )
+        if not self.mag_mount_magnet_from <= self.mag_mount_magnet_to <= 1.0:
+            raise InputError(
+                "ImuConfig.mag_mount_magnet_from/_to: expected 0 <= from <= to <= 1, got "
+                f"{self.mag_mount_magnet_from!r}, {self.mag_mount_magnet_to!r}"
+            )
         if self.mag_inclination_deg > 90.0:
             raise InputError(
                 f"ImuConfig.mag_inclination_deg: expected in [0, 90], got {self.mag_inclination_deg!r}"
@@ -193,6 +215,7 @@ class ImuConfig:
             "mag_field_ut",
             "mag_inclination_deg",
             "mag_inhomogeneity_time_s",
+            "mag_mount_magnet_dir",
             "orientation",
         )
         kwargs = {f.name: 0.0 for f in fields(cls) if f.name not in keep}
@@ -206,3 +229,12 @@ class ImuConfig:
         """Undisturbed field in ENU, µT, shape (3,): ``F · [0, cos I, −sin I]``."""
         inc = self.mag_inclination_deg * _DEG
         return self.mag_field_ut * np.array([0.0, math.cos(inc), -math.sin(inc)])
+
+
+def _is_direction(v) -> bool:
+    """Whether ``v`` is 3 finite real numbers, not all zero."""
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return a.shape == (3,) and bool(np.isfinite(a).all()) and bool(np.any(a != 0.0))

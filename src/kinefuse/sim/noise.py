@@ -13,7 +13,13 @@ import numpy as np
 
 from kinefuse.sim.imu_config import ImuConfig
 
-__all__ = ["disturbance_episodes", "gauss_markov", "norm_bounded_matrix", "sensor_errors"]
+__all__ = [
+    "disturbance_episodes",
+    "gauss_markov",
+    "norm_bounded_matrix",
+    "sensor_errors",
+    "window_weight",
+]
 
 
 def gauss_markov(
@@ -69,8 +75,13 @@ def disturbance_episodes(
     ramp = 1.0
     for t0, d, u, m in zip(starts, durations, dirs, mags, strict=True):
         t1 = t0 + d
-        w = np.clip(np.minimum(t - t0, t1 - t) / ramp, 0.0, 1.0)
-        w = 0.5 - 0.5 * np.cos(np.pi * w)
-        field += w[:, None] * (m * u / np.linalg.norm(u))
+        field += window_weight(t, t0, t1, ramp)[:, None] * (m * u / np.linalg.norm(u))
         episodes.append((float(t0), float(t1)))
     return field, episodes
+
+
+def window_weight(t: np.ndarray, t0: float, t1: float, ramp: float = 1.0) -> np.ndarray:
+    """Weight (n,) that is 1 inside ``[t0, t1]`` and 0 outside, with raised-cosine ramps of
+    ``ramp`` seconds inside both ends (a disturbance that appears and goes by hand)."""
+    w = np.clip(np.minimum(t - t0, t1 - t) / ramp, 0.0, 1.0)
+    return 0.5 - 0.5 * np.cos(np.pi * w)
