@@ -9,7 +9,8 @@ Writes are atomic per task: everything goes to a hidden temporary sibling folder
 to ``recordings/<recording>/<method>/`` when complete. A task whose worker dies leaves at most a
 temporary folder (removed once the study's tasks have finished, or by the next run), never a
 half-written result; a task that runs twice (re-scheduled after a worker died just after
-finishing) keeps the first complete result and discards the second. ``result.json`` in the final folder is the "finished" marker.
+finishing) keeps the first complete result and discards the second. ``result.json`` in the
+final folder is the "finished" marker.
 """
 
 from __future__ import annotations

@@ -164,7 +164,8 @@ class ImuConfig:
             if f.name == "mag_mount_magnet_dir":
                 if v is not None and not _is_direction(v):
                     raise InputError(
-                        f"ImuConfig.{f.name}: expected None or 3 finite numbers, not all 0, got {v!r}"
+                        f"ImuConfig.{f.name}: expected None or 3 finite numbers, not all 0, "
+                        f"got {v!r}"
                     )
                 continue
             if f.name == "gyr_startup_calibration":
