@@ -58,9 +58,9 @@ constant world-frame vector of random direction and magnitude ``mag_disturbance_
 episode per minute, up to 20 µT, 5 s mean: size and duration chosen on the BROAD magnet tuning
 trials 28 and 32 (an earlier model of both; see :mod:`kinefuse.apps.realism`). A magnet fixed to
 the sensor's mount (``mag_mount_magnet_ut``, default none) adds a constant *sensor*-frame field
-(random or given direction) over a span of the recording, with the same ramps: BROAD's attached-magnet
-trials (trial 32, 1 cm: 57.7 µT, sd 1.6 µT per axis, constant in the sensor frame from 23 % to
-58 % of the trial).
+(random or given direction) over a span of the recording, with the same ramps: BROAD's
+attached-magnet trials (trial 32, 1 cm: 57.7 µT, sd 1.6 µT per axis, constant in the sensor
+frame from 23 % to 58 % of the trial).
 
 Orientation (what the virtual IMU outputs)
 ------------------------------------------
