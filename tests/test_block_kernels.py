@@ -61,22 +61,33 @@ def test_kf_outputs_subset_and_blocks_layout():
         kf.filter(z, outputs=("speed",))
 
 
-def test_kf_step_fast_path_equals_filter_and_split():
-    model = random_cv(np.random.default_rng(4))
-    z = _data(5, model, B=8, T=60)
+@pytest.mark.parametrize(
+    ("isotropic", "batch"), [(False, (8,)), (True, (8,)), (True, (2, 4)), (False, ())]
+)
+def test_kf_step_fast_path_equals_filter_and_split(isotropic, batch):
+    """Both kernels of the step (one shared recursion for isotropic models, per axis
+    otherwise) and the flat / reshaped batch layouts give the batch filter's numbers."""
+    rng = np.random.default_rng(4)
+    model = constant_velocity(1 / 30, q=0.7, r=0.004) if isotropic else random_cv(rng)
+    z = _data(5, model, B=8, T=60).reshape(*batch, 60, 3) if batch else _data(5, model, 1, 60)[0]
     kf = KalmanFilter(model)
     s_all, r_all = kf.filter(z)
-    st = kf.init((8,))
-    means, covs, dists = [], [], []
-    for t in range(z.shape[1]):
-        st, out = kf.step(st, np.ascontiguousarray(z[:, t]))
+    st = kf.init(batch)
+    means, covs, dists, pos = [], [], [], []
+    for t in range(z.shape[-2]):
+        st, out = kf.step(st, np.ascontiguousarray(z[..., t, :]))
         means.append(out.mean)
         covs.append(out.cov)
         dists.append(out.distance)
-    np.testing.assert_array_equal(np.stack(means, 1), r_all.mean)
-    np.testing.assert_array_equal(np.stack(covs, 1), r_all.cov)
-    np.testing.assert_array_equal(np.stack(dists, 1), r_all.distance)
+        pos.append(out.position)
+    ax = len(batch)
+    np.testing.assert_array_equal(np.stack(means, ax), r_all.mean)
+    np.testing.assert_array_equal(np.stack(covs, ax), r_all.cov)
+    np.testing.assert_array_equal(np.stack(dists, ax), r_all.distance)
+    np.testing.assert_array_equal(np.stack(pos, ax), r_all.position)
     np.testing.assert_array_equal(st.P, s_all.P)
+    if batch != (8,):
+        return
     s1, r1 = kf.filter(z[:, :25])
     s2, r2 = kf.filter(z[:, 25:], state=s1)
     np.testing.assert_array_equal(np.concatenate([r1.mean, r2.mean], 1), r_all.mean)

@@ -555,7 +555,7 @@ def _rts_pass3(mean, covb, mask, par, sm_mean, sm_covb, sm_pos):
 
 @njit
 def kf_step_blocks(
-    z, x, P, init, par, p0, shared, x_new, P_new, init_new, mean, covb, pos, obs, nu, dist
+    par, p0, shared, z, x, P, init, x_new, P_new, init_new, mean, covb, pos, obs, nu, dist
 ):  # fmt: skip
     """One time slice of :func:`kf_filter_blocks`: ``z (B, n_z)``, outputs without the T axis
     (``covb (B, n_a, 3)``); the state ``x, P, init`` is copied into ``x_new, P_new, init_new``
@@ -565,7 +565,6 @@ def kf_step_blocks(
     serves all axes (the same arithmetic as per axis, bit for bit) and is copied to each axis.
     """
     B, n_z = z.shape
-    n_x = x.shape[1]
     n_a = par.shape[0]
     x_new[:, :] = x
     P_new[:, :, :] = P
@@ -578,26 +577,43 @@ def kf_step_blocks(
                     if (P[b, i, i] != P[b, 0, 0] or P[b, i + 1, i + 1] != P[b, 1, 1]
                             or P[b, i, i + 1] + P[b, i + 1, i] != P[b, 0, 1] + P[b, 1, 0]):  # fmt: skip
                         shared = False
-    z3 = z.reshape(B, 1, n_z)
+    if shared and n_a == 3:  # 3-D positions, one recursion: the register-resident pass
+        # T = 1 views: ``[:, None]`` costs nothing per call (``reshape`` ~0.05 µs each)
+        err = _kf_pass3(
+            z[:, None, :], x, P, init, x_new, P_new, init_new,
+            par[0, 0], par[0, 1], par[0, 2], par[0, 3], par[0, 4], par[0, 5], par[0, 6],
+            par[0, 7], par[0, 8], par[0, 9], p0[0, 0], p0[0, 1], p0[0, 2],
+            mean[:, None, :], covb[:, None, :, :], pos[:, None, :], obs[:, None], nu[:, None, :],
+            dist[:, None],
+        )  # fmt: skip
+        _copy_axis0_block(covb)
+        return err
+    n_x = x.shape[1]
+    z3 = z.reshape(B, 1, n_z)  # (C-contiguous views: the kernels' batch specialisations)
     mean3 = mean.reshape(B, 1, n_x)
     pos3 = pos.reshape(B, 1, n_z)
     obs2 = obs.reshape(B, 1)
     nu3 = nu.reshape(B, 1, n_z)
     dist2 = dist.reshape(B, 1)
+    cb = covb.reshape(B, 1, n_a, 3)
     if not shared:
         return kf_filter_blocks(
-            z3, x_new, P_new, init_new, par, p0, mean3, covb.reshape(B, 1, n_a, 3), pos3, obs2,
-            nu3, dist2,
-        )  # fmt: skip
-    cb = np.empty((B, 1, 1, 3))
+            z3, x_new, P_new, init_new, par, p0, mean3, cb, pos3, obs2, nu3, dist2
+        )
     err = _kf_pass(
         z3, x, P, init, x_new, P_new, init_new, 0, n_a, 0,
         par[0, 0], par[0, 1], par[0, 2], par[0, 3], par[0, 4], par[0, 5], par[0, 6],
         par[0, 7], par[0, 8], par[0, 9], p0[0, 0], p0[0, 1], p0[0, 2],
         mean3, cb, pos3, obs2, nu3, dist2,
     )  # fmt: skip
-    for b in range(B):
-        for a in range(n_a):
-            for k in range(3):
-                covb[b, a, k] = cb[b, 0, 0, k]
+    _copy_axis0_block(covb)
     return err
+
+
+@njit_inline
+def _copy_axis0_block(covb):
+    """``covb (B, n_a, 3)``: the shared recursion wrote axis 0; copy it to the other axes."""
+    for b in range(covb.shape[0]):
+        for a in range(1, covb.shape[1]):
+            for k in range(3):
+                covb[b, a, k] = covb[b, 0, k]

@@ -52,6 +52,8 @@ class _AxisState(GaussianState):
 
 _METHODS = ("auto", "axis", "dense")
 _F64 = np.dtype(np.float64)
+_empty = np.empty
+_BOOL = np.dtype(np.bool_)
 _new_tuple = tuple.__new__  # _AxisState(...) without the NamedTuple __new__ (hot path)
 _fast_result = FilterResult.fast.__func__  # FilterResult.fast without the classmethod binding
 
@@ -63,7 +65,7 @@ def _step_kernel(args):
 
     An online step's arguments always have the same types (C-contiguous float64 / bool arrays
     of fixed ranks, a bool): the state's from the kernels' own outputs, the measurement checked
-    by :meth:`KalmanFilter._step_axis`, the outputs allocated there. Calling the compiled
+    by :meth:`KalmanFilter.step`'s hot path, the outputs allocated there. Calling the compiled
     function's entry point skips numba's per-call type dispatch (about 0.5 µs of a 5 µs step);
     the first call, and every call with kernels interpreted, goes through the dispatcher.
     """
@@ -83,6 +85,24 @@ _NONE2 = np.empty((0, 0))
 _NONE3 = np.empty((0, 0, 0))
 _NONE4 = np.empty((0, 0, 0, 0))
 _NONE_BOOL = np.empty((0, 0), dtype=bool)
+
+
+def _unflatten_step(state, bshape, x_new, P_new, init_new, mean, covb, pos, obs, nu, dist):
+    """:meth:`KalmanFilter.step`'s flat ``(B, ...)`` outputs reshaped to the batch shape."""
+    n_x, n_z = x_new.shape[1], pos.shape[1]
+    new_state = _new_tuple(_AxisState, (x_new.reshape(*bshape, n_x),
+                           P_new.reshape(*bshape, n_x, n_x), init_new.reshape(bshape),
+                           state.k + 1))  # fmt: skip
+    out = _fast_result(
+        FilterResult,
+        mean.reshape(*bshape, n_x),
+        pos.reshape(*bshape, n_z),
+        obs.reshape(bshape),
+        nu.reshape(*bshape, n_z),
+        dist.reshape(bshape),
+        covb.reshape(*bshape, *covb.shape[1:]),
+    )
+    return new_state, out
 
 
 def check_gaussian_state(state, n_x: int) -> GaussianState:
@@ -282,9 +302,35 @@ class KalmanFilter:
             ``innovation (..., n_z)``, ``distance (...)``.
         """
         if type(state) is _AxisState and self._blocks is not None:
-            fast = self._step_axis(state, z)
-            if fast is not None:
-                return fast
+            # Hot path (a trusted per-axis state): one compiled call, no re-validation of the
+            # state; ``z`` is checked by type/shape attributes (anything unusual takes the
+            # validated path below) and for ±inf by the kernel.
+            x = state.x
+            zshape, bshape, sx, sP, sb, sc, sz = self._step_plans.get(x.shape) or self._step_plan(
+                x.shape
+            )
+            if (
+                type(z) is np.ndarray
+                and z.shape == zshape
+                and z.dtype is _F64
+                and z.flags.c_contiguous
+            ):
+                x_new, P_new, init_new = _empty(sx), _empty(sP), _empty(sb, _BOOL)
+                mean, covb, pos = _empty(sx), _empty(sc), _empty(sz)
+                obs, nu, dist = _empty(sb, _BOOL), _empty(sz), _empty(sb)
+                if bshape is None:
+                    args = (*self._packed, z, x, state.P, state.initialized,
+                            x_new, P_new, init_new, mean, covb, pos, obs, nu, dist)  # fmt: skip
+                else:
+                    args = (*self._packed, z.reshape(sz), x.reshape(sx), state.P.reshape(sP),
+                            state.initialized.reshape(sb), x_new, P_new, init_new, mean, covb,
+                            pos, obs, nu, dist)  # fmt: skip
+                if (_step_entry[0] if _step_entry else _step_kernel(args))(*args):
+                    raise InputError("expected z finite or NaN (missing), got ±inf")
+                if bshape is not None:
+                    return _unflatten_step(state, bshape, *args[-9:])
+                return (_new_tuple(_AxisState, (x_new, P_new, init_new, state.k + 1)),
+                        _fast_result(FilterResult, mean, pos, obs, nu, dist, covb))  # fmt: skip
         st = check_gaussian_state(state, self.n_x)
         zs = check_step_measurement(z, self.n_z, st.initialized.shape)
         new_state, res = self._run(zs[..., None, :], st)
@@ -300,49 +346,10 @@ class KalmanFilter:
         )
         return new_state, out
 
-    def _step_axis(self, state, z):
-        """``step`` on a trusted per-axis state: one compiled call, no re-validation of the
-        state; ``z`` is checked by type/shape attributes (anything unusual takes the validated
-        path: returns None) and for ±inf by the kernel."""
-        x = state.x
-        plan = self._step_plans.get(x.shape)
-        if plan is None:
-            plan = self._step_plan(x.shape)
-        zshape, bshape, sx, sP, sb, sc, sz = plan
-        if not (
-            type(z) is np.ndarray and z.shape == zshape and z.dtype is _F64 and z.flags.c_contiguous
-        ):
-            return None
-        empty = np.empty
-        x_new, P_new, init_new = empty(sx), empty(sP), empty(sb, np.bool_)
-        mean, covb, pos = empty(sx), empty(sc), empty(sz)
-        obs, nu, dist = empty(sb, np.bool_), empty(sz), empty(sb)
-        if bshape is None:
-            args = (z, x, state.P, state.initialized)
-        else:
-            args = (z.reshape(sz), x.reshape(sx), state.P.reshape(sP),
-                    state.initialized.reshape(sb))  # fmt: skip
-        args += self._packed + (x_new, P_new, init_new, mean, covb, pos, obs, nu, dist)
-        if (_step_entry[0] if _step_entry else _step_kernel(args))(*args):
-            raise InputError("expected z finite or NaN (missing), got ±inf")
-        if bshape is not None:
-            n_x, n_z = sx[1], sz[1]
-            x_new, P_new, init_new = (
-                x_new.reshape(*bshape, n_x), P_new.reshape(*bshape, n_x, n_x), init_new.reshape(bshape)
-            )  # fmt: skip
-            mean, covb, pos = (
-                mean.reshape(*bshape, n_x),
-                covb.reshape(*bshape, *sc[1:]),
-                pos.reshape(*bshape, n_z),
-            )
-            obs, nu, dist = obs.reshape(bshape), nu.reshape(*bshape, n_z), dist.reshape(bshape)
-        out = _fast_result(FilterResult, mean, pos, obs, nu, dist, covb)
-        return _new_tuple(_AxisState, (x_new, P_new, init_new, state.k + 1)), out
-
     def _step_plan(self, x_shape: tuple) -> tuple:
-        """What :meth:`_step_axis` needs for states of shape ``x_shape`` (cached per shape):
-        the measurement shape, the batch shape to restore (None when already flat) and the
-        flat shapes ``(B, n_x)``, ``(B, n_x, n_x)``, ``(B,)``, ``(B, n_a, 3)``, ``(B, n_z)``."""
+        """What the hot path of :meth:`step` needs for states of shape ``x_shape`` (cached per
+        shape): the measurement shape, the batch shape to restore (None when already flat) and
+        the flat shapes ``(B, n_x)``, ``(B, n_x, n_x)``, ``(B,)``, ``(B, n_a, 3)``, ``(B, n_z)``."""
         bshape, n_x = x_shape[:-1], x_shape[-1]
         B, n_z = math.prod(bshape), self.model.n_z
         plan = ((*bshape, n_z), None if len(bshape) == 1 else bshape, (B, n_x), (B, n_x, n_x),
