@@ -9,7 +9,9 @@ from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import InputError
 from kinefuse.orientation import (
+    MAX_GAP_S,
     OrientationEstimator,
+    default_max_gap_s,
     estimate,
     integrate_gyro,
     rate_from_orientation,
@@ -147,13 +149,22 @@ def test_integrate_gyro_bad_input():
 
 # ---------------------------------------------------------------- SLERP resampling
 def test_slerp_resample_midpoint_and_gaps():
-    t = np.arange(5) * 0.1
+    """A constant-rate rotation: SLERP is exact (closed form). At 10 Hz one missing sample
+    leaves 0.2 s (<= MAX_GAP_S = 0.25 s: bridged by default, a dropped packet), two leave
+    0.3 s (missing); an explicit ``max_gap_s`` wins."""
+    t = np.arange(10) * 0.1
     q = Rotation.from_rotvec(np.outer(t, [0, 0, 1.0])).as_quat(scalar_first=True)
     q[3] = np.nan
-    out = slerp_resample(t, q, np.array([0.05, 0.15, 0.25, 0.35, 0.5]))
-    ang = Rotation.from_quat(out[:2], scalar_first=True).as_rotvec()[:, 2]
-    np.testing.assert_allclose(ang, [0.05, 0.15], atol=1e-12)
-    assert np.all(np.isnan(out[2:]))  # inside the gap around the NaN row, and past the end
+    q[6:8] = np.nan
+    dst = np.array([0.05, 0.15, 0.25, 0.65, 0.95])
+    out = slerp_resample(t, q, dst)
+    ang = Rotation.from_quat(out[:3], scalar_first=True).as_rotvec()[:, 2]
+    np.testing.assert_allclose(ang, [0.05, 0.15, 0.25], atol=1e-12)
+    assert np.all(np.isnan(out[3:]))  # inside the 0.3 s gap, and past the end
+    strict = slerp_resample(t, q, dst, max_gap_s=0.15)
+    assert np.isfinite(strict[:2]).all() and np.isnan(strict[2]).all()
+    assert default_max_gap_s(t) == MAX_GAP_S == 0.25
+    assert default_max_gap_s(np.arange(3) * 0.5) == 0.75  # sparse: 1.5 steps
     np.testing.assert_array_equal(slerp_resample(t, q, t), q)
 
 
@@ -184,9 +195,9 @@ def test_slerp_resample_source_times_across_a_gap_are_kept():
     gap (np.isin over the valid times is the oracle for which targets are used)."""
     t = np.arange(10) * 0.1
     q = Rotation.from_rotvec(np.outer(t, [0, 0, 1.0])).as_quat(scalar_first=True)
-    q[4] = np.nan  # valid times 0.3 -> 0.5: a gap of 2 steps
+    q[4] = np.nan  # valid times 0.3 -> 0.5: a gap of 2 steps (longer than max_gap_s)
     t_dst = np.array([t[0], t[3], 0.35, 0.4, 0.45, t[5], 0.55, t[9], 0.95])
-    out = slerp_resample(t, q, t_dst)
+    out = slerp_resample(t, q, t_dst, max_gap_s=0.15)
     used = np.isfinite(out).all(axis=1)
     want = np.isin(t_dst, t[np.isfinite(q).all(axis=1)]) | (t_dst == 0.55)
     np.testing.assert_array_equal(used, want)

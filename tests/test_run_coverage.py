@@ -102,7 +102,8 @@ def test_imu_ending_early_is_predicted_not_available(synthetic_files, tmp_path):
     assert counts["predicted"] == np.sum(source == SOURCE_PREDICTED) >= late.sum()
     assert counts["available"] == st.available[:, j].sum()
     assert summary["coverage"]["elbow_r"]["available"] == st.t_s.size  # upper arm IMU is whole
-    assert any("wrist_r: only" in w and "forearm_r IMU" in w for w in summary["warnings"])
+    (w,) = [w for w in summary["warnings"] if w.startswith("wrist_r: only")]
+    assert "forearm_r IMU" in w and f"{counts['predicted']} predicted" in w
     assert "coverage wrist_r" in (tmp_path / "out" / "report.html").read_text()
     # the metrics score what is output as available, never the predictions
     assert any("predicted joint samples" in n and "excluded" in n for n in summary["notes"])
@@ -129,6 +130,9 @@ def test_imu_of_two_samples_is_not_extrapolated(synthetic_files, tmp_path, senso
         assert np.sum(source == SOURCE_PREDICTED) >= st.t_s.size - 2
         assert np.sum(np.isfinite(trc.position_m[:, j, 0])) <= 2
         assert any(w.startswith(f"{joint}: only") for w in summary["warnings"])
+    if len(sensors) == 2:  # the elbow's warning names its own input, not the forearm's
+        (w,) = [w for w in summary["warnings"] if w.startswith("elbow_r: only")]
+        assert "upper_arm_r IMU" in w and "forearm_r" not in w
 
 
 # ------------------------------------------------------------------------------ case 3

@@ -8,12 +8,14 @@ and its quaternions are scalar-first ``wxyz`` sensor-to-earth, i.e. exactly kine
 """
 
 from kinefuse.orientation.integration import integrate_gyro, rate_from_orientation
-from kinefuse.orientation.resample import slerp_resample
+from kinefuse.orientation.resample import MAX_GAP_S, default_max_gap_s, slerp_resample
 from kinefuse.orientation.vqf_adapter import METHODS, OrientationEstimator, estimate
 
 __all__ = [
+    "MAX_GAP_S",
     "METHODS",
     "OrientationEstimator",
+    "default_max_gap_s",
     "estimate",
     "integrate_gyro",
     "rate_from_orientation",

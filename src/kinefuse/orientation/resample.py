@@ -7,7 +7,20 @@ import numpy as np
 from kinefuse._validation import as_float_array
 from kinefuse.exceptions import InputError
 
-__all__ = ["slerp_resample"]
+__all__ = ["MAX_GAP_S", "default_max_gap_s", "slerp_resample"]
+
+#: Gaps up to this long, s, are interpolated across by default (with 1.5 source steps, whichever
+#: is longer): a wireless sensor that drops a few packets (40 ms at 50 Hz for one) stays
+#: continuous; a longer dropout is missing.
+MAX_GAP_S = 0.25
+
+
+def default_max_gap_s(t_src_s: np.ndarray) -> float:
+    """The default ``max_gap_s`` of :func:`slerp_resample` for source times ``t_src_s``:
+    ``max(1.5 × median step, MAX_GAP_S)``."""
+    if t_src_s.size < 2:
+        return np.inf
+    return max(1.5 * float(np.median(np.diff(t_src_s))), MAX_GAP_S)
 
 
 def slerp_resample(t_src_s, q_src, t_dst_s, *, max_gap_s: float | None = None) -> np.ndarray:
@@ -23,7 +36,8 @@ def slerp_resample(t_src_s, q_src, t_dst_s, *, max_gap_s: float | None = None) -
         Target times, s.
     max_gap_s : float, optional
         Targets between two valid source samples farther apart than this are NaN. Default
-        1.5 × the median source step.
+        :func:`default_max_gap_s`: 1.5 × the median source step or :data:`MAX_GAP_S`, whichever
+        is longer (dropped packets are bridged).
 
     Returns
     -------
@@ -48,7 +62,7 @@ def slerp_resample(t_src_s, q_src, t_dst_s, *, max_gap_s: float | None = None) -
     if np.any(np.diff(ts) <= 0):
         raise InputError("expected t_src_s strictly increasing where q_src is valid")
     if max_gap_s is None:
-        max_gap_s = 1.5 * float(np.median(np.diff(t_src))) if t_src.size > 1 else np.inf
+        max_gap_s = default_max_gap_s(t_src)
     inside = (t_dst >= ts[0]) & (t_dst <= ts[-1])
     left = np.searchsorted(ts, t_dst, side="left")
     hi = np.clip(left, 1, ts.size - 1)

@@ -168,7 +168,7 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m)
     chain_st = chain_positions(recording, sk, cal, root=root_pos, source=source, t_s=t)
     joints = tuple(s for s in sk.distal)
     chain = np.stack([chain_st.position(j, masked=False) for j in joints], axis=1)
-    coverage, root_ok = _input_coverage(recording, sk, root_stream, t, joints)
+    coverage, root_ok, inputs = _input_coverage(recording, sk, root_stream, t, joints)
     chain[~(coverage["imu"] & root_ok)] = np.nan  # no chain without its inputs
     notes.append(
         f"IMU chain from {root_desc}"
@@ -183,7 +183,7 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m)
         out.sensor_orientations = _sensor_orientations(recording, cal, t)
     if cal is not None and cal.frames:
         out.angles = _joint_angles(recording, cal, t, notes)
-    ctx = {"cal": cal, "calib": calib, "coverage": coverage, "root_ok": root_ok,
+    ctx = {"cal": cal, "calib": calib, "coverage": coverage, "root_ok": root_ok, "inputs": inputs,
            "root_name": {"vision": "camera", "reference": "reference"}.get(root_kind, root_kind),
            "reference": out.reference, "joints": joints}  # fmt: skip
     return out, recording, ctx
@@ -233,7 +233,9 @@ def _run_method(out: SessionOutput, recording, method: str, params: Mapping, ctx
     else:
         _vision(out, recording, chain, camera, dt, method, params, ctx["cal"])
     out.run_time_s = time.perf_counter() - t0
-    apply_coverage(out, ctx["coverage"], ctx["root_ok"], ctx["joints"], method, ctx["root_name"])
+    apply_coverage(
+        out, ctx["coverage"], ctx["root_ok"], ctx["joints"], method, ctx["root_name"], ctx["inputs"]
+    )
     if method in _CAMERA_METHODS and out.camera is not None:
         out.baselines = _baselines(out.chain, out.camera, dt, out.joints)
 

@@ -16,6 +16,7 @@ from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_IMU, SOURCE_KINDS, SOURC
 from kinefuse.evaluation.tables import ResultTable, TableRow
 from kinefuse.exceptions import InputError
 from kinefuse.io import resample_positions
+from kinefuse.orientation.resample import MAX_GAP_S, default_max_gap_s
 from kinefuse.pipelines.run.output import SessionOutput
 
 __all__ = [
@@ -53,9 +54,10 @@ def sample_joint(stream, joint: str, t: np.ndarray, *, fill: bool) -> np.ndarray
     return out
 
 
-#: Longest interval between two IMU orientation samples interpolated across, s (SLERP); a
-#: stream sampled more sparsely covers only its own sample times.
-IMU_MAX_GAP_S = 0.25
+#: Longest interval between two IMU orientation samples interpolated across, s (SLERP), or 1.5
+#: steps of a stream sampled more sparsely (:func:`kinefuse.orientation.resample.default_max_gap_s`):
+#: a 50 Hz sensor that drops a packet leaves 40 ms, covered.
+IMU_MAX_GAP_S = MAX_GAP_S
 #: Longest gap of the root stream (camera or reference root joints) bridged by linear
 #: interpolation, s; beyond it, or outside the stream, the chain has no root.
 ROOT_MAX_GAP_S = 1.0
@@ -126,15 +128,22 @@ def _input_coverage(recording, sk, root_stream, t: np.ndarray, joints):
     root_ok : ndarray of bool, shape (T, J)
         The root is usable: data, or a gap of at most :data:`ROOT_MAX_GAP_S` interpolated
         across (never extrapolated).
+    inputs : dict of str -> tuple of str
+        Per joint, the ``"imu <segment>"`` keys of ``coverage`` its position depends on (its
+        chain's IMUs, and the pelvis IMU when it places the root).
     """
     cov: dict[str, np.ndarray] = {}
     extra = [s for s in (sk.root_segment,) if s and s in recording.imu and root_stream is None]
     for seg in (*sk.segments, *extra):
         st = recording.imu[seg]
         q = st.q_world_from_sensor
-        step = float(np.median(np.diff(st.t_s))) if st.t_s.size > 1 else 0.0
-        gap = min(1.5 * step, IMU_MAX_GAP_S) if step > 0 else IMU_MAX_GAP_S
-        cov[f"imu {seg}"] = _covered(st.t_s, q, t, gap) if st.t_s.size > 1 else np.isin(t, st.t_s)
+        # the chain's orientations are SLERPed across the same gaps (default_max_gap_s):
+        # dropped packets of a wireless sensor are covered, a longer dropout is not
+        cov[f"imu {seg}"] = (
+            _covered(st.t_s, q, t, default_max_gap_s(st.t_s))
+            if st.t_s.size > 1
+            else np.isin(t, st.t_s)
+        )
     seg_of = dict(zip(sk.distal, sk.segments, strict=True))
     parent = {
         s: (sk.segments[p] if p >= 0 else None)
@@ -147,22 +156,26 @@ def _input_coverage(recording, sk, root_stream, t: np.ndarray, joints):
     step = 0.0
     if root_stream is not None and root_stream.t_s.size > 1:
         step = float(np.median(np.diff(root_stream.t_s)))
+    inputs = {}
     for j, joint in enumerate(joints):
-        s = seg_of[joint]
+        s, used = seg_of[joint], []
         while s is not None:
             imu[:, j] &= cov[f"imu {s}"]
+            used.append(f"imu {s}")
             top, s = s, parent[s]
         r = sk.proximal[sk.segments.index(top)]
         if root_stream is None:  # fixed root, or hips from the pelvis IMU (its coverage)
             for seg in extra:
                 root[:, j] &= cov[f"imu {seg}"]
+                used.append(f"imu {seg}")
             root_ok[:, j] = root[:, j]
         elif r in root_stream.joints:
             p = root_stream.position(r)
             root[:, j] = _covered(root_stream.t_s, p, t)
             root_ok[:, j] = _covered(root_stream.t_s, p, t, max(ROOT_MAX_GAP_S, 1.5 * step))
+        inputs[joint] = tuple(used)
     cov["imu"], cov["root"] = imu, root
-    return cov, root_ok
+    return cov, root_ok, inputs
 
 
 def apply_coverage(
@@ -172,6 +185,7 @@ def apply_coverage(
     joints,
     method: str,
     root_name: str = "root",
+    inputs: Mapping | None = None,
 ) -> None:
     """Set ``available``, ``coverage`` and the predicted source code of ``out`` in place.
 
@@ -181,7 +195,9 @@ def apply_coverage(
     :data:`~kinefuse.conventions.SOURCE_PREDICTED` and ``available`` is False, whatever the
     filter predicted. An IMU-chain sample whose root was interpolated across a gap of the
     root stream is ``SOURCE_BRIDGED``. Warnings are added for joints below
-    :data:`COVERAGE_WARN_FRACTION`.
+    :data:`COVERAGE_WARN_FRACTION`: they name the joint's inputs with gaps (``inputs``, per
+    joint the ``"imu <segment>"`` keys it depends on; None: every IMU) and count the other
+    samples as predicted or without an estimate.
     """
     cols = [list(joints).index(j) for j in out.joints]
     T, J = out.position.shape[:2]
@@ -210,15 +226,22 @@ def apply_coverage(
         if frac >= COVERAGE_WARN_FRACTION:
             continue
         label = {"root": f"the chain's root ({root_name})"}
+        mine = None if inputs is None else inputs.get(joint)
         short = [
             k.split(" ", 1)[1] + " IMU" if k.startswith("imu ") else label.get(k, k)
             for k, v in cov.items()
-            if k != "reference" and k != "imu" and np.mean(v if v.ndim == 1 else v[:, j]) < 0.999
-        ]
+            if k != "reference" and k != "imu" and (mine is None or not k.startswith("imu ")
+                                                     or k in mine)
+            and np.mean(v if v.ndim == 1 else v[:, j]) < 0.999
+        ]  # fmt: skip
         why = f"; not covered by: {', '.join(short)}" if short else ""
+        n_none = int(np.sum(~finite[:, j]))
+        n_pred = int(np.sum(finite[:, j] & ~backed[:, j]))
+        rest = [f"{n_pred} predicted (source 'predicted', available = 0)"] if n_pred else []
+        rest += [f"{n_none} without an estimate (NaN)"] if n_none else []
         msg = (
             f"{joint}: only {frac:.0%} of the {T} output samples ({span}) are backed by the "
-            f"inputs{why}; the rest is predicted (source 'predicted', available = 0)"
+            f"inputs{why}; the other samples: {' and '.join(rest)}"
         )
         out.warnings.append(msg)
         out.notes.append(f"WARNING: {msg}")
