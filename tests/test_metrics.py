@@ -358,6 +358,21 @@ def test_rich_rendering_and_timing_table():
     assert f"{res.mean_rmse[0, 0]:.4f}" in out
 
 
+def test_rich_rendering_prints_bracketed_labels_as_written():
+    """Labels are text, not rich markup: "[calibrated on reference]" tags must print (rich
+    took them for style tags and printed nothing of them)."""
+    row = tables.TableRow(("wrist_r", "IMU only [calibrated on reference]"), (0.1, 0.2))
+    t = tables.ResultTable(
+        title="t [x]", label_headers=("Joint", "Method"), value_headers=("X", "[m]"),
+        rows=(row,), notes=("scores [aligned to reference]",),
+    )  # fmt: skip
+    console = Console(record=True, width=160)
+    console.print(tables.to_rich(t))
+    out = console.export_text()
+    for s in ("IMU only [calibrated on reference]", "t [x]", "[m]", "[aligned to reference]"):
+        assert s in out, s
+
+
 def test_public_reexports():
     import kinefuse.evaluation as ev
 

@@ -164,7 +164,7 @@ def _print_tables(summary: Any, evaluation: Any, report: Any, extra_tables: list
         out.print(tables.to_rich(t) if hasattr(t, "rows") else t)
     if isinstance(summary, Mapping) and evaluation is None and not extra_tables and report is None:
         for k, v in summary.items():
-            out.print(f"{k}: {v}")
+            out.print(Text(f"{k}: {v}"))
     if report is not None:
         out.print(Text.assemble("Report: ", (str(report), "bold")))
 

@@ -9,6 +9,7 @@ from typing import Annotated
 
 import typer
 from rich import box
+from rich.markup import escape
 from rich.table import Table
 
 from kinefuse.cli._app import backend, backend_module, stderr
@@ -59,12 +60,12 @@ def _out_files(out: Path, force: bool) -> None:
 
 
 def _kv_table(title: str, rows: list[tuple[str, str]], caption: str | None = None):
-    t = Table(title=title, caption=caption, caption_justify="left", box=box.SIMPLE,
-              pad_edge=False, show_header=False)  # fmt: skip
+    t = Table(title=escape(title), caption=None if caption is None else escape(caption),
+              caption_justify="left", box=box.SIMPLE, pad_edge=False, show_header=False)  # fmt: skip
     t.add_column("item", no_wrap=True)
     t.add_column("value", no_wrap=True)
-    for k, v in rows:
-        t.add_row(k, v)
+    for k, v in rows:  # text, not rich markup (notes may hold "[stream]"-like brackets)
+        t.add_row(escape(k), escape(v))
     return t
 
 
@@ -114,7 +115,7 @@ def _replay_table(summary: Mapping, rate: float):
     t.add_column("stream", no_wrap=True)
     t.add_column("samples pushed", justify="right", no_wrap=True)
     for name, n in (summary.get("samples") or {}).items():
-        t.add_row(name, str(n))
+        t.add_row(escape(name), str(n))
     return t
 
 

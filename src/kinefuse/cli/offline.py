@@ -133,7 +133,7 @@ def compile_kernels_now(quiet: bool) -> None:
             "First run on this machine with a large input: compiling the filter kernels once "
             "(about 2 min on 2 cores; cached for later runs)"
         )
-    compile_kernels(report=None if quiet else console.print)
+    compile_kernels(report=None if quiet else lambda m: console.print(Text(m)))
 
 
 def run(
@@ -396,4 +396,4 @@ def warm_up(quiet: Quiet = False) -> None:
     from kinefuse.filters.warm_up import warm_up as compile_kernels  # lazy: numba
 
     console = stdout()
-    compile_kernels(report=None if quiet else console.print)
+    compile_kernels(report=None if quiet else lambda m: console.print(Text(m)))

@@ -23,6 +23,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from rich import box
+from rich.markup import escape
 from rich.table import Table
 
 from kinefuse.exceptions import InputError
@@ -455,22 +456,27 @@ def _best_per_column(table: ResultTable) -> dict[tuple[int, int], bool]:
 
 
 def to_rich(table: ResultTable):
-    """Render as a :class:`rich.table.Table` (paper rows dim italic, best value per column bold)."""
+    """Render as a :class:`rich.table.Table` (paper rows dim italic, best value per column bold).
+
+    Titles, labels and notes are text, not rich markup: a label such as
+    ``"EM-KF/FIR [calibrated on reference]"`` prints as written (unescaped, rich took the
+    bracket for a style tag and printed nothing of it).
+    """
     t = Table(
-        title=table.title,
-        caption="\n".join(table.notes) or None,
+        title=escape(table.title),
+        caption=escape("\n".join(table.notes)) or None,
         caption_justify="left",
         box=box.SIMPLE_HEAD,
         pad_edge=False,
     )
     for h in table.label_headers:
-        t.add_column(h, no_wrap=True)
+        t.add_column(escape(h), no_wrap=True)
     for h in table.value_headers:
-        t.add_column(h, justify="right", no_wrap=True)
+        t.add_column(escape(h), justify="right", no_wrap=True)
     best = _best_per_column(table)
     previous = None
     for i, row in enumerate(table.rows):
-        labels = list(row.labels)
+        labels = [escape(x) for x in row.labels]
         if len(labels) > 1 and previous is not None and labels[0] == previous:
             labels[0] = ""
         else:
@@ -478,6 +484,7 @@ def to_rich(table: ResultTable):
         cells = []
         for c, v in enumerate(row.values):
             s = table.cell(v)
+            s = escape(s)
             cells.append(f"[bold green]{s}[/]" if best.get((i, c)) else s)
         t.add_row(*labels, *cells, style="dim italic" if row.paper else None)
     return t

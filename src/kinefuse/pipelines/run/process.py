@@ -244,10 +244,19 @@ def _label_and_align(out: SessionOutput, recording, plan: dict, reference) -> No
     """Tags saying what the reference was used for; the rigid alignment, if asked."""
     notes, provenance = out.notes, out.provenance
     tags = []
+    sources = [v["source"] for v in provenance["segment_lengths"].values()]
     if plan["calibration"] == "reference":
         tags.append("calibrated on reference")
-    if any("REFERENCE" in v["source"] for v in provenance["segment_lengths"].values()):
+    if any("REFERENCE" in s for s in sources):
         tags.append("lengths from reference")
+    # a camera that is the reference's own data (e.g. UTD-MHAD's Kinect as both): what was
+    # calibrated on it was calibrated on the reference (a distinct camera is an input: its use
+    # is in the provenance, not a label)
+    if _camera_is_reference(recording):
+        if plan["calibration"] == "vision":
+            tags.append("calibrated on camera = reference")
+        if any(s.startswith("camera") for s in sources):
+            tags.append("lengths from camera = reference")
     if out.reference is not None and out.frame != "ENU chest-relative":
         ref_frame = recording.reference.frame
         if plan["align"] == "rigid":
@@ -278,6 +287,17 @@ def _label_and_align(out: SessionOutput, recording, plan: dict, reference) -> No
             provenance["alignment"] = "none"
     out.tag = f" [{', '.join(tags)}]" if tags else ""
     provenance["labels"] = out.tag.strip() or "IMU/camera data only"
+
+
+def _camera_is_reference(recording) -> bool:
+    """The camera and the reference hold the same samples (one file given as both)."""
+    cam, ref = recording.vision, recording.reference
+    if cam is None or ref is None or not np.array_equal(cam.t_s, ref.t_s):
+        return False
+    common = [j for j in cam.joints if j in ref.joints]
+    return bool(common) and all(
+        np.array_equal(cam.position(j), ref.position(j), equal_nan=True) for j in common
+    )
 
 
 def _rigid_align(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, float]:
