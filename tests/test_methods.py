@@ -35,6 +35,11 @@ def test_registry_is_consistent():
     assert set(methods.BASELINES) <= set(methods.names())
     with pytest.raises(ConfigError, match="did you mean 'elm-fir'"):
         methods.get("elm-fri")
+    # the paper's name points to its methods (difflib's nearest name would be 'paper-a')
+    for name in ("paper-b", "Paper_B"):
+        with pytest.raises(ConfigError, match="paper B's methods are 'elm-fir'.*'elm-kf'"):
+            methods.get(name)
+    assert methods.unknown_fix("imu") == "did you mean 'imu-only'?"
     with pytest.raises(ConfigError, match="expected form"):
         methods.names(form="live")
     lines = methods.help_lines()

@@ -39,6 +39,7 @@ __all__ = [
     "get",
     "help_lines",
     "names",
+    "unknown_fix",
 ]
 
 #: Forms a method can exist in.
@@ -165,6 +166,26 @@ def names(*, form: str | None = None, needs: str | None = None) -> tuple[str, ..
     )
 
 
+#: Names people reach for that are not method names (normalised: lower case, ``-``), and what
+#: to use instead.
+_POINTERS = {
+    "paper-b": "paper B's methods are 'elm-fir' (its proposed ELM/FIR fusion) and 'elm-kf'",
+    "paperb": "paper B's methods are 'elm-fir' (its proposed ELM/FIR fusion) and 'elm-kf'",
+    "imu": "did you mean 'imu-only'?",
+    "camera": "did you mean 'camera-only'?",
+}
+
+
+def unknown_fix(name, choices=None) -> str:
+    """What to say about an unknown method ``name``: a pointer for names people reach for
+    (``"paper-b"`` → its methods ``elm-fir`` / ``elm-kf``), else the closest of ``choices``
+    (default every registered name)."""
+    key = str(name).strip().lower().replace("_", "-").replace(" ", "-")
+    if key in _POINTERS:
+        return _POINTERS[key]
+    return did_you_mean(str(name), list(choices if choices is not None else REGISTRY))
+
+
 def get(name: str) -> Method:
     """The :class:`Method` called ``name``.
 
@@ -175,7 +196,7 @@ def get(name: str) -> Method:
     """
     method = REGISTRY.get(name)
     if method is None:
-        raise ConfigError(f"unknown method {name!r} ({did_you_mean(str(name), list(REGISTRY))})")
+        raise ConfigError(f"unknown method {name!r} ({unknown_fix(name)})")
     return method
 
 

@@ -53,8 +53,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from kinefuse._validation import did_you_mean
 from kinefuse.exceptions import ConfigError
+from kinefuse.methods import unknown_fix
 from kinefuse.session_file import METHODS, _Ctx, load_session, read_toml
 
 __all__ = ["Study", "Task", "load_study", "study_from_sessions"]
@@ -201,7 +201,7 @@ def _methods(c: _Ctx, table: Mapping, section: str) -> tuple[str, ...] | None:
         raise c.error(section, "methods", f"expected a list of method names, got {raw!r}")
     for m in raw:
         if m not in METHODS:
-            fix = did_you_mean(m, METHODS)
+            fix = unknown_fix(m, METHODS)
             raise c.error(section, "methods", f"unknown method {m!r}", fix)
     return tuple(dict.fromkeys(raw))
 
@@ -464,7 +464,7 @@ def study_from_sessions(
         raise ConfigError(f"{target}: no session files (*.toml) found")
     for m in methods or ():
         if m not in METHODS:
-            fix = did_you_mean(m, METHODS)
+            fix = unknown_fix(m, METHODS)
             raise ConfigError(f"--method: unknown method {m!r} ({fix})")
     entries = [_session_entry(f) for f in files]
     tasks = _task_list(entries, {}, [], tuple(methods) if methods else None, None)

@@ -14,7 +14,6 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from kinefuse import methods
-from kinefuse._validation import did_you_mean
 from kinefuse.conventions import SEGMENTS
 from kinefuse.exceptions import ConfigError
 from kinefuse.session_file._checks import _Ctx
@@ -357,7 +356,7 @@ def _method(c: _Ctx, doc: Mapping, calibration, root, camera, reference) -> Meth
     c.check_keys(m, "method", ("name", "parameters"))
     mname = c.string(m, "method", "name")
     if mname not in methods.REGISTRY:
-        fix = did_you_mean(mname, methods.names())
+        fix = methods.unknown_fix(mname)
         raise c.error("method", "name", f"unknown method {mname!r}", fix)
     _check_needs(c, mname, calibration, root, camera, reference)
     params = m.get("parameters", {})
