@@ -3,6 +3,7 @@ and `kinefuse run` / `evaluate` / `init-session` on real IMU-only recordings (x-
 
 from __future__ import annotations
 
+import json
 import textwrap
 import warnings
 from pathlib import Path
@@ -189,6 +190,33 @@ def test_hinge_flexion_axis_from_movement_needs_no_facing():
     np.testing.assert_allclose(ang[:, 1], 0.0, atol=0.5)
 
 
+def test_facing_auto_is_estimated_from_the_hinges():
+    """9-D sensors (shared north), subject facing 70 deg from north: the declared default
+    facing misassigns the flexion axis; ``facing="auto"`` fits it to the movement and takes the
+    facing from it (closed form: the body's rotation applied to north)."""
+    rec, flex, pron = _elbow_2dof_recording(70.0, (0.0, 0.0))
+    sk = upper_limb("r", height_m=1.7)
+    t = rec.imu["forearm_r"].t_s
+    north = calibrate(rec, sk, "static", window_s=0.5)
+    assert north.facing_from == "declared" and np.allclose(north.facing, [0.0, 1.0, 0.0])
+    bad = joint_angles(segment_orientations(rec, north, t))["elbow_r"][:, 0]
+    assert np.max(np.abs(bad - flex)) > 10.0
+    cal = calibrate(rec, sk, "static", window_s=0.5, facing="auto")
+    assert cal.facing_from == "hinges"
+    want = _rz(70.0).apply([0.0, 1.0, 0.0])
+    assert np.degrees(np.arccos(np.clip(cal.facing @ want, -1, 1))) < 1.0
+    ang = joint_angles(segment_orientations(rec, cal, t))["elbow_r"]
+    np.testing.assert_allclose(ang[:, 0], flex, atol=0.5)
+    np.testing.assert_allclose(ang[:, 2], pron, atol=0.5)
+    # nothing to estimate it from (the elbow never moves): north, said so
+    still = _arm_pose_recording(MOUNTS, 300)
+    with pytest.warns(NumericalWarning, match="hardly moved"):
+        cal0 = calibrate(still, sk, "static", window_s=0.5, facing="auto")
+    assert cal0.facing_from == "default" and np.allclose(cal0.facing, [0.0, 1.0, 0.0])
+    with pytest.raises(InputError, match="facing"):
+        calibrate(rec, sk, "static", window_s=0.5, facing="north")
+
+
 def test_hinge_flexion_sign_by_anatomy():
     # the same motion seen with the elbow axis sign flipped by a mirrored mounting still reads
     # as flexion (positive), not extension
@@ -366,6 +394,47 @@ def test_qmt_right_arm_paper_a_setting(shared_data, tmp_path):
 
 
 # ------------------------------------------------------------------ refusals
+OPENSENSE = """\
+    [session]
+    name = "opensense"
+    [imu]
+    format = "opensense"
+    path = "{data}/opensense_example_imu"
+    [imu.segments]
+    pelvis = "00B42279"
+    thigh_r = "00B4227C"
+    shank_r = "00B4227D"
+    thigh_l = "00B421EE"
+    shank_l = "00B421ED"
+    [skeleton]
+    body_height_m = 1.75
+    root = "pelvis"
+    [calibration]
+    method = "static"
+    [method]
+    name = "imu-only"
+"""
+
+
+def test_opensense_walk_facing_from_the_knees(shared_data, tmp_path):
+    """OpenSim's OpenSense example (9-D Xsens, subject facing about south): with the facing not
+    declared, knees and hips read as walking does (knee flexion 0..70 deg, hip flexion -15..30:
+    e.g. Perry & Burnfield 2010); the north default read the knees -69..7 deg (issue 10)."""
+    p = _session(tmp_path, OPENSENSE.format(data=shared_data))
+    res = runner.invoke(cli.app, ["run", str(p), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, (res.output, _err(res))
+    assert "flexion spans" not in _err(res)  # no range warning
+    prov = json.loads((tmp_path / "o" / "provenance.json").read_text())
+    assert prov["facing_from"] == "hinges" and prov["facing"][1] < -0.9  # about south
+    ang = np.genfromtxt(
+        tmp_path / "o" / "opensense_angles.csv", delimiter=",", names=True, skip_header=6
+    )
+    for side in "lr":
+        knee, hip = ang[f"knee_{side}_flexion_deg"], ang[f"hip_{side}_flexion_deg"]
+        assert -12 < np.nanmin(knee) and 55 < np.nanmax(knee) < 80, side
+        assert -20 < np.nanmin(hip) < -5 and 20 < np.nanmax(hip) < 40, side
+
+
 def _session(tmp_path: Path, body: str) -> Path:
     p = tmp_path / "s.toml"
     p.write_text(textwrap.dedent(body), encoding="utf-8")

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -56,11 +57,14 @@ from kinefuse.kinematics.calibration_result import Calibration, joint_stream, or
 from kinefuse.kinematics.chain import chain_positions, segment_orientations
 from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.kinematics.functional import functional_calibration
-from kinefuse.kinematics.hinge import hinge_frames
+from kinefuse.kinematics.hinge import hinge_facing, hinge_frames
 from kinefuse.kinematics.skeleton import Skeleton, lengths_from_joints, window_mask
 from kinefuse.kinematics.static import POSE_WARN_DEG, static_calibration
 from kinefuse.kinematics.still import MAX_ACC_STD_M_S2, MAX_RATE_RAD_S
 from kinefuse.orientation.resample import slerp_resample
+
+#: The default facing: north in the IMU world frame (ENU).
+_NORTH = (0.0, 1.0, 0.0)
 
 __all__ = [
     "POSE_WARN_DEG",
@@ -120,9 +124,13 @@ def calibrate(
     pose : {"n", "t"}
         Static pose: ``"n"`` = arms hanging, every segment points down ``d0 = [0, 0, −1]``;
         ``"t"`` = T-pose: arms point horizontally sideways, legs down.
-    facing : array_like, shape (3,)
-        T-pose only: the subject's horizontal facing direction in the IMU world frame (default
-        north ``[0, 1, 0]``); the right arm points along ``facing × up``.
+    facing : array_like, shape (3,), or "auto"
+        Static: the subject's horizontal facing direction in the IMU world frame (default north
+        ``[0, 1, 0]``): the pose frames' anterior axis, and in the T-pose the right arm points
+        along ``facing × up``. ``"auto"``: not known; the flexion axes of elbows and knees are
+        then fitted to the movement and the facing they imply
+        (:func:`kinefuse.kinematics.hinge.hinge_facing`) is used for every segment's pose frame
+        (north when no hinge moved enough); ``Calibration.facing_from`` says which.
     directions : mapping, optional
         Static only: explicit ``d0`` per segment (world frame), overriding the pose.
     align : {"auto", "none", "heading", "rotation"}
@@ -154,8 +162,8 @@ def calibrate(
         with ``heading="static"``, the distal sensor's heading refined from the hinge
         (:func:`kinefuse.kinematics.hinge.hinge_frames`); the flexion sign is fixed by anatomy
         (the larger excursion from the pose is flexion). ``"auto"`` (default): ``"movement"``
-        when ``heading="static"`` (6-D orientations: the facing is not measured), else
-        ``"pose"``.
+        when the facing is not known (``heading="static"``: 6-D orientations; or
+        ``facing="auto"``), else ``"pose"``.
 
     Returns
     -------
@@ -191,25 +199,27 @@ def calibrate(
         return _joint_stream_calibration(
             recording, skeleton, segs, imus, method, start_s=start_s, window_s=window_s, align=align
         )
-    cal = static_calibration(
-        skeleton,
-        segs,
-        imus,
-        window_s=window_s,
-        start_s=start_s,
-        pose=pose,
-        facing=facing,
-        directions=directions,
-        heading=heading,
-        mounting=mounting,
-        max_rate_rad_s=max_rate_rad_s,
-        max_acc_std_m_s2=max_acc_std_m_s2,
-    )
+    auto_facing = isinstance(facing, str) and facing == "auto"
+    if isinstance(facing, str) and not auto_facing:
+        raise InputError(f"expected facing as 'auto' or a direction [x, y, z], got {facing!r}")
+    kw = dict(
+        window_s=window_s, start_s=start_s, pose=pose, directions=directions, heading=heading,
+        mounting=mounting, max_rate_rad_s=max_rate_rad_s, max_acc_std_m_s2=max_acc_std_m_s2,
+    )  # fmt: skip
+    f0 = _NORTH if auto_facing else facing
+    cal = static_calibration(skeleton, segs, imus, facing=f0, **kw)
     if flexion_axes == "auto":
-        flexion_axes = "movement" if heading == "static" else "pose"
+        flexion_axes = "movement" if heading == "static" or auto_facing else "pose"
     if flexion_axes == "movement":
         cal = hinge_frames(recording, cal, refine_heading=heading == "static")
-    return cal
+    source = "default" if auto_facing else "declared"
+    if auto_facing and flexion_axes == "movement":
+        est = hinge_facing(recording, cal)
+        if est is not None:  # every pose frame (pelvis, hips, T-pose arms) in that facing
+            f0, source = est[0], "hinges"
+            cal = static_calibration(skeleton, segs, imus, facing=f0, **kw)
+            cal = hinge_frames(recording, cal, refine_heading=heading == "static")
+    return replace(cal, facing=np.asarray(f0, dtype=float), facing_from=source)
 
 
 def _check_options(recording, skeleton, method, heading, flexion_axes, align) -> None:

@@ -63,6 +63,13 @@ class Calibration:
         Hinge joints whose segment frames come from the measured flexion axis
         (:func:`kinefuse.kinematics.hinge.hinge_frames`): RMS residual of the joint's
         angular-rate constraint, rad/s (0 for an ideal joint).
+    facing : ndarray, shape (3,), or None
+        Static: the subject's horizontal facing direction in the (heading-corrected) IMU world
+        frame that the pose frames used.
+    facing_from : str
+        Static: where ``facing`` came from: ``"declared"``, ``"hinges"`` (estimated from the
+        flexion axes fitted to the movement, :func:`kinefuse.kinematics.hinge.hinge_facing`)
+        or ``"default"`` (north, nothing to estimate it from).
     """
 
     axes: Mapping[str, np.ndarray]
@@ -77,6 +84,8 @@ class Calibration:
     still: StillWindow | None = None
     pose_residual_deg: Mapping[str, float] = field(default_factory=dict)
     hinge_residual_rad_s: Mapping[str, float] = field(default_factory=dict)
+    facing: np.ndarray | None = None
+    facing_from: str = ""
 
     def heading_matrix(self, segment: str) -> np.ndarray:
         """``R_z(ψ)`` applied to ``segment``'s sensor world frame (identity if none), (3, 3)."""

@@ -61,7 +61,15 @@ from kinefuse.kinematics.forward import as_rotation_matrices, rotation_z
 from kinefuse.kinematics.skeleton import window_mask
 from kinefuse.orientation.resample import slerp_resample
 
-__all__ = ["HEADING_PRIOR", "HINGES", "MIN_HINGE_RATE_RAD_S", "hinge_frames", "segment_frame"]
+__all__ = [
+    "FACING_SPREAD_DEG",
+    "HEADING_PRIOR",
+    "HINGES",
+    "MIN_HINGE_RATE_RAD_S",
+    "hinge_facing",
+    "hinge_frames",
+    "segment_frame",
+]
 
 #: Joints treated as hinges for their segment frames.
 HINGES = tuple(j for j in JOINTS if j.startswith(("elbow", "knee")))
@@ -223,6 +231,62 @@ def hinge_frames(
     return replace(
         calibration, frames=frames, world_heading_deg=heading, hinge_residual_rad_s=resid
     )
+
+
+#: Largest angle between the facings that two hinges imply, deg: beyond it the hinges disagree
+#: (a wrong sign or a sensor that slipped) and no facing is estimated.
+FACING_SPREAD_DEG = 45.0
+
+
+def hinge_facing(recording: Recording, calibration: Calibration) -> tuple[np.ndarray, dict] | None:
+    """The subject's facing implied by the hinge frames fitted to the movement.
+
+    A hinge segment frame from :func:`hinge_frames` has its flexion axis from the data and its
+    sign by anatomy, so its anterior axis ``X = Y × Z`` is the subject's front, whatever facing
+    the pose assumed. Per hinge in ``calibration.hinge_residual_rad_s``: the proximal segment's
+    ``X`` in the world at the calibration window (mean over the window of ``R_world_from_sensor
+    X``), made horizontal.
+
+    Returns
+    -------
+    (facing, per_joint) or None
+        ``facing (3,)``: horizontal unit vector, the normalised mean of the hinges' directions;
+        ``per_joint``: each hinge's direction as degrees from north towards east. None when no
+        hinge was fitted or two hinges' directions differ by more than
+        :data:`FACING_SPREAD_DEG` (then a NumericalWarning names them).
+    """
+    dirs = {}
+    for j in sorted(calibration.hinge_residual_rad_s):
+        prox = JOINTS[j][0]
+        RA, _, tk = _hinge_orientations(recording, calibration, j, None, None)
+        w0 = (tk >= calibration.window_s[0]) & (tk <= calibration.window_s[1])
+        if not np.any(w0):
+            continue
+        x = np.einsum("kij,j->i", RA[w0], calibration.frames[prox][:, 0])
+        x[2] = 0.0
+        if np.linalg.norm(x) > 1e-6:
+            dirs[j] = x / np.linalg.norm(x)
+    if not dirs:
+        return None
+    f = np.sum(list(dirs.values()), axis=0)
+    if np.linalg.norm(f) < 1e-6:
+        return None
+    f /= np.linalg.norm(f)
+    off = {j: float(np.degrees(np.arccos(np.clip(d @ f, -1.0, 1.0)))) for j, d in dirs.items()}
+    if max(off.values()) > FACING_SPREAD_DEG / 2:
+        warnings.warn(
+            "facing: the flexion axes of "
+            + ", ".join(
+                f"{j} ({np.degrees(np.arctan2(d[0], d[1])):.0f} deg from north)"
+                for j, d in dirs.items()
+            )  # fmt: skip
+            + f" imply facings more than {FACING_SPREAD_DEG:g} deg apart; the facing is not "
+            "estimated (declare it: [calibration] facing)",
+            NumericalWarning,
+            stacklevel=2,
+        )
+        return None
+    return f, {j: float(np.degrees(np.arctan2(d[0], d[1]))) for j, d in dirs.items()}
 
 
 def _hinge_orientations(recording, calibration, j: str, start_s, window_s):

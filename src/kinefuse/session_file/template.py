@@ -55,7 +55,10 @@ pose = "n"                       # "n": arms hanging, "t": T-pose (static only)
 # window_s = 2.0                 # still window length, s; found automatically unless start_s is given
 # start_s = 0.0
 # heading = "auto"               # 6-D sensors (no magnetometer): "static" aligns their headings
-# flexion_axes = "auto"          # elbow/knee flexion axes: "movement" (6-D default) or "pose"
+# facing = "auto"                # which way the subject faced in the pose: [x, y, z] (world);
+#                                # "auto": from the elbows'/knees' movement (north if none moved)
+# flexion_axes = "auto"          # elbow/knee flexion axes: "movement" (default unless facing
+#                                # is declared) or "pose" (from the facing)
 
 # Optional: a camera skeleton. Needed by {camera_methods}.
 # [camera]

@@ -33,6 +33,12 @@ _WHAT = {
 }
 
 
+def _facing(value):
+    """``[calibration] facing``: ``"auto"`` (default: estimated from the movement of elbows and
+    knees, see :func:`kinefuse.kinematics.calibrate`) or a declared direction."""
+    return value if isinstance(value, str) else tuple(float(x) for x in value)
+
+
 def _calibration_kwargs(params: Mapping, calib: str, six_d, axes_decl, cal_segs) -> dict:
     """Keyword arguments of :func:`kinefuse.kinematics.calibrate` for ``calib``."""
     window = float(params.get("calibration_window_s", 2.0))
@@ -44,7 +50,7 @@ def _calibration_kwargs(params: Mapping, calib: str, six_d, axes_decl, cal_segs)
             heading = "static" if six_d else "none"
         kw.update(
             pose=params.get("pose", "n"),
-            facing=tuple(params.get("facing", (0.0, 1.0, 0.0))),
+            facing=_facing(params.get("facing", "auto")),
             heading=heading,
             flexion_axes=params.get("flexion_axes", "auto"),
             mounting={s: a for s, a in axes_decl.items() if s in cal_segs},
@@ -122,7 +128,7 @@ def calibrate_session(
 
 def _static_notes(cal, params: Mapping, six_d, cal_segs, notes: list[str], provenance: dict):
     """What a static calibration took from the pose, the movement and the declared facing."""
-    f = [float(x) for x in params.get("facing", (0.0, 1.0, 0.0))]
+    f = [round(float(x), 3) for x in cal.facing] if cal.facing is not None else [0.0, 1.0, 0.0]
     hinged = sorted(cal.hinge_residual_rad_s)
     moved = {s for j in hinged for s in JOINTS[j][:2]}
     rest = [s for s in cal.frames if s not in moved]
@@ -136,13 +142,21 @@ def _static_notes(cal, params: Mapping, six_d, cal_segs, notes: list[str], prove
             "facing is not used for them"
         )
         provenance["flexion_axes"] = {j: "movement" for j in hinged}
+    how = {
+        "declared": "as declared ([calibration] facing)",
+        "hinges": "estimated from the flexion axes fitted to the movement of " + ", ".join(hinged),
+        "default": "north by default (no elbow or knee moved enough to estimate it; declare "
+        "[calibration] facing)",
+    }.get(cal.facing_from, "as declared")
+    deg = float(np.degrees(np.arctan2(f[0], f[1])))
+    notes.append(f"facing: {f} (world frame, {deg:.0f} deg from north towards east), {how}")
+    provenance["facing"] = f
+    provenance["facing_from"] = cal.facing_from or "declared"
     if rest:
         notes.append(
             f"segment frames of {', '.join(rest)}: anterior axis = the facing direction "
-            f"{f} (world frame) in the still pose, as declared ([calibration] facing; "
-            "default north); flexion axes follow from it"
+            "in the still pose; flexion axes follow from it"
         )
-        provenance["facing"] = f
     if cal.world_heading_deg:
         notes.append(
             "heading: 6-D orientations (arbitrary heading per sensor) brought into the "
@@ -177,8 +191,12 @@ def _sensor_orientations(recording, cal, t: np.ndarray) -> dict[str, np.ndarray]
     return out
 
 
-def _joint_angles(recording, cal, t: np.ndarray, notes: list[str]) -> dict[str, np.ndarray]:
-    """ISB joint angles (deg) from the calibrated segment frames, with a range check."""
+def _joint_angles(
+    recording, cal, t: np.ndarray, notes: list[str], warnings: list[str] | None = None
+) -> dict[str, np.ndarray]:
+    """ISB joint angles (deg) from the calibrated segment frames, with a range check (a
+    flexion beyond the anatomical range is a warning: in ``notes`` and ``warnings``, which the
+    CLI prints)."""
     angles = joint_angles(segment_orientations(recording, cal, t))
     if angles:
         notes.append(
@@ -189,10 +207,13 @@ def _joint_angles(recording, cal, t: np.ndarray, notes: list[str]) -> dict[str, 
         lo, hi = _HINGE_RANGE_DEG.get(j.rsplit("_", 1)[0], (-np.inf, np.inf))
         f = a[:, 0][np.isfinite(a[:, 0])]
         if f.size and (np.percentile(f, 1) < lo or np.percentile(f, 99) > hi):
-            notes.append(
-                f"warning: {j} flexion spans {f.min():.0f} to {f.max():.0f} deg, beyond the "
+            msg = (
+                f"{j} flexion spans {f.min():.0f} to {f.max():.0f} deg, beyond the "
                 f"anatomical {lo:.0f} to {hi:.0f} deg: the facing direction or the pose is "
                 "probably wrong (the facing, the pose, or too little flexion to fit its axis: "
                 "see the calibration notes; [calibration] flexion_axes, facing)"
             )
+            notes.append(f"warning: {msg}")
+            if warnings is not None:
+                warnings.append(msg)
     return angles

@@ -107,13 +107,16 @@ def _check_params(params: Mapping, method: str) -> None:
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
             raise ConfigError(f"[method.parameters] rate_hz: expected a number > 0, got {v!r}")
     for key in ("root_position_m", "facing"):
+        if key == "facing" and params.get(key) == "auto":
+            continue
         if key in params and not isinstance(params[key], Mapping):
             v = np.asarray(params[key], dtype=object)
             if v.shape != (3,) or not all(
                 isinstance(x, (int, float)) and not isinstance(x, bool) for x in v
             ):
+                what = "'auto' or [x, y, z]" if key == "facing" else "[x, y, z] in m"
                 raise ConfigError(
-                    f"[method.parameters] {key}: expected [x, y, z] in m, got {params[key]!r}"
+                    f"[method.parameters] {key}: expected {what}, got {params[key]!r}"
                 )
 
 

@@ -182,7 +182,7 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m)
     if cal is not None:
         out.sensor_orientations = _sensor_orientations(recording, cal, t)
     if cal is not None and cal.frames:
-        out.angles = _joint_angles(recording, cal, t, notes)
+        out.angles = _joint_angles(recording, cal, t, notes, run_warnings)
     ctx = {"cal": cal, "calib": calib, "coverage": coverage, "root_ok": root_ok, "inputs": inputs,
            "root_name": {"vision": "camera", "reference": "reference"}.get(root_kind, root_kind),
            "reference": out.reference, "joints": joints}  # fmt: skip
