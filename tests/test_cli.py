@@ -329,6 +329,17 @@ def _session(
         ),
         ({}, "[camera]\npath = 'cam.csv'\n", "s.toml: [camera] format: missing"),
         (
+            {"method": "paper-b"},
+            "",
+            "[method] name: unknown method 'paper-b' (paper B's methods are 'elm-fir'",
+        ),
+        (
+            {},
+            "[calibration]\nfacing = 'south'\n",
+            's.toml: [calibration] facing: expected "auto" or a horizontal direction [x, y, z]',
+        ),
+        ({}, "[calibration]\nfacing = [0, 0, 1]\n", "[calibration] facing: expected"),
+        (
             {},
             "[reference]\nformat = 'c3d'\npath = 5\n",
             "[reference] path: expected a non-empty string, got 5",

@@ -311,6 +311,19 @@ def _calibration(c: _Ctx, doc: Mapping) -> CalibrationConfig:
             raise c.error(
                 "calibration", key, f"expected one of {', '.join(choices)}, got {cal[key]!r}"
             )
+    f = cal.get("facing", "auto")
+    if f != "auto" and not (
+        isinstance(f, list)
+        and len(f) == 3
+        and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in f)
+        and any(f[:2])
+    ):
+        raise c.error(
+            "calibration",
+            "facing",
+            f'expected "auto" or a horizontal direction [x, y, z], got {f!r}',
+            'e.g. facing = [0, 1, 0] (north), or leave it out: "auto" takes it from the movement',
+        )
     if "lengths_from_data" in cal and not isinstance(cal["lengths_from_data"], bool):
         raise c.error("calibration", "lengths_from_data", "expected true or false")
     return CalibrationConfig(settings=dict(cal))
