@@ -469,10 +469,14 @@ def to_rich(table: ResultTable):
         box=box.SIMPLE_HEAD,
         pad_edge=False,
     )
+    # a narrow terminal wraps the labels (long "[calibrated on ...]" tags), never the numbers:
+    # each value column keeps the width of its widest cell and header word
     for h in table.label_headers:
-        t.add_column(escape(h), no_wrap=True)
-    for h in table.value_headers:
-        t.add_column(escape(h), justify="right", no_wrap=True)
+        t.add_column(escape(h), overflow="fold")
+    for c, h in enumerate(table.value_headers):
+        cells = [table.cell(r.values[c]) for r in table.rows if c < len(r.values)]
+        need = max([len(x) for x in cells] + [len(w) for w in h.split()] + [1])
+        t.add_column(escape(h), justify="right", no_wrap=True, min_width=need)
     best = _best_per_column(table)
     previous = None
     for i, row in enumerate(table.rows):
