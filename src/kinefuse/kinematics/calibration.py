@@ -217,8 +217,10 @@ def calibrate(
         est = hinge_facing(recording, cal)
         if est is not None:  # every pose frame (pelvis, hips, T-pose arms) in that facing
             f0, source = est[0], "hinges"
-            cal = static_calibration(skeleton, segs, imus, facing=f0, **kw)
-            cal = hinge_frames(recording, cal, refine_heading=heading == "static")
+            with warnings.catch_warnings():  # the first pass said it all (same data)
+                warnings.simplefilter("ignore", NumericalWarning)
+                cal = static_calibration(skeleton, segs, imus, facing=f0, **kw)
+                cal = hinge_frames(recording, cal, refine_heading=heading == "static")
     return replace(cal, facing=np.asarray(f0, dtype=float), facing_from=source)
 
 
