@@ -215,6 +215,11 @@ def test_facing_auto_is_estimated_from_the_hinges():
     assert cal0.facing_from == "default" and np.allclose(cal0.facing, [0.0, 1.0, 0.0])
     with pytest.raises(InputError, match="facing"):
         calibrate(rec, sk, "static", window_s=0.5, facing="north")
+    # in a T-pose the arms' static axes follow the assumed facing: the elbow cannot tell it
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NumericalWarning)  # the arm hangs: off the T-pose
+        tp = calibrate(rec, sk, "static", window_s=0.5, pose="t", facing="auto")
+    assert tp.facing_from == "default"
 
 
 def test_hinge_flexion_sign_by_anatomy():

@@ -53,13 +53,14 @@ from kinefuse.kinematics.alignment import (
     solve_alignment,
     unit_direction,
 )
+from kinefuse.kinematics.angles import JOINTS
 from kinefuse.kinematics.calibration_result import Calibration, joint_stream, oriented_imu
 from kinefuse.kinematics.chain import chain_positions, segment_orientations
 from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.kinematics.functional import functional_calibration
 from kinefuse.kinematics.hinge import hinge_facing, hinge_frames
 from kinefuse.kinematics.skeleton import Skeleton, lengths_from_joints, window_mask
-from kinefuse.kinematics.static import POSE_WARN_DEG, static_calibration
+from kinefuse.kinematics.static import POSE_WARN_DEG, facing_free_segments, static_calibration
 from kinefuse.kinematics.still import MAX_ACC_STD_M_S2, MAX_RATE_RAD_S
 from kinefuse.orientation.resample import slerp_resample
 
@@ -214,7 +215,8 @@ def calibrate(
         cal = hinge_frames(recording, cal, refine_heading=heading == "static")
     source = "default" if auto_facing else "declared"
     if auto_facing and flexion_axes == "movement":
-        est = hinge_facing(recording, cal)
+        free = facing_free_segments(skeleton, segs, pose, directions)
+        est = hinge_facing(recording, cal, [j for j in JOINTS if set(JOINTS[j][:2]) <= free])
         if est is not None:  # every pose frame (pelvis, hips, T-pose arms) in that facing
             f0, source = est[0], "hinges"
             with warnings.catch_warnings():  # the first pass said it all (same data)

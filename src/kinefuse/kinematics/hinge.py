@@ -238,14 +238,18 @@ def hinge_frames(
 FACING_SPREAD_DEG = 45.0
 
 
-def hinge_facing(recording: Recording, calibration: Calibration) -> tuple[np.ndarray, dict] | None:
+def hinge_facing(
+    recording: Recording, calibration: Calibration, joints: Sequence[str] | None = None
+) -> tuple[np.ndarray, dict] | None:
     """The subject's facing implied by the hinge frames fitted to the movement.
 
     A hinge segment frame from :func:`hinge_frames` has its flexion axis from the data and its
     sign by anatomy, so its anterior axis ``X = Y × Z`` is the subject's front, whatever facing
     the pose assumed. Per hinge in ``calibration.hinge_residual_rad_s``: the proximal segment's
     ``X`` in the world at the calibration window (mean over the window of ``R_world_from_sensor
-    X``), made horizontal.
+    X``), made horizontal. ``joints``: only these hinges (default all fitted ones); a hinge
+    whose segments' static axes depend on the assumed facing (the arms in a T-pose) cannot
+    tell it.
 
     Returns
     -------
@@ -257,6 +261,8 @@ def hinge_facing(recording: Recording, calibration: Calibration) -> tuple[np.nda
     """
     dirs = {}
     for j in sorted(calibration.hinge_residual_rad_s):
+        if joints is not None and j not in joints:
+            continue
         prox = JOINTS[j][0]
         RA, _, tk = _hinge_orientations(recording, calibration, j, None, None)
         w0 = (tk >= calibration.window_s[0]) & (tk <= calibration.window_s[1])

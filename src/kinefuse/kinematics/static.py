@@ -21,7 +21,7 @@ from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.kinematics.skeleton import Skeleton, unit_axis, window_mask
 from kinefuse.kinematics.still import StillWindow, find_still_window
 
-__all__ = ["POSE_WARN_DEG", "static_calibration"]
+__all__ = ["POSE_WARN_DEG", "facing_free_segments", "static_calibration"]
 
 #: Angle (deg) beyond which a static-pose segment gets a warning naming it.
 POSE_WARN_DEG = 20.0
@@ -40,6 +40,15 @@ def _body_frame(facing) -> np.ndarray:
         raise InputError(f"expected a horizontal facing direction, got {facing}")
     f = f / np.linalg.norm(f)
     return np.stack([f, _UP, np.cross(f, _UP)], axis=1)
+
+
+def facing_free_segments(
+    skeleton: Skeleton, segs: Sequence[str], pose: str, directions
+) -> set[str]:
+    """The segments whose pose direction is vertical (their static axis does not depend on the
+    facing): all of them in the N-pose, the legs in the T-pose, per ``directions`` if given."""
+    d0 = _static_directions(skeleton, segs, pose, (0.0, 1.0, 0.0), directions)
+    return {s for s, d in d0.items() if abs(float(d @ _DOWN)) > 0.999}
 
 
 def _static_directions(
