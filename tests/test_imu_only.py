@@ -440,6 +440,56 @@ def test_opensense_walk_facing_from_the_knees(shared_data, tmp_path):
         assert -20 < np.nanmin(hip) < -5 and 20 < np.nanmax(hip) < 40, side
 
 
+NEURA_FUNCTIONAL = """\
+    [session]
+    name = "nf"
+    [imu]
+    format = "neura"
+    path = "{data}/neura_sparse_sample"
+    [imu.segments]
+    pelvis = "Pelvis"
+    thigh_l = "L_UpLeg"
+    thigh_r = "R_UpLeg"
+    shank_l = "L_LowLeg2"
+    shank_r = "R_LowLeg2"
+    foot_l = "L_Foot"
+    foot_r = "R_Foot"
+    [skeleton]
+    root = "reference"
+    [skeleton.lengths]
+    thigh_l = 0.417
+    thigh_r = 0.395
+    shank_l = 0.389
+    shank_r = 0.409
+    [reference]
+    format = "neura"
+    path = "{data}/neura_sparse_sample/vicon/S02-Trial-Walk-1.csv"
+    [calibration]
+    method = "functional"
+    [method]
+    name = "imu-only"
+"""
+
+
+def test_functional_session_uses_the_measured_lengths_and_feet_for_ankles(shared_data, tmp_path):
+    """Functional calibration in a session: the feet's IMUs locate the ankles (no error asking
+    for a toe), and the tape lengths win over the functional estimates in the chain, as the
+    provenance says (the chain used the estimates: shank_l 0.409 m instead of 0.389)."""
+    p = _session(tmp_path, NEURA_FUNCTIONAL.format(data=shared_data))
+    res = runner.invoke(cli.app, ["run", str(p), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, (res.output, _err(res))
+    rec = read_joint_csv(tmp_path / "o" / "nf_joints.csv")
+    st = rec.vision
+    assert st.joints == ("knee_l", "knee_r", "ankle_l", "ankle_r")
+    for side, want in (("l", 0.389), ("r", 0.409)):
+        shank = np.linalg.norm(st.position(f"ankle_{side}") - st.position(f"knee_{side}"), axis=1)
+        np.testing.assert_allclose(shank[np.isfinite(shank)], want, atol=1e-5)
+    prov = json.loads((tmp_path / "o" / "metrics.json").read_text())["provenance"]
+    assert prov["segment_lengths"]["shank_l"] == {"m": 0.389, "source": "measured"}
+    report = (tmp_path / "o" / "report.html").read_text()
+    assert "foot_l, foot_r: IMUs used for the ankle centres only" in report
+
+
 def _session(tmp_path: Path, body: str) -> Path:
     p = tmp_path / "s.toml"
     p.write_text(textwrap.dedent(body), encoding="utf-8")

@@ -116,11 +116,29 @@ def process_recording(
             f"{sorted(recording.imu)}; map at least one of {', '.join(SEGMENT_JOINTS)}"
         )
     plan = _plan(recording, method, params, segs)
+    segs, beyond = _functional_segments(segs, plan, params)
     out, recording, ctx = _chain_output(recording, method, params, segs, plan, lengths,
                                         body_height_m)  # fmt: skip
+    if beyond:
+        out.notes.append(
+            f"{', '.join(beyond)}: IMUs used for the ankle centres only (functional calibration "
+            "cannot locate a toe without an IMU past it; declare [skeleton.axes] and "
+            "[skeleton.lengths] for them to output the feet)"
+        )
     _run_method(out, recording, method, params, ctx)
     _label_and_align(out, recording, plan, ctx["reference"])
     return out
+
+
+def _functional_segments(segs, plan: dict, params: Mapping) -> tuple[list, list]:
+    """Functional calibration: the feet without a declared axis serve the ankles' joint centres
+    only (nothing past the toe locates it), so they are not output segments. Returns the output
+    segments and the feet left out."""
+    if plan["calibration"] != "functional":
+        return segs, []
+    declared = dict(params.get("axes") or {})
+    beyond = [s for s in segs if s.startswith("foot_") and s not in declared]
+    return [s for s in segs if s not in beyond] or segs, beyond
 
 
 def _chain_output(recording, method, params, segs, plan, lengths, body_height_m):
@@ -165,7 +183,11 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m)
     )
     provenance["root_position"] = root_desc
     source = "vision" if root_kind == "vision" else "reference"
-    chain_st = chain_positions(recording, sk, cal, root=root_pos, source=source, t_s=t)
+    # sk holds the resolved lengths (measured > camera/reference > functional > body height):
+    # the calibration's own length estimates must not override them again
+    chain_st = chain_positions(
+        recording, sk, cal, root=root_pos, source=source, t_s=t, use_calibrated_lengths=False
+    )
     joints = tuple(s for s in sk.distal)
     chain = np.stack([chain_st.position(j, masked=False) for j in joints], axis=1)
     coverage, root_ok, inputs = _input_coverage(recording, sk, root_stream, t, joints)
