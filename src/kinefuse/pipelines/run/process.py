@@ -279,6 +279,15 @@ def _label_and_align(out: SessionOutput, recording, plan: dict, reference) -> No
             tags.append("calibrated on camera = reference")
         if any(s.startswith("camera") for s in sources):
             tags.append("lengths from camera = reference")
+        if out.method in _CAMERA_METHODS or out.baselines:
+            msg = (
+                "the camera is the reference's own data: wherever the camera sees a joint, an "
+                "estimate that follows it (camera only, gap-fill, the offset baselines, the "
+                "camera fusions) scores about 0 there by construction, not by accuracy; only the "
+                "IMU chain and samples inside camera outages say something"
+            )
+            out.warnings.append(msg)
+            notes.append(f"WARNING: {msg}")
     if out.reference is not None and out.frame != "ENU chest-relative":
         ref_frame = recording.reference.frame
         if plan["align"] == "rigid":
