@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterator
 
 from rich import progress as bars
 from rich.console import Console
+from rich.markup import escape
 
 __all__ = ["progress"]
 
@@ -53,5 +54,5 @@ def progress(
         columns.append(bars.MofNCompleteColumn())
     columns.append(bars.TimeElapsedColumn())
     with bars.Progress(*columns, console=_stderr(), transient=True) as bar:
-        task = bar.add_task(description, total=total)
+        task = bar.add_task(escape(description), total=total)  # text, not markup (a name)
         yield lambda n=1: bar.advance(task, n)
