@@ -166,10 +166,9 @@ def names(*, form: str | None = None, needs: str | None = None) -> tuple[str, ..
     )
 
 
-#: Names people reach for that are not method names (normalised: lower case, ``-``), and what
-#: to use instead.
+#: Names people reach for that are not method names (normalised: lower case, no ``-``, ``_``
+#: or spaces), and what to use instead.
 _POINTERS = {
-    "paper-b": "paper B's methods are 'elm-fir' (its proposed ELM/FIR fusion) and 'elm-kf'",
     "paperb": "paper B's methods are 'elm-fir' (its proposed ELM/FIR fusion) and 'elm-kf'",
     "imu": "did you mean 'imu-only'?",
     "camera": "did you mean 'camera-only'?",
@@ -180,7 +179,7 @@ def unknown_fix(name, choices=None) -> str:
     """What to say about an unknown method ``name``: a pointer for names people reach for
     (``"paper-b"`` → its methods ``elm-fir`` / ``elm-kf``), else the closest of ``choices``
     (default every registered name)."""
-    key = str(name).strip().lower().replace("_", "-").replace(" ", "-")
+    key = "".join(c for c in str(name).lower() if c not in "-_ ")
     if key in _POINTERS:
         return _POINTERS[key]
     return did_you_mean(str(name), list(choices if choices is not None else REGISTRY))

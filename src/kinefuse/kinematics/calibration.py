@@ -58,7 +58,7 @@ from kinefuse.kinematics.calibration_result import Calibration, joint_stream, or
 from kinefuse.kinematics.chain import chain_positions, segment_orientations
 from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.kinematics.functional import functional_calibration
-from kinefuse.kinematics.hinge import hinge_facing, hinge_frames
+from kinefuse.kinematics.hinge import HINGES, hinge_facing, hinge_frames
 from kinefuse.kinematics.skeleton import Skeleton, lengths_from_joints, window_mask
 from kinefuse.kinematics.static import POSE_WARN_DEG, facing_free_segments, static_calibration
 from kinefuse.kinematics.still import MAX_ACC_STD_M_S2, MAX_RATE_RAD_S
@@ -216,14 +216,35 @@ def calibrate(
     source = "default" if auto_facing else "declared"
     if auto_facing and flexion_axes == "movement":
         free = facing_free_segments(skeleton, segs, pose, directions)
-        est = hinge_facing(recording, cal, [j for j in JOINTS if set(JOINTS[j][:2]) <= free])
+        kept = [j for j in cal.hinge_residual_rad_s if set(JOINTS[j][:2]) <= free]
+        est = hinge_facing(recording, cal, kept)
         if est is not None:  # every pose frame (pelvis, hips, T-pose arms) in that facing
             f0, source = est[0], "hinges"
             with warnings.catch_warnings():  # the first pass said it all (same data)
                 warnings.simplefilter("ignore", NumericalWarning)
-                cal = static_calibration(skeleton, segs, imus, facing=f0, **kw)
-                cal = hinge_frames(recording, cal, refine_heading=heading == "static")
+                cal = _in_facing(recording, skeleton, segs, imus, cal, f0, kept, kw)
     return replace(cal, facing=np.asarray(f0, dtype=float), facing_from=source)
+
+
+def _in_facing(recording, skeleton, segs, imus, first: Calibration, facing, kept, kw: dict):
+    """The static calibration again in ``facing``: new pose frames; the hinges in ``kept``
+    (fitted, their segments' axes facing-free, so their fit does not depend on the facing)
+    keep ``first``'s frames, residuals and refined headings; the other hinges are fitted
+    again (their axes, or the frames they fall back to, follow the facing)."""
+    cal = static_calibration(skeleton, segs, imus, facing=facing, **kw)
+    frames, heading = dict(cal.frames), dict(cal.world_heading_deg)
+    for j in kept:
+        for s in JOINTS[j][:2]:
+            frames[s] = first.frames[s]
+        dist = JOINTS[j][1]
+        if dist in first.world_heading_deg:
+            heading[dist] = first.world_heading_deg[dist]
+    resid = {j: first.hinge_residual_rad_s[j] for j in kept}
+    cal = replace(cal, frames=frames, world_heading_deg=heading, hinge_residual_rad_s=resid)
+    redo = [j for j in HINGES if j not in kept and set(JOINTS[j][:2]) <= set(cal.axes)]
+    if not redo:
+        return cal
+    return hinge_frames(recording, cal, joints=redo, refine_heading=kw["heading"] == "static")
 
 
 def _check_options(recording, skeleton, method, heading, flexion_axes, align) -> None:
