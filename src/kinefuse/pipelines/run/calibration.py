@@ -122,11 +122,11 @@ def calibrate_session(
     notes.append(line)
     provenance["calibration_window_s"] = list(cal.window_s)
     if calib == "static":
-        _static_notes(cal, params, six_d, cal_segs, notes, provenance)
+        _static_notes(cal, six_d, cal_segs, notes, provenance)
     return recording, cal
 
 
-def _static_notes(cal, params: Mapping, six_d, cal_segs, notes: list[str], provenance: dict):
+def _static_notes(cal, six_d, cal_segs, notes: list[str], provenance: dict):
     """What a static calibration took from the pose, the movement and the declared facing."""
     f = [round(float(x), 3) for x in cal.facing] if cal.facing is not None else [0.0, 1.0, 0.0]
     hinged = sorted(cal.hinge_residual_rad_s)
