@@ -7,7 +7,7 @@ import pickle
 import numpy as np
 import pytest
 
-from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED, SOURCE_IMU
+from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED, SOURCE_IMU, SOURCE_PREDICTED
 from kinefuse.exceptions import InputError
 from kinefuse.kinematics import full_body
 from kinefuse.pipelines import VisionParams, vision_assisted
@@ -93,6 +93,29 @@ def test_step_equals_batch_causal(scenario, method, name):
     assert_matches(stepped(proc, z_imu, z_cam, av), res)
     # same episodes (typed, every field), same training decisions
     assert proc.episodes == res.episodes
+
+
+@pytest.mark.parametrize("method", ["elm-fir", "elm-kf"])
+def test_no_input_is_predicted_not_bridged(scenario, method):
+    """Inside an outage, frames without the IMU chain (a stale or dropped IMU) are backed by no
+    input: source PREDICTED (never available), online, causal and offline alike; a chain gap
+    while the camera sees the joint stays fused (the camera measured it)."""
+    z_imu, z_cam, av = (a.copy() for a in scenario)
+    z_imu[540:560, 0] = np.nan  # joint 0's camera outage is 500:620
+    proc = VisionAssistedProcessor(method, PARAMS["default"], DT, joints=z_imu.shape[1])
+    got = stepped(proc, z_imu, z_cam, av)
+    for res in (vision_assisted(z_imu, z_cam, av, DT, method, causal=c) for c in (True, False)):
+        src = res.source
+        assert np.all(src[540:560, 0] == SOURCE_PREDICTED)
+        assert np.all(np.isfinite(res.position[540:560, 0]))  # an estimate, labelled honestly
+        assert np.all(src[505:540, 0] == SOURCE_BRIDGED) and np.all(
+            src[560:620, 0] == SOURCE_BRIDGED
+        )
+        assert np.all(src[700:730, 4] == SOURCE_FUSED)  # chain gap in view
+        assert np.sum(src == SOURCE_PREDICTED) == 20
+    np.testing.assert_array_equal(
+        got[2], vision_assisted(z_imu, z_cam, av, DT, method, causal=True).source
+    )
 
 
 @pytest.mark.parametrize("causal", [True, False])

@@ -41,9 +41,9 @@ __all__ = [
 THREE_VERSION = "r187 (npm three@0.187.0)"
 
 #: Colour of each source code (Okabe & Ito 2008 colour-blind-safe palette, as the report's
-#: source timeline): :data:`kinefuse.conventions.SOURCE_NAMES` plus ``-1`` = predicted
-#: (streaming's ``SOURCE_PREDICT``).
-SOURCE_COLORS = {**plots.code_colors(SOURCE_NAMES), -1: plots.OKABE_ITO[4]}
+#: source timeline): :data:`kinefuse.conventions.SOURCE_NAMES`, "predicted" included (streaming's
+#: ``SOURCE_PREDICT`` is that code); other codes (``-1``, no estimate) are grey.
+SOURCE_COLORS = plots.code_colors(SOURCE_NAMES)
 
 _MISSING = -32768  # int16 code of a missing (NaN) coordinate
 

@@ -28,6 +28,8 @@ outage episodes)::
               cov_t = FIR-3 cov_t + diag(var of ELM-2's training residual)
               (ELM-2 skipped if too few samples: out = FIR-3, cov adds ELM-1's residual
               variance, elm2_skipped)
+    camera unavailable and no chain (a NaN z^I row: a stale or dropped IMU): the filters'
+            prediction, source PREDICTED (no input backs it: never available)
 
 An outage at the very start has no training data: IMU-only output, flagged. A joint that is
 never available is IMU-only throughout. The history kept for training reaches back to the
@@ -60,7 +62,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED, SOURCE_IMU
+from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED, SOURCE_IMU, SOURCE_PREDICTED
 from kinefuse.exceptions import InputError
 from kinefuse.filters import (
     IMM,
@@ -337,7 +339,11 @@ class PaperBCore:
                   ELM-2.fit(ẑ or FIR-3, RTS − FIR-3) (seed + 1) on that segment ∩ win
         In the episode: out = FIR-3 + clip(ELM-2(ẑ or FIR-3)), cov = FIR-3 cov + cov_add.
         """
-        if np.isinf(z_imu).any() or (features is not None and np.isinf(features).any()):
+        imu_ok = np.all(np.isfinite(z_imu), axis=-1)  # (J, L): the chain measured the joint
+        all_imu = imu_ok.all()
+        if (not all_imu and np.isinf(z_imu).any()) or (
+            features is not None and np.isinf(features).any()
+        ):
             raise InputError("expected z_imu and features finite or NaN (missing), got ±inf")
         av = available & np.all(np.isfinite(z_cam), axis=-1)
         if not av.all():
@@ -369,6 +375,8 @@ class PaperBCore:
         if state.mode.any() or not av.all():  # (the common frame has no episode: skip the scan)
             for j in np.flatnonzero((state.mode != MODE_NONE) | ~av.all(axis=1)):
                 self._episodes_of_joint(state, j, x[j], av[j], (m1[j], P1[j]), out)
+        if not all_imu:  # neither the chain nor the camera measured it: a prediction
+            src[~imu_ok & ~av & (src != _NONE_I8)] = _PREDICTED_I8
         state.k += L
         if not np.isfinite(pos).all():
             cov[~np.all(np.isfinite(pos), axis=-1)] = np.nan
@@ -515,8 +523,8 @@ def _lagged(prev: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 # source codes as int8 scalars: np.where of these is the int8 source array directly
-_FUSED_I8, _BRIDGED_I8, _IMU_I8, _NONE_I8 = map(
-    np.int8, (SOURCE_FUSED, SOURCE_BRIDGED, SOURCE_IMU, SOURCE_NONE)
+_FUSED_I8, _BRIDGED_I8, _IMU_I8, _PREDICTED_I8, _NONE_I8 = map(
+    np.int8, (SOURCE_FUSED, SOURCE_BRIDGED, SOURCE_IMU, SOURCE_PREDICTED, SOURCE_NONE)
 )
 _EYE3 = np.eye(3)
 _EYE3.setflags(write=False)

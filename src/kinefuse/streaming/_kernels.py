@@ -13,9 +13,8 @@ import numpy as np
 
 from kinefuse._compile import njit
 from kinefuse.conventions import SOURCE_CAMERA, SOURCE_FUSED, SOURCE_IMU
+from kinefuse.conventions import SOURCE_PREDICTED as SOURCE_PREDICT
 from kinefuse.filters._kernels_axis import kf_filter_axis
-
-SOURCE_PREDICT = -1  # = kinefuse.streaming.processors.SOURCE_PREDICT (no import cycle)
 
 
 @njit

@@ -185,7 +185,8 @@ class EngineOutput:
     cov_m2 : ndarray, shape (J, 3, 3)
         Position covariance.
     source : ndarray of int8, shape (J,)
-        Processor source code (:data:`kinefuse.conventions.SOURCE_NAMES`, -1 predict only).
+        Processor source code (:data:`kinefuse.conventions.SOURCE_NAMES`, "predicted" when no
+        input measured the joint; -1 no estimate).
     flags : ndarray of uint8, shape (J,)
         ``FLAG_*`` bits.
     imu_status : ndarray of int8, shape (J,)

@@ -38,7 +38,7 @@ from kinefuse.conventions import SOURCE_NAMES
 from kinefuse.exceptions import InputError
 from kinefuse.streaming import engine_types as _engine
 from kinefuse.streaming.config import import_pylsl
-from kinefuse.streaming.processors import SOURCE_PREDICT
+from kinefuse.streaming.processors import SOURCE_NONE
 
 __all__ = [
     "CAMERA_TYPE",
@@ -418,7 +418,7 @@ class FusedOutlet:
             (_engine.FLAG_NO_CAMERA_JOINT, "camera did not see the joint"),
             (_engine.FLAG_FORCED, "frame processed after max latency"))]  # fmt: skip
         sources = [("source", {"code": c, "meaning": m}) for c, m in SOURCE_NAMES.items()]
-        sources.append(("source", {"code": SOURCE_PREDICT, "meaning": "predict only"}))
+        sources.append(("source", {"code": SOURCE_NONE, "meaning": "no estimate (NaN position)"}))
         self.outlet = make_outlet(
             name, OUTPUT_TYPE, self.channels, rate_hz,
             source_id=source_id or f"kinefuse-fused-{name}",

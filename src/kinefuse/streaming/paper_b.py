@@ -169,7 +169,8 @@ class VisionAssistedProcessor:
         cov : ndarray, shape (J, 3, 3)
             m².
         source : ndarray of int8, shape (J,)
-            ``SOURCE_FUSED``, ``SOURCE_BRIDGED``, ``SOURCE_IMU``, or -1 (no estimate).
+            ``SOURCE_FUSED``, ``SOURCE_BRIDGED``, ``SOURCE_IMU``, ``SOURCE_PREDICTED``
+            (neither the chain nor the camera measured the joint), or -1 (no estimate).
         """
         zi = np.asarray(z_imu, dtype=np.float64)
         zc = np.asarray(z_cam, dtype=np.float64)

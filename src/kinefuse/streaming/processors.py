@@ -30,7 +30,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from kinefuse.conventions import SOURCE_CAMERA, SOURCE_FUSED, SOURCE_IMU
+from kinefuse.conventions import SOURCE_CAMERA, SOURCE_FUSED, SOURCE_IMU, SOURCE_PREDICTED
 from kinefuse.exceptions import InputError
 from kinefuse.filters._base import FilterResult, GaussianState
 from kinefuse.filters._kernels_axis import state_is_block_diagonal
@@ -41,15 +41,19 @@ from kinefuse.pipelines.upper_limb import paper_a_filter
 from kinefuse.streaming._kernels import fusion_step
 
 __all__ = [
+    "SOURCE_NONE",
     "SOURCE_PREDICT",
     "IntegratedProcessor",
     "KalmanFusionProcessor",
     "Processor",
 ]
 
-#: Source code of a joint that had no measurement in its frame (predict only). Not in
-#: :data:`kinefuse.conventions.SOURCE_NAMES` (which describes the paper-B pipelines).
-SOURCE_PREDICT = -1
+#: Source code of a joint that had no measurement in its frame (predict only): the offline
+#: pipelines' :data:`kinefuse.conventions.SOURCE_PREDICTED` (one code for "no input backs this
+#: sample" in files and on LSL; ``-1`` is no estimate, a NaN position).
+SOURCE_PREDICT = SOURCE_PREDICTED
+#: Source code of a joint without an estimate (NaN position), as the paper-B pipelines'.
+SOURCE_NONE = -1
 
 _CHECKPOINT_VERSION = 1
 

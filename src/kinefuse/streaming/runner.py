@@ -66,13 +66,18 @@ from kinefuse.streaming.liveview import LiveView
 from kinefuse.streaming.loop import run_loop
 from kinefuse.streaming.lsl import IMU_TYPE, FusedOutlet, Input, resolve_many
 from kinefuse.streaming.paper_b import VisionAssistedProcessor
-from kinefuse.streaming.processors import SOURCE_PREDICT, IntegratedProcessor, KalmanFusionProcessor
+from kinefuse.streaming.processors import (
+    SOURCE_NONE,
+    SOURCE_PREDICT,
+    IntegratedProcessor,
+    KalmanFusionProcessor,
+)
 
 __all__ = ["StreamSummary", "build_engine", "run_loop", "run_stream", "stream_config", "warm_up"]
 
 log = logging.getLogger("kinefuse.streaming")
 
-_SOURCE_SHORT = {**{k: v for k, v in SOURCE_NAMES.items()}, SOURCE_PREDICT: "predict"}
+_SOURCE_SHORT = {**SOURCE_NAMES, SOURCE_PREDICT: "predict", SOURCE_NONE: "none"}
 
 
 def stream_config(session) -> StreamConfig:
