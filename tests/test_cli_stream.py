@@ -222,12 +222,22 @@ def test_cli_replay_stream_loopback_60s(lsl_env, tmp_path):
 
 
 def test_cli_stream_accepts_offline_session(lsl_env, tmp_path):
-    """An offline session from `kinefuse init-session` is accepted; with no streams around it
-    ends with exit 2 and one line: the IMU streams were not found within the timeout."""
+    """An offline session from `kinefuse init-session` (paper A: static calibration, a fixed
+    shoulder) is refused before LSL, naming what the online engine would ignore; without them
+    it is accepted, and with no streams around it ends with exit 2 and one line: the IMU
+    streams were not found within the timeout, and what LSL sees instead."""
     session = tmp_path / "trial.toml"
     assert runner.invoke(cli.app, ["init-session", str(session)]).exit_code == 0
     (tmp_path / "data").mkdir()
     (tmp_path / "data" / "imu.csv").write_text("t\n", encoding="utf-8")
+    result = runner.invoke(cli.app, ["stream", str(session), "--no-status"])
+    assert result.exit_code == 2, result.output
+    _one_line_error(cli_stderr(result), "trial.toml: kinefuse stream cannot honour",
+                    "[calibration] method = 'static'", "[skeleton] root = 'fixed'", "kinefuse run")  # fmt: skip
+    assert "pylsl" not in sys.modules
+    text = session.read_text(encoding="utf-8")
+    text = text.replace('root = "fixed"', "").replace('method = "static"', 'method = "none"')
+    session.write_text(text.replace("root_position_m = [0.0, 0.0, 0.0]", ""), encoding="utf-8")
     proc = subprocess.run(
         [*KINEFUSE, "stream", str(session), "--duration", "1", "--resolve-timeout", "1",
          "--no-status"],
@@ -237,7 +247,7 @@ def test_cli_stream_accepts_offline_session(lsl_env, tmp_path):
         pytest.skip("pylsl cannot load liblsl: " + proc.stderr.strip())
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     # the session's name is the prefix; it has no [camera], so only IMU streams are looked for
-    _one_line_error(proc.stderr, "no IMU stream found within 1 s", "'trial_imu_")
+    _one_line_error(proc.stderr, "no IMU stream found within 1 s", "'trial_imu_", "visible")
 
 
 @pytest.mark.parametrize(

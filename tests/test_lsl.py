@@ -359,3 +359,28 @@ def test_stream_that_goes_away_before_it_is_opened(lsl_env):
     r = _result(_child(code, lsl_env["env"]))
     assert r["missing"] == [f"{lsl_env['prefix']}_imu_shank_r"] and r["outputs"] > 10
     assert r["err"] is not None and "went away before it could be opened" in r["err"]
+
+
+def test_wrong_prefix_error_names_the_streams_lsl_sees(lsl_env):
+    """A session whose prefix matches no stream: the error lists what LSL sees on this machine
+    and the prefix of its IMU streams (e.g. `kinefuse replay`'s default `kinefuse`)."""
+    code = _code("""
+    from kinefuse.exceptions import InputError
+    from kinefuse.streaming import StreamConfig
+    from kinefuse.streaming.lsl import IMU_CHANNELS, IMU_TYPE, make_outlet
+    from kinefuse.streaming.runner import _resolve_inputs
+    prefix = os.environ["KINEFUSE_TEST_PREFIX"]
+    outlet = make_outlet(f"{prefix}_imu_thigh_l", IMU_TYPE, IMU_CHANNELS, 100.0)
+    cfg = StreamConfig(name_prefix=prefix + "x", camera_stream="", resolve_timeout_s=1.0)
+    try:
+        _resolve_inputs(cfg)
+        err = None
+    except InputError as exc:
+        err = str(exc)
+    print("RESULT:" + json.dumps({"err": err}))
+    """)
+    err = _result(_child(code, lsl_env["env"]))["err"]
+    p = lsl_env["prefix"]
+    assert err.startswith(f"no IMU stream found within 1 s (looked for ['{p}x_imu_chest'"), err
+    assert f"visible: {p}_imu_thigh_l" in err and f"prefix '{p}'" in err
+    assert f"kinefuse replay --prefix {p}x" in err

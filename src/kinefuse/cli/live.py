@@ -3,6 +3,7 @@
 import dataclasses
 import logging
 import math
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated
@@ -11,9 +12,18 @@ import typer
 from rich import box
 from rich.markup import escape
 from rich.table import Table
+from rich.text import Text
 
 from kinefuse.cli._app import backend, backend_module, stderr
-from kinefuse.cli._output import Json, JsonForce, Quiet, check_json, existing_file, finish
+from kinefuse.cli._output import (
+    Json,
+    JsonForce,
+    Quiet,
+    check_json,
+    existing_file,
+    finish,
+    one_line,
+)
 from kinefuse.exceptions import InputError
 from kinefuse.session_file import load_session, read_toml
 
@@ -44,9 +54,15 @@ def _stream_session(path: Path, resolve_timeout_s: float | None):
     existing_file(p, "SESSION.toml")
     doc = read_toml(p)
     overrides = {} if resolve_timeout_s is None else {"resolve_timeout_s": resolve_timeout_s}
-    if "stream" in doc:
-        return dataclasses.replace(config.load_stream_config(p), **overrides)
-    return config.stream_config_from_session(load_session(p), **overrides)
+    with warnings.catch_warnings(record=True) as caught:  # one clean line each, not Python's
+        warnings.simplefilter("always")  # file:line form
+        if "stream" in doc:
+            cfg = dataclasses.replace(config.load_stream_config(p), **overrides)
+        else:
+            cfg = config.stream_config_from_session(load_session(p), **overrides)
+    for w in caught:
+        stderr().print(Text(f"kinefuse: warning: {one_line(str(w.message))}", style="yellow"))
+    return cfg
 
 
 def _out_files(out: Path, force: bool) -> None:

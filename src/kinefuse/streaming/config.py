@@ -511,6 +511,28 @@ def load_stream_config(path: str | Path) -> StreamConfig:
         raise ConfigError(f"{p.name}: [stream] {exc}") from None
 
 
+#: Segments of the online engine's chain (:func:`kinefuse.kinematics.full_body`).
+_ENGINE_SEGMENTS = ("chest", "upper_arm_l", "upper_arm_r", "forearm_l", "forearm_r", "thigh_l",
+                   "thigh_r", "shank_l", "shank_r")  # fmt: skip
+
+
+def _offline_only(session) -> list[str]:
+    """What an offline session asks for that the online engine would ignore: a calibration,
+    declared segment axes, a root other than the camera, segments outside its chain."""
+    out = []
+    cal = session.calibration.settings.get("method")
+    if cal not in (None, "none"):
+        out.append(f"[calibration] method = {cal!r}")
+    if session.skeleton.axes:
+        out.append(f"[skeleton.axes] for {', '.join(sorted(session.skeleton.axes))}")
+    if session.skeleton.root not in (None, "vision"):
+        out.append(f"[skeleton] root = {session.skeleton.root!r}")
+    extra = sorted(set(session.imu.segments) - set(_ENGINE_SEGMENTS))
+    if extra:
+        out.append(f"[imu.segments] {', '.join(extra)} (not in the online chain)")
+    return out
+
+
 def stream_config_from_session(session, **overrides) -> StreamConfig:
     """A :class:`StreamConfig` from an offline :class:`~kinefuse.session_file.SessionConfig`.
 
@@ -522,9 +544,18 @@ def stream_config_from_session(session, **overrides) -> StreamConfig:
     Raises
     ------
     ConfigError
-        The session's method has no online form and no substitute.
+        The session's method has no online form and no substitute; the session asks for what
+        the online engine does not do (:func:`_offline_only`), which it would otherwise ignore.
     """
     source = Path(getattr(session, "path", "session")).name
+    refused = _offline_only(session)
+    if refused:
+        raise ConfigError(
+            f"{source}: kinefuse stream cannot honour {'; '.join(refused)}. The online engine runs "
+            "paper B's full-body chain (chest + upper arms, forearms, thighs, shanks) on the "
+            "streamed orientations as segment orientations, without calibration; process this "
+            "recording with kinefuse run, or stream with a [stream] session"
+        )
     processor, note = online_processor(session.method.name, source)
     kw = {
         "name_prefix": re.sub(r"[^A-Za-z0-9_.\-]", "_", session.name) or "kinefuse",

@@ -53,6 +53,7 @@ __all__ = [
     "output_channels",
     "resolve",
     "resolve_many",
+    "visible_streams",
 ]
 
 log = logging.getLogger("kinefuse.streaming")
@@ -181,6 +182,13 @@ def resolve_many(names, timeout_s: float = 5.0) -> dict:
             found.setdefault(info.name(), info)
         if len(found) == len(names) or time.monotonic() >= deadline:
             return found
+
+
+def visible_streams(timeout_s: float = 1.0) -> list[tuple[str, str]]:
+    """``(name, type)`` of the streams LSL sees within ``timeout_s`` (sorted; for hints when a
+    stream that was asked for is not found)."""
+    pylsl = import_pylsl()
+    return sorted({(i.name(), i.type()) for i in pylsl.resolve_streams(timeout_s)})
 
 
 _EMPTY = (np.zeros((0, 0)), np.zeros(0))

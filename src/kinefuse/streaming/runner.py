@@ -64,7 +64,7 @@ from kinefuse.streaming.engine import Engine, EngineConfig
 from kinefuse.streaming.engine_types import SummaryMapping
 from kinefuse.streaming.liveview import LiveView
 from kinefuse.streaming.loop import run_loop
-from kinefuse.streaming.lsl import IMU_TYPE, FusedOutlet, Input, resolve_many
+from kinefuse.streaming.lsl import IMU_TYPE, FusedOutlet, Input, resolve_many, visible_streams
 from kinefuse.streaming.paper_b import VisionAssistedProcessor
 from kinefuse.streaming.processors import (
     SOURCE_NONE,
@@ -281,9 +281,10 @@ def _resolve_inputs(cfg: StreamConfig) -> _Inputs:
     found = resolve_many(([cam_name] if cam_name else []) + list(wanted), cfg.resolve_timeout_s)
     if cam_name and cam_name not in found:
         raise InputError(f"camera stream {cam_name!r} not found within {cfg.resolve_timeout_s:g} s "
-                         "(set [stream] camera_stream = \"\" to run without a camera)")  # fmt: skip
+                         "(set [stream] camera_stream = \"\" to run without a camera)"
+                         + _seen_hint(cfg))  # fmt: skip
     if not any(name in found for name in wanted):
-        raise InputError(_no_imu(cfg, segments))
+        raise InputError(_no_imu(cfg, segments) + _seen_hint(cfg))
     missing = [name for name in wanted if name not in found]
     for name in missing:
         log.warning("LSL stream %s not found: its joints stay predict-only until it appears", name)
@@ -544,6 +545,26 @@ def _live_view(cfg: StreamConfig, port: int, on_output, inputs, outlet):
 def _no_imu(cfg: StreamConfig, segments) -> str:
     names = [cfg.imu_stream_name(s) for s in segments]
     return f"no IMU stream found within {cfg.resolve_timeout_s:g} s (looked for {names})"
+
+
+def _seen_hint(cfg: StreamConfig) -> str:
+    """What LSL does see on this machine, and the prefix it suggests (``kinefuse replay``
+    publishes ``PREFIX_imu_SEGMENT`` with ``--prefix``, default ``kinefuse``)."""
+    seen = visible_streams(1.0)
+    if not seen:
+        return "; no LSL stream is visible on this machine"
+    names = [n for n, _ in seen]
+    text = f"; visible: {', '.join(names[:8])}" + (
+        f" and {len(names) - 8} more" if len(names) > 8 else ""
+    )
+    prefixes = sorted({n.split("_imu_")[0] for n in names if "_imu_" in n} - {cfg.name_prefix})
+    if prefixes:
+        text += (
+            f" (IMU streams with prefix {', '.join(map(repr, prefixes))}, this session looks for "
+            f"{cfg.name_prefix!r}: set [stream] name_prefix, or publish with kinefuse replay "
+            f"--prefix {cfg.name_prefix})"
+        )
+    return text
 
 
 def _recorded_inputs(engine) -> dict:
