@@ -79,9 +79,31 @@ def session(tmp_path):
     p.write_text(
         '[session]\nname = "live"\n[imu]\nformat = "imu_csv"\npath = "imu.csv"\n'
         '[imu.segments]\nforearm_r = "IMU 2"\n[skeleton]\nbody_height_m = 1.75\n'
-        '[camera]\nformat = "joint_csv"\npath = "camera.csv"\n[method]\nname = "elm-fir"\n'
+        '[camera]\nformat = "joint_csv"\npath = "camera.csv"\n[calibration]\nmethod = "none"\n'
+        '[method]\nname = "elm-fir"\n'
     )
     return load_session(p)
+
+
+def test_streaming_a_session_refuses_or_warns_about_calibration(session):
+    """The online engine calibrates nothing: an asked-for calibration, axes or root is refused
+    (naming each), an implicit one (kinefuse run's default) is a warning kept in the notes."""
+    asked = dataclasses.replace(
+        session,
+        calibration=dataclasses.replace(session.calibration, settings={"method": "static"}),
+        skeleton=dataclasses.replace(session.skeleton, root="fixed", axes={"forearm_r": "+e1"}),
+    )
+    with pytest.raises(
+        ConfigError,
+        match="calibration 'static'; declared segment axes \\(forearm_r\\); root 'fixed'",
+    ):
+        stream_config_from_session(asked)
+    implicit = dataclasses.replace(
+        session, calibration=dataclasses.replace(session.calibration, settings={})
+    )
+    with pytest.warns(UserWarning, match="calibrates this session \\('vision', the default\\)"):
+        sc = stream_config_from_session(implicit)
+    assert len(sc.notes) == 1 and 'method = "none"' in sc.notes[0]
 
 
 @pytest.mark.parametrize("method", methods.names())

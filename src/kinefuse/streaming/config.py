@@ -520,13 +520,13 @@ def _offline_only(session) -> list[str]:
     """What an offline session asks for that the online engine would ignore: a calibration,
     declared segment axes, a root other than the camera, segments outside its chain."""
     out = []
-    cal = session.calibration.settings.get("method")
-    if cal not in (None, "none"):
-        out.append(f"[calibration] method = {cal!r}")
-    if session.skeleton.axes:
-        out.append(f"[skeleton.axes] for {', '.join(sorted(session.skeleton.axes))}")
-    if session.skeleton.root not in (None, "vision"):
-        out.append(f"[skeleton] root = {session.skeleton.root!r}")
+    p = session.processing_parameters()  # [calibration] and [skeleton] merged with the method's
+    if p.get("calibration") not in (None, "none"):
+        out.append(f"calibration {p['calibration']!r}")
+    if p.get("axes"):
+        out.append(f"declared segment axes ({', '.join(sorted(p['axes']))})")
+    if p.get("root") not in (None, "vision"):
+        out.append(f"root {p['root']!r}")
     extra = sorted(set(session.imu.segments) - set(_ENGINE_SEGMENTS))
     if extra:
         out.append(f"[imu.segments] {', '.join(extra)} (not in the online chain)")
@@ -557,10 +557,20 @@ def stream_config_from_session(session, **overrides) -> StreamConfig:
             "recording with kinefuse run, or stream with a [stream] session"
         )
     processor, note = online_processor(session.method.name, source)
+    notes = () if note is None else (note,)
+    if session.processing_parameters().get("calibration") is None:
+        default = "vision" if session.camera is not None else "static"
+        msg = (
+            f"{source}: kinefuse run calibrates this session ({default!r}, the default); "
+            "kinefuse stream does not: the streamed orientations are taken as the segments' own "
+            '(set [calibration] method = "none" to say so)'
+        )
+        warnings.warn(msg, UserWarning, stacklevel=2)
+        notes += (msg,)
     kw = {
         "name_prefix": re.sub(r"[^A-Za-z0-9_.\-]", "_", session.name) or "kinefuse",
         "processor": processor,
-        "notes": () if note is None else (note,),
+        "notes": notes,
         "lengths_m": dict(session.skeleton.lengths_m),
     }
     if session.skeleton.body_height_m is not None:
