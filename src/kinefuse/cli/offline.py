@@ -344,7 +344,7 @@ def experiment(
     """Reproduce a paper's experiment and compare with the paper's tables.
 
     With --workers or --scheduler, paper-a's and paper-b's trials run on Dask (as kinefuse
-    batch; pip install 'kinefuse[batch]'): the numbers do not change.
+    batch; pip install 'kinefuse\\[batch]'): the numbers do not change.
     """
     if name not in EXPERIMENTS:
         raise InputError(f"unknown experiment {name!r}; expected one of {', '.join(EXPERIMENTS)}")
