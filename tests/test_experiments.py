@@ -99,3 +99,41 @@ def test_paper_b_quick_tuning_set_tables_name_the_set_and_baselines(shared_data)
     )
     t = out["targets"]["UTD-MHAD (real IMU)"]
     assert t["offline_vs_offset_interp_pct"] is not None
+    # the oracle bound (chain + the best linear offset per outage, from the hidden reference)
+    # can only be at or below offset interp, which is of that form
+    assert t["oracle_linear_offset_vs_offset_interp_pct"] <= 0.0
+
+
+def test_oracle_linear_offset_closed_form():
+    """Reference - offset interp = a line per outage + known noise: the bound is the noise's
+    RMS (exactly the line's residual); with no noise it is 0; samples outside outages and
+    non-finite ones do not count."""
+    from kinefuse.apps.paper_b_tables import oracle_linear_offset
+
+    rng = np.random.default_rng(3)
+    T = 400
+    out = np.zeros((T, 2), bool)
+    out[50:120, 0] = out[200:260, 1] = out[300:380, 0] = True
+    base = rng.normal(size=(T, 2, 3))
+    line = np.zeros((T, 2, 3))
+    for j, (a, b) in ((0, (50, 120)), (1, (200, 260)), (0, (300, 380))):
+        k = np.arange(b - a)[:, None]
+        line[a:b, j] = rng.normal(size=3) + rng.normal(size=3) * k
+    part = {"estimates": {"offset interp": base}, "reference": base + line, "outage": out}
+    assert oracle_linear_offset([part]) == pytest.approx(0.0, abs=1e-9)
+    noise = rng.normal(scale=0.01, size=(T, 2, 3))
+    noise[~out] = 5.0  # outside the outages: not counted
+    part["reference"] = base + line + noise
+    part["estimates"]["offset interp"][60, 0] = np.nan  # a missing sample: left out
+    sel = out.copy()
+    sel[60, 0] = False
+    expect = []
+    for j, (a, b) in ((0, (50, 120)), (1, (200, 260)), (0, (300, 380))):
+        k = np.arange(a, b)
+        keep = sel[a:b, j]
+        A = np.stack([np.ones(keep.sum()), k[keep]], 1)
+        r = noise[a:b, j][keep]
+        expect.append(r - A @ np.linalg.lstsq(A, r, rcond=None)[0])
+    rms = np.sqrt(np.mean(np.sum(np.concatenate(expect) ** 2, -1)))
+    assert oracle_linear_offset([part]) == pytest.approx(rms, rel=1e-9)
+    assert oracle_linear_offset([{**part, "outage": np.zeros((T, 2), bool)}]) is None

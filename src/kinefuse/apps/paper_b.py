@@ -21,7 +21,13 @@ import numpy as np
 
 from kinefuse.apps._common import imu_only_output, labelled_runs, timed_quietly
 from kinefuse.apps.demo import run_scenario
-from kinefuse.apps.paper_b_tables import cdf_table, in_view_table, summary_table, targets_table
+from kinefuse.apps.paper_b_tables import (
+    cdf_table,
+    in_view_table,
+    oracle_linear_offset,
+    summary_table,
+    targets_table,
+)
 from kinefuse.apps.splits import (
     SEED,
     UTD_HIDDEN,
@@ -298,6 +304,7 @@ def _dataset_tables(ds_name: str, parts: list[dict], labels, split: DataSplit):
         "summary": sres,
         "in_view_vs_camera_pct": vres,
         "cdf_0.9": cres,
+        "oracle_linear_offset_rmse_3d_outage_m": oracle_linear_offset(parts),
         "trials": [p["name"] for p in parts],
         "split": split.name,
     }
@@ -332,6 +339,7 @@ def run_paper_b(run: ExperimentRun) -> dict:
         tables += ds_tables
         if vres is not None:
             in_view[ds_name] = vres
-    tt, tres = targets_table(summaries, split, in_view)
+    oracles = {ds: r["oracle_linear_offset_rmse_3d_outage_m"] for ds, r in results.items()}
+    tt, tres = targets_table(summaries, split, in_view, oracles)
     tables.append(tt)
     return {"tables": tables, "results": results, "targets": tres}
