@@ -452,3 +452,30 @@ def test_summary_says_which_rows_equal_the_reference():
     assert "camera" in named and "kinefuse" not in named and "IMU chain" not in named
     results[1]["rows"][0]["value"] = 0.01  # the camera differs once: nothing to note
     assert summary_table(results, "all", "t").notes == ()
+
+
+def test_summary_without_any_reference_says_so_instead_of_an_empty_table():
+    """IMU-only sessions (no [reference]) give no error rows: the summary says there is nothing
+    to score and where the outputs are, instead of printing an empty error table."""
+    from kinefuse.batch.report import NO_SCORES
+    from kinefuse.batch.runner import summary_tables
+
+    done = {"recording": "x", "status": "done", "rows": [
+        {"estimate": "task", "joint": "all", "metric": "task_wall_s", "subset": "all", "value": 0.9}
+    ]}  # fmt: skip
+    summary = {"counts": {"total": 1, "done": 1, "skipped": 0, "failed": 0}, "study": "s",
+               "cluster": "c", "wall_s": 1.0, "tasks_wall_s": 0.9, "table": ["t.csv"],
+               "results": [done], "failed": []}  # fmt: skip
+    (run,) = summary_tables(summary)  # no error table
+    assert ("scores", NO_SCORES) in [r.labels for r in run.rows]
+    done["rows"].append(
+        {
+            "estimate": "IMU chain",
+            "joint": "knee_l",
+            "metric": "rmse_3d",
+            "subset": "all",
+            "value": 0.04,
+        }
+    )
+    run, scores = summary_tables(summary)
+    assert "scores" not in [r.labels[0] for r in run.rows] and len(scores.rows) == 1

@@ -26,7 +26,7 @@ from kinefuse.evaluation import plots, tables
 from kinefuse.evaluation.report import REPORT_CSS
 from kinefuse.evaluation.tables import ResultTable, TableRow
 
-__all__ = ["STUDY_REPORT_NAME", "collect", "summary_table", "write_study_report"]
+__all__ = ["NO_SCORES", "STUDY_REPORT_NAME", "collect", "summary_table", "write_study_report"]
 
 STUDY_REPORT_NAME = "study_report.html"
 
@@ -69,6 +69,14 @@ def _box_figure(data: Mapping[tuple[str, str], np.ndarray], title: str, ylabel: 
         ax.grid(True, axis="y", alpha=0.3)
     fig.suptitle(title, fontsize=11)
     return fig
+
+
+#: Said instead of an empty error table when no recording of a study has a reference.
+NO_SCORES = (
+    "none: no recording has a [reference] to score against (IMU-only sessions give joint "
+    "positions and angles, not errors); each recording's outputs and report are in "
+    "recordings/<recording>/<method>/"
+)
 
 
 def summary_table(results: Sequence[Mapping], subset: str, title: str):
@@ -191,8 +199,9 @@ def write_study_report(out_dir: str | Path, study, results: Sequence[Mapping]) -
         "method's evaluation includes. Full table: <code>study_results.parquet</code> / "
         "<code>study_results.csv</code>; per recording: <code>recordings/&lt;recording&gt;/"
         "&lt;method&gt;/report.html</code>.</p>",
-        tables.to_html(summary_table(ok, "all", "Over recordings, all samples (m)")),
     ]
+    scores = summary_table(ok, "all", "Over recordings, all samples (m)")
+    parts.append(tables.to_html(scores) if scores.rows else f'<p class="note">{e(NO_SCORES)}.</p>')
     if has_outage:
         parts.append(tables.to_html(summary_table(ok, "outage", "Inside camera outages (m)")))
     parts.append(_timing_rows(ok))

@@ -34,7 +34,7 @@ from rich import progress as rp
 from rich.console import Console
 
 from kinefuse import _compile  # sets NUMBA_CACHE_DIR when the package is read-only
-from kinefuse.batch.report import summary_table, write_study_report
+from kinefuse.batch.report import NO_SCORES, summary_table, write_study_report
 from kinefuse.batch.study import Study
 from kinefuse.batch.table import flatten, write_table
 from kinefuse.batch.tasks import clean_temporaries, is_finished, read_result, run_task
@@ -496,6 +496,10 @@ def summary_tables(summary: Mapping) -> list:
     ]
     if summary.get("dashboard"):
         items.append(("dashboard", summary["dashboard"]))
+    ok = [r for r in summary["results"] if r["status"] != "failed"]
+    scores = summary_table(ok, "all", "Over recordings, all samples (m)") if ok else None
+    if ok and not scores.rows:
+        items.append(("scores", NO_SCORES))
     out = [
         ResultTable(
             title=f"kinefuse batch: {summary['study']}",
@@ -504,9 +508,8 @@ def summary_tables(summary: Mapping) -> list:
             rows=tuple(TableRow(labels=kv, values=()) for kv in items),
         )
     ]
-    ok = [r for r in summary["results"] if r["status"] != "failed"]
-    if any(r.get("rows") for r in ok):
-        out.append(summary_table(ok, "all", "Over recordings, all samples (m)"))
+    if scores is not None and scores.rows:
+        out.append(scores)
     if summary["failed"]:
         out.append(
             ResultTable(
