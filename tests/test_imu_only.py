@@ -595,7 +595,7 @@ def test_evaluate_takes_folders_and_format(shared_data):
     args = ["evaluate", str(folder), "--format", "neura", "--method", "imu-only"]
     res = runner.invoke(cli.app, [*args, "--calibration", "reference", "--json", "-"])
     assert res.exit_code == 0, (res.output, _err(res))
-    assert "[calibrated on reference, lengths from reference]" in res.output
+    assert "[calibrated on reference, lengths from reference, root from reference]" in res.output
     res = runner.invoke(cli.app, [*args[:2], "--format", "nosuch", "--method", "imu-only"])
     assert res.exit_code == 2 and "unknown format 'nosuch'" in _err(res)
     res = runner.invoke(

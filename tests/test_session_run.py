@@ -233,7 +233,7 @@ def test_neura_session(shared_data, tmp_path):
     summary = run_session(SESSIONS / "neura_walk.toml", tmp_path)
     ev = summary["evaluation"]
     assert ev.joints == ("knee_l", "knee_r", "ankle_l", "ankle_r")
-    tag = " [calibrated on reference, lengths from reference]"
+    tag = " [calibrated on reference, lengths from reference, root from reference]"
     assert ev.methods == ("EM-KF/FIR" + tag, "IMU chain" + tag)
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["provenance"]["calibration"] == "reference"
@@ -279,7 +279,7 @@ def test_evaluate_recording_neura(shared_data):
         evaluate_recording(path, "imu-only", body_height_m=1.75)
     # calibrating on the reference must be asked for, and is labelled
     ev = evaluate_recording(path, "imu-only", calibration="reference")
-    tag = " [calibrated on reference, lengths from reference]"
+    tag = " [calibrated on reference, lengths from reference, root from reference]"
     assert ev.methods == ("IMU only" + tag,)
     # every limb IMU of the recording: thighs, shanks and feet (toe points from Vicon)
     assert set(ev.joints) == {"knee_l", "knee_r", "ankle_l", "ankle_r", "foot_l", "foot_r"}

@@ -41,11 +41,11 @@ def evaluate_recording(
     calibration : str, optional
         ``"static"`` (default: a still pose in the IMU data), ``"functional"``, ``"vision"``
         or ``"reference"`` (then axes *and* segment lengths come from the reference, and every
-        table says "[calibrated on reference, lengths from reference]").
+        table says "[calibrated on reference, lengths from reference, ...]").
     root : str, optional
         Where the chain starts (default ``"reference"``: the root joints, e.g. the hips, are
-        taken as measured by the reference, as paper A measures the shoulder; this is said in
-        the notes, not a calibration).
+        taken as measured by the reference, as paper A measures the shoulder; not a
+        calibration, but an input from the reference: labelled "[root from reference]").
     align : {"none", "rigid"}, optional
         ``"rigid"``: Kabsch-align the estimates to the reference before scoring (labelled).
     body_height_m : float, optional

@@ -271,6 +271,8 @@ def _label_and_align(out: SessionOutput, recording, plan: dict, reference) -> No
         tags.append("calibrated on reference")
     if any("REFERENCE" in s for s in sources):
         tags.append("lengths from reference")
+    if plan["root"] == "reference":  # the chain starts at the reference's root joints: an input
+        tags.append("root from reference")
     # a camera that is the reference's own data (e.g. UTD-MHAD's Kinect as both): what was
     # calibrated on it was calibrated on the reference (a distinct camera is an input: its use
     # is in the provenance, not a label)
