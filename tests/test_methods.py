@@ -145,3 +145,21 @@ def test_stream_file_method_selects_its_online_form(tmp_path):
     p.write_text('[stream]\nname_prefix = "x"\nnotes = ["a"]\n')
     with pytest.raises(ConfigError, match="unknown key"):
         load_stream_config(p)
+
+
+def test_docs_streaming_session_example_loads(tmp_path):
+    """docs/streaming.md's live.toml is a valid stream session: paper B online, prefix kinefuse;
+    its table of [stream] keys names every key the loader accepts."""
+    from pathlib import Path
+
+    from kinefuse.streaming.config import _STREAM_KEYS
+
+    doc = (Path(__file__).parents[1] / "docs" / "streaming.md").read_text(encoding="utf-8")
+    block = doc.split("```toml\n", 1)[1].split("```", 1)[0]
+    p = tmp_path / "live.toml"
+    p.write_text(block, encoding="utf-8")
+    cfg = load_stream_config(p)
+    assert cfg.processor == "elm-fir" and cfg.name_prefix == "kinefuse" and cfg.notes == ()
+    documented = {k.strip("` ") for row in doc.split("## Stream sessions")[1].split("\n| ")[1:]
+                  for k in row.split(" | ")[0].split(",")}  # fmt: skip
+    assert set(_STREAM_KEYS) <= documented, set(_STREAM_KEYS) - documented
