@@ -28,8 +28,7 @@ outage episodes)::
               cov_t = FIR-3 cov_t + diag(var of ELM-2's training residual)
               (ELM-2 skipped if too few samples: out = FIR-3, cov adds ELM-1's residual
               variance, elm2_skipped)
-    camera unavailable and no chain (a NaN z^I row: a stale or dropped IMU): the filters'
-            prediction, source PREDICTED (no input backs it: never available)
+    no camera, no chain (NaN z^I: a stale IMU): the prediction, source PREDICTED (never available)
 
 An outage at the very start has no training data: IMU-only output, flagged. A joint that is
 never available is IMU-only throughout. The history kept for training reaches back to the
