@@ -277,7 +277,8 @@ def _place_roots(recording, params, plan, roots, root_stream, t, cal, cal_segs, 
     else:
         origin = np.tile(np.asarray(rp, dtype=float), (t.size, 1))
         if plan["hips"]:
-            root_pos = _hip_roots(recording, cal, t, origin, body_height_m, notes)
+            hips = _hip_roots(recording, cal, t, origin, body_height_m, notes)
+            root_pos = {j: p for j, p in hips.items() if j in roots}  # a leg not mapped: no hip
             root_pos.update({j: origin for j in roots if j not in root_pos})
             root_desc = f"pelvis (mid-hip) at {list(map(float, rp))} m, hips from the pelvis IMU"
         else:
