@@ -26,6 +26,7 @@ from kinefuse.exceptions import InputError
 from kinefuse.io import FORMATS
 from kinefuse.progress import progress
 from kinefuse.session_file import CALIBRATIONS, METHODS, ROOTS, load_session, session_template
+from kinefuse.session_file.from_recording import filled_template, sketch_recording
 
 __all__ = [
     "EXPERIMENTS",
@@ -177,8 +178,28 @@ def init_session(
     force: Annotated[
         bool, typer.Option("--force", "-f", help="Overwrite an existing file.")
     ] = False,
+    source: Annotated[
+        Path | None,
+        typer.Option(
+            "--from",
+            metavar="RECORDING",
+            help="Fill the template from a recording (a file or folder kinefuse.io.load reads): "
+            "its reader and path, the sensors it recognises as segments, its camera and "
+            "reference; the root, calibration and method that follow.",
+        ),
+    ] = None,
+    fmt: Annotated[
+        str | None,
+        typer.Option("--format", metavar="FORMAT", help="Reader of --from (default: detected)."),
+    ] = None,
 ) -> None:
     """Write a commented session-file template to PATH (default: session.toml)."""
+    if fmt is not None and source is None:
+        raise InputError("--format is for --from RECORDING; give the recording too")
+    if fmt is not None and fmt not in FORMATS:
+        raise InputError(
+            f"--format: unknown reader {fmt!r}; expected one of {', '.join(sorted(FORMATS))}"
+        )
     if path.exists() and not force:
         raise FileExistsError(
             f"{path} already exists; pass --force to overwrite it, or give another PATH"
@@ -188,15 +209,25 @@ def init_session(
     if not path.parent.is_dir():
         raise InputError(f"folder {path.parent} does not exist; create it first")
     session_name = name or (path.stem if path.stem != "session" else "my-session")
-    path.write_text(session_template(session_name, filename=path.name), encoding="utf-8")
-    stdout().print(
-        Text.assemble(
-            "Wrote ",
-            (str(path), "bold"),
-            ". Edit the [imu] path and [imu.segments], then run: ",
-            (f"kinefuse run {path}", "bold"),
+    if source is None:
+        text, what = (
+            session_template(session_name, filename=path.name),
+            "Edit the [imu] path and [imu.segments]",
         )
-    )
+    else:
+        sk = sketch_recording(source, path.parent, fmt)
+        text = filled_template(session_name, path.name, sk)
+        mapped = ", ".join(f"{s} = {n}" for s, n in sk.segments.items()) or "none"
+        what = (
+            f"From {sk.path} ({sk.format}): segments {mapped}"
+            + (f"; not recognised: {', '.join(sk.unmapped)}" if sk.unmapped else "")
+            + ". Check it"
+        )
+    path.write_text(text, encoding="utf-8")
+    stdout().print(
+        Text.assemble("Wrote ", (str(path), "bold"), f". {what}, then run: ",
+                      (f"kinefuse run {path}", "bold"))
+    )  # fmt: skip
 
 
 _Recording = Annotated[

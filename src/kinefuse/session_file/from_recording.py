@@ -1,0 +1,129 @@
+"""A session template filled from a recording: ``kinefuse init-session --from RECORDING``.
+
+:func:`sketch_recording` loads the recording once and keeps what a session file needs (the
+reader, the path as the session will write it, which sensors the reader recognised as which
+segment, whether it holds a camera or a reference); :func:`filled_template` writes the commented
+template of :func:`~kinefuse.session_file.template.session_template` with those filled in and
+the choices that follow from them (root, calibration, method), each line still commented.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+from typing import NamedTuple
+
+from kinefuse.conventions import SEGMENTS
+from kinefuse.exceptions import InputError
+from kinefuse.io import detect_format, load
+from kinefuse.session_file.template import session_template
+
+__all__ = ["NO_HEIGHT_RATIO", "RecordingSketch", "filled_template", "sketch_recording"]
+
+_LEGS = {"thigh_l", "thigh_r", "shank_l", "shank_r"}
+#: Chain segments whose length body height cannot give (no ratio in
+#: :data:`kinefuse.kinematics.skeleton.ANTHROPOMETRIC_RATIOS`; this layer cannot import it, a test
+#: keeps the two in step): a static calibration needs their lengths measured.
+NO_HEIGHT_RATIO = ("foot_l", "foot_r")
+
+
+class RecordingSketch(NamedTuple):
+    """What a session file needs to know about a recording (:func:`sketch_recording`)."""
+
+    format: str
+    """Reader name (:data:`kinefuse.io.FORMATS`)."""
+    path: str
+    """The recording's path as the session writes it: relative to the session's folder when
+    that is possible, POSIX separators."""
+    segments: dict
+    """Canonical segment -> the sensor's name in the file, for the sensors the reader recognised."""
+    unmapped: tuple
+    """Names of the sensors not recognised as a segment."""
+    camera: bool
+    """The recording holds camera joints."""
+    reference: bool
+    """The recording holds reference (ground-truth) joints."""
+
+
+def sketch_recording(recording: Path, session_dir: Path, fmt: str | None = None) -> RecordingSketch:
+    """Load ``recording`` (format detected unless ``fmt``) and sketch it for a session file.
+
+    Raises
+    ------
+    InputError
+        The recording does not exist, or holds no IMU stream.
+    FormatError
+        Unknown or unreadable format (the reader's message).
+    """
+    p = Path(recording).expanduser()
+    if not p.exists():
+        raise InputError(f"--from {recording}: file or folder not found")
+    fmt = fmt or detect_format(p)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the reader's notes reach the user at `kinefuse run`
+        rec = load(p, format=fmt)
+    if not rec.imu:
+        raise InputError(f"--from {recording}: no IMU stream in this {fmt} recording")
+    segments, unmapped = {}, []
+    for key, st in rec.imu.items():
+        name = st.name or key
+        if key in SEGMENTS and key not in segments:
+            segments[key] = name
+        else:
+            unmapped.append(name)
+    try:  # relative below the session's folder (the pair moves together), else absolute
+        rel = os.path.relpath(p.resolve(), Path(session_dir).resolve())
+    except ValueError:  # another drive (Windows)
+        rel = str(p.resolve())
+    if rel.startswith(".."):
+        rel = str(p.resolve())
+    return RecordingSketch(fmt, Path(rel).as_posix(), dict(sorted(segments.items(), key=_order)),
+                           tuple(unmapped), rec.vision is not None, rec.reference is not None)  # fmt: skip
+
+
+def _order(item) -> int:
+    return SEGMENTS.index(item[0])
+
+
+def filled_template(name: str, filename: str, sk: RecordingSketch) -> str:
+    """The session template with ``sk`` filled in (see the module docstring)."""
+    text = session_template(name, filename=filename)
+    legs = "pelvis" in sk.segments and bool(_LEGS & set(sk.segments))
+    root = "pelvis" if legs else ("vision" if sk.camera else "fixed")
+    seg_lines = [
+        f'# {s} = "{n}"  # needs [skeleton.lengths] {s} (body height gives none) or functional calibration'
+        if s in NO_HEIGHT_RATIO
+        else f'{s} = "{n}"'
+        for s, n in sk.segments.items()
+    ] or ["# (no sensor was recognised: map them below)"]
+    seg_lines += [f'# ??? = "{n}"  # not recognised: name its segment' for n in sk.unmapped]
+    reps = [
+        ('format = "imu_csv"               #', f'format = "{sk.format}"  {" " * max(0, 22 - len(sk.format))}#'),
+        ('path = "data/imu.csv"            #', f'path = "{sk.path}"  #'),
+        ("rate_hz = 100.0                  # only used when the file has no time stamps; delete otherwise\n", ""),
+        ('upper_arm_r = "IMU 1"\nforearm_r = "IMU 2"', "\n".join(seg_lines)),
+        ('method = "static"\n', f'method = "{"vision" if sk.camera else "static"}"\n'),
+        ('name = "paper-a"\n', f'name = "{"kinefuse" if sk.camera else "imu-only"}"\n'),
+    ]  # fmt: skip
+    if root != "fixed":
+        reps.append((
+            'root = "fixed"\nroot_position_m = [0.0, 0.0, 0.0]  # root = "fixed": the measured root joint (here the shoulder), m\n',
+            f'root = "{root}"\n',
+        ))  # fmt: skip
+    if sk.camera:
+        reps.append(('# [camera]\n# format = "kinect_v2"\n# path = "data/kinect.csv"\n',
+                     f'[camera]\nformat = "{sk.format}"\npath = "{sk.path}"\n'))  # fmt: skip
+    if sk.reference:
+        reps.append(('# [reference]\n# format = "c3d"\n# path = "data/reference.c3d"\n# align',
+                     f'[reference]\nformat = "{sk.format}"\npath = "{sk.path}"\nalign'))  # fmt: skip
+    for old, new in reps:
+        if old not in text:  # the template and this function change together (tested)
+            raise AssertionError(f"session template: {old[:40]!r} not found")
+        text = text.replace(old, new, 1)
+    head = (
+        f"# Filled from {sk.path} ({sk.format}): {len(sk.segments)} sensor(s) mapped to segments"
+        + (f", {len(sk.unmapped)} not recognised (see [imu.segments])" if sk.unmapped else "")
+        + ". Check every line before running.\n"
+    )
+    return head + text

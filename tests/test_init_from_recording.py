@@ -1,0 +1,106 @@
+"""`kinefuse init-session --from RECORDING`: a session filled from the user's own recording."""
+
+from __future__ import annotations
+
+import pytest
+from typer.testing import CliRunner
+
+from conftest import cli_stderr
+from kinefuse import cli
+from kinefuse.conventions import SEGMENTS
+from kinefuse.kinematics.skeleton import ANTHROPOMETRIC_RATIOS
+from kinefuse.pipelines.run import run_session
+from kinefuse.session_file import load_session
+from kinefuse.session_file.from_recording import NO_HEIGHT_RATIO, sketch_recording
+
+runner = CliRunner()
+
+
+def _init(path, recording, *extra):
+    return runner.invoke(cli.app, ["init-session", str(path), "--from", str(recording), *extra])
+
+
+def test_ximu3_folder_becomes_a_session_that_runs(shared_data, tmp_path):
+    """The x-IMU3 lower-body folder: the reader, the path and the seven sensors found by name;
+    the feet (no body-height ratio) left commented with why; pelvis root, static calibration,
+    IMU only; `kinefuse run` then gives the knees and ankles with anatomical knee flexion."""
+    rec = shared_data / "xio_imu_mocap_lower_body"
+    session = tmp_path / "walk.toml"
+    res = _init(session, rec)
+    assert res.exit_code == 0, (res.output, cli_stderr(res))
+    assert "thigh_l = Left_Upper_Leg_64F61CC4" in " ".join(res.output.split())
+    cfg = load_session(session)
+    assert cfg.imu.format == "ximu3" and cfg.imu.path == rec.resolve()
+    assert cfg.imu.segments == {
+        "pelvis": "pelvis_64F0EDBF",
+        "thigh_l": "Left_Upper_Leg_64F61CC4",
+        "thigh_r": "Right_Upper_Leg_64F61C2E",
+        "shank_l": "Left_Lower_Leg_64F61CB3",
+        "shank_r": "Right_Lower_Leg_64F61B2A",
+    }
+    text = session.read_text(encoding="utf-8")
+    assert '# foot_l = "Left_Foot_64F0EBCE"  # needs [skeleton.lengths] foot_l' in text
+    assert cfg.skeleton.root == "pelvis" and cfg.method.name == "imu-only"
+    assert cfg.calibration.settings["method"] == "static"
+    assert cfg.camera is None and cfg.reference is None
+    summary = run_session(session, tmp_path / "out")
+    assert set(summary.coverage) == {"knee_l", "knee_r", "ankle_l", "ankle_r"}
+    for side in "lr":
+        knee = summary.angles_deg[f"knee_{side}"]
+        assert -10 <= knee["flexion_min"] and knee["flexion_max"] <= 150, knee
+        assert knee["flexion_max"] > 90  # the recording squats and kneels
+
+
+def test_a_reference_in_the_recording_fills_reference_for_evaluation_only(shared_data, tmp_path):
+    rec = shared_data / "neura_sparse_sample"
+    session = tmp_path / "neura.toml"
+    assert _init(session, rec).exit_code == 0
+    cfg = load_session(session)
+    assert cfg.imu.format == "neura" and cfg.reference is not None
+    assert cfg.reference.path == rec.resolve() and cfg.reference.align == "none"
+    assert cfg.skeleton.root == "pelvis"  # not the reference: evaluation only by default
+
+
+def test_one_leg_with_the_pelvis_places_only_its_hip(shared_data, tmp_path):
+    """Xsens DOT: pelvis + left thigh and shank only. The pelvis root used to place both hips
+    and the chain refused the unknown hip_r; now the session runs for the left leg."""
+    rec = shared_data / "third_party" / "xsens" / "dot_realtime"
+    session = tmp_path / "dot.toml"
+    assert _init(session, rec).exit_code == 0
+    assert set(load_session(session).imu.segments) == {"pelvis", "thigh_l", "shank_l"}
+    summary = run_session(session, tmp_path / "out")
+    assert set(summary.coverage) == {"knee_l", "ankle_l"}
+    assert all(c["available"] > 0 for c in summary.coverage.values())
+
+
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (["--format", "ximu3"], ["--format is for --from RECORDING"]),
+        (["--from", "nowhere.csv"], ["--from nowhere.csv: file or folder not found"]),
+        (["--from", "{kinect}"], ["no IMU stream in this kinect_v2 recording"]),
+        (["--from", "{kinect}", "--format", "nope"], ["--format: unknown reader 'nope'"]),
+    ],
+)
+def test_bad_input_is_one_line(args, needles, shared_data, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    kinect = shared_data / "third_party" / "kinect_v2" / "lslkinect_MoCap.csv"
+    args = [a.replace("{kinect}", str(kinect)) for a in args]
+    res = runner.invoke(cli.app, ["init-session", "s.toml", *args])
+    assert res.exit_code == 2, (res.output, cli_stderr(res))
+    err = cli_stderr(res).strip()
+    assert len(err.splitlines()) == 1 and all(n in err for n in needles), err
+    assert not (tmp_path / "s.toml").exists()
+
+
+def test_no_height_ratio_is_the_skeleton_s():
+    """session_file cannot import kinematics: its list of segments without a body-height
+    ratio must match kinematics.skeleton.ANTHROPOMETRIC_RATIOS."""
+    limbs = [s for s in SEGMENTS if s not in ("chest", "pelvis")]
+    assert set(NO_HEIGHT_RATIO) == {s for s in limbs if s[:-2] not in ANTHROPOMETRIC_RATIOS}
+
+
+def test_sketch_paths_are_relative_below_the_session_else_absolute(shared_data, tmp_path):
+    rec = shared_data / "xio_imu_mocap_lower_body"
+    assert sketch_recording(rec, rec.parent).path == "xio_imu_mocap_lower_body"
+    assert sketch_recording(rec, tmp_path).path == str(rec.resolve())
