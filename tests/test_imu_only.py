@@ -692,3 +692,23 @@ def test_fixed_root_positions_closed_form():
     np.testing.assert_allclose(out.angles["elbow_r"][:, 0], flex, atol=1e-6)
     assert out.provenance["segment_lengths"]["forearm_r"]["source"] == "measured"
     assert out.reference is None and out.tag == ""
+
+
+def test_default_facing_note_says_why():
+    """North by default has two reasons: nothing moved, or the hinges' flexion axes gave no
+    common facing (e.g. 6-D sensors whose headings differ). The note names the right one."""
+    from types import SimpleNamespace
+
+    from kinefuse.pipelines.run.calibration import _static_notes
+
+    def note(hinges):
+        cal = SimpleNamespace(facing=None, facing_from="default", hinge_residual_rad_s=hinges,
+                              frames={"thigh_r": None, "shank_r": None}, world_heading_deg={})  # fmt: skip
+        notes, prov = [], {}
+        _static_notes(cal, False, ["thigh_r"], notes, prov)
+        (line,) = [n for n in notes if n.startswith("facing:")]
+        return line
+
+    assert "no elbow or knee moved enough" in note({})
+    moved = note({"knee_l": 0.5, "knee_r": 0.6})
+    assert "knee_l, knee_r gave no common one" in moved and "moved enough" not in moved

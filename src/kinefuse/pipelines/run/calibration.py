@@ -145,8 +145,13 @@ def _static_notes(cal, six_d, cal_segs, notes: list[str], provenance: dict):
     how = {
         "declared": "as declared ([calibration] facing)",
         "hinges": "estimated from the flexion axes fitted to the movement of " + ", ".join(hinged),
-        "default": "north by default (no elbow or knee moved enough to estimate it; declare "
-        "[calibration] facing)",
+        "default": (
+            f"north by default (the flexion axes of {', '.join(hinged)} gave no common one: see the "
+            "facing note; declare [calibration] facing)"
+            if hinged
+            else "north by default (no elbow or knee moved enough to estimate it; declare "
+            "[calibration] facing)"
+        ),
     }.get(cal.facing_from, "as declared")
     deg = float(np.degrees(np.arctan2(f[0], f[1])))
     notes.append(f"facing: {f} (world frame, {deg:.0f} deg from north towards east), {how}")
