@@ -309,6 +309,24 @@ def test_no_camera_outputs_on_grid(rec):
     assert_equal_offline(outs, off)
 
 
+def test_no_camera_all_streams_stale_stops_at_the_clock(rec):
+    """Without a camera, once every IMU stream is stale the frames go on at the output rate up
+    to the clock, predicted, and stop there: poll used to synthesize frames without end (a
+    live IMU-only stream hung once its sender stopped: --idle-timeout never came)."""
+    cfg = EngineConfig(full_body(height_m=1.75), camera=False, output_rate_hz=25.0)
+    eng = Engine(cfg, IntegratedProcessor(1 / 25))
+    ev = [e for e in events(rec) if e[2] == "imu"]
+    outs = feed(eng, ev, flush=False)
+    last = max(b.last_t for b in eng._seg_list)
+    more = eng.poll(last + 2.0)  # 2 s after the last sample, every stream stale
+    t = np.array([o.t_s for o in outs + more])
+    assert t[-1] <= last + 2.0 and len(more) <= 2.0 * 25 + 1
+    np.testing.assert_allclose(np.diff(t), 1 / 25, atol=1e-9)
+    stale = np.array([o.t_s > last + cfg.stale_after_s for o in more])
+    assert stale.any() and all(np.all(o.source == SOURCE_PREDICT) for o, s in zip(more, stale) if s)
+    assert eng.poll(last + 2.0) == []  # nothing new at the same clock
+
+
 @pytest.mark.parametrize("path", ["compiled", "grouped"])
 def test_kf_fusion_matches_information_form(rng, path):
     """Oracle: a textbook stacked-measurement KF (numpy) per joint; three joints whose sensor

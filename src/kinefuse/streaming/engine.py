@@ -368,6 +368,8 @@ class Engine:
                 return f[0], f[1], f[2], False
         if cfg.camera and now < t_exp + cfg.max_latency_s:
             return None
+        if not cfg.camera and now < t_exp:  # no frame ahead of the clock (all streams stale:
+            return None  # else frames without end)
         return t_exp, None, None, cfg.camera
 
     def _ready(self, t: float, now: float) -> tuple[bool, bool]:
