@@ -323,7 +323,9 @@ def test_no_camera_all_streams_stale_stops_at_the_clock(rec):
     assert t[-1] <= last + 2.0 and len(more) <= 2.0 * 25 + 1
     np.testing.assert_allclose(np.diff(t), 1 / 25, atol=1e-9)
     stale = np.array([o.t_s > last + cfg.stale_after_s for o in more])
-    assert stale.any() and all(np.all(o.source == SOURCE_PREDICT) for o, s in zip(more, stale) if s)
+    assert stale.any() and all(
+        np.all(o.source == SOURCE_PREDICT) for o, s in zip(more, stale, strict=True) if s
+    )
     assert eng.poll(last + 2.0) == []  # nothing new at the same clock
 
 

@@ -45,7 +45,7 @@ def _positive(value: float | None, option: str) -> None:
         raise InputError(f"{option}: expected a number of seconds > 0, got {value:g}")
 
 
-def _stream_session(path: Path, resolve_timeout_s: float | None):
+def _stream_session(path: Path, resolve_timeout_s: float | None, chain_file: Path | None = None):
     """The StreamConfig of SESSION.toml: a ``[stream]`` table -> streaming loader, else offline."""
     # the streaming back-end's loaders, imported when the command runs (kinefuse.streaming loads
     # compiled kernels)
@@ -54,12 +54,17 @@ def _stream_session(path: Path, resolve_timeout_s: float | None):
     existing_file(p, "SESSION.toml")
     doc = read_toml(p)
     overrides = {} if resolve_timeout_s is None else {"resolve_timeout_s": resolve_timeout_s}
+    chain = None
+    if chain_file is not None:
+        if "stream" in doc:
+            raise InputError("--chain: give the offline session the chain was calibrated for")
+        chain = backend_module("stream", "kinefuse.pipelines.run.chain_file").read_chain(chain_file)
     with warnings.catch_warnings(record=True) as caught:  # one clean line each, not Python's
         warnings.simplefilter("always")  # file:line form
         if "stream" in doc:
             cfg = dataclasses.replace(config.load_stream_config(p), **overrides)
         else:
-            cfg = config.stream_config_from_session(load_session(p), **overrides)
+            cfg = config.stream_config_from_session(load_session(p), chain, **overrides)
     for w in caught:
         stderr().print(Text(f"kinefuse: warning: {one_line(str(w.message))}", style="yellow"))
     return cfg
@@ -174,6 +179,16 @@ _StreamWaitForReader = _seconds(
     "starting (inputs are buffered meanwhile).",
 )
 _StreamNoStatus = _flag("--no-status", "No live status table on stderr.")
+_StreamChain = Annotated[
+    Path | None,
+    typer.Option(
+        "--chain",
+        metavar="FILE",
+        help="The calibrated IMU chain kinefuse run wrote for this session (OUT_DIR/chain.json): "
+        "its segments, sensor axes, lengths and root, streamed without a camera (IMU-only "
+        "live capture).",
+    ),
+]
 _StreamView = _flag(
     "--view",
     "Serve a live 3-D view (skeleton, source per joint, latency) on "
@@ -198,6 +213,7 @@ def stream(
     no_status: _StreamNoStatus = False,
     view: _StreamView = False,
     view_port: _StreamViewPort = 0,
+    chain: _StreamChain = None,
     quiet: Quiet = False,
     json_file: Json = None,
 ) -> None:
@@ -217,7 +233,7 @@ def stream(
         raise InputError("--record-inputs needs --out FILE (the inputs are stored in FILE.npz)")
     if not 0 <= view_port <= 65535:
         raise InputError(f"--view-port must be in [0, 65535], got {view_port}")
-    cfg = _stream_session(session, resolve_timeout)
+    cfg = _stream_session(session, resolve_timeout, chain)
     if out is not None:
         _out_files(out, force)
     check_json(json_file, force, (session,))

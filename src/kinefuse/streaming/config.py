@@ -348,6 +348,11 @@ class StreamConfig:
     notes : tuple of str
         What was substituted when the config was derived (e.g. the processor streaming runs
         for a method without an online form); not a ``[stream]`` key.
+    chain : mapping or None
+        A calibrated chain written by ``kinefuse run``
+        (:mod:`kinefuse.pipelines.run.chain_file`): the engine runs it (its segments, sensor-
+        frame axes, lengths, root) instead of paper B's full body, without a camera; not a
+        ``[stream]`` key (``kinefuse stream --chain``).
     """
 
     name_prefix: str = "kinefuse"
@@ -369,6 +374,7 @@ class StreamConfig:
     r_imu: float = 4e-4
     r_camera: float = 9e-4
     notes: tuple[str, ...] = ()
+    chain: Mapping | None = None
 
     def __post_init__(self):
         if not isinstance(self.name_prefix, str) or not self.name_prefix:
@@ -420,7 +426,9 @@ class StreamConfig:
 
 
 _STREAM_KEYS = tuple(
-    f for f in StreamConfig.__dataclass_fields__ if f not in ("body_height_m", "lengths_m", "notes")
+    f
+    for f in StreamConfig.__dataclass_fields__
+    if f not in ("body_height_m", "lengths_m", "notes", "chain")
 )
 
 
@@ -533,7 +541,7 @@ def _offline_only(session) -> list[str]:
     return out
 
 
-def stream_config_from_session(session, **overrides) -> StreamConfig:
+def stream_config_from_session(session, chain: Mapping | None = None, **overrides) -> StreamConfig:
     """A :class:`StreamConfig` from an offline :class:`~kinefuse.session_file.SessionConfig`.
 
     Uses the session name as the stream prefix, its skeleton (height, lengths) and its
@@ -548,17 +556,20 @@ def stream_config_from_session(session, **overrides) -> StreamConfig:
         the online engine does not do (:func:`_offline_only`), which it would otherwise ignore.
     """
     source = Path(getattr(session, "path", "session")).name
-    refused = _offline_only(session)
+    refused = _offline_only(session) if chain is None else _not_in_chain(session, chain)
+    if refused and chain is not None:
+        raise ConfigError(f"{source}: {'; '.join(refused)}: stream the session the chain came from")
     if refused:
         raise ConfigError(
-            f"{source}: kinefuse stream cannot honour {'; '.join(refused)}. The online engine runs "
-            "paper B's full-body chain (chest + upper arms, forearms, thighs, shanks) on the "
-            "streamed orientations as segment orientations, without calibration; process this "
-            "recording with kinefuse run, or stream with a [stream] session"
+            f"{source}: kinefuse stream cannot honour {'; '.join(refused)} by itself. Without "
+            "--chain the online engine runs paper B's full-body chain (chest + upper arms, "
+            "forearms, thighs, shanks) on the streamed orientations as segment orientations, "
+            f"without calibration. kinefuse run {source} calibrates from the recording and writes "
+            f"chain.json: kinefuse stream {source} --chain <out_dir>/chain.json runs that chain"
         )
     processor, note = online_processor(session.method.name, source)
     notes = () if note is None else (note,)
-    if session.processing_parameters().get("calibration") is None:
+    if chain is None and session.processing_parameters().get("calibration") is None:
         default = "vision" if session.camera is not None else "static"
         msg = (
             f"{source}: kinefuse run calibrates this session ({default!r}, the default); "
@@ -575,7 +586,20 @@ def stream_config_from_session(session, **overrides) -> StreamConfig:
     }
     if session.skeleton.body_height_m is not None:
         kw["body_height_m"] = session.skeleton.body_height_m
-    if session.camera is None:
+    if session.camera is None or chain is not None:
         kw["camera_stream"] = ""
+    if chain is not None:
+        kw["chain"] = chain
+        kw["joints"] = tuple(s["distal"] for s in chain["segments"])
     kw.update(overrides)
     return StreamConfig(**kw)
+
+
+def _not_in_chain(session, chain: Mapping) -> list[str]:
+    """With a calibrated chain: the session's segments must be the chain's (the calibration,
+    axes and root are the chain's own)."""
+    segs = {s["name"] for s in chain["segments"]} | (
+        {chain["root_segment"]} if chain.get("root_segment") else set()
+    )
+    extra = sorted(set(session.imu.segments) - segs - {"foot_l", "foot_r"})
+    return [f"[imu.segments] {', '.join(extra)} (not in the chain file)"] if extra else []

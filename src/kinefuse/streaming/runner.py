@@ -52,6 +52,7 @@ from rich.table import Table
 from kinefuse.conventions import SOURCE_NAMES
 from kinefuse.exceptions import ConfigError, InputError
 from kinefuse.kinematics import full_body
+from kinefuse.pipelines.run.chain_file import skeleton_from_chain
 from kinefuse.pipelines.vision_params import VisionParams
 from kinefuse.sim.camera import bone_edges
 from kinefuse.streaming.config import (
@@ -99,7 +100,9 @@ def build_engine(
     cfg: StreamConfig, *, camera: bool, camera_rate_hz: float, imu_rate_hz, record=False
 ):
     """The :class:`Engine` (skeleton, processor, timing) a :class:`StreamConfig` describes."""
-    skeleton = full_body(height_m=cfg.body_height_m, lengths=cfg.lengths_m or None)
+    skeleton, root_position = engine_skeleton(cfg)
+    if cfg.chain is not None and camera:
+        raise ConfigError("--chain: a calibrated IMU chain runs without a camera")
     rate = camera_rate_hz if camera else cfg.output_rate_hz
     if cfg.processor == "paper-a":
         proc = IntegratedProcessor(1.0 / rate, q=cfg.q, r=cfg.r_imu, lag=cfg.lag)
@@ -119,8 +122,17 @@ def build_engine(
         skeleton, joints=cfg.joints, camera=camera, camera_rate_hz=camera_rate_hz,
         output_rate_hz=cfg.output_rate_hz, imu_rate_hz=imu_rate_hz, max_latency_s=cfg.max_latency_s,
         stale_after_s=cfg.stale_after_s, gap_factor=cfg.gap_factor, record=record,
+        root_position_m=root_position,
     )  # fmt: skip
     return Engine(ecfg, proc)
+
+
+def engine_skeleton(cfg: StreamConfig) -> tuple:
+    """``(skeleton, root_position_m)`` of the engine: the calibrated chain of ``cfg.chain``
+    (sensor-frame axes, its root), else paper B's full body at the origin."""
+    if cfg.chain is not None:
+        return skeleton_from_chain(cfg.chain)
+    return full_body(height_m=cfg.body_height_m, lengths=cfg.lengths_m or None), (0.0, 0.0, 0.0)
 
 
 def warm_up(engine, seconds: float = 2.0) -> None:
@@ -273,9 +285,7 @@ class _Inputs:
 
 
 def _resolve_inputs(cfg: StreamConfig) -> _Inputs:
-    segments = EngineConfig(
-        full_body(height_m=cfg.body_height_m, lengths=cfg.lengths_m or None), joints=cfg.joints
-    ).segments
+    segments = EngineConfig(engine_skeleton(cfg)[0], joints=cfg.joints).segments
     cam_name = cfg.camera_stream_name
     wanted = {cfg.imu_stream_name(seg): seg for seg in segments}
     found = resolve_many(([cam_name] if cam_name else []) + list(wanted), cfg.resolve_timeout_s)

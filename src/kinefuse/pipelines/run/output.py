@@ -74,6 +74,9 @@ class SessionOutput:
         ``"imu"``, ``"root"``, ``"camera"``, ``"reference"`` (T, J) per output joint.
     warnings : list of str
         Short coverage and other problems the user must see (also in ``notes``).
+    chain_description : dict or None
+        The calibrated chain for live capture (:mod:`kinefuse.pipelines.run.chain_file`), or
+        None when it cannot run live (the reason is in ``notes``).
     """
 
     t_s: np.ndarray
@@ -100,6 +103,7 @@ class SessionOutput:
     available: np.ndarray | None = None
     coverage: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
+    chain_description: dict | None = None
 
     def trajectories(self) -> dict[str, np.ndarray]:
         """Evaluated trajectories by their table label (tags such as "[calibrated on reference]")."""

@@ -42,6 +42,7 @@ from kinefuse.pipelines.run.chain import (
     _resolve_lengths,
     build_chain,
 )
+from kinefuse.pipelines.run.chain_file import CHAIN_FILE, chain_description
 from kinefuse.pipelines.run.output import SessionOutput
 from kinefuse.pipelines.run.parameters import (
     _CAMERA_METHODS,
@@ -201,6 +202,9 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m)
     )
     out = _new_output(recording, method, t, joints, chain, frame, sk, cal, root_kind)
     out.notes, out.warnings, out.root, out.provenance = notes, run_warnings, root_desc, provenance
+    out.chain_description, why = chain_description(sk, root_kind, params, cal, body_height_m)
+    if why is not None:
+        notes.append(f"no {CHAIN_FILE} for kinefuse stream --chain: {why}")
     if cal is not None:
         out.sensor_orientations = _sensor_orientations(recording, cal, t)
     if cal is not None and cal.frames:

@@ -9,6 +9,7 @@ metrics; all staged and moved into the output folder as one set
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -26,6 +27,7 @@ from kinefuse.io.mot import write_mot
 from kinefuse.io.opensim import write_opensense_sto
 from kinefuse.io.output_folder import OutputFolder
 from kinefuse.kinematics import JOINT_ANGLE_COMPONENTS
+from kinefuse.pipelines.run.chain_file import CHAIN_FILE
 from kinefuse.pipelines.run.output import SessionOutput
 from kinefuse.pipelines.run.process import process_recording
 from kinefuse.pipelines.run.streams import load_streams
@@ -105,6 +107,7 @@ def _outputs(out_dir: Path, stem: str) -> dict[str, Path]:
         "report": out_dir / REPORT_NAME,
         "metrics": out_dir / "metrics.json",
         "provenance": out_dir / "provenance.json",
+        "chain": out_dir / CHAIN_FILE,
         "figures": out_dir / "figures",
     }
 
@@ -214,6 +217,13 @@ def _run_and_write(cfg, folder: Path) -> RunResult:
     )
     if out.sensor_orientations:
         result.outputs.append(_write_orientations(out, targets))
+    if out.chain_description is not None:
+        text = json.dumps(out.chain_description, indent=1) + "\n"
+        result.outputs.append(write_text_safely(targets["chain"], text))
+        out.notes.append(
+            f"{CHAIN_FILE}: the calibrated chain; kinefuse stream {cfg.path.name} --chain "
+            f"{CHAIN_FILE} runs it on live IMU streams (docs/streaming.md)"
+        )
     if out.angles:
         result.outputs += _write_angles(out, targets, cfg, False)
         result.angles_deg = {

@@ -1,0 +1,109 @@
+"""The calibrated IMU chain of a session as a file, ``chain.json``, for live capture.
+
+``kinefuse run`` calibrates from the recording (static or functional: IMUs only) and writes the
+chain it then used: each segment's long axis in its *sensor* frame, its length, the root joint
+and, for a pelvis root, the hips as offsets in the pelvis sensor's frame. ``kinefuse stream
+SESSION --chain chain.json`` runs that same chain on live orientation streams
+(:mod:`kinefuse.streaming`): the positions equal the offline chain's on the same samples.
+
+Only IMU-only roots are described (``pelvis``: hips from the pelvis IMU; ``fixed``: a root
+joint at a measured position); a camera or reference root has no live counterpart here. 6-D
+sensors whose headings the calibration aligned are refused: the live streams would not carry
+that alignment.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from kinefuse.exceptions import InputError
+from kinefuse.kinematics import ANTHROPOMETRIC_RATIOS, Skeleton
+
+__all__ = ["CHAIN_FILE", "chain_description", "read_chain", "skeleton_from_chain"]
+
+#: File name of the description in a session's output folder.
+CHAIN_FILE = "chain.json"
+_FORMAT = "kinefuse-chain"
+_VERSION = 1
+
+
+def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_height_m):
+    """``(description, None)`` of the calibrated chain ``sk`` (axes in the sensor frames,
+    resolved lengths), or ``(None, why)`` when it cannot run live."""
+    if root_kind not in ("pelvis", "fixed"):
+        return None, f"its root ({root_kind!r}) comes from a stream kinefuse stream does not read"
+    if cal is not None and any(abs(h) > 1e-9 for h in (cal.world_heading_deg or {}).values()):
+        return None, "6-D sensors: their headings were aligned by the calibration"
+    rp = params.get("root_position_m", (0.0, 0.0, 0.0))
+    if isinstance(rp, Mapping):
+        return None, "a root position per chain start"
+    segs = [
+        {"name": s, "parent": int(p), "proximal": a, "distal": b, "length_m": float(L),
+         "axis_sensor": [float(v) for v in ax]}
+        for s, p, a, b, L, ax in zip(sk.segments, sk.parents, sk.proximal, sk.distal,
+                                     sk.lengths_m, sk.axes, strict=True)
+    ]  # fmt: skip
+    d = {"format": _FORMAT, "version": _VERSION, "root_kind": root_kind,
+         "root_position_m": [float(v) for v in rp], "segments": segs}  # fmt: skip
+    if root_kind == "pelvis":
+        w = ANTHROPOMETRIC_RATIOS["hip_width"] * float(body_height_m)
+        if cal is not None and "pelvis" in cal.frames:
+            right = np.asarray(cal.frames["pelvis"])[:, 2]  # ISB Z (right) in the sensor frame
+        else:
+            right = np.array([1.0, 0.0, 0.0])  # right-front-up sensor (as the offline chain)
+        d["root"], d["root_segment"] = "pelvis", "pelvis"
+        d["offsets_m"] = {h: [float(v) for v in s * 0.5 * w * right]
+                          for h, s in (("hip_l", -1.0), ("hip_r", 1.0))}  # fmt: skip
+    else:
+        d["root"], d["root_segment"], d["offsets_m"] = sk.root, None, {}
+    return d, None
+
+
+def read_chain(path) -> dict:
+    """Read and check a ``chain.json`` (``InputError`` naming the file and what is wrong)."""
+    p = Path(path).expanduser()
+    try:
+        d = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(
+            f"--chain {p}: file not found (kinefuse run writes {CHAIN_FILE})"
+        ) from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"--chain {p}: not a JSON file ({exc})") from None
+    if not isinstance(d, dict) or d.get("format") != _FORMAT or d.get("version") != _VERSION:
+        raise InputError(
+            f"--chain {p}: expected a {CHAIN_FILE} written by kinefuse run (format "
+            f"{_FORMAT!r}, version {_VERSION})"
+        )
+    skeleton_from_chain(d, str(p))  # every field checked once, here
+    return d
+
+
+def skeleton_from_chain(d: Mapping, source: str = CHAIN_FILE) -> tuple[Skeleton, tuple]:
+    """The :class:`~kinefuse.kinematics.Skeleton` (sensor-frame axes) and root position of a
+    chain description."""
+    try:
+        segs = d["segments"]
+        sk = Skeleton(
+            segments=tuple(s["name"] for s in segs),
+            parents=tuple(int(s["parent"]) for s in segs),
+            proximal=tuple(s["proximal"] for s in segs),
+            distal=tuple(s["distal"] for s in segs),
+            lengths_m=tuple(float(s["length_m"]) for s in segs),
+            axes=np.array([s["axis_sensor"] for s in segs], dtype=float),
+            root=d["root"],
+            root_segment=d["root_segment"],
+            offsets_m={j: np.array(v, dtype=float) for j, v in d["offsets_m"].items()},
+        )
+        root = tuple(float(v) for v in d["root_position_m"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(
+            f"{source}: malformed chain description ({type(exc).__name__}: {exc})"
+        ) from None
+    if len(root) != 3:
+        raise InputError(f"{source}: root_position_m: expected 3 numbers, got {len(root)}")
+    return sk, root

@@ -1,0 +1,101 @@
+"""IMU-only live capture: the chain `kinefuse run` calibrated (chain.json) run by the online engine."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from kinefuse.exceptions import ConfigError, InputError
+from kinefuse.pipelines.run import process_recording, run_session
+from kinefuse.pipelines.run.chain_file import CHAIN_FILE, read_chain
+from kinefuse.pipelines.run.streams import load_streams
+from kinefuse.session_file import load_session
+from kinefuse.streaming.config import stream_config_from_session
+from kinefuse.streaming.engine_types import IMU_FRESH
+from kinefuse.streaming.offline import offline_causal
+from kinefuse.streaming.runner import build_engine
+
+pytestmark = pytest.mark.filterwarnings("ignore:.*has no online form:UserWarning")
+
+SESSION = """\
+[session]
+name = "xl"
+out_dir = "out"
+[imu]
+format = "ximu3"
+path = "{path}"
+[imu.segments]
+pelvis = "pelvis_64F0EDBF"
+thigh_l = "Left_Upper_Leg_64F61CC4"
+shank_l = "Left_Lower_Leg_64F61CB3"
+thigh_r = "Right_Upper_Leg_64F61C2E"
+shank_r = "Right_Lower_Leg_64F61B2A"
+[skeleton]
+body_height_m = 1.75
+root = "pelvis"
+[calibration]
+method = "static"
+[method]
+name = "imu-only"
+"""
+
+
+@pytest.fixture(scope="module")
+def calibrated(shared_data, tmp_path_factory):
+    d = tmp_path_factory.mktemp("chain")
+    p = d / "xl.toml"
+    p.write_text(SESSION.format(path=shared_data / "xio_imu_mocap_lower_body"), encoding="utf-8")
+    run_session(p)
+    return p, d / "out" / CHAIN_FILE
+
+
+def test_the_live_chain_is_the_offline_chain(calibrated):
+    """Oracle: kinefuse run's own chain (static calibration, pelvis root, hips from the pelvis
+    IMU). The online engine on the same orientation samples and frame times, with chain.json,
+    gives the same joint positions wherever it had a fresh sample (held or stale samples, e.g.
+    at dropped packets, are the engine's own rule, not a chain difference)."""
+    session, chain_path = calibrated
+    cfg = load_session(session)
+    rec, _ = load_streams(cfg, strict_units=True)
+    out = process_recording(rec, "imu-only", cfg.processing_parameters(),
+                            lengths=cfg.skeleton.lengths_m, body_height_m=1.75)  # fmt: skip
+    chain = read_chain(chain_path)
+    assert chain == json.loads(json.dumps(out.chain_description))  # the file is that chain
+    scfg = stream_config_from_session(cfg, chain)
+    assert scfg.camera_stream == "" and scfg.joints == out.joints
+    rates = {s: 1.0 / float(np.median(np.diff(rec.imu[s].t_s))) for s in rec.imu}
+    engine = build_engine(scfg, camera=False, camera_rate_hz=30.0, imu_rate_hz=rates)
+    imu = {s: (st.t_s, st.q_world_from_sensor) for s, st in rec.imu.items()}
+    off = offline_causal(engine.config, engine.processor, imu, None, frame_times=out.t_s)
+    fresh = off.imu_status == IMU_FRESH
+    assert fresh.mean() > 0.95
+    both = fresh & np.all(np.isfinite(out.chain), axis=-1)
+    np.testing.assert_allclose(off.z_imu[both], out.chain[both], atol=1e-9, rtol=0)
+    assert np.ptp(out.chain[both][:, 2]) > 0.1  # the legs moved: not a trivial comparison
+
+
+def test_chain_file_errors_and_refusals(calibrated, tmp_path):
+    session, chain_path = calibrated
+    with pytest.raises(InputError, match="file not found"):
+        read_chain(tmp_path / "none.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "other"}', encoding="utf-8")
+    with pytest.raises(InputError, match="written by kinefuse run"):
+        read_chain(bad)
+    d = json.loads(chain_path.read_text(encoding="utf-8"))
+    del d["segments"][0]["axis_sensor"]
+    bad.write_text(json.dumps(d), encoding="utf-8")
+    with pytest.raises(InputError, match="malformed chain description"):
+        read_chain(bad)
+    cfg = load_session(session)
+    with pytest.raises(ConfigError, match="kinefuse stream xl.toml --chain"):
+        stream_config_from_session(cfg)  # static calibration, pelvis root: needs the chain
+    chain = read_chain(chain_path)
+    one_leg = {**chain, "segments": [s for s in chain["segments"] if s["name"].endswith("_l")]}
+    with pytest.raises(ConfigError, match=r"shank_r, thigh_r \(not in the chain file\)"):
+        stream_config_from_session(cfg, one_leg)
+    with pytest.raises(ConfigError, match="runs without a camera"):
+        build_engine(stream_config_from_session(cfg, chain), camera=True, camera_rate_hz=30.0,
+                     imu_rate_hz=100.0)  # fmt: skip
