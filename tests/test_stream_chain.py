@@ -12,6 +12,7 @@ from kinefuse.pipelines.run import process_recording, run_session
 from kinefuse.pipelines.run.chain_file import CHAIN_FILE, read_chain
 from kinefuse.pipelines.run.streams import load_streams
 from kinefuse.session_file import load_session
+from kinefuse.session_file.from_recording import filled_template, sketch_recording
 from kinefuse.streaming.config import stream_config_from_session
 from kinefuse.streaming.engine_types import IMU_FRESH
 from kinefuse.streaming.offline import offline_causal
@@ -19,35 +20,16 @@ from kinefuse.streaming.runner import build_engine
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*has no online form:UserWarning")
 
-SESSION = """\
-[session]
-name = "xl"
-out_dir = "out"
-[imu]
-format = "ximu3"
-path = "{path}"
-[imu.segments]
-pelvis = "pelvis_64F0EDBF"
-thigh_l = "Left_Upper_Leg_64F61CC4"
-shank_l = "Left_Lower_Leg_64F61CB3"
-thigh_r = "Right_Upper_Leg_64F61C2E"
-shank_r = "Right_Lower_Leg_64F61B2A"
-[skeleton]
-body_height_m = 1.75
-root = "pelvis"
-[calibration]
-method = "static"
-[method]
-name = "imu-only"
-"""
-
 
 @pytest.fixture(scope="module")
 def calibrated(shared_data, tmp_path_factory):
+    """The x-IMU3 lower body as `kinefuse init-session --from` fills it (pelvis root, static
+    calibration, IMU only), run once."""
     d = tmp_path_factory.mktemp("chain")
     p = d / "xl.toml"
-    p.write_text(SESSION.format(path=shared_data / "xio_imu_mocap_lower_body"), encoding="utf-8")
-    run_session(p)
+    sketch = sketch_recording(shared_data / "xio_imu_mocap_lower_body", d)
+    p.write_text(filled_template("xl", p.name, sketch), encoding="utf-8")
+    run_session(p, d / "out")
     return p, d / "out" / CHAIN_FILE
 
 
@@ -60,7 +42,7 @@ def test_the_live_chain_is_the_offline_chain(calibrated):
     cfg = load_session(session)
     rec, _ = load_streams(cfg, strict_units=True)
     out = process_recording(rec, "imu-only", cfg.processing_parameters(),
-                            lengths=cfg.skeleton.lengths_m, body_height_m=1.75)  # fmt: skip
+                            lengths=cfg.skeleton.lengths_m, body_height_m=cfg.skeleton.body_height_m)  # fmt: skip
     chain = read_chain(chain_path)
     assert chain == json.loads(json.dumps(out.chain_description))  # the file is that chain
     scfg = stream_config_from_session(cfg, chain)
