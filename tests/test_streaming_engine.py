@@ -432,3 +432,37 @@ def test_run_loop_ctrl_c_flushes_and_closes(rec):
     n_cam = sum(1 for e in ev[: 40 * 25] if e[2] == "camera")
     assert len(outlet.pushed) == eng.counters["frames"] == n_cam  # nothing held back
     assert [o.index for o in outlet.pushed] == list(range(n_cam))
+
+
+def test_replay_waits_for_every_reader_or_a_grace_after_the_first():
+    """A consumer that reads only some streams (IMU-only capture, no camera) must not hold the
+    replay for the whole --wait-for-consumers: after the first reader, CONSUMER_GRACE_S more."""
+    from kinefuse.streaming.replay import CONSUMER_GRACE_S, wait_for_consumers
+
+    class Clock:
+        t = 0.0
+
+        def __call__(self):
+            return self.t
+
+        def sleep(self, dt):
+            self.t += dt
+
+    class Outlet:
+        def __init__(self, from_t):
+            self.from_t = from_t
+
+        def have_consumers(self):
+            return clock.t >= self.from_t
+
+    clock = Clock()
+    some = [Outlet(1.0), Outlet(1.0), Outlet(np.inf)]  # the camera is never read
+    assert wait_for_consumers(some, 60.0, clock=clock, sleep=clock.sleep) is False
+    assert clock.t == pytest.approx(1.0 + CONSUMER_GRACE_S, abs=0.02)  # not 60 s
+    clock.t = 0.0
+    every = [Outlet(1.0), Outlet(1.5)]
+    assert wait_for_consumers(every, 60.0, clock=clock, sleep=clock.sleep) is True
+    assert clock.t == pytest.approx(1.5, abs=0.02)
+    clock.t = 0.0
+    assert wait_for_consumers([Outlet(np.inf)], 5.0, clock=clock, sleep=clock.sleep) is False
+    assert clock.t == pytest.approx(5.0, abs=0.02)  # nobody: the whole timeout

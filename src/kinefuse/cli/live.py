@@ -272,7 +272,8 @@ def replay(
     no_raw: _flag("--no-raw", "Publish the orientation channels only (no acc_*, gyr_*).") = False,
     wait_for_consumers: _seconds(
         "--wait-for-consumers",
-        "Before publishing, wait up to this long until every stream has a reader.",
+        "Before publishing, wait up to this long until every stream has a reader (once one "
+        "has, 2 s more at most: a reader of some streams only does not hold the replay).",
     ) = None,
     quiet: Quiet = False,
     json_file: Json = None,

@@ -37,7 +37,14 @@ from kinefuse.streaming.lsl import (
     make_outlet,
 )
 
-__all__ = ["ReplaySummary", "demo_recording", "load_recording", "run_replay"]
+__all__ = [
+    "CONSUMER_GRACE_S",
+    "ReplaySummary",
+    "demo_recording",
+    "load_recording",
+    "run_replay",
+    "wait_for_consumers",
+]
 
 log = logging.getLogger("kinefuse.streaming")
 
@@ -182,7 +189,8 @@ def run_replay(
     include_raw : bool
         Publish acc/gyr channels next to the orientation.
     wait_for_consumers_s : float, optional
-        Before publishing, wait up to this long until every outlet has a consumer.
+        Before publishing, wait up to this long until every outlet has a consumer
+        (:func:`wait_for_consumers`: once one has, at most :data:`CONSUMER_GRACE_S` more).
     stop_event : threading.Event, optional
         Set it to stop early (tests).
     quiet : bool
@@ -212,9 +220,7 @@ def run_replay(
     interrupted = stopped = False
     try:
         if wait_for_consumers_s:
-            deadline = time.monotonic() + wait_for_consumers_s
-            for o in outlets:
-                o.wait_for_consumers(max(0.0, deadline - time.monotonic()))
+            wait_for_consumers(outlets, wait_for_consumers_s)
         pub.run(outlets, pylsl, loop, quiet)
     except _Stop:
         stopped = True
@@ -234,3 +240,27 @@ def run_replay(
 
 class _Stop(Exception):
     pass
+
+
+#: Once one stream has a reader, how long the others are waited for (s): a consumer opens all
+#: the streams it reads at once, and one that reads only some (IMU-only capture: no camera)
+#: must not hold the replay for the whole ``wait_for_consumers_s``.
+CONSUMER_GRACE_S = 2.0
+
+
+def wait_for_consumers(outlets, timeout_s: float, grace_s: float = CONSUMER_GRACE_S, *,
+                       clock=time.monotonic, sleep=time.sleep) -> bool:  # fmt: skip
+    """Wait until every outlet has a consumer, or ``grace_s`` after the first one got one, or
+    ``timeout_s``; True if every outlet has one."""
+    deadline = clock() + timeout_s
+    first = None
+    while True:
+        have = [o.have_consumers() for o in outlets]
+        now = clock()
+        if all(have):
+            return True
+        if any(have) and first is None:
+            first = now
+        if now >= deadline or (first is not None and now - first >= grace_s):
+            return False
+        sleep(0.01)
