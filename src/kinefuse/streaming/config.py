@@ -564,8 +564,9 @@ def stream_config_from_session(session, chain: Mapping | None = None, **override
             f"{source}: kinefuse stream cannot honour {'; '.join(refused)} by itself. Without "
             "--chain the online engine runs paper B's full-body chain (chest + upper arms, "
             "forearms, thighs, shanks) on the streamed orientations as segment orientations, "
-            f"without calibration. kinefuse run {source} calibrates from the recording and writes "
-            f"chain.json: kinefuse stream {source} --chain <out_dir>/chain.json runs that chain"
+            f"without calibration. With IMUs only (a pelvis or fixed root), kinefuse run {source} "
+            f"calibrates and writes chain.json: kinefuse stream {source} --chain "
+            "<out_dir>/chain.json runs that chain"
         )
     processor, note = online_processor(session.method.name, source)
     notes = () if note is None else (note,)
