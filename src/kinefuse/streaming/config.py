@@ -44,6 +44,7 @@ from string import Template
 from kinefuse import methods
 from kinefuse.conventions import PAPER_B_JOINTS
 from kinefuse.exceptions import ConfigError, InputError
+from kinefuse.kinematics import full_body
 from kinefuse.session_file import read_toml
 
 __all__ = [
@@ -519,11 +520,6 @@ def load_stream_config(path: str | Path) -> StreamConfig:
         raise ConfigError(f"{p.name}: [stream] {exc}") from None
 
 
-#: Segments of the online engine's chain (:func:`kinefuse.kinematics.full_body`).
-_ENGINE_SEGMENTS = ("chest", "upper_arm_l", "upper_arm_r", "forearm_l", "forearm_r", "thigh_l",
-                   "thigh_r", "shank_l", "shank_r")  # fmt: skip
-
-
 def _offline_only(session) -> list[str]:
     """What an offline session asks for that the online engine would ignore: a calibration,
     declared segment axes, a root other than the camera, segments outside its chain."""
@@ -535,7 +531,8 @@ def _offline_only(session) -> list[str]:
         out.append(f"declared segment axes ({', '.join(sorted(p['axes']))})")
     if p.get("root") not in (None, "vision"):
         out.append(f"root {p['root']!r}")
-    extra = sorted(set(session.imu.segments) - set(_ENGINE_SEGMENTS))
+    sk = full_body(height_m=1.75)  # the online engine's chain (runner.engine_skeleton)
+    extra = sorted(set(session.imu.segments) - {sk.root_segment, *sk.segments})
     if extra:
         out.append(f"[imu.segments] {', '.join(extra)} (not in the online chain)")
     return out

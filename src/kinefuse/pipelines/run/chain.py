@@ -189,21 +189,35 @@ def _declared_axes(value, segs) -> dict[str, tuple]:
     return out
 
 
-def _hip_roots(recording, cal, t, origin, body_height_m, notes) -> dict[str, np.ndarray]:
-    """Hip joint centres from the pelvis IMU: origin (mid-hip) ± half the hip width along Z."""
+def hip_width_m(body_height_m) -> float:
+    """Hip width for hips placed from the pelvis IMU: 0.191 x body height (Winter 2009), m."""
     if body_height_m is None:
         raise ConfigError(
             "the hips are placed from the pelvis IMU with the hip width 0.191 x body height "
             "(Winter 2009); give [skeleton] body_height_m"
         )
-    w = ANTHROPOMETRIC_RATIOS["hip_width"] * float(body_height_m)
+    return ANTHROPOMETRIC_RATIOS["hip_width"] * float(body_height_m)
+
+
+def pelvis_right_in_sensor(cal) -> np.ndarray:
+    """The pelvis right axis (ISB Z) in the pelvis sensor's frame: the calibrated pelvis frame's,
+    else the sensor's x (a right-front-up sensor: ISB X fwd = y, Y up = z, Z right = x)."""
+    if cal is not None and "pelvis" in cal.frames:
+        return np.asarray(cal.frames["pelvis"])[:, 2]
+    return np.array([1.0, 0.0, 0.0])
+
+
+def _hip_roots(recording, cal, t, origin, body_height_m, notes) -> dict[str, np.ndarray]:
+    """Hip joint centres from the pelvis IMU: origin (mid-hip) ± half the hip width along the
+    pelvis right axis (:func:`pelvis_right_in_sensor`)."""
+    w = hip_width_m(body_height_m)
     if cal is not None and "pelvis" in cal.frames:
         R = segment_orientations(recording, cal, t, ["pelvis"])["pelvis"]
         how = "the pelvis frame of the static calibration (Z = right in the pose)"
     else:
         st = recording.imu["pelvis"]
         R = as_rotation_matrices(slerp_resample(st.t_s, st.q_world_from_sensor, t))
-        R = R[..., [1, 2, 0]]  # right-front-up sensor: ISB X fwd = y, Y up = z, Z right = x
+        R = R[..., [1, 2, 0]]  # right-front-up sensor (pelvis_right_in_sensor)
         how = "the pelvis sensor frame taken as right-front-up (no calibrated pelvis frame)"
     notes.append(
         f"hips: pelvis origin (mid-hip) ± {w / 2:.3f} m along the pelvis right axis "

@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import InputError
-from kinefuse.kinematics import ANTHROPOMETRIC_RATIOS, Skeleton
+from kinefuse.kinematics import Skeleton
+from kinefuse.pipelines.run.chain import hip_width_m, pelvis_right_in_sensor
 
 __all__ = ["CHAIN_FILE", "chain_description", "read_chain", "skeleton_from_chain"]
 
@@ -49,12 +50,8 @@ def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_h
     ]  # fmt: skip
     d = {"format": _FORMAT, "version": _VERSION, "root_kind": root_kind,
          "root_position_m": [float(v) for v in rp], "segments": segs}  # fmt: skip
-    if root_kind == "pelvis":
-        w = ANTHROPOMETRIC_RATIOS["hip_width"] * float(body_height_m)
-        if cal is not None and "pelvis" in cal.frames:
-            right = np.asarray(cal.frames["pelvis"])[:, 2]  # ISB Z (right) in the sensor frame
-        else:
-            right = np.array([1.0, 0.0, 0.0])  # right-front-up sensor (as the offline chain)
+    if root_kind == "pelvis":  # the hips as the offline chain places them (_hip_roots)
+        w, right = hip_width_m(body_height_m), pelvis_right_in_sensor(cal)
         d["root"], d["root_segment"] = "pelvis", "pelvis"
         d["offsets_m"] = {h: [float(v) for v in s * 0.5 * w * right]
                           for h, s in (("hip_l", -1.0), ("hip_r", 1.0))}  # fmt: skip
