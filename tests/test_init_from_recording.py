@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import textwrap
+
 import pytest
 from typer.testing import CliRunner
 
 from conftest import cli_stderr
 from kinefuse import cli
 from kinefuse.conventions import SEGMENTS
+from kinefuse.io._names import canonical_segment
 from kinefuse.kinematics.skeleton import ANTHROPOMETRIC_RATIOS
 from kinefuse.pipelines.run import run_session
 from kinefuse.session_file import load_session
@@ -51,14 +54,73 @@ def test_ximu3_folder_becomes_a_session_that_runs(shared_data, tmp_path):
         assert knee["flexion_max"] > 90  # the recording squats and kneels
 
 
-def test_a_reference_in_the_recording_fills_reference_for_evaluation_only(shared_data, tmp_path):
+def test_a_walk_without_a_still_pose_gets_functional_calibration_and_runs(shared_data, tmp_path):
+    """The Neura walk starts moving at once: a static calibration would stop with "no still
+    window", so the template chooses functional calibration and says why, and maps the feet
+    (their IMUs locate the ankles). Its Vicon reference is filled for evaluation only. The
+    session then runs as written (before: the user had to edit the calibration and the feet)."""
     rec = shared_data / "neura_sparse_sample"
     session = tmp_path / "neura.toml"
-    assert _init(session, rec).exit_code == 0
+    res = _init(session, rec)
+    assert res.exit_code == 0, (res.output, cli_stderr(res))
+    assert "functional calibration: no still window of 2 s" in " ".join(res.output.split())
     cfg = load_session(session)
     assert cfg.imu.format == "neura" and cfg.reference is not None
     assert cfg.reference.path == rec.resolve() and cfg.reference.align == "none"
     assert cfg.skeleton.root == "pelvis"  # not the reference: evaluation only by default
+    assert cfg.calibration.settings["method"] == "functional"
+    assert {"foot_l", "foot_r"} <= set(cfg.imu.segments)
+    text = session.read_text(encoding="utf-8")
+    assert 'method = "functional"  # no still window of 2 s for a static calibration' in text
+    summary = run_session(session, tmp_path / "out")
+    assert set(summary.coverage) == {"knee_l", "knee_r", "ankle_l", "ankle_r"}
+    assert all(c["available"] > 0.9 * c["samples"] for c in summary.coverage.values())
+
+
+def test_a_still_pose_keeps_static_calibration_and_the_feet_commented(shared_data, tmp_path):
+    """The other side of the choice above: x-IMU3 holds still at the start."""
+    session = tmp_path / "x.toml"
+    assert _init(session, shared_data / "xio_imu_mocap_lower_body").exit_code == 0
+    assert load_session(session).calibration.settings["method"] == "static"
+    assert "no still window" not in session.read_text(encoding="utf-8")
+
+
+def test_hand_imus_are_segments_that_locate_the_wrist(shared_data, tmp_path):
+    """A hand IMU (Xsens suits, qmt) maps to hand_l/hand_r; with functional calibration it
+    locates the wrist centre and is not an output segment (nothing locates the fingertips).
+    Before, [imu.segments] refused 'hand_r' while the calibration asked for it."""
+    assert canonical_segment("LeftHand") == "hand_l"
+    assert canonical_segment("hand_right") == "hand_r"
+    qmt = shared_data / "qmt_full_body_example" / "full_body_example_data.mat"
+    session = tmp_path / "arm.toml"
+    session.write_text(
+        textwrap.dedent(f"""\
+            [session]
+            name = "arm"
+            [imu]
+            format = "qmt"
+            path = "{qmt.as_posix()}"
+            [imu.segments]
+            upper_arm_r = "upper_arm_right"
+            forearm_r = "forearm_right"
+            hand_r = "hand_right"
+            [skeleton]
+            root = "fixed"
+            root_position_m = [0.0, 0.0, 1.40]
+            [skeleton.lengths]
+            upper_arm_r = 0.30
+            forearm_r = 0.26
+            [calibration]
+            method = "functional"
+            [method]
+            name = "imu-only"
+            """),
+        encoding="utf-8",
+    )
+    summary = run_session(session, tmp_path / "out")
+    assert set(summary.coverage) == {"elbow_r", "wrist_r"}
+    assert summary.coverage["wrist_r"]["available"] == summary.coverage["wrist_r"]["samples"]
+    assert any("hand_r: IMUs used for the wrist centres only" in n for n in summary.notes)
 
 
 def test_one_leg_with_the_pelvis_places_only_its_hip(shared_data, tmp_path):

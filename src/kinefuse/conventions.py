@@ -39,6 +39,8 @@ SEGMENTS = (
     "shank_r",
     "foot_l",
     "foot_r",
+    "hand_l",
+    "hand_r",
 )
 
 #: Canonical joint names.

@@ -61,6 +61,7 @@ _PASS_THROUGH = (typer.Exit, typer.Abort, _CLICK_EXCEPTION)
 #: is a clear exit 1, and ``kinefuse demo`` can switch the kernels to interpreted mode first.
 BACKENDS = {
     "demo": ("kinefuse.apps.demo", "run_demo"),
+    "init-session": ("kinefuse.pipelines.run.calibration", "sketch_for_session"),
     "run": ("kinefuse.pipelines.run", "run_session"),
     "evaluate": ("kinefuse.pipelines.run", "evaluate_recording"),
     "experiment": ("kinefuse.apps.experiments", "run_experiment"),

@@ -26,7 +26,7 @@ from kinefuse.exceptions import InputError
 from kinefuse.io import FORMATS
 from kinefuse.progress import progress
 from kinefuse.session_file import CALIBRATIONS, METHODS, ROOTS, load_session, session_template
-from kinefuse.session_file.from_recording import filled_template, sketch_recording
+from kinefuse.session_file.from_recording import filled_template
 
 __all__ = [
     "EXPERIMENTS",
@@ -215,12 +215,13 @@ def init_session(
             "Edit the [imu] path and [imu.segments]",
         )
     else:
-        sk = sketch_recording(source, path.parent, fmt)
+        sk = backend("init-session")(source, path.parent, fmt)
         text = filled_template(session_name, path.name, sk)
         mapped = ", ".join(f"{s} = {n}" for s, n in sk.segments.items()) or "none"
         what = (
             f"From {sk.path} ({sk.format}): segments {mapped}"
             + (f"; not recognised: {', '.join(sk.unmapped)}" if sk.unmapped else "")
+            + (f"; functional calibration: {sk.no_still_window}" if sk.no_still_window else "")
             + ". Check it"
         )
     path.write_text(text, encoding="utf-8")

@@ -57,6 +57,7 @@ _SEGMENT_PARTS = {
     "shin": "shank",
     "foot": "foot",
     "calcn": "foot",
+    "hand": "hand",
 }
 _UNSIDED_SEGMENTS = {"chest", "pelvis"}
 

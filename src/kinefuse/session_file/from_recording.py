@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
 
@@ -25,7 +26,7 @@ _LEGS = {"thigh_l", "thigh_r", "shank_l", "shank_r"}
 #: Chain segments whose length body height cannot give (no ratio in
 #: :data:`kinefuse.kinematics.skeleton.ANTHROPOMETRIC_RATIOS`; this layer cannot import it, a test
 #: keeps the two in step): a static calibration needs their lengths measured.
-NO_HEIGHT_RATIO = ("foot_l", "foot_r")
+NO_HEIGHT_RATIO = ("foot_l", "foot_r", "hand_l", "hand_r")
 
 
 class RecordingSketch(NamedTuple):
@@ -44,10 +45,28 @@ class RecordingSketch(NamedTuple):
     """The recording holds camera joints."""
     reference: bool
     """The recording holds reference (ground-truth) joints."""
+    no_still_window: str = ""
+    """Empty when the mapped sensors hold still somewhere (or nobody looked); else why a static
+    calibration cannot work here (the stillest window and its motion), and the template
+    chooses functional calibration."""
 
 
-def sketch_recording(recording: Path, session_dir: Path, fmt: str | None = None) -> RecordingSketch:
+def sketch_recording(
+    recording: Path, session_dir: Path, fmt: str | None = None, still: Callable | None = None
+) -> RecordingSketch:
     """Load ``recording`` (format detected unless ``fmt``) and sketch it for a session file.
+
+    Parameters
+    ----------
+    recording, session_dir : Path
+        The recording; the folder the session file will be in.
+    fmt : str, optional
+        Reader name (default: detected).
+    still : callable, optional
+        ``still(streams) -> StillWindow`` (:func:`kinefuse.kinematics.find_still_window` with the
+        static calibration's window; this layer cannot import it). Given, and the recording has
+        no camera, the sensors mapped to body-height-sized segments are searched for a still
+        window; without one, :attr:`RecordingSketch.no_still_window` says why.
 
     Raises
     ------
@@ -78,8 +97,22 @@ def sketch_recording(recording: Path, session_dir: Path, fmt: str | None = None)
         rel = str(p.resolve())
     if rel.startswith(".."):
         rel = str(p.resolve())
+    sized = {s: rec.imu[s] for s in segments if s not in NO_HEIGHT_RATIO}
     return RecordingSketch(fmt, Path(rel).as_posix(), dict(sorted(segments.items(), key=_order)),
-                           tuple(unmapped), rec.vision is not None, rec.reference is not None)  # fmt: skip
+                           tuple(unmapped), rec.vision is not None, rec.reference is not None,
+                           _no_still_window(still, sized) if rec.vision is None else "")  # fmt: skip
+
+
+def _no_still_window(still: Callable | None, streams: dict) -> str:
+    if still is None or not streams:
+        return ""
+    w = still(streams)
+    if w.still:
+        return ""
+    return (
+        f"no still window of {w.end_s - w.start_s:.0f} s for a static calibration (stillest "
+        f"{w.start_s:.1f}-{w.end_s:.1f} s: {w.rate_rad_s:.2f} rad/s on {w.worst_rate})"
+    )
 
 
 def _order(item) -> int:
@@ -91,8 +124,12 @@ def filled_template(name: str, filename: str, sk: RecordingSketch) -> str:
     text = session_template(name, filename=filename)
     legs = "pelvis" in sk.segments and bool(_LEGS & set(sk.segments))
     root = "pelvis" if legs else ("vision" if sk.camera else "fixed")
+    functional = bool(sk.no_still_window)
+    calibration = "vision" if sk.camera else ("functional" if functional else "static")
     seg_lines = [
-        f'# {s} = "{n}"  # needs [skeleton.lengths] {s} (body height gives none) or functional calibration'
+        f'{s} = "{n}"  # locates the {"ankle" if s[:-2] == "foot" else "wrist"} (functional calibration); no length: no toe/finger joint'
+        if s in NO_HEIGHT_RATIO and functional
+        else f'# {s} = "{n}"  # needs [skeleton.lengths] {s} (body height gives none) or functional calibration'
         if s in NO_HEIGHT_RATIO
         else f'{s} = "{n}"'
         for s, n in sk.segments.items()
@@ -103,7 +140,8 @@ def filled_template(name: str, filename: str, sk: RecordingSketch) -> str:
         ('path = "data/imu.csv"            #', f'path = "{sk.path}"  #'),
         ("rate_hz = 100.0                  # only used when the file has no time stamps; delete otherwise\n", ""),
         ('upper_arm_r = "IMU 1"\nforearm_r = "IMU 2"', "\n".join(seg_lines)),
-        ('method = "static"\n', f'method = "{"vision" if sk.camera else "static"}"\n'),
+        ('method = "static"\n', f'method = "{calibration}"'
+         + (f"  # {sk.no_still_window}\n" if functional else "\n")),
         ('name = "paper-a"\n', f'name = "{"kinefuse" if sk.camera else "imu-only"}"\n'),
     ]  # fmt: skip
     if root != "fixed":

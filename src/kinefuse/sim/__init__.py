@@ -42,7 +42,7 @@ __all__ = [
 ]
 
 #: The nine IMU segments of paper B (Xu 2023): chest, upper arms, forearms, thighs, shanks.
-PAPER_B_SEGMENTS = tuple(s for s in SEGMENTS if s not in ("pelvis", "foot_l", "foot_r"))
+PAPER_B_SEGMENTS = tuple(s for s in SEGMENTS if s != "pelvis" and s[:-2] not in ("foot", "hand"))
 
 _DEFAULT_IMU = ImuConfig()
 _DEFAULT_CAMERA = CameraConfig()

@@ -599,5 +599,5 @@ def _not_in_chain(session, chain: Mapping) -> list[str]:
     segs = {s["name"] for s in chain["segments"]} | (
         {chain["root_segment"]} if chain.get("root_segment") else set()
     )
-    extra = sorted(set(session.imu.segments) - segs - {"foot_l", "foot_r"})
+    extra = sorted(set(session.imu.segments) - segs - {"foot_l", "foot_r", "hand_l", "hand_r"})
     return [f"[imu.segments] {', '.join(extra)} (not in the chain file)"] if extra else []

@@ -10,16 +10,18 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Mapping, Sequence
+from functools import partial
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinefuse.kinematics import calibrate, joint_angles, segment_orientations
+from kinefuse.kinematics import calibrate, find_still_window, joint_angles, segment_orientations
 from kinefuse.kinematics.angles import JOINTS
 from kinefuse.kinematics.functional import align_headings
 from kinefuse.orientation.resample import slerp_resample
+from kinefuse.session_file.from_recording import RecordingSketch, sketch_recording
 
-__all__ = ["calibrate_session"]
+__all__ = ["CALIBRATION_WINDOW_S", "calibrate_session", "sketch_for_session"]
 
 #: Plausible flexion of hinge joints, deg (1st-99th percentile check of the joint angles):
 #: knee -10 (hyperextension) to 150, elbow -10 to 160 (e.g. Soucie et al. 2011, Haemophilia 17).
@@ -39,9 +41,21 @@ def _facing(value):
     return value if isinstance(value, str) else tuple(float(x) for x in value)
 
 
+#: Default still-window length of a static calibration (``[calibration] window_s``), s.
+CALIBRATION_WINDOW_S = 2.0
+
+
+def sketch_for_session(recording, session_dir, fmt: str | None = None) -> RecordingSketch:
+    """:func:`~kinefuse.session_file.from_recording.sketch_recording` with the static
+    calibration's still-window search (its default window, :data:`CALIBRATION_WINDOW_S`):
+    ``kinefuse init-session --from`` chooses functional calibration when nothing holds still."""
+    still = partial(find_still_window, window_s=CALIBRATION_WINDOW_S)
+    return sketch_recording(recording, session_dir, fmt, still=still)
+
+
 def _calibration_kwargs(params: Mapping, calib: str, six_d, axes_decl, cal_segs) -> dict:
     """Keyword arguments of :func:`kinefuse.kinematics.calibrate` for ``calib``."""
-    window = float(params.get("calibration_window_s", 2.0))
+    window = float(params.get("calibration_window_s", CALIBRATION_WINDOW_S))
     start = params.get("calibration_start_s")
     kw = {"window_s": window, "start_s": None if start is None else float(start)}
     if calib == "static":

@@ -36,6 +36,7 @@ SEGMENT_JOINTS = {
     **{f"thigh_{s}": (f"hip_{s}", f"knee_{s}") for s in "lr"},
     **{f"shank_{s}": (f"knee_{s}", f"ankle_{s}") for s in "lr"},
     **{f"foot_{s}": (f"ankle_{s}", f"foot_{s}") for s in "lr"},
+    **{f"hand_{s}": (f"wrist_{s}", f"hand_{s}") for s in "lr"},
 }
 
 

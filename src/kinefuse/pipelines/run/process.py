@@ -121,10 +121,12 @@ def process_recording(
     out, recording, ctx = _chain_output(recording, method, params, segs, plan, lengths,
                                         body_height_m)  # fmt: skip
     if beyond:
+        kinds = (("foot_", "ankle"), ("hand_", "wrist"))
+        centres = " and ".join(c for k, c in kinds if any(s.startswith(k) for s in beyond))
         out.notes.append(
-            f"{', '.join(beyond)}: IMUs used for the ankle centres only (functional calibration "
-            "cannot locate a toe without an IMU past it; declare [skeleton.axes] and "
-            "[skeleton.lengths] for them to output the feet)"
+            f"{', '.join(beyond)}: IMUs used for the {centres} centres only (functional "
+            "calibration cannot locate a toe or fingertip without an IMU past it; declare "
+            "[skeleton.axes] and [skeleton.lengths] for them to output those segments)"
         )
     _run_method(out, recording, method, params, ctx)
     _label_and_align(out, recording, plan, ctx["reference"])
@@ -132,13 +134,13 @@ def process_recording(
 
 
 def _functional_segments(segs, plan: dict, params: Mapping) -> tuple[list, list]:
-    """Functional calibration: the feet without a declared axis serve the ankles' joint centres
-    only (nothing past the toe locates it), so they are not output segments. Returns the output
-    segments and the feet left out."""
+    """Functional calibration: the feet and hands without a declared axis serve the ankles' and
+    wrists' joint centres only (nothing past the toe or fingers locates it), so they are not
+    output segments. Returns the output segments and the feet and hands left out."""
     if plan["calibration"] != "functional":
         return segs, []
     declared = dict(params.get("axes") or {})
-    beyond = [s for s in segs if s.startswith("foot_") and s not in declared]
+    beyond = [s for s in segs if s.startswith(("foot_", "hand_")) and s not in declared]
     return [s for s in segs if s not in beyond] or segs, beyond
 
 
