@@ -124,3 +124,49 @@ def test_liveview_port_taken_names_it():
             LiveView(["a"], [], port=port)
     finally:
         view.close()
+
+
+def test_liveview_shows_the_joint_angles_it_is_given(tmp_path):
+    """With angle joints (kinefuse stream --chain, segment frames), each message carries the
+    angles (deg, 0.1 deg, NaN as null) and the page shows them in a table that follows the
+    newest frame; without, neither the field nor the table exists."""
+    from _chromium import browser
+
+    view = LiveView(["knee_l", "ankle_l"], [("knee_l", "ankle_l")], port=0,
+                    angle_joints=("knee_l",))  # fmt: skip
+    plain = LiveView(["a", "b"], [], port=0)
+    try:
+        events, plain_events = (
+            _Events(view._server.server_address[1]),
+            _Events(plain._server.server_address[1]),
+        )
+        angles = np.array([[45.04, np.nan, -3.26]])
+        view.publish(SimpleNamespace(**vars(_frame(1)), angles_deg=angles))
+        plain.publish(_frame(1))
+        assert events.wait_for(1) and plain_events.wait_for(1)
+        assert events.messages[-1]["ang"] == [45.0, None, -3.3]
+        assert "ang" not in plain_events.messages[-1]
+        events.close()
+        plain_events.close()
+        with browser() as (ctx, log):
+            page = ctx.new_page()
+            page.goto(view.url)
+            page.wait_for_function("window.kfViewer && kfViewer.ready", timeout=30_000)
+            for i in range(2, 40):  # until the page has drawn one (the newest frame wins)
+                a = np.array([[float(i), 1.5, np.nan]])
+                view.publish(SimpleNamespace(**vars(_frame(i)), angles_deg=a))
+                page.wait_for_timeout(50)
+            page.wait_for_function("kfViewer.framesDrawn > 0", timeout=10_000)
+            page.wait_for_function(
+                "document.querySelector('#kf-joint-angles td:nth-child(2)').textContent == '39.0'",
+                timeout=10_000,
+            )
+            cells = page.locator("#kf-joint-angles td").all_inner_texts()
+            assert cells == ["knee_l", "39.0", "1.5", "–"], cells
+            page.goto(plain.url)
+            page.wait_for_function("window.kfViewer && kfViewer.ready", timeout=30_000)
+            assert page.locator("#kf-joint-angles").count() == 0
+            assert log["errors"] == [] and log["blocked"] == []
+    finally:
+        view.close()
+        plain.close()

@@ -98,6 +98,7 @@ def _stream_table(summary: Mapping):
     lat = summary.get("latency_ms") or {}
     rows = [
         ("output stream", str(summary.get("output_stream", "–"))),
+        *([("joint-angle stream", summary["angles_stream"])] if summary.get("angles_stream") else []),
         ("outputs", str(summary.get("outputs", 0))),
         ("frames", str(summary.get("frames", 0))),
         ("latency p50 / p99 / max (ms)",
@@ -222,6 +223,8 @@ def stream(
     Inputs: PREFIX_imu_SEGMENT (type IMU) per segment and PREFIX_camera (type MoCap), see replay.
 
     Output: PREFIX_fused (type MoCap), one sample per camera frame: x, y, z, std (m) per joint.
+    With --chain and calibrated segment frames also PREFIX_fused-angles (type Angles): flexion,
+    adduction, internal rotation (deg, ISB) per knee, hip and elbow.
 
     PREFIX: name_prefix of a streaming session (stream table), or an offline session's name.
     """

@@ -7,7 +7,7 @@ import numpy as np
 from kinefuse._validation import as_float_array
 from kinefuse.exceptions import InputError
 
-__all__ = ["MAX_GAP_S", "default_max_gap_s", "slerp_resample"]
+__all__ = ["MAX_GAP_S", "default_max_gap_s", "slerp_pairs", "slerp_resample"]
 
 #: Gaps up to this long, s, are interpolated across by default (with 1.5 source steps, whichever
 #: is longer): a wireless sensor that drops a few packets (40 ms at 50 Hz for one) stays
@@ -85,9 +85,27 @@ def _slerp(ts: np.ndarray, qs: np.ndarray, t: np.ndarray) -> np.ndarray:
     """
     k = np.searchsorted(ts, t) - 1
     k[t == ts[0]] = 0
-    alpha = (t - ts[k]) / (ts[k + 1] - ts[k])
-    q0 = qs[k] / np.linalg.norm(qs[k], axis=1, keepdims=True)
-    q1 = qs[k + 1] / np.linalg.norm(qs[k + 1], axis=1, keepdims=True)
+    return slerp_pairs(qs[k], qs[k + 1], (t - ts[k]) / (ts[k + 1] - ts[k]))
+
+
+def slerp_pairs(q0, q1, alpha) -> np.ndarray:
+    """SLERP from ``q0`` to ``q1`` by the fractions ``alpha``, row by row.
+
+    Parameters
+    ----------
+    q0, q1 : ndarray, shape (M, 4)
+        ``wxyz`` quaternions, any norm.
+    alpha : ndarray, shape (M,)
+        Fractions, 0 at ``q0``, 1 at ``q1``.
+
+    Returns
+    -------
+    ndarray, shape (M, 4)
+        Unit ``wxyz``, the sign of ``q0``; the arithmetic of :func:`slerp_resample`, so a
+        live sample interpolated between its two neighbours equals the offline resampling.
+    """
+    q0 = q0 / np.linalg.norm(q0, axis=1, keepdims=True)
+    q1 = q1 / np.linalg.norm(q1, axis=1, keepdims=True)
     d = _mul(q0 * [1.0, -1.0, -1.0, -1.0], q1)  # q0* q1
     d[d[:, 0] < 0] *= -1.0  # the shorter way round
     v = d[:, 1:]

@@ -11,6 +11,10 @@ frame, which turns the buffered orientations and a camera frame into the process
   at most ``stale_after_s`` old (or the first sample when the stream starts less than a gap
   after t), else stale;
 * IMU chain: forward kinematics from the root joint position (:class:`Chain`, compiled);
+* joint angles (with ``segment_frames``): each segment's ``R_world_from_sensor(t)
+  R_sensor_from_segment``, the orientation at t interpolated with the SLERP of
+  :func:`kinefuse.orientation.resample.slerp_pairs` (the offline resampling's arithmetic), then
+  :func:`kinefuse.kinematics.joint_angles`;
 * camera frame slots (:func:`camera_frame_due`): the next camera frame is the next output frame
   unless it lies more than ``HOLE_TOL`` periods after the expected time.
 """
@@ -24,6 +28,10 @@ from typing import NamedTuple
 import numpy as np
 
 from kinefuse.exceptions import InputError
+from kinefuse.kinematics.angles import JOINTS as ANGLE_JOINTS
+from kinefuse.kinematics.angles import joint_angles
+from kinefuse.kinematics.forward import as_rotation_matrices
+from kinefuse.orientation.resample import slerp_pairs
 from kinefuse.streaming._kernels import chain_positions, joint_flags
 from kinefuse.streaming.engine_types import (
     FLAG_CAMERA_MISSING,
@@ -196,6 +204,8 @@ class FrameInputs(NamedTuple):
     imu_status: np.ndarray
     flags: np.ndarray
     root: np.ndarray
+    angles_deg: np.ndarray | None = None
+    """``(A, 3)`` joint angles of ``config.angle_joints``, deg (NaN where a segment is stale)."""
 
 
 class FrameAssembler:
@@ -211,6 +221,21 @@ class FrameAssembler:
             self._cam_seen = cam_out >= 0  # engine joints the camera tracks ...
             self._cam_idx = cam_out[self._cam_seen]  # ... and their camera indices
             self._cam_root = cj.index(config.skeleton.root) if config.skeleton.root in cj else -1
+        used = {s for j in config.angle_joints for s in ANGLE_JOINTS[j][:2]}
+        self._angle_segs = tuple(s for s in config.segments if s in used)
+        self._angle_idx = np.array([config.segments.index(s) for s in self._angle_segs], int)
+        self._angle_F = (
+            np.stack([config.segment_frames[s] for s in self._angle_segs]) if used else None
+        )
+
+    def joint_angles(self, Q: np.ndarray, U: np.ndarray) -> np.ndarray:
+        """``(A, 3)`` angles of ``config.angle_joints``, deg, from the orientations at t
+        (``Q (2, S, 4)`` the samples around t, ``U (S,)`` the fractions, as in :meth:`assemble`)."""
+        k = self._angle_idx
+        R = as_rotation_matrices(slerp_pairs(Q[0, k], Q[1, k], U[k])) @ self._angle_F
+        a = joint_angles({s: R[i][None] for i, s in enumerate(self._angle_segs)},
+                         self.config.angle_joints)  # fmt: skip
+        return np.stack([a[j][0] for j in self.config.angle_joints])
 
     def assemble(self, t, cam_pos, cam_avail, buffers, root, forced: bool) -> FrameInputs:
         """The inputs of the frame at ``t`` from ``buffers`` (one :class:`SegmentBuffer` per
@@ -244,4 +269,5 @@ class FrameAssembler:
                                    avail, cfg.camera, cam_pos is None, forced, IMU_FRESH, IMU_HELD,
                                    IMU_STALE, FLAG_IMU_HELD, FLAG_IMU_STALE, FLAG_CAMERA_MISSING,
                                    FLAG_NO_CAMERA_JOINT, FLAG_FORCED)  # fmt: skip
-        return FrameInputs(z_imu, z_cam, avail, status, jstat, flags, root)
+        angles = self.joint_angles(Q, U) if self._angle_segs else None
+        return FrameInputs(z_imu, z_cam, avail, status, jstat, flags, root, angles)

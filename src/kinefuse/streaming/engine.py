@@ -444,16 +444,16 @@ class Engine:
         if cfg.record:
             self.accepted["frames"].append((t, bool(cam_pos is None and cfg.camera)))
         self.counters["frames"] += 1
-        self._meta.append((t, fr.flags, fr.imu_status))
+        self._meta.append((t, fr.flags, fr.imu_status, fr.angles_deg))
         res = self.processor.step(t, fr.z_imu, fr.z_cam, fr.available)
         if res is not None:
             outs.append(self._emit(res))
 
     def _emit(self, res) -> EngineOutput:
-        t, flags, jstat = self._meta.popleft()
+        t, flags, jstat, angles = self._meta.popleft()
         pos, cov, src = res
         out = EngineOutput(float(t), self._n_out, np.asarray(pos), np.asarray(cov),
-                           np.asarray(src, np.int8), flags, jstat)  # fmt: skip
+                           np.asarray(src, np.int8), flags, jstat, angles)  # fmt: skip
         self._n_out += 1
         self.counters["outputs"] += 1
         return out

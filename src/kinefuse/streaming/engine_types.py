@@ -18,6 +18,7 @@ from kinefuse._validation import positive_finite
 from kinefuse.conventions import PAPER_B_JOINTS
 from kinefuse.exceptions import InputError
 from kinefuse.kinematics import Skeleton
+from kinefuse.kinematics.angles import JOINTS as ANGLE_JOINTS
 
 __all__ = [
     "FLAG_CAMERA_MISSING",
@@ -83,6 +84,12 @@ class EngineConfig:
         VQF parameters for raw IMU samples.
     record : bool
         Keep every accepted sample in :attr:`Engine.accepted` (tests, benchmarks).
+    segment_frames : mapping of str -> ndarray, shape (3, 3), or None
+        ``R_sensor_from_segment`` (ISB segment frames) of calibrated segments, e.g. a
+        ``chain.json``'s; the frames then carry the joint angles of :attr:`angle_joints`.
+    angle_joints : tuple of str
+        Derived: the joints of :data:`kinefuse.kinematics.angles.JOINTS` whose two segments
+        are engine segments with a frame, in that table's order.
     """
 
     skeleton: Skeleton
@@ -99,7 +106,9 @@ class EngineConfig:
     R_world_from_camera: np.ndarray | None = None
     vqf_params: Mapping | None = None
     record: bool = False
+    segment_frames: Mapping[str, np.ndarray] | None = None
     segments: tuple[str, ...] = field(init=False)
+    angle_joints: tuple[str, ...] = field(init=False)
 
     def __post_init__(self):
         if not isinstance(self.skeleton, Skeleton):
@@ -112,6 +121,17 @@ class EngineConfig:
         if self.skeleton.root_segment is not None and self.skeleton.offsets_m:
             segs.insert(0, self.skeleton.root_segment)
         object.__setattr__(self, "segments", tuple(dict.fromkeys(segs)))
+        frames = {}
+        for s, F in (self.segment_frames or {}).items():
+            R = np.array(F, dtype=float)
+            if R.shape != (3, 3) or np.abs(R.T @ R - np.eye(3)).max() > 1e-6:
+                raise InputError(f"segment_frames[{s!r}]: expected a (3, 3) rotation matrix")
+            R.setflags(write=False)
+            frames[s] = R
+        object.__setattr__(self, "segment_frames", frames)
+        have = set(frames) & set(self.segments)
+        angle_joints = tuple(j for j, (p, d, _) in ANGLE_JOINTS.items() if {p, d} <= have)
+        object.__setattr__(self, "angle_joints", angle_joints)
         if self.camera:
             cj = self.camera_joints
             if cj is None:
@@ -191,6 +211,9 @@ class EngineOutput:
         ``FLAG_*`` bits.
     imu_status : ndarray of int8, shape (J,)
         Worst ``IMU_*`` status over the segments carrying the joint.
+    angles_deg : ndarray, shape (A, 3), or None
+        ``[flexion, adduction, internal_rotation]`` of :attr:`EngineConfig.angle_joints`, deg
+        (ISB, :func:`kinefuse.kinematics.joint_angles`); None without segment frames.
     """
 
     t_s: float
@@ -200,6 +223,7 @@ class EngineOutput:
     source: np.ndarray
     flags: np.ndarray
     imu_status: np.ndarray
+    angles_deg: np.ndarray | None = None
 
     @property
     def std_m(self) -> np.ndarray:

@@ -61,6 +61,9 @@ class LiveView:
     title : str
     source_names : mapping int -> str
         Names of the source codes (streaming adds ``4`` = predict).
+    angle_joints : sequence of str
+        Joints whose angles the outputs carry (``EngineOutput.angles_deg``): shown as a table
+        of flexion, adduction and internal rotation (deg).
 
     Raises
     ------
@@ -69,8 +72,9 @@ class LiveView:
     """
 
     def __init__(self, joints, edges, *, port: int = 0, title: str = "kinefuse stream",
-                 source_names=None):  # fmt: skip
+                 source_names=None, angle_joints=()):  # fmt: skip
         self.joints = tuple(joints)
+        self.angle_joints = tuple(angle_joints)
         index = {n: i for i, n in enumerate(self.joints)}
         self.edges = [[index[a], index[b]] for a, b in edges if a in index and b in index]
         self.title = title
@@ -106,7 +110,7 @@ class LiveView:
         Parameters
         ----------
         output : EngineOutput
-            ``index``, ``t_s``, ``position_m`` (J, 3), ``source`` (J,).
+            ``index``, ``t_s``, ``position_m`` (J, 3), ``source`` (J,), ``angles_deg``.
         latencies_s : sequence of float, optional
             Recent output latencies, s (the last is shown as the current one, with the
             median of the last 100).
@@ -131,6 +135,9 @@ class LiveView:
             "latency_ms": lat,
             "latency_p50_ms": lat50,
         }
+        if self.angle_joints and output.angles_deg is not None:
+            a = np.asarray(output.angles_deg, dtype=float).reshape(-1).tolist()
+            msg["ang"] = [round(v, 1) if math.isfinite(v) else None for v in a]
         data = b"data: " + json.dumps(msg, separators=(",", ":")).encode() + b"\n\n"
         with self._cond:
             self._latest = data
@@ -153,6 +160,7 @@ class LiveView:
         meta = {
             "auto_aim": self._bounds is None,
             "joints": list(self.joints),
+            "angle_joints": list(self.angle_joints),
             "edges": self.edges,
             "color": "#332288",
             "center": center,

@@ -16,6 +16,9 @@ camera         ``MoCap`` per joint ``{joint}_x {joint}_y {joint}_z`` (m) and
 fused output   ``MoCap`` per joint ``{joint}_x _y _z`` (m), ``{joint}_std_x _y _z`` (m),
                          ``{joint}_source`` (code, ``desc/sources``), ``{joint}_flags``
                          (bit mask, ``desc/flags``); nominal rate = camera rate
+joint angles   ``Angles`` with a calibrated chain (``--chain`` with segment frames): per joint
+                         ``{joint}_flexion``, ``_adduction``, ``_internal_rotation`` (deg,
+                         ISB); named ``{fused}-angles``, same timestamps as the fused output
 =============  ========  ===============================================================
 
 Clocks: an inlet's timestamps are in the sender's ``local_clock``. With ``clock="manual"``
@@ -36,17 +39,20 @@ import numpy as np
 
 from kinefuse.conventions import SOURCE_NAMES
 from kinefuse.exceptions import InputError
+from kinefuse.kinematics.angles import JOINT_ANGLE_COMPONENTS
 from kinefuse.streaming import engine_types as _engine
 from kinefuse.streaming.config import import_pylsl
 from kinefuse.streaming.processors import SOURCE_NONE
 
 __all__ = [
+    "ANGLES_TYPE",
     "CAMERA_TYPE",
     "IMU_CHANNELS",
     "IMU_TYPE",
     "OUTPUT_TYPE",
     "FusedOutlet",
     "Input",
+    "angle_channels",
     "camera_channels",
     "channel_labels",
     "make_outlet",
@@ -61,6 +67,7 @@ log = logging.getLogger("kinefuse.streaming")
 IMU_TYPE = "IMU"
 CAMERA_TYPE = "MoCap"
 OUTPUT_TYPE = "MoCap"
+ANGLES_TYPE = "Angles"
 
 #: IMU stream channels: (label, unit, type).
 IMU_CHANNELS = (
@@ -89,6 +96,11 @@ def output_channels(joints) -> list[tuple[str, str, str]]:
         out += [(f"{j}_std_{a}", "m", "PositionStd") for a in "xyz"]
         out += [(f"{j}_source", "code", "Source"), (f"{j}_flags", "bitmask", "Flags")]
     return out
+
+
+def angle_channels(joints) -> list[tuple[str, str, str]]:
+    """Joint-angle stream channels: flexion, adduction, internal rotation per joint (deg)."""
+    return [(f"{j}_{c}", "deg", "Angle") for j in joints for c in JOINT_ANGLE_COMPONENTS]
 
 
 def make_outlet(name, stype, channels, srate, *, source_id="", desc=None, chunk_size=1):
@@ -414,9 +426,14 @@ class FusedOutlet:
         Processor description stored in ``desc``.
     lag_frames : int
         Output delay of the processor, frames (``desc/lag_frames``).
+    angle_joints : sequence of str
+        Joints whose angles the outputs carry (:attr:`EngineConfig.angle_joints`): a second
+        outlet ``{name}-angles`` publishes them (none: no angle outlet).
     """
 
-    def __init__(self, name, joints, rate_hz, *, processor="", lag_frames=0, source_id=None):
+    def __init__(
+        self, name, joints, rate_hz, *, processor="", lag_frames=0, source_id=None, angle_joints=()
+    ):
         self.joints = tuple(joints)
         self.channels = output_channels(self.joints)
         flags = [("flag", {"bit": b, "meaning": m}) for b, m in (
@@ -435,6 +452,18 @@ class FusedOutlet:
                   "reference_frame": "camera frame of the inputs (ENU for kinefuse replays)"},
         )  # fmt: skip
         self._buf = np.empty(len(self.channels))
+        self.angle_joints = tuple(angle_joints)
+        self.angles_name = f"{name}-angles" if self.angle_joints else None
+        self.angles_outlet = None
+        if self.angle_joints:
+            self.angles_outlet = make_outlet(
+                self.angles_name, ANGLES_TYPE, angle_channels(self.angle_joints), rate_hz,
+                source_id=f"{source_id or f'kinefuse-fused-{name}'}-angles",
+                desc={"joints": list(self.angle_joints),
+                      "convention": "ISB (Wu et al. 2002/2005), Grood & Suntay joint coordinate "
+                                    "system; zero in the calibration pose; flexion positive",
+                      "fused_stream": name},
+            )  # fmt: skip
 
     def push(self, out) -> None:
         """Push one :class:`~kinefuse.streaming.engine.EngineOutput` (timestamp = frame time)."""
@@ -447,7 +476,9 @@ class FusedOutlet:
         # a one-sample chunk: pylsl hands the array's buffer to liblsl as is (push_sample
         # converts value by value); the chunk's timestamp is its only sample's
         self.outlet.push_chunk(self._buf.reshape(1, -1), out.t_s)
+        if self.angles_outlet is not None and out.angles_deg is not None:
+            self.angles_outlet.push_chunk(np.reshape(out.angles_deg, (1, -1)), out.t_s)
 
     def close(self) -> None:
-        """Release the outlet."""
-        self.outlet = None
+        """Release the outlets."""
+        self.outlet = self.angles_outlet = None

@@ -46,6 +46,8 @@ class OfflineCausalResult:
         The processor's inputs: IMU-chain and camera joint positions, m (NaN = none).
     available : ndarray of bool, shape (T, J)
         Camera availability per joint.
+    angles_deg : ndarray, shape (T, A, 3), or None
+        Joint angles of ``config.angle_joints``, deg (None without segment frames).
     """
 
     t_s: np.ndarray
@@ -58,6 +60,7 @@ class OfflineCausalResult:
     z_imu: np.ndarray
     z_cam: np.ndarray
     available: np.ndarray
+    angles_deg: np.ndarray | None = None
 
 
 def _camera_series(camera, cfg: EngineConfig):
@@ -167,4 +170,5 @@ def offline_causal(
         t_s=t, position_m=position, cov_m2=cov, source=source,
         imu_status=stack("imu_status", (J,), np.int8), flags=stack("flags", (J,), np.uint8),
         synthesized=synthesized, z_imu=z_imu, z_cam=z_cam, available=avail,
+        angles_deg=stack("angles_deg", (len(cfg.angle_joints), 3), float) if cfg.angle_joints else None,
     )  # fmt: skip

@@ -6,7 +6,8 @@ The outputs go to ``out`` with suffix ``.npz`` and the summary (:class:`StreamSu
 as JSON) next to it with suffix ``.json``; existing files are overwritten. Outputs, for T
 outputs and the J ``joints``: ``t_s`` (T,) frame time on the LSL clock, s; ``position_m``
 (T, J, 3), m; ``std_m`` (T, J, 3), m; ``source`` (T, J) int8 code; ``flags`` (T, J) uint8 bit
-mask; ``joints`` (J,) str.
+mask; ``joints`` (J,) str; with a calibrated chain's segment frames also ``angles_deg`` (T, A,
+3), deg (flexion, adduction, internal rotation, ISB) and ``angle_joints`` (A,) str.
 
 With ``record_inputs`` the accepted input samples are in the ``.npz`` too, so that the session
 can be re-run offline with :func:`~kinefuse.streaming.offline.offline_causal`: for each of the
@@ -52,7 +53,7 @@ from rich.table import Table
 from kinefuse.conventions import SOURCE_NAMES
 from kinefuse.exceptions import ConfigError, InputError
 from kinefuse.kinematics import full_body
-from kinefuse.pipelines.run.chain_file import skeleton_from_chain
+from kinefuse.pipelines.run.chain_file import segment_frames_from_chain, skeleton_from_chain
 from kinefuse.pipelines.vision_params import VisionParams
 from kinefuse.sim.camera import bone_edges
 from kinefuse.streaming.config import (
@@ -123,6 +124,7 @@ def build_engine(
         output_rate_hz=cfg.output_rate_hz, imu_rate_hz=imu_rate_hz, max_latency_s=cfg.max_latency_s,
         stale_after_s=cfg.stale_after_s, gap_factor=cfg.gap_factor, record=record,
         root_position_m=root_position,
+        segment_frames=segment_frames_from_chain(cfg.chain) if cfg.chain is not None else None,
     )  # fmt: skip
     return Engine(ecfg, proc)
 
@@ -214,6 +216,12 @@ def _status_printer(console, cfg):
         joints = " ".join(
             f"{j}:{_SOURCE_SHORT.get(int(c), '?')}" for j, c in zip(engine.config.joints, src, strict=True)
         ) if src is not None else "-"  # fmt: skip
+        ang = getattr(engine, "_last_angles", None)
+        if ang is not None:  # flexion, the number a clinician watches
+            joints += "\nflexion " + " ".join(
+                f"{j} {a:.0f}°" if math.isfinite(a) else f"{j} -"
+                for j, a in zip(engine.config.angle_joints, ang[:, 0], strict=True)
+            )
         c = engine.counters
         tab.caption = (f"outputs {c['outputs']}  latency {lat_txt}\n{joints}\n"
                        f"late {c['late']} dup {c['duplicate']} reordered {c['reordered']} jumps {c['time_jump']} "
@@ -246,6 +254,8 @@ class StreamSummary(SummaryMapping):
     output_stream : str
     interrupted : bool
         Ctrl-C ended the run.
+    angles_stream : str or None
+        The joint-angle stream (a calibrated chain with segment frames).
     view_url, view : str, dict or None
         With ``view_port``: the live view's address and ``published``/``sent`` counts.
     out : str or None
@@ -263,12 +273,13 @@ class StreamSummary(SummaryMapping):
     missing: list
     output_stream: str
     interrupted: bool
+    angles_stream: str | None = None
     view_url: str | None = None
     view: dict | None = None
     out: str | None = None
     engine: Engine | None = None
 
-    _optional = ("view_url", "view", "out", "engine")
+    _optional = ("angles_stream", "view_url", "view", "out", "engine")
 
 
 @dataclass(frozen=True)
@@ -361,7 +372,7 @@ def _output_hook(engine, cfg: StreamConfig, inputs, pending_missing, collected, 
     """Called with every output: remembers its sources, collects it, attaches late streams."""
 
     def on_output(o):
-        engine._last_sources = o.source
+        engine._last_sources, engine._last_angles = o.source, o.angles_deg
         if collected is not None:
             collected.append(o)
         if pending_missing and (o.index % 150) == 0:
@@ -384,7 +395,8 @@ def _run_live(engine, inputs, outlet, cfg, on_output, status, view_port, loop_kw
     """:func:`run_loop` with the terminal status and the live view; returns (result, view)."""
     view = None
     if view_port is not None:
-        view, on_output, show_view = _live_view(cfg, view_port, on_output, inputs, outlet)
+        view, on_output, show_view = _live_view(cfg, view_port, on_output, inputs, outlet,
+                                                engine.config.angle_joints)  # fmt: skip
     live = show = None
     if status:
         live, show = _status_printer(Console(stderr=True), cfg)
@@ -420,6 +432,8 @@ def _summary(engine, res, inputs, pending_missing, cfg: StreamConfig, view) -> d
         "output_stream": cfg.output_stream_name,
         "interrupted": res.interrupted,
     }
+    if engine.config.angle_joints:
+        summary["angles_stream"] = f"{cfg.output_stream_name}-angles"
     if view is not None:
         summary["view_url"] = view.url
         summary["view"] = {"published": view.published, "sent": view.sent}
@@ -439,10 +453,19 @@ def _write_outputs(out, collected, engine, cfg: StreamConfig, summary, record_in
         source=np.array([o.source for o in collected], np.int8).reshape(-1, J),
         flags=np.array([o.flags for o in collected], np.uint8).reshape(-1, J),
         joints=np.array(cfg.joints),
+        **_angle_arrays(collected, engine.config.angle_joints),
         **(_recorded_inputs(engine) if record_inputs else {}),
     )
     p.with_suffix(".json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
     return str(p.with_suffix(".npz"))
+
+
+def _angle_arrays(collected, joints) -> dict:
+    """``angles_deg (T, A, 3)`` and ``angle_joints`` for the ``.npz`` (none without angles)."""
+    if not joints:
+        return {}
+    a = np.array([o.angles_deg for o in collected], dtype=float).reshape(-1, len(joints), 3)
+    return {"angles_deg": a, "angle_joints": np.array(joints)}
 
 
 def run_stream(
@@ -507,7 +530,8 @@ def run_stream(
                           imu_rate_hz=plan.imu_rates, record=record or record_inputs)  # fmt: skip
     warm_up(engine)
     outlet = FusedOutlet(cfg.output_stream_name, cfg.joints, plan.camera_rate_hz,
-                         processor=cfg.processor, lag_frames=cfg.lag)  # fmt: skip
+                         processor=cfg.processor, lag_frames=cfg.lag,
+                         angle_joints=engine.config.angle_joints)  # fmt: skip
     lost_errors = (TimeoutError, pylsl.util.TimeoutError, pylsl.util.LostError)
     inputs = _open_inputs(cfg, plan, outlet, wait_for_reader_s, lost_errors)
     pending_missing = {seg: cfg.imu_stream_name(seg) for seg in plan.segments
@@ -523,12 +547,12 @@ def run_stream(
     return StreamSummary(**summary, engine=engine if return_engine else None)
 
 
-def _live_view(cfg: StreamConfig, port: int, on_output, inputs, outlet):
+def _live_view(cfg: StreamConfig, port: int, on_output, inputs, outlet, angle_joints=()):
     """Start the live view; return it, the output hook publishing to it and a status wrapper."""
     try:
         view = LiveView(cfg.joints, bone_edges(cfg.joints), port=port,
                         title=f"kinefuse stream -> {cfg.output_stream_name}",
-                        source_names=_SOURCE_SHORT)  # fmt: skip
+                        source_names=_SOURCE_SHORT, angle_joints=angle_joints)  # fmt: skip
     except OSError as exc:
         for inp in inputs:
             inp.close()

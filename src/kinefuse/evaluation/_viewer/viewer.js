@@ -323,6 +323,20 @@
       return td;
     });
     side.appendChild(tab);
+    var angJ = meta.angle_joints || [], angCells = [];
+    if (angJ.length) {  // kinefuse stream --chain with segment frames: joint angles live
+      var at = el("table", { class: "results", id: "kf-joint-angles" });
+      at.appendChild(el("caption", {}, "joint angles (deg, ISB)"));
+      var hr = el("tr");
+      ["joint", "flexion", "adduction", "int. rotation"].forEach(function (h) { hr.appendChild(el("th", {}, h)); });
+      at.appendChild(hr);
+      angJ.forEach(function (name) {
+        var tr = el("tr"); tr.appendChild(el("td", {}, name));
+        var row = [0, 1, 2].map(function () { var td = el("td", {}, "–"); tr.appendChild(td); return td; });
+        at.appendChild(tr); angCells.push(row);
+      });
+      side.appendChild(at);
+    }
     var pending = null;
     function render() {
       if (!pending) return;
@@ -337,6 +351,14 @@
         var c = m.src[j];
         cells[j].textContent = meta.source_names[c] || "–";
         cells[j].style.color = meta.source_colors[c] || "";
+      }
+      if (m.ang) {
+        for (var a = 0; a < angCells.length; a++) {
+          for (var k = 0; k < 3; k++) {
+            var v = m.ang[3 * a + k];
+            angCells[a][k].textContent = v === null ? "–" : v.toFixed(1);
+          }
+        }
       }
     }
     stage.controls.addEventListener("change", function () { stage.renderer.render(stage.scene, stage.camera); });

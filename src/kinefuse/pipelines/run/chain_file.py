@@ -2,9 +2,11 @@
 
 ``kinefuse run`` calibrates from the recording (static or functional: IMUs only) and writes the
 chain it then used: each segment's long axis in its *sensor* frame, its length, the root joint
-and, for a pelvis root, the hips as offsets in the pelvis sensor's frame. ``kinefuse stream
-SESSION --chain chain.json`` runs that same chain on live orientation streams
-(:mod:`kinefuse.streaming`): the positions equal the offline chain's on the same samples.
+and, for a pelvis root, the hips as offsets in the pelvis sensor's frame; where the calibration
+gave segment frames (joint angles), each segment's ``R_sensor_from_segment``
+(``segment_frames``, rows of the 3 × 3 matrix). ``kinefuse stream SESSION --chain chain.json``
+runs that same chain on live orientation streams (:mod:`kinefuse.streaming`): the positions and
+joint angles equal the offline ones on the same samples.
 
 Only IMU-only roots are described (``pelvis``: hips from the pelvis IMU; ``fixed``: a root
 joint at a measured position); a camera or reference root has no live counterpart here. 6-D
@@ -24,7 +26,13 @@ from kinefuse.exceptions import InputError
 from kinefuse.kinematics import Skeleton
 from kinefuse.pipelines.run.chain import hip_width_m, pelvis_right_in_sensor
 
-__all__ = ["CHAIN_FILE", "chain_description", "read_chain", "skeleton_from_chain"]
+__all__ = [
+    "CHAIN_FILE",
+    "chain_description",
+    "read_chain",
+    "segment_frames_from_chain",
+    "skeleton_from_chain",
+]
 
 #: File name of the description in a session's output folder.
 CHAIN_FILE = "chain.json"
@@ -57,6 +65,9 @@ def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_h
                           for h, s in (("hip_l", -1.0), ("hip_r", 1.0))}  # fmt: skip
     else:
         d["root"], d["root_segment"], d["offsets_m"] = sk.root, None, {}
+    live = set(sk.segments) | {d["root_segment"]}
+    frames = {} if cal is None else cal.frames
+    d["segment_frames"] = {s: np.asarray(F, float).tolist() for s, F in frames.items() if s in live}
     return d, None
 
 
@@ -77,6 +88,7 @@ def read_chain(path) -> dict:
             f"{_FORMAT!r}, version {_VERSION})"
         )
     skeleton_from_chain(d, str(p))  # every field checked once, here
+    segment_frames_from_chain(d, str(p))
     return d
 
 
@@ -104,3 +116,24 @@ def skeleton_from_chain(d: Mapping, source: str = CHAIN_FILE) -> tuple[Skeleton,
     if len(root) != 3:
         raise InputError(f"{source}: root_position_m: expected 3 numbers, got {len(root)}")
     return sk, root
+
+
+def segment_frames_from_chain(d: Mapping, source: str = CHAIN_FILE) -> dict[str, np.ndarray]:
+    """``R_sensor_from_segment (3, 3)`` per segment of a chain description (empty: none, e.g.
+    a chain file written before joint angles went live)."""
+    out = {}
+    for s, F in (d.get("segment_frames") or {}).items():
+        try:
+            R = np.array(F, dtype=float)
+        except (TypeError, ValueError):
+            R = np.zeros(0)
+        if (
+            R.shape != (3, 3)
+            or not np.all(np.isfinite(R))
+            or np.abs(R.T @ R - np.eye(3)).max() > 1e-6
+        ):
+            raise InputError(
+                f"{source}: segment_frames[{s!r}]: expected a 3 x 3 rotation matrix, got {F!r}"
+            )
+        out[s] = R
+    return out
