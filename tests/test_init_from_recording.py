@@ -10,6 +10,7 @@ from typer.testing import CliRunner
 from conftest import cli_stderr
 from kinefuse import cli
 from kinefuse.conventions import SEGMENTS
+from kinefuse.exceptions import ConfigError
 from kinefuse.io._names import canonical_segment
 from kinefuse.kinematics.skeleton import ANTHROPOMETRIC_RATIOS
 from kinefuse.pipelines.run import run_session
@@ -133,6 +134,26 @@ def test_one_leg_with_the_pelvis_places_only_its_hip(shared_data, tmp_path):
     summary = run_session(session, tmp_path / "out")
     assert set(summary.coverage) == {"knee_l", "ankle_l"}
     assert all(c["available"] > 0 for c in summary.coverage.values())
+
+
+def test_one_thigh_without_the_pelvis_starts_at_its_hip(shared_data, tmp_path):
+    """A single Xsens DOT on the right thigh: the chain starts at hip_r, whose position the
+    fixed root gives (as paper A's shoulder). Before, the run refused it ("the hips are placed
+    from the pelvis IMU") although one measured position fixes a single chain."""
+    rec = shared_data / "third_party" / "xsens" / "dot_transformed_mtmanager"
+    session = tmp_path / "thigh.toml"
+    assert _init(session, rec / "XSDot_20210820_202113_RFemur.txt").exit_code == 0
+    assert "the measured root joint (hip_r), m" in session.read_text(encoding="utf-8")
+    summary = run_session(session, tmp_path / "out")
+    assert summary.coverage["knee_r"]["available"] == summary.coverage["knee_r"]["samples"] > 0
+    assert "# frame: ENU, relative to hip_r" in (tmp_path / "out" / "thigh_joints.csv").read_text()
+    # two thighs without the pelvis: one position cannot place both hips (refused, with how)
+    legs = tmp_path / "legs.toml"
+    assert _init(legs, shared_data / "xio_imu_mocap_lower_body").exit_code == 0
+    text = legs.read_text(encoding="utf-8").replace('pelvis = "pelvis_64F0EDBF"\n', "")
+    legs.write_text(text.replace('root = "pelvis"', 'root = "fixed"'), encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"hips \['hip_l', 'hip_r'\] are placed from the pelvis"):
+        run_session(legs, tmp_path / "out2")
 
 
 @pytest.mark.parametrize(

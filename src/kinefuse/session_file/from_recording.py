@@ -27,6 +27,9 @@ _LEGS = {"thigh_l", "thigh_r", "shank_l", "shank_r"}
 #: :data:`kinefuse.kinematics.skeleton.ANTHROPOMETRIC_RATIOS`; this layer cannot import it, a test
 #: keeps the two in step): a static calibration needs their lengths measured.
 NO_HEIGHT_RATIO = ("foot_l", "foot_r", "hand_l", "hand_r")
+#: The joint each limb segment starts at (a fixed root is the first mapped segment's).
+_PROXIMAL_JOINT = {"upper_arm": "shoulder", "forearm": "elbow", "hand": "wrist",
+                   "thigh": "hip", "shank": "knee", "foot": "ankle"}  # fmt: skip
 
 
 class RecordingSketch(NamedTuple):
@@ -144,6 +147,15 @@ def filled_template(name: str, filename: str, sk: RecordingSketch) -> str:
          + (f"  # {sk.no_still_window}\n" if functional else "\n")),
         ('name = "paper-a"\n', f'name = "{"kinefuse" if sk.camera else "imu-only"}"\n'),
     ]  # fmt: skip
+    first = next((s for s in sk.segments if s[:-2] in _PROXIMAL_JOINT), None)
+    if root == "fixed" and first is not None and not first.startswith("upper_arm"):
+        joint = f"{_PROXIMAL_JOINT[first[:-2]]}_{first[-1]}"  # the chain starts there
+        reps.append(
+            (
+                "the measured root joint (here the shoulder), m",
+                f"the measured root joint ({joint}), m",
+            )
+        )
     if root != "fixed":
         reps.append((
             'root = "fixed"\nroot_position_m = [0.0, 0.0, 0.0]  # root = "fixed": the measured root joint (here the shoulder), m\n',

@@ -291,7 +291,7 @@ def _place_roots(recording, params, plan, roots, root_stream, t, cal, cal_segs, 
         root_desc = "fixed " + ", ".join(f"{j} at {list(rp[j])} m" for j in roots)
     else:
         origin = np.tile(np.asarray(rp, dtype=float), (t.size, 1))
-        if plan["hips"]:
+        if plan["hips"] and "pelvis" in recording.imu:
             hips = _hip_roots(recording, cal, t, origin, body_height_m, notes)
             root_pos = {j: p for j, p in hips.items() if j in roots}  # a leg not mapped: no hip
             root_pos.update({j: origin for j in roots if j not in root_pos})
@@ -305,6 +305,8 @@ def _place_roots(recording, params, plan, roots, root_stream, t, cal, cal_segs, 
     zero = not isinstance(rp, Mapping) and not np.any(np.asarray(rp, dtype=float))
     if zero:
         frame += (
-            ", relative to the pelvis (mid-hip)" if plan["hips"] else f", relative to {roots[0]}"
+            ", relative to the pelvis (mid-hip)"
+            if plan["hips"] and "pelvis" in recording.imu
+            else f", relative to {roots[0]}"
         )
     return root_pos, frame, root_desc

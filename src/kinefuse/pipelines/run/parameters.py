@@ -166,7 +166,10 @@ def _plan(recording, method: str, params: Mapping, segs: Sequence[str]) -> dict:
             f"starting at the hips), got chains starting at {sorted(starts)}; use root 'fixed'"
         )
     if root in ("fixed", "pelvis") and hips and "pelvis" not in recording.imu:
-        if not (root == "fixed" and isinstance(params.get("root_position_m"), Mapping)):
+        # one chain start (a single leg from its hip, as paper A's arm from its shoulder): the
+        # measured position is that hip's
+        if not (root == "fixed" and (isinstance(params.get("root_position_m"), Mapping)
+                                     or len(starts) == 1)):  # fmt: skip
             raise ConfigError(
                 f"root {root!r}: the hips {hips} are placed from the pelvis IMU; map 'pelvis' in "
                 "[imu.segments], or give each hip in root_position_m = {hip_l = [...], ...}"
