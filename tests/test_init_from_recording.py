@@ -156,6 +156,25 @@ def test_one_thigh_without_the_pelvis_starts_at_its_hip(shared_data, tmp_path):
         run_session(legs, tmp_path / "out2")
 
 
+def test_functional_lengths_are_checked_against_the_body_height_lengths(shared_data, tmp_path):
+    """The warning for a functional length far from the expected one quotes the length the
+    session gives (here body height 1.0 m: thigh 0.245 m), not the placeholder the chain was
+    built with before the calibration (0.300 m for every segment)."""
+    session = tmp_path / "x.toml"
+    assert _init(session, shared_data / "xio_imu_mocap_lower_body").exit_code == 0
+    text = session.read_text(encoding="utf-8").replace('method = "static"', 'method = "functional"')
+    text = text.replace("body_height_m = 1.75", "body_height_m = 1.0")
+    for side in ("Left", "Right"):
+        foot = f'"{side}_Foot_'
+        text = "\n".join(ln[2:].split("  #")[0] if ln.startswith("# foot_") and foot in ln else ln
+                         for ln in text.splitlines())  # fmt: skip
+    session.write_text(text, encoding="utf-8")
+    summary = run_session(session, tmp_path / "out")
+    said = " ".join(summary.warnings + summary.notes)
+    assert "segment 'thigh_l' spans" in said and "the skeleton says 0.245 m" in said
+    assert "the skeleton says 0.300 m" not in said
+
+
 @pytest.mark.parametrize(
     ("args", "needles"),
     [

@@ -144,6 +144,17 @@ def _functional_segments(segs, plan: dict, params: Mapping) -> tuple[list, list]
     return [s for s in segs if s not in beyond] or segs, beyond
 
 
+def _expected_lengths(segs, measured, body_height_m) -> dict[str, float]:
+    """Measured or body-height lengths, m, 0 where neither is known (nothing to compare)."""
+    out = {}
+    for s in segs:
+        try:
+            out[s] = segment_lengths([s], measured=measured, height_m=body_height_m)[0][s]
+        except InputError:
+            out[s] = 0.0
+    return out
+
+
 def _chain_output(recording, method, params, segs, plan, lengths, body_height_m):
     """Everything up to the method: the calibrated chain, the streams on the output timeline.
 
@@ -165,7 +176,9 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m)
     t, root_stream = _output_timeline(recording, method, params, segs, root_kind)
     axes_decl = _declared_axes(params.get("axes"), segs)
     cal_segs = list(segs) + (["pelvis"] if root_kind == "pelvis" else [])
-    sk, roots = build_chain(segs, dict.fromkeys(segs, 0.3), axes_decl)
+    # the functional calibration checks its lengths against these (measured, else body height)
+    expected = _expected_lengths(segs, measured, body_height_m) if calib == "functional" else {}
+    sk, roots = build_chain(segs, {s: expected.get(s, 0.3) for s in segs}, axes_decl)
     if root_kind == "pelvis":
         sk = replace(sk, root_segment="pelvis")
     provenance: dict = {"calibration": calib, "root": root_kind}
