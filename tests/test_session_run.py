@@ -273,10 +273,15 @@ def test_evaluate_recording_neura(shared_data):
     path = shared_data / "neura_sparse_sample" / "vicon" / "S02-Trial-Walk-1.csv"
     # the reference is evaluation-only: no lengths from it unless asked ...
     with pytest.raises(InputError, match=r"no length for segment\(s\) \['thigh_l'"):
-        evaluate_recording(path, "imu-only")
+        evaluate_recording(path, "imu-only", calibration="static")
     # ... and body height gives no foot length (no ratio): the error names them
     with pytest.raises(InputError, match=r"\['foot_l', 'foot_r'\] have no anthropometric ratio"):
-        evaluate_recording(path, "imu-only", body_height_m=1.75)
+        evaluate_recording(path, "imu-only", calibration="static", body_height_m=1.75)
+    # by default the walk (no still pose) gets functional calibration from its IMUs, and says so
+    ev = evaluate_recording(path, "imu-only")
+    assert ev.methods == ("IMU only [functional calibration (auto), root from reference]",)
+    assert set(ev.joints) == {"knee_l", "knee_r", "ankle_l", "ankle_r"}
+    assert np.all(ev.mean_rmse < 0.06), ev.mean_rmse
     # calibrating on the reference must be asked for, and is labelled
     ev = evaluate_recording(path, "imu-only", calibration="reference")
     tag = " [calibrated on reference, lengths from reference, root from reference]"

@@ -261,8 +261,10 @@ _Calibration = Annotated[
     typer.Option(
         "--calibration",
         metavar="METHOD",
-        help="static (default, a still pose in the IMU data), functional, vision, or "
-        "reference (then every table is labelled 'calibrated on reference').",
+        help="auto (default: vision with a camera the method fuses; else static when the IMUs "
+        "hold still for 2 s somewhere, functional when they never do), static (a still pose "
+        "in the IMU data), functional (movement), vision, or reference (then every table is "
+        "labelled 'calibrated on reference').",
     ),
 ]
 _Root = Annotated[
@@ -304,7 +306,7 @@ def evaluate(
     recording: _Recording,
     method: _Method,
     fmt: _Format = None,
-    calibration: _Calibration = "static",
+    calibration: _Calibration = "auto",
     root: _Root = "reference",
     align: _Align = "none",
     body_height: _BodyHeight = None,
@@ -319,7 +321,7 @@ def evaluate(
     _check_choice("--method", method, METHODS, "method")
     _check_choice("--format", fmt, sorted(FORMATS), "format")
     for opt, value, choices in (
-        ("--calibration", calibration, CALIBRATIONS),
+        ("--calibration", calibration, ("auto", *CALIBRATIONS)),
         ("--root", root, ROOTS),
         ("--align", align, ("none", "rigid")),
     ):

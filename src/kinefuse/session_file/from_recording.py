@@ -66,10 +66,11 @@ def sketch_recording(
     fmt : str, optional
         Reader name (default: detected).
     still : callable, optional
-        ``still(streams) -> StillWindow`` (:func:`kinefuse.kinematics.find_still_window` with the
-        static calibration's window; this layer cannot import it). Given, and the recording has
-        no camera, the sensors mapped to body-height-sized segments are searched for a still
-        window; without one, :attr:`RecordingSketch.no_still_window` says why.
+        ``still(streams) -> str``: empty when the IMU streams hold still for a static
+        calibration, else why not
+        (:func:`kinefuse.pipelines.run.calibration.no_still_window`; this layer cannot import
+        it). Given, and the recording has no camera, it is asked about the sensors mapped to
+        body-height-sized segments; its answer is :attr:`RecordingSketch.no_still_window`.
 
     Raises
     ------
@@ -103,19 +104,7 @@ def sketch_recording(
     sized = {s: rec.imu[s] for s in segments if s not in NO_HEIGHT_RATIO}
     return RecordingSketch(fmt, Path(rel).as_posix(), dict(sorted(segments.items(), key=_order)),
                            tuple(unmapped), rec.vision is not None, rec.reference is not None,
-                           _no_still_window(still, sized) if rec.vision is None else "")  # fmt: skip
-
-
-def _no_still_window(still: Callable | None, streams: dict) -> str:
-    if still is None or not streams:
-        return ""
-    w = still(streams)
-    if w.still:
-        return ""
-    return (
-        f"no still window of {w.end_s - w.start_s:.0f} s for a static calibration (stillest "
-        f"{w.start_s:.1f}-{w.end_s:.1f} s: {w.rate_rad_s:.2f} rad/s on {w.worst_rate})"
-    )
+                           still(sized) if still and sized and rec.vision is None else "")  # fmt: skip
 
 
 def _order(item) -> int:

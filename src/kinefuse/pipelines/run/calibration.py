@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Mapping, Sequence
-from functools import partial
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -21,7 +20,7 @@ from kinefuse.kinematics.functional import align_headings
 from kinefuse.orientation.resample import slerp_resample
 from kinefuse.session_file.from_recording import RecordingSketch, sketch_recording
 
-__all__ = ["CALIBRATION_WINDOW_S", "calibrate_session", "sketch_for_session"]
+__all__ = ["CALIBRATION_WINDOW_S", "calibrate_session", "no_still_window", "sketch_for_session"]
 
 #: Plausible flexion of hinge joints, deg (1st-99th percentile check of the joint angles):
 #: knee -10 (hyperextension) to 150, elbow -10 to 160 (e.g. Soucie et al. 2011, Haemophilia 17).
@@ -49,8 +48,21 @@ def sketch_for_session(recording, session_dir, fmt: str | None = None) -> Record
     """:func:`~kinefuse.session_file.from_recording.sketch_recording` with the static
     calibration's still-window search (its default window, :data:`CALIBRATION_WINDOW_S`):
     ``kinefuse init-session --from`` chooses functional calibration when nothing holds still."""
-    still = partial(find_still_window, window_s=CALIBRATION_WINDOW_S)
-    return sketch_recording(recording, session_dir, fmt, still=still)
+    return sketch_recording(recording, session_dir, fmt, still=no_still_window)
+
+
+def no_still_window(streams: Mapping) -> str:
+    """Empty when the IMU ``streams`` hold still together for :data:`CALIBRATION_WINDOW_S`
+    somewhere (a static calibration can work), else why not: the stillest window and its
+    angular rate. Chooses the calibration where the user did not (``init-session --from``,
+    ``kinefuse evaluate``)."""
+    w = find_still_window(streams, CALIBRATION_WINDOW_S)
+    if w.still:
+        return ""
+    return (
+        f"no still window of {w.end_s - w.start_s:.0f} s for a static calibration (stillest "
+        f"{w.start_s:.1f}-{w.end_s:.1f} s: {w.rate_rad_s:.2f} rad/s on {w.worst_rate})"
+    )
 
 
 def _calibration_kwargs(params: Mapping, calib: str, six_d, axes_decl, cal_segs) -> dict:

@@ -8,6 +8,7 @@ from dataclasses import replace
 from kinefuse.conventions import SEGMENTS
 from kinefuse.exceptions import ConfigError, FormatError, InputError
 from kinefuse.io import FORMATS, load
+from kinefuse.pipelines.run.calibration import no_still_window
 from kinefuse.pipelines.run.parameters import _CAMERA_METHODS
 from kinefuse.pipelines.run.process import process_recording
 
@@ -39,9 +40,12 @@ def evaluate_recording(
     format : str, optional
         A :data:`kinefuse.io.FORMATS` key (default: detected).
     calibration : str, optional
-        ``"static"`` (default: a still pose in the IMU data), ``"functional"``, ``"vision"``
-        or ``"reference"`` (then axes *and* segment lengths come from the reference, and every
-        table says "[calibrated on reference, lengths from reference, ...]").
+        ``"auto"`` (default: ``"vision"`` with a camera the method fuses; else ``"static"``
+        when the IMUs hold still for 2 s somewhere, ``"functional"`` when they never do, as a
+        walk that starts at once; the choice is in the notes), ``"static"`` (a still pose in
+        the IMU data), ``"functional"``, ``"vision"`` or ``"reference"`` (then axes *and*
+        segment lengths come from the reference, and every table says "[calibrated on
+        reference, lengths from reference, ...]").
     root : str, optional
         Where the chain starts (default ``"reference"``: the root joints, e.g. the hips, are
         taken as measured by the reference, as paper A measures the shoulder; not a
@@ -74,9 +78,13 @@ def evaluate_recording(
         params["root"] = root or params.get("root", "reference")
     elif root is not None:
         params["root"] = root
-    if calibration is not None:
+    if calibration not in (None, "auto"):
         params["calibration"] = calibration
-    params.setdefault("calibration", "vision" if rec.vision is not None else "static")
+    why, auto = "", "calibration" not in params
+    if auto:
+        why = "" if rec.vision is not None else no_still_window(_sized(rec.imu))
+        params["calibration"] = "vision" if rec.vision is not None else (
+            "functional" if why else "static")  # fmt: skip
     if params["calibration"] == "reference":
         params.setdefault("measured_lengths", True)
     if align is not None:
@@ -85,10 +93,20 @@ def evaluate_recording(
         out = process_recording(rec, method, params, body_height_m=body_height_m)
     except ConfigError as exc:
         raise InputError(f"{path}: {exc}") from None
+    calib = params["calibration"]
+    if auto and calib in ("static", "functional"):  # chosen here: the tables say which
+        inner = out.tag.strip()[1:-1]
+        out.tag = f" [{', '.join(x for x in (f'{calib} calibration (auto)', inner) if x)}]"
     ev = out.evaluation()
     if ev is None:
         raise InputError(f"{path}: nothing to score: {out.notes[-1]}")
     return ev
+
+
+def _sized(imu: Mapping) -> dict:
+    """The streams a static calibration would use: segments that body height can size (not
+    the feet or hands, which locate joint centres in a functional calibration)."""
+    return {s: st for s, st in imu.items() if not s.startswith(("foot_", "hand_"))}
 
 
 def _load_scorable(path, format, method: str):
