@@ -103,6 +103,11 @@ def test_chain_file_errors_and_refusals(calibrated, tmp_path):
     bad.write_text(json.dumps(d), encoding="utf-8")
     with pytest.raises(InputError, match="malformed chain description"):
         read_chain(bad)
+    d = json.loads(chain_path.read_text(encoding="utf-8"))
+    d["segment_frames"]["thigh_l"] = [[1, 0, 0], [0, 1, 0], [0, 0, -1]]  # a reflection
+    bad.write_text(json.dumps(d), encoding="utf-8")
+    with pytest.raises(InputError, match=r"segment_frames\['thigh_l'\]: expected a 3 x 3 rotation"):
+        read_chain(bad)
     cfg = load_session(session)
     with pytest.raises(ConfigError, match="kinefuse stream xl.toml --chain"):
         stream_config_from_session(cfg)  # static calibration, pelvis root: needs the chain

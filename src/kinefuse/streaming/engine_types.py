@@ -124,7 +124,8 @@ class EngineConfig:
         frames = {}
         for s, F in (self.segment_frames or {}).items():
             R = np.array(F, dtype=float)
-            if R.shape != (3, 3) or np.abs(R.T @ R - np.eye(3)).max() > 1e-6:
+            if (R.shape != (3, 3) or np.abs(R.T @ R - np.eye(3)).max() > 1e-6
+                    or np.linalg.det(R) < 0):  # fmt: skip
                 raise InputError(f"segment_frames[{s!r}]: expected a (3, 3) rotation matrix")
             R.setflags(write=False)
             frames[s] = R

@@ -131,6 +131,7 @@ def segment_frames_from_chain(d: Mapping, source: str = CHAIN_FILE) -> dict[str,
             R.shape != (3, 3)
             or not np.all(np.isfinite(R))
             or np.abs(R.T @ R - np.eye(3)).max() > 1e-6
+            or np.linalg.det(R) < 0
         ):
             raise InputError(
                 f"{source}: segment_frames[{s!r}]: expected a 3 x 3 rotation matrix, got {F!r}"
