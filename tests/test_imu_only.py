@@ -126,6 +126,53 @@ def test_static_frames_give_known_elbow_flexion():
     np.testing.assert_allclose(ang[:, 1:], 0.0, atol=1e-6)
 
 
+def test_static_foot_frame_is_the_shank_s_and_gives_known_dorsiflexion():
+    """A foot's static frame is its shank's carried into the foot sensor in the pose (ISB
+    neutral, Wu et al. 2002): the ankle dorsiflexed by a known angle about the shank's Z (east
+    for the default facing north) after the still half second reads as that ankle flexion
+    (positive: toes up) and nothing else, whatever the sensor mountings; the foot's long axis
+    points forward in the pose (it used to point down, like the shank's)."""
+    from kinefuse.pipelines.run import build_chain
+
+    T = 300
+    t = np.arange(T) / FS
+    dorsi = np.where(np.arange(T) < 100, 0.0, 25.0 * np.sin(np.linspace(0.0, 3 * np.pi, T)))
+    mounts = {
+        "thigh_r": Rotation.from_euler("xyz", [10, 80, -30], degrees=True),
+        "shank_r": Rotation.from_euler("xyz", [-40, 20, 65], degrees=True),
+        "foot_r": Rotation.from_euler("xyz", [95, -15, 140], degrees=True),
+    }
+    seg = {"thigh_r": Rotation.identity(T), "shank_r": Rotation.identity(T),
+           "foot_r": Rotation.from_euler("x", dorsi[:, None], degrees=True)}  # fmt: skip
+    rec = Recording(imu={
+        s: ImuStream(t_s=t, q_world_from_sensor=(seg[s] * mounts[s]).as_quat(scalar_first=True))
+        for s in seg
+    })  # fmt: skip
+    sk, _ = build_chain(list(seg), {"thigh_r": 0.4, "shank_r": 0.4, "foot_r": 0.15}, {})
+    cal = calibrate(rec, sk, "static", window_s=0.5)
+    ang = joint_angles(segment_orientations(rec, cal, t))
+    np.testing.assert_allclose(ang["ankle_r"][:, 0], dorsi, atol=1e-6)
+    np.testing.assert_allclose(ang["ankle_r"][:, 1:], 0.0, atol=1e-6)
+    np.testing.assert_allclose(ang["knee_r"], 0.0, atol=1e-6)
+    forward = mounts["foot_r"].apply(cal.axes["foot_r"])  # in the world, in the pose
+    np.testing.assert_allclose(forward, [0.0, 1.0, 0.0], atol=1e-9)
+    # the knee flexes too, and the facing given is wrong (east): the knee's flexion axis comes
+    # from the movement, and the foot follows its shank's frame, not the wrong pose frame
+    knee = np.where(np.arange(T) < 100, 0.0, 60.0 * np.sin(np.linspace(0.0, 2 * np.pi, T)) ** 2)
+    seg["shank_r"] = Rotation.from_euler("x", -knee[:, None], degrees=True)
+    seg["foot_r"] = seg["shank_r"] * Rotation.from_euler("x", dorsi[:, None], degrees=True)
+    imu = {s: ImuStream(t_s=t, q_world_from_sensor=(seg[s] * mounts[s]).as_quat(scalar_first=True))
+           for s in seg}  # fmt: skip
+    rec = Recording(imu=imu)
+    cal = calibrate(
+        rec, sk, "static", window_s=0.5, facing=(1.0, 0.0, 0.0), flexion_axes="movement"
+    )
+    ang = joint_angles(segment_orientations(rec, cal, t))
+    np.testing.assert_allclose(ang["knee_r"][:, 0], knee, atol=1e-5)
+    np.testing.assert_allclose(ang["ankle_r"][:, 0], dorsi, atol=1e-5)
+    np.testing.assert_allclose(ang["ankle_r"][:, 1:], 0.0, atol=1e-5)
+
+
 def test_static_heading_brings_6d_frames_together():
     # forearm sensor world frame off by 40 deg heading: without the correction the relative
     # rotation is wrong, with heading="static" the flexion is exact (same mounting heading)

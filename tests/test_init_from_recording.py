@@ -79,11 +79,30 @@ def test_a_walk_without_a_still_pose_gets_functional_calibration_and_runs(shared
 
 
 def test_a_still_pose_keeps_static_calibration_and_the_feet_commented(shared_data, tmp_path):
-    """The other side of the choice above: x-IMU3 holds still at the start."""
+    """The other side of the choice above: x-IMU3 holds still at the start. With the feet
+    mapped and their lengths measured, as the template's comment says, the run adds the toes
+    (forward of the ankles in the pose) and the ankle angles (dorsiflexion positive, zero in
+    the pose, within a plausible range: the recording squats and kneels)."""
     session = tmp_path / "x.toml"
     assert _init(session, shared_data / "xio_imu_mocap_lower_body").exit_code == 0
     assert load_session(session).calibration.settings["method"] == "static"
-    assert "no still window" not in session.read_text(encoding="utf-8")
+    text = session.read_text(encoding="utf-8")
+    assert "no still window" not in text
+    assert (
+        "needs [skeleton.lengths] foot_l (body height gives none): then the toe and the ankle"
+        in text
+    )
+    lines = [ln[2:].split("  #")[0] if ln.startswith("# foot_") else ln for ln in text.splitlines()]
+    text = "\n".join(lines).replace(
+        "# [skeleton.lengths]", "[skeleton.lengths]\nfoot_l = 0.15\nfoot_r = 0.15\n#"
+    )
+    session.write_text(text, encoding="utf-8")
+    summary = run_session(session, tmp_path / "out")
+    assert {"foot_l", "foot_r"} <= set(summary.coverage)
+    for side in "lr":
+        ankle = summary.angles_deg[f"ankle_{side}"]
+        assert -60 <= ankle["flexion_min"] < -5 and 5 < ankle["flexion_max"] <= 40, ankle
+    assert not any("ankle" in w for w in summary.warnings), summary.warnings
 
 
 def test_hand_imus_are_segments_that_locate_the_wrist(shared_data, tmp_path):

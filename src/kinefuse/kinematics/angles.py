@@ -31,18 +31,21 @@ JOINT_ANGLE_COMPONENTS = ("flexion", "adduction", "internal_rotation")
 
 #: Joint -> (proximal segment, distal segment, sign of flexion relative to +α about Z).
 #: With Z to the right, +α moves the distal segment's end anteriorly: elbow and hip flexion,
-#: but knee *extension*, so the knee's sign is −1 (ISB: knee flexion positive).
+#: but knee *extension*, so the knee's sign is −1 (ISB: knee flexion positive). At the ankle
+#: +α turns the foot's anterior axis (the toes) up: dorsiflexion, positive as in ISB (Wu et
+#: al. 2002: the tibia's Z is the dorsi/plantarflexion axis).
 JOINTS = {
     **{f"elbow_{s}": (f"upper_arm_{s}", f"forearm_{s}", 1.0) for s in "lr"},
     **{f"knee_{s}": (f"thigh_{s}", f"shank_{s}", -1.0) for s in "lr"},
     **{f"hip_{s}": ("pelvis", f"thigh_{s}", 1.0) for s in "lr"},
+    **{f"ankle_{s}": (f"shank_{s}", f"foot_{s}", 1.0) for s in "lr"},
 }
 
 
 def joint_angles(
     orientations: Mapping[str, object], joints: Sequence[str] | None = None
 ) -> dict[str, np.ndarray]:
-    """Flexion, adduction and internal rotation of elbows, knees and hips, degrees.
+    """Flexion, adduction and internal rotation of elbows, knees, hips and ankles, degrees.
 
     Parameters
     ----------
@@ -59,8 +62,9 @@ def joint_angles(
     dict of str -> ndarray, shape (..., T, 3)
         Per joint ``[flexion, adduction, internal_rotation]`` (:data:`JOINT_ANGLE_COMPONENTS`),
         deg. Signs (ISB, both sides): flexion positive (elbow and knee bent, hip with the
-        thigh forward); adduction positive (distal segment towards the midline; at the elbow
-        this is varus); internal rotation positive (at the elbow this is pronation). Zero in
+        thigh forward, ankle dorsiflexed: toes up); adduction positive (distal segment towards
+        the midline; at the elbow this is varus); internal rotation positive (at the elbow this
+        is pronation). Zero in
         the calibration pose of :func:`kinefuse.kinematics.calibrate` (``"static"``).
 
     Raises

@@ -60,7 +60,12 @@ from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.kinematics.functional import functional_calibration
 from kinefuse.kinematics.hinge import HINGES, hinge_facing, hinge_frames
 from kinefuse.kinematics.skeleton import Skeleton, lengths_from_joints, window_mask
-from kinefuse.kinematics.static import POSE_WARN_DEG, facing_free_segments, static_calibration
+from kinefuse.kinematics.static import (
+    POSE_WARN_DEG,
+    _window_orientations,
+    facing_free_segments,
+    static_calibration,
+)
 from kinefuse.kinematics.still import MAX_ACC_STD_M_S2, MAX_RATE_RAD_S
 from kinefuse.orientation.resample import slerp_resample
 
@@ -124,7 +129,10 @@ def calibrate(
         first sample.
     pose : {"n", "t"}
         Static pose: ``"n"`` = arms hanging, every segment points down ``d0 = [0, 0, −1]``;
-        ``"t"`` = T-pose: arms point horizontally sideways, legs down.
+        ``"t"`` = T-pose: arms point horizontally sideways, legs down. In both the feet point
+        forward (``facing``), and a foot's frame is its shank's carried into the foot sensor
+        in the pose (ISB: the calcaneus frame coincides with the tibia's in the neutral pose,
+        Wu et al. 2002), its long axis that frame's anterior axis.
     facing : array_like, shape (3,), or "auto"
         Static: the subject's horizontal facing direction in the IMU world frame (default north
         ``[0, 1, 0]``): the pose frames' anterior axis, and in the T-pose the right arm points
@@ -223,7 +231,25 @@ def calibrate(
             with warnings.catch_warnings():  # the first pass said it all (same data)
                 warnings.simplefilter("ignore", NumericalWarning)
                 cal = _in_facing(recording, skeleton, segs, imus, cal, f0, kept, kw)
+    cal = _feet_on_shanks(imus, cal)
     return replace(cal, facing=np.asarray(f0, dtype=float), facing_from=source)
+
+
+def _feet_on_shanks(imus: Mapping, cal: Calibration) -> Calibration:
+    """Each calibrated foot takes its shank's final frame (after any hinge fit), carried into
+    the foot sensor in the pose: the ankle reads zero there (ISB neutral), its flexion axis is
+    the shank's, and the foot's long axis (ankle -> toe) is that frame's anterior ``X``."""
+    pairs = [(f"foot_{s}", f"shank_{s}") for s in "lr"]
+    pairs = [(f, s) for f, s in pairs if f in cal.frames and s in cal.frames]
+    if not pairs or cal.still is None:
+        return cal
+    frames, axes = dict(cal.frames), dict(cal.axes)
+    _, R_mean = _window_orientations({x: imus[x] for p in pairs for x in p}, cal.still)
+    for f, s in pairs:
+        R_f, R_s = cal.heading_matrix(f) @ R_mean[f], cal.heading_matrix(s) @ R_mean[s]
+        frames[f] = R_f.T @ R_s @ frames[s]
+        axes[f] = frames[f][:, 0]
+    return replace(cal, frames=frames, axes=axes)
 
 
 def _in_facing(recording, skeleton, segs, imus, first: Calibration, facing, kept, kw: dict):

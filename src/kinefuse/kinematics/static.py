@@ -57,11 +57,14 @@ def _static_directions(
     out = {}
     if pose not in ("n", "t"):
         raise InputError(f"expected pose in ('n', 't') (arms hanging / T-pose), got {pose!r}")
-    right = _body_frame(facing)[:, 2]
+    body = _body_frame(facing)
+    right = body[:, 2]
     for seg in segs:
         d = _DOWN
         if pose == "t" and (seg.startswith("upper_arm") or seg.startswith("forearm")):
             d = right if seg.endswith("_r") else -right
+        if seg.startswith("foot_"):  # standing, the foot points forward (ankle -> toe)
+            d = body[:, 0]
         out[seg] = d
     for seg, d in dict(directions or {}).items():
         if seg != skeleton.root_segment:
@@ -108,7 +111,9 @@ def static_calibration(
         a = unit_direction(np.einsum("kji,j->i", R_win[s], d0[s]), f"segment {s!r}")
         axes[s] = a
         resid[s] = float(np.sqrt(np.mean(angles_deg(R_win[s] @ a, d0[s][None]) ** 2)))
-        turn = Rotation.align_vectors(d0[s][None], _DOWN[None])[0].as_matrix()
+        # the pose frame turned with the segment; a foot's (X along it) is the body's
+        turn = (np.eye(3) if s.startswith("foot_")
+                else Rotation.align_vectors(d0[s][None], _DOWN[None])[0].as_matrix())  # fmt: skip
         frames[s] = R_mean[s].T @ (turn @ B)
         if s in mounting:
             m = unit_axis(mounting[s], f"mounting[{s!r}]")

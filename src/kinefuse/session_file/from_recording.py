@@ -27,6 +27,8 @@ _LEGS = {"thigh_l", "thigh_r", "shank_l", "shank_r"}
 #: :data:`kinefuse.kinematics.skeleton.ANTHROPOMETRIC_RATIOS`; this layer cannot import it, a test
 #: keeps the two in step): a static calibration needs their lengths measured.
 NO_HEIGHT_RATIO = ("foot_l", "foot_r", "hand_l", "hand_r")
+#: What mapping a foot or hand with its measured length adds under static calibration.
+_DISTAL_GAIN = {"foot": "the toe and the ankle angles", "hand": "the fingertip"}
 #: The joint each limb segment starts at (a fixed root is the first mapped segment's).
 _PROXIMAL_JOINT = {"upper_arm": "shoulder", "forearm": "elbow", "hand": "wrist",
                    "thigh": "hip", "shank": "knee", "foot": "ankle"}  # fmt: skip
@@ -121,7 +123,7 @@ def filled_template(name: str, filename: str, sk: RecordingSketch) -> str:
     seg_lines = [
         f'{s} = "{n}"  # locates the {"ankle" if s[:-2] == "foot" else "wrist"} (functional calibration); no length: no toe/finger joint'
         if s in NO_HEIGHT_RATIO and functional
-        else f'# {s} = "{n}"  # needs [skeleton.lengths] {s} (body height gives none) or functional calibration'
+        else f'# {s} = "{n}"  # needs [skeleton.lengths] {s} (body height gives none): then {_DISTAL_GAIN[s[:-2]]}'
         if s in NO_HEIGHT_RATIO
         else f'{s} = "{n}"'
         for s, n in sk.segments.items()

@@ -23,8 +23,10 @@ from kinefuse.session_file.from_recording import RecordingSketch, sketch_recordi
 __all__ = ["CALIBRATION_WINDOW_S", "calibrate_session", "no_still_window", "sketch_for_session"]
 
 #: Plausible flexion of hinge joints, deg (1st-99th percentile check of the joint angles):
-#: knee -10 (hyperextension) to 150, elbow -10 to 160 (e.g. Soucie et al. 2011, Haemophilia 17).
-_HINGE_RANGE_DEG = {"knee": (-10.0, 150.0), "elbow": (-10.0, 160.0)}
+#: knee -10 (hyperextension) to 150, elbow -10 to 160 (e.g. Soucie et al. 2011, Haemophilia 17);
+#: ankle -60 (plantarflexion) to 40 (dorsiflexion of a deep squat), looser than the passive
+#: ranges of that study (about -55 to 25), since a loaded ankle dorsiflexes further.
+_HINGE_RANGE_DEG = {"knee": (-10.0, 150.0), "elbow": (-10.0, 160.0), "ankle": (-60.0, 40.0)}
 
 _WHAT = {
     "static": "still pose, IMU data only",
