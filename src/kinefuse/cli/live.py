@@ -224,7 +224,7 @@ def stream(
 
     Output: PREFIX_fused (type MoCap), one sample per camera frame: x, y, z, std (m) per joint.
     With --chain and calibrated segment frames also PREFIX_fused-angles (type Angles): flexion,
-    adduction, internal rotation (deg, ISB) per knee, hip and elbow.
+    adduction, internal rotation (deg, ISB) per knee, hip, ankle and elbow.
 
     PREFIX: name_prefix of a streaming session (stream table), or an offline session's name.
     """
