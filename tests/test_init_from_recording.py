@@ -26,8 +26,9 @@ def _init(path, recording, *extra):
 
 def test_ximu3_folder_becomes_a_session_that_runs(shared_data, tmp_path):
     """The x-IMU3 lower-body folder: the reader, the path and the seven sensors found by name;
-    the feet (no body-height ratio) left commented with why; pelvis root, static calibration,
-    IMU only; `kinefuse run` then gives the knees and ankles with anatomical knee flexion."""
+    the feet (no body-height ratio) mapped for the ankle angles, with what their length would
+    add; pelvis root, static calibration, IMU only; `kinefuse run` then gives the knees and
+    ankles with anatomical knee flexion, and the ankle angles."""
     rec = shared_data / "xio_imu_mocap_lower_body"
     session = tmp_path / "walk.toml"
     res = _init(session, rec)
@@ -41,9 +42,11 @@ def test_ximu3_folder_becomes_a_session_that_runs(shared_data, tmp_path):
         "thigh_r": "Right_Upper_Leg_64F61C2E",
         "shank_l": "Left_Lower_Leg_64F61CB3",
         "shank_r": "Right_Lower_Leg_64F61B2A",
+        "foot_l": "Left_Foot_64F0EBCE",
+        "foot_r": "Right_Foot_64F619FB",
     }
     text = session.read_text(encoding="utf-8")
-    assert '# foot_l = "Left_Foot_64F0EBCE"  # needs [skeleton.lengths] foot_l' in text
+    assert 'foot_l = "Left_Foot_64F0EBCE"  # the ankle angles; [skeleton.lengths] foot_l' in text
     assert cfg.skeleton.root == "pelvis" and cfg.method.name == "imu-only"
     assert cfg.calibration.settings["method"] == "static"
     assert cfg.camera is None and cfg.reference is None
@@ -53,6 +56,8 @@ def test_ximu3_folder_becomes_a_session_that_runs(shared_data, tmp_path):
         knee = summary.angles_deg[f"knee_{side}"]
         assert -10 <= knee["flexion_min"] and knee["flexion_max"] <= 150, knee
         assert knee["flexion_max"] > 90  # the recording squats and kneels
+    assert {"ankle_l", "ankle_r"} <= set(summary.angles_deg)
+    assert any("foot_l, foot_r: IMUs used for the ankle angles only" in n for n in summary.notes)
 
 
 def test_a_walk_without_a_still_pose_gets_functional_calibration_and_runs(shared_data, tmp_path):
@@ -78,25 +83,19 @@ def test_a_walk_without_a_still_pose_gets_functional_calibration_and_runs(shared
     assert all(c["available"] > 0.9 * c["samples"] for c in summary.coverage.values())
 
 
-def test_a_still_pose_keeps_static_calibration_and_the_feet_commented(shared_data, tmp_path):
-    """The other side of the choice above: x-IMU3 holds still at the start. With the feet
-    mapped and their lengths measured, as the template's comment says, the run adds the toes
-    (forward of the ankles in the pose) and the ankle angles (dorsiflexion positive, zero in
-    the pose, within a plausible range: the recording squats and kneels)."""
+def test_a_still_pose_keeps_static_calibration_and_feet_lengths_add_toes(shared_data, tmp_path):
+    """The other side of the choice above: x-IMU3 holds still at the start. With the feet's
+    lengths measured, as the template's comment says, the run adds the toes to the ankle
+    angles (dorsiflexion positive, zero in the pose, within a plausible range: the recording
+    squats and kneels)."""
     session = tmp_path / "x.toml"
     assert _init(session, shared_data / "xio_imu_mocap_lower_body").exit_code == 0
     assert load_session(session).calibration.settings["method"] == "static"
     text = session.read_text(encoding="utf-8")
     assert "no still window" not in text
-    assert (
-        "needs [skeleton.lengths] foot_l (body height gives none): then the toe and the ankle"
-        in text
-    )
-    lines = [ln[2:].split("  #")[0] if ln.startswith("# foot_") else ln for ln in text.splitlines()]
-    text = "\n".join(lines).replace(
-        "# [skeleton.lengths]", "[skeleton.lengths]\nfoot_l = 0.15\nfoot_r = 0.15\n#"
-    )
-    session.write_text(text, encoding="utf-8")
+    assert "the ankle angles; [skeleton.lengths] foot_l (ankle to toe) adds the toe" in text
+    lengths = "[skeleton.lengths]\nfoot_l = 0.15\nfoot_r = 0.15\n#"
+    session.write_text(text.replace("# [skeleton.lengths]", lengths), encoding="utf-8")
     summary = run_session(session, tmp_path / "out")
     assert {"foot_l", "foot_r"} <= set(summary.coverage)
     for side in "lr":
@@ -182,11 +181,7 @@ def test_functional_lengths_are_checked_against_the_body_height_lengths(shared_d
     session = tmp_path / "x.toml"
     assert _init(session, shared_data / "xio_imu_mocap_lower_body").exit_code == 0
     text = session.read_text(encoding="utf-8").replace('method = "static"', 'method = "functional"')
-    text = text.replace("body_height_m = 1.75", "body_height_m = 1.0")
-    for side in ("Left", "Right"):
-        foot = f'"{side}_Foot_'
-        text = "\n".join(ln[2:].split("  #")[0] if ln.startswith("# foot_") and foot in ln else ln
-                         for ln in text.splitlines())  # fmt: skip
+    text = text.replace("body_height_m = 1.75", "body_height_m = 1.0")  # the feet are mapped
     session.write_text(text, encoding="utf-8")
     summary = run_session(session, tmp_path / "out")
     said = " ".join(summary.warnings + summary.notes)

@@ -274,8 +274,9 @@ def test_evaluate_recording_neura(shared_data):
     # the reference is evaluation-only: no lengths from it unless asked ...
     with pytest.raises(InputError, match=r"no length for segment\(s\) \['thigh_l'"):
         evaluate_recording(path, "imu-only", calibration="static")
-    # ... and body height gives no foot length (no ratio): the error names them
-    with pytest.raises(InputError, match=r"\['foot_l', 'foot_r'\] have no anthropometric ratio"):
+    # ... body height sizes the legs (the feet, which it cannot size, serve the ankle angles),
+    # and a static calibration then needs the still pose this walk lacks
+    with pytest.raises(InputError, match=r"no still window of 2 s"):
         evaluate_recording(path, "imu-only", calibration="static", body_height_m=1.75)
     # by default the walk (no still pose) gets functional calibration from its IMUs, and says so
     ev = evaluate_recording(path, "imu-only")

@@ -113,6 +113,22 @@ def _order(item) -> int:
     return SEGMENTS.index(item[0])
 
 
+def _segment_line(s: str, n: str, calibration: str, mapped) -> str:
+    """The ``[imu.segments]`` line of segment ``s`` (sensor ``n``): a foot or hand, which body
+    height cannot size, is mapped where the calibration uses it without a length, else
+    commented with what its measured length adds."""
+    if s not in NO_HEIGHT_RATIO:
+        return f'{s} = "{n}"'
+    joint = "ankle" if s.startswith("foot") else "wrist"
+    if calibration == "functional":
+        return f'{s} = "{n}"  # locates the {joint} (functional calibration); no length: no toe/finger joint'
+    if calibration == "static" and joint == "ankle" and f"shank_{s[-1]}" in mapped:
+        return (
+            f'{s} = "{n}"  # the ankle angles; [skeleton.lengths] {s} (ankle to toe) adds the toe'
+        )
+    return f'# {s} = "{n}"  # needs [skeleton.lengths] {s} (body height gives none): then {_DISTAL_GAIN[s[:-2]]}'
+
+
 def filled_template(name: str, filename: str, sk: RecordingSketch) -> str:
     """The session template with ``sk`` filled in (see the module docstring)."""
     text = session_template(name, filename=filename)
@@ -120,14 +136,8 @@ def filled_template(name: str, filename: str, sk: RecordingSketch) -> str:
     root = "pelvis" if legs else ("vision" if sk.camera else "fixed")
     functional = bool(sk.no_still_window)
     calibration = "vision" if sk.camera else ("functional" if functional else "static")
-    seg_lines = [
-        f'{s} = "{n}"  # locates the {"ankle" if s[:-2] == "foot" else "wrist"} (functional calibration); no length: no toe/finger joint'
-        if s in NO_HEIGHT_RATIO and functional
-        else f'# {s} = "{n}"  # needs [skeleton.lengths] {s} (body height gives none): then {_DISTAL_GAIN[s[:-2]]}'
-        if s in NO_HEIGHT_RATIO
-        else f'{s} = "{n}"'
-        for s, n in sk.segments.items()
-    ] or ["# (no sensor was recognised: map them below)"]
+    seg_lines = [_segment_line(s, n, calibration, sk.segments) for s, n in sk.segments.items()]
+    seg_lines = seg_lines or ["# (no sensor was recognised: map them below)"]
     seg_lines += [f'# ??? = "{n}"  # not recognised: name its segment' for n in sk.unmapped]
     reps = [
         ('format = "imu_csv"               #', f'format = "{sk.format}"  {" " * max(0, 22 - len(sk.format))}#'),

@@ -118,8 +118,14 @@ def process_recording(
         )
     plan = _plan(recording, method, params, segs)
     segs, beyond = _functional_segments(segs, plan, params)
+    segs, angles_only = _feet_for_angles(segs, plan, params, lengths)
     out, recording, ctx = _chain_output(recording, method, params, segs, plan, lengths,
-                                        body_height_m)  # fmt: skip
+                                        body_height_m, angles_only)  # fmt: skip
+    if angles_only:
+        out.notes.append(
+            f"{', '.join(angles_only)}: IMUs used for the ankle angles only (no measured length, "
+            "so no toe position; [skeleton.lengths] foot_l / foot_r, ankle to toe, adds it)"
+        )
     if beyond:
         kinds = (("foot_", "ankle"), ("hand_", "wrist"))
         centres = " and ".join(c for k, c in kinds if any(s.startswith(k) for s in beyond))
@@ -144,6 +150,18 @@ def _functional_segments(segs, plan: dict, params: Mapping) -> tuple[list, list]
     return [s for s in segs if s not in beyond] or segs, beyond
 
 
+def _feet_for_angles(segs, plan: dict, params: Mapping, lengths) -> tuple[list, list]:
+    """Static calibration: a foot without a measured length or declared axis, whose shank is
+    mapped, is calibrated for the ankle angles but not output (body height sizes no foot).
+    Returns the output segments and those feet."""
+    if plan["calibration"] != "static":
+        return segs, []
+    declared, measured = dict(params.get("axes") or {}), dict(lengths or {})
+    feet = [s for s in segs if s.startswith("foot_") and s not in declared
+            and s not in measured and f"shank_{s[-1]}" in segs]  # fmt: skip
+    return [s for s in segs if s not in feet], feet
+
+
 def _expected_lengths(segs, measured, body_height_m) -> dict[str, float]:
     """Measured or body-height lengths, m, 0 where neither is known (nothing to compare)."""
     out = {}
@@ -155,7 +173,7 @@ def _expected_lengths(segs, measured, body_height_m) -> dict[str, float]:
     return out
 
 
-def _chain_output(recording, method, params, segs, plan, lengths, body_height_m):
+def _chain_output(recording, method, params, segs, plan, lengths, body_height_m, angles_only=()):
     """Everything up to the method: the calibrated chain, the streams on the output timeline.
 
     Returns the :class:`SessionOutput` holding the unfiltered chain, the recording (headings
@@ -175,10 +193,11 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m)
     six_d = _ensure_orientations(recording, params, notes, run_warnings)
     t, root_stream = _output_timeline(recording, method, params, segs, root_kind)
     axes_decl = _declared_axes(params.get("axes"), segs)
-    cal_segs = list(segs) + (["pelvis"] if root_kind == "pelvis" else [])
+    cal_segs = list(segs) + list(angles_only) + (["pelvis"] if root_kind == "pelvis" else [])
     # the functional calibration checks its lengths against these (measured, else body height)
     expected = _expected_lengths(segs, measured, body_height_m) if calib == "functional" else {}
-    sk, roots = build_chain(segs, {s: expected.get(s, 0.3) for s in segs}, axes_decl)
+    sk, roots = build_chain([*segs, *angles_only], {s: expected.get(s, 0.3) for s in cal_segs},
+                            axes_decl)  # fmt: skip
     if root_kind == "pelvis":
         sk = replace(sk, root_segment="pelvis")
     provenance: dict = {"calibration": calib, "root": root_kind}
