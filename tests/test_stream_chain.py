@@ -69,14 +69,23 @@ def test_the_live_chain_is_the_offline_chain(live_and_offline):
 def test_the_live_joint_angles_are_the_offline_angles(live_and_offline):
     """Oracle: kinefuse run's ISB joint angles (process_recording's, which its _angles.csv
     rounds to 1e-4 deg). chain.json carries the calibrated segment frames; the engine turns
-    the orientations at each frame into the same knee and hip angles wherever every segment
+    the orientations at each frame into the same knee, hip and ankle angles (the feet serve
+    the ankle angles only: not in the chain, read for the angles) wherever every segment
     of the joint had a fresh sample. The tolerance, 1e-6 deg, is rounding through one SLERP
     and one Euler decomposition (~1e-13 rad) with a wide margin; an angle computed from
     another frame or timeline is off by degrees."""
     out, chain, _, engine, off = live_and_offline
-    assert set(chain["segment_frames"]) == {"pelvis", "thigh_l", "thigh_r", "shank_l", "shank_r"}
+    assert set(chain["segment_frames"]) == {
+        "pelvis",
+        "thigh_l",
+        "thigh_r",
+        "shank_l",
+        "shank_r",
+        "foot_l",
+        "foot_r",
+    }
     joints = engine.config.angle_joints
-    assert joints == ("knee_l", "knee_r", "hip_l", "hip_r")
+    assert joints == ("knee_l", "knee_r", "hip_l", "hip_r", "ankle_l", "ankle_r")
     fresh = np.all(off.imu_status == IMU_FRESH, axis=1)  # every segment (the hips' pelvis too)
     assert fresh.mean() > 0.95
     checked = 0

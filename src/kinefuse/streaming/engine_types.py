@@ -86,7 +86,9 @@ class EngineConfig:
         Keep every accepted sample in :attr:`Engine.accepted` (tests, benchmarks).
     segment_frames : mapping of str -> ndarray, shape (3, 3), or None
         ``R_sensor_from_segment`` (ISB segment frames) of calibrated segments, e.g. a
-        ``chain.json``'s; the frames then carry the joint angles of :attr:`angle_joints`.
+        ``chain.json``'s; the frames then carry the joint angles of :attr:`angle_joints`. A
+        segment outside the skeleton (a foot calibrated for the ankle angles only) is an
+        engine segment too: its IMU stream is read for the angles.
     angle_joints : tuple of str
         Derived: the joints of :data:`kinefuse.kinematics.angles.JOINTS` whose two segments
         are engine segments with a frame, in that table's order.
@@ -120,7 +122,6 @@ class EngineConfig:
         segs = list(self.skeleton.segments)
         if self.skeleton.root_segment is not None and self.skeleton.offsets_m:
             segs.insert(0, self.skeleton.root_segment)
-        object.__setattr__(self, "segments", tuple(dict.fromkeys(segs)))
         frames = {}
         for s, F in (self.segment_frames or {}).items():
             R = np.array(F, dtype=float)
@@ -130,7 +131,8 @@ class EngineConfig:
             R.setflags(write=False)
             frames[s] = R
         object.__setattr__(self, "segment_frames", frames)
-        have = set(frames) & set(self.segments)
+        object.__setattr__(self, "segments", tuple(dict.fromkeys([*segs, *frames])))
+        have = set(frames)
         angle_joints = tuple(j for j, (p, d, _) in ANGLE_JOINTS.items() if {p, d} <= have)
         object.__setattr__(self, "angle_joints", angle_joints)
         if self.camera:

@@ -124,7 +124,7 @@ def build_engine(
         output_rate_hz=cfg.output_rate_hz, imu_rate_hz=imu_rate_hz, max_latency_s=cfg.max_latency_s,
         stale_after_s=cfg.stale_after_s, gap_factor=cfg.gap_factor, record=record,
         root_position_m=root_position,
-        segment_frames=segment_frames_from_chain(cfg.chain) if cfg.chain is not None else None,
+        segment_frames=_chain_frames(cfg),
     )  # fmt: skip
     return Engine(ecfg, proc)
 
@@ -135,6 +135,11 @@ def engine_skeleton(cfg: StreamConfig) -> tuple:
     if cfg.chain is not None:
         return skeleton_from_chain(cfg.chain)
     return full_body(height_m=cfg.body_height_m, lengths=cfg.lengths_m or None), (0.0, 0.0, 0.0)
+
+
+def _chain_frames(cfg: StreamConfig) -> dict | None:
+    """The calibrated segment frames of ``cfg.chain`` (None without a chain)."""
+    return segment_frames_from_chain(cfg.chain) if cfg.chain is not None else None
 
 
 def warm_up(engine, seconds: float = 2.0) -> None:
@@ -296,7 +301,8 @@ class _Inputs:
 
 
 def _resolve_inputs(cfg: StreamConfig) -> _Inputs:
-    segments = EngineConfig(engine_skeleton(cfg)[0], joints=cfg.joints).segments
+    segments = EngineConfig(engine_skeleton(cfg)[0], joints=cfg.joints,
+                            segment_frames=_chain_frames(cfg)).segments  # fmt: skip
     cam_name = cfg.camera_stream_name
     wanted = {cfg.imu_stream_name(seg): seg for seg in segments}
     found = resolve_many(([cam_name] if cam_name else []) + list(wanted), cfg.resolve_timeout_s)

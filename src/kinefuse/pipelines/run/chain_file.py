@@ -65,9 +65,8 @@ def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_h
                           for h, s in (("hip_l", -1.0), ("hip_r", 1.0))}  # fmt: skip
     else:
         d["root"], d["root_segment"], d["offsets_m"] = sk.root, None, {}
-    live = set(sk.segments) | {d["root_segment"]}
-    frames = {} if cal is None else cal.frames
-    d["segment_frames"] = {s: np.asarray(F, float).tolist() for s, F in frames.items() if s in live}
+    frames = {} if cal is None else cal.frames  # the chain's, and feet for the ankle angles
+    d["segment_frames"] = {s: np.asarray(F, float).tolist() for s, F in frames.items()}
     return d, None
 
 
