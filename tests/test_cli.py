@@ -431,21 +431,6 @@ def test_load_session_full(tmp_path):
 # ------------------------------------------------------------------------------------------
 
 
-def test_demo_writes_report_and_protects_it(tmp_path):
-    out = tmp_path / "demo"
-    summary = tmp_path / "summary.json"
-    result = runner.invoke(cli.app, ["demo", "--out", str(out), "--quiet", "--json", str(summary)])
-    assert result.exit_code == 0, (result.output, cli_stderr(result))
-    report = out / "report.html"
-    assert report.is_file() and report.stat().st_size > 10_000
-    data = json.loads(summary.read_text())
-    assert data["evaluation"]["joints"] and Path(data["report"]) == report
-    before = report.stat().st_mtime_ns
-    result = runner.invoke(cli.app, ["demo", "--out", str(out)])
-    _assert_one_line_error(result, 2, str(report), "--force")
-    assert report.stat().st_mtime_ns == before
-
-
 def test_run_refuses_existing_report_before_running(tmp_path, monkeypatch):
     p = _session(tmp_path)
     out = tmp_path / "out"

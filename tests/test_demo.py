@@ -79,12 +79,20 @@ def test_paper_b_methods_lists_the_papers():
     assert m[:4] == ("elm-fir", "elm-kf", "imu-only", "camera-only")
 
 
-def test_demo_through_cli_prints_paper_tables(tmp_path):
+def test_demo_through_cli_prints_paper_tables_and_protects_its_report(tmp_path):
+    """`kinefuse demo` prints both papers' tables, writes the report and --json, and a second
+    run into the same folder stops with one line naming the report and --force, leaving it
+    untouched (one demo run for all of it: the CLI run is the slow part)."""
+    import json
+    from pathlib import Path
+
     from typer.testing import CliRunner
 
+    from conftest import cli_stderr
     from kinefuse import cli
 
-    res = CliRunner().invoke(cli.app, ["demo", "--out", str(tmp_path / "d")])
+    out, summary = tmp_path / "d", tmp_path / "summary.json"
+    res = CliRunner().invoke(cli.app, ["demo", "--out", str(out), "--json", str(summary)])
     assert res.exit_code == 0, res.output
     for needle in (
         "Paper A layout (Tables 4-5)",
@@ -93,7 +101,16 @@ def test_demo_through_cli_prints_paper_tables(tmp_path):
         "ELM/FIR",
     ):
         assert needle in res.output, needle
-    assert (tmp_path / "d" / "report.html").is_file()
+    report = out / "report.html"
+    assert report.is_file() and report.stat().st_size > 10_000
+    data = json.loads(summary.read_text())
+    assert data["evaluation"]["joints"] and Path(data["report"]) == report
+    before = report.stat().st_mtime_ns
+    again = CliRunner().invoke(cli.app, ["demo", "--out", str(out)])
+    err = [ln for ln in cli_stderr(again).splitlines() if ln.strip()]
+    assert again.exit_code == 2 and len(err) == 1, (again.exit_code, err)
+    assert err[0].startswith("kinefuse: error: ") and str(report) in err[0] and "--force" in err[0]
+    assert report.stat().st_mtime_ns == before
 
 
 def test_demo_report_viewer_in_chromium(demo, tmp_path):
