@@ -42,7 +42,8 @@ def evaluate_recording(
     calibration : str, optional
         ``"auto"`` (default: ``"vision"`` with a camera the method fuses; else ``"static"``
         when the IMUs hold still for 2 s somewhere, ``"functional"`` when they never do, as a
-        walk that starts at once; the choice is in the notes), ``"static"`` (a still pose in
+        walk that starts at once; an IMU-only choice is in every table's label, e.g. "[functional
+        calibration (auto), ...]"), ``"static"`` (a still pose in
         the IMU data), ``"functional"``, ``"vision"`` or ``"reference"`` (then axes *and*
         segment lengths come from the reference, and every table says "[calibrated on
         reference, lengths from reference, ...]").
