@@ -61,7 +61,8 @@ def range_of_motion_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTabl
             "ISB joint coordinate systems (Wu et al. 2002/2005; Grood & Suntay 1983): flexion "
             "about the proximal segment's medio-lateral axis, adduction about the floating axis "
             "(elbow: varus), internal rotation about the distal long axis (elbow: pronation); "
-            "zero in the calibration pose.",
+            "ankle flexion is dorsiflexion (toes up; plantarflexion negative); zero in the "
+            "calibration pose.",
         ),
     )
 
