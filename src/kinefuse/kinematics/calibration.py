@@ -62,9 +62,9 @@ from kinefuse.kinematics.hinge import HINGES, hinge_facing, hinge_frames
 from kinefuse.kinematics.skeleton import Skeleton, lengths_from_joints, window_mask
 from kinefuse.kinematics.static import (
     POSE_WARN_DEG,
-    _window_orientations,
     facing_free_segments,
     static_calibration,
+    window_orientations,
 )
 from kinefuse.kinematics.still import MAX_ACC_STD_M_S2, MAX_RATE_RAD_S
 from kinefuse.orientation.resample import slerp_resample
@@ -244,7 +244,7 @@ def _feet_on_shanks(imus: Mapping, cal: Calibration) -> Calibration:
     if not pairs or cal.still is None:
         return cal
     frames, axes = dict(cal.frames), dict(cal.axes)
-    _, R_mean = _window_orientations({x: imus[x] for p in pairs for x in p}, cal.still)
+    _, R_mean = window_orientations({x: imus[x] for p in pairs for x in p}, cal.still)
     for f, s in pairs:
         R_f, R_s = cal.heading_matrix(f) @ R_mean[f], cal.heading_matrix(s) @ R_mean[s]
         frames[f] = R_f.T @ R_s @ frames[s]

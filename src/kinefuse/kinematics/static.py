@@ -21,7 +21,7 @@ from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.kinematics.skeleton import Skeleton, unit_axis, window_mask
 from kinefuse.kinematics.still import StillWindow, find_still_window
 
-__all__ = ["POSE_WARN_DEG", "facing_free_segments", "static_calibration"]
+__all__ = ["POSE_WARN_DEG", "facing_free_segments", "static_calibration", "window_orientations"]
 
 #: Angle (deg) beyond which a static-pose segment gets a warning naming it.
 POSE_WARN_DEG = 20.0
@@ -103,7 +103,7 @@ def static_calibration(
         still = _search_still(imus, window_s, **thresholds)
     else:
         still = _check_still(imus, start_s, window_s, **thresholds)
-    R_win, R_mean = _window_orientations(imus, still)
+    R_win, R_mean = window_orientations(imus, still)
     heading_deg = _common_heading(segs, R_win, R_mean) if heading == "static" else {}
     axes, resid, frames, pose_res = {}, {}, {}, {}
     mounting = dict(mounting or {})
@@ -174,8 +174,27 @@ def _check_still(imus, start_s, window_s, *, max_rate_rad_s, max_acc_std_m_s2) -
     return still
 
 
-def _window_orientations(imus, still: StillWindow):
-    """Per sensor: the valid ``R_world_from_sensor`` in the window (K, 3, 3) and their mean."""
+def window_orientations(imus, still: StillWindow):
+    """The orientations of a still window, per sensor.
+
+    Parameters
+    ----------
+    imus : mapping of str -> ImuStream
+        Sensors with ``q_world_from_sensor``.
+    still : StillWindow
+        The window (its ``start_s`` and ``end_s``, s).
+
+    Returns
+    -------
+    R_win, R_mean : dict of str -> ndarray
+        The valid ``R_world_from_sensor`` samples in the window, shape (K, 3, 3), and their
+        mean rotation (chordal, :meth:`scipy.spatial.transform.Rotation.mean`), shape (3, 3).
+
+    Raises
+    ------
+    ValueError (:class:`kinefuse.exceptions.InputError`)
+        A sensor has no valid orientation sample in the window.
+    """
     R_win, R_mean = {}, {}
     for s, st in imus.items():
         sel = window_mask(st.t_s, still.start_s, still.end_s - still.start_s + 1e-6)

@@ -25,7 +25,8 @@ __all__ = ["NO_HEIGHT_RATIO", "RecordingSketch", "filled_template", "sketch_reco
 _LEGS = {"thigh_l", "thigh_r", "shank_l", "shank_r"}
 #: Chain segments whose length body height cannot give (no ratio in
 #: :data:`kinefuse.kinematics.skeleton.ANTHROPOMETRIC_RATIOS`; this layer cannot import it, a test
-#: keeps the two in step): a static calibration needs their lengths measured.
+#: keeps the two in step): output only with a measured length; without one a foot still serves
+#: the ankle angles (static) or joint centre (functional), a hand the wrist centre (functional).
 NO_HEIGHT_RATIO = ("foot_l", "foot_r", "hand_l", "hand_r")
 #: What mapping a foot or hand with its measured length adds under static calibration.
 _DISTAL_GAIN = {"foot": "the toe and the ankle angles", "hand": "the fingertip"}
