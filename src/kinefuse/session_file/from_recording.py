@@ -28,11 +28,12 @@ _LEGS = {"thigh_l", "thigh_r", "shank_l", "shank_r"}
 #: keeps the two in step): output only with a measured length; without one a foot still serves
 #: the ankle angles (static) or joint centre (functional), a hand the wrist centre (functional).
 NO_HEIGHT_RATIO = ("foot_l", "foot_r", "hand_l", "hand_r")
-#: What mapping a foot or hand with its measured length adds under static calibration.
-_DISTAL_GAIN = {"foot": "the toe and the ankle angles", "hand": "the fingertip"}
-#: The joint each limb segment starts at (a fixed root is the first mapped segment's).
+#: The joint each limb segment starts at (a fixed root is the first mapped segment's). The
+#: readers' table (kinefuse.io.motion) would import SciPy into `kinefuse --help`.
 _PROXIMAL_JOINT = {"upper_arm": "shoulder", "forearm": "elbow", "hand": "wrist",
                    "thigh": "hip", "shank": "knee", "foot": "ankle"}  # fmt: skip
+#: What mapping a foot or hand with its measured length adds under static calibration.
+_DISTAL_GAIN = {"foot": "the toe and the ankle angles", "hand": "the fingertip"}
 
 
 class RecordingSketch(NamedTuple):
@@ -72,8 +73,8 @@ def sketch_recording(
         ``still(streams) -> str``: empty when the IMU streams hold still for a static
         calibration, else why not
         (:func:`kinefuse.pipelines.run.calibration.no_still_window`; this layer cannot import
-        it). Given, and the recording has no camera, it is asked about the sensors mapped to
-        body-height-sized segments; its answer is :attr:`RecordingSketch.no_still_window`.
+        it). Given, and the recording has no camera, it is asked about the mapped sensors; its
+        answer is :attr:`RecordingSketch.no_still_window`.
 
     Raises
     ------
@@ -104,10 +105,10 @@ def sketch_recording(
         rel = str(p.resolve())
     if rel.startswith(".."):
         rel = str(p.resolve())
-    sized = {s: rec.imu[s] for s in segments if s not in NO_HEIGHT_RATIO}
+    mapped = {s: rec.imu[s] for s in segments}
     return RecordingSketch(fmt, Path(rel).as_posix(), dict(sorted(segments.items(), key=_order)),
                            tuple(unmapped), rec.vision is not None, rec.reference is not None,
-                           still(sized) if still and sized and rec.vision is None else "")  # fmt: skip
+                           still(mapped) if still and mapped and rec.vision is None else "")  # fmt: skip
 
 
 def _order(item) -> int:

@@ -18,7 +18,11 @@ from kinefuse.kinematics import calibrate, find_still_window, joint_angles, segm
 from kinefuse.kinematics.angles import JOINTS
 from kinefuse.kinematics.functional import align_headings
 from kinefuse.orientation.resample import slerp_resample
-from kinefuse.session_file.from_recording import RecordingSketch, sketch_recording
+from kinefuse.session_file.from_recording import (
+    NO_HEIGHT_RATIO,
+    RecordingSketch,
+    sketch_recording,
+)
 
 __all__ = ["CALIBRATION_WINDOW_S", "calibrate_session", "no_still_window", "sketch_for_session"]
 
@@ -54,11 +58,15 @@ def sketch_for_session(recording, session_dir, fmt: str | None = None) -> Record
 
 
 def no_still_window(streams: Mapping) -> str:
-    """Empty when the IMU ``streams`` hold still together for :data:`CALIBRATION_WINDOW_S`
-    somewhere (a static calibration can work), else why not: the stillest window and its
-    angular rate. Chooses the calibration where the user did not (``init-session --from``,
-    ``kinefuse evaluate``)."""
-    w = find_still_window(streams, CALIBRATION_WINDOW_S)
+    """Empty when the IMU ``streams`` of body-height-sized segments (not the feet or hands:
+    :data:`~kinefuse.session_file.from_recording.NO_HEIGHT_RATIO`) hold still together for
+    :data:`CALIBRATION_WINDOW_S` somewhere (a static calibration can work), else why not: the
+    stillest window and its angular rate. Chooses the calibration where the user did not
+    (``init-session --from``, ``kinefuse evaluate``); empty without such a stream."""
+    sized = {s: st for s, st in streams.items() if s not in NO_HEIGHT_RATIO}
+    if not sized:
+        return ""
+    w = find_still_window(sized, CALIBRATION_WINDOW_S)
     if w.still:
         return ""
     return (

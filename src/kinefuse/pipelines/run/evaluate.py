@@ -81,33 +81,25 @@ def evaluate_recording(
         params["root"] = root
     if calibration not in (None, "auto"):
         params["calibration"] = calibration
-    why, auto = "", "calibration" not in params
-    if auto:
-        why = "" if rec.vision is not None else no_still_window(_sized(rec.imu))
+    tags = []
+    if "calibration" not in params:  # chosen here: the tables say which, if IMU-only
+        why = "" if rec.vision is not None else no_still_window(rec.imu)
         params["calibration"] = "vision" if rec.vision is not None else (
             "functional" if why else "static")  # fmt: skip
+        if params["calibration"] != "vision":
+            tags.append(f"{params['calibration']} calibration (auto)")
     if params["calibration"] == "reference":
         params.setdefault("measured_lengths", True)
     if align is not None:
         params["align_to_reference"] = align
     try:
-        out = process_recording(rec, method, params, body_height_m=body_height_m)
+        out = process_recording(rec, method, params, body_height_m=body_height_m, tags=tags)
     except ConfigError as exc:
         raise InputError(f"{path}: {exc}") from None
-    calib = params["calibration"]
-    if auto and calib in ("static", "functional"):  # chosen here: the tables say which
-        inner = out.tag.strip()[1:-1]
-        out.tag = f" [{', '.join(x for x in (f'{calib} calibration (auto)', inner) if x)}]"
     ev = out.evaluation()
     if ev is None:
         raise InputError(f"{path}: nothing to score: {out.notes[-1]}")
     return ev
-
-
-def _sized(imu: Mapping) -> dict:
-    """The streams a static calibration would use: segments that body height can size (not
-    the feet or hands, which locate joint centres in a functional calibration)."""
-    return {s: st for s, st in imu.items() if not s.startswith(("foot_", "hand_"))}
 
 
 def _load_scorable(path, format, method: str):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -68,6 +68,7 @@ def process_recording(
     *,
     lengths: Mapping[str, float] | None = None,
     body_height_m: float | None = None,
+    tags: Sequence[str] = (),
 ) -> SessionOutput:
     """Run one method on a recording whose IMUs are keyed by canonical segment.
 
@@ -84,6 +85,9 @@ def process_recording(
         Measured segment lengths, m (win over everything else).
     body_height_m : float, optional
         Body height for anthropometric lengths (Winter 2009) and the hip width.
+    tags : sequence of str
+        Said first in the evaluated methods' label (``SessionOutput.tag``), before the tags
+        of what the reference was used for, e.g. a calibration the caller chose.
 
     Returns
     -------
@@ -135,7 +139,7 @@ def process_recording(
             "[skeleton.axes] and [skeleton.lengths] for them to output those segments)"
         )
     _run_method(out, recording, method, params, ctx)
-    _label_and_align(out, recording, plan, ctx["reference"])
+    _label_and_align(out, recording, plan, ctx["reference"], tags)
     return out
 
 
@@ -300,10 +304,11 @@ def _run_method(out: SessionOutput, recording, method: str, params: Mapping, ctx
         out.baselines = _baselines(out.chain, out.camera, dt, out.joints)
 
 
-def _label_and_align(out: SessionOutput, recording, plan: dict, reference) -> None:
-    """Tags saying what the reference was used for; the rigid alignment, if asked."""
+def _label_and_align(out: SessionOutput, recording, plan: dict, reference, tags=()) -> None:
+    """Tags saying what the reference was used for (after ``tags``); the rigid alignment, if
+    asked."""
     notes, provenance = out.notes, out.provenance
-    tags = []
+    tags = list(tags)
     sources = [v["source"] for v in provenance["segment_lengths"].values()]
     if plan["calibration"] == "reference":
         tags.append("calibrated on reference")
