@@ -405,6 +405,11 @@ def test_ximu3_lower_body_imu_only_session(shared_data, tmp_path):
         flex = flex[np.isfinite(flex)]
         assert flex.size > 800 and -10.0 <= flex.min() and flex.max() <= 150.0
         assert flex.max() > 60.0  # the recording bends the knees
+        # the terminal's angle table shows the written file's extremes (flexion min, max first)
+        after = res.output[res.output.index("Joint angles over the recording (deg)") :]
+        row = next(ln for ln in after.splitlines() if ln.strip().startswith(f"knee_{side} "))
+        shown = [float(v) for v in row.split()[1:3]]
+        np.testing.assert_allclose(shown, [flex.min(), flex.max()], atol=0.051)
     mot = (out / f"{stem}_angles.mot").read_text().splitlines()
     assert "inDegrees=yes" in mot and mot[mot.index("endheader") + 1].startswith("time\tknee_l_")
     assert any(ln.startswith("root=pelvis") for ln in mot[: mot.index("endheader")])

@@ -1,6 +1,7 @@
 """Joint angles in reports: a range-of-motion table and a time-series figure per joint.
 
 :func:`range_of_motion_table` (minimum, maximum, range, mean per joint and angle, deg),
+:func:`angle_extremes_table` (the same extremes, one row per joint, for the terminal),
 :func:`angle_figure` (the angles over time, one panel per joint), :func:`angle_section` (both
 as an HTML fragment for :func:`kinefuse.evaluation.write_report`) and
 :func:`write_angle_report` (a self-contained ``report.html`` for recordings without a
@@ -23,7 +24,13 @@ from kinefuse.evaluation import plots, tables
 from kinefuse.evaluation.report import REPORT_CSS, REPORT_NAME
 from kinefuse.exceptions import InputError
 
-__all__ = ["angle_figure", "angle_section", "range_of_motion_table", "write_angle_report"]
+__all__ = [
+    "angle_extremes_table",
+    "angle_figure",
+    "angle_section",
+    "range_of_motion_table",
+    "write_angle_report",
+]
 
 _COMPONENTS = ("flexion", "adduction", "internal rotation")
 
@@ -38,18 +45,20 @@ def _check(t_s, angles: Mapping[str, np.ndarray]) -> np.ndarray:
     return t
 
 
+def _extremes(a: np.ndarray, k: int) -> tuple:
+    """``(min, max, mean)`` of angle component ``k`` of ``a (T, 3)``, NaN ignored (None: none)."""
+    v = a[:, k][np.isfinite(a[:, k])]
+    return (float(v.min()), float(v.max()), float(v.mean())) if v.size else (None,) * 3
+
+
 def range_of_motion_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTable:
     """Minimum, maximum, range (max − min) and mean of each joint angle, deg (NaN ignored)."""
     rows = []
     for j, a in angles.items():
         a = np.asarray(a, dtype=float)
         for k, comp in enumerate(_COMPONENTS):
-            v = a[:, k][np.isfinite(a[:, k])]
-            vals = (
-                (float(v.min()), float(v.max()), float(v.max() - v.min()), float(v.mean()))
-                if v.size
-                else (None,) * 4
-            )
+            lo, hi, mean = _extremes(a, k)
+            vals = (lo, hi, hi - lo, mean) if lo is not None else (None,) * 4
             rows.append(tables.TableRow(labels=(j, comp), values=vals))
     return tables.ResultTable(
         title="Range of motion per joint (deg)",
@@ -63,6 +72,37 @@ def range_of_motion_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTabl
             "(elbow: varus), internal rotation about the distal long axis (elbow: pronation); "
             "ankle flexion is dorsiflexion (toes up; plantarflexion negative); zero in the "
             "calibration pose.",
+        ),
+    )
+
+
+def angle_extremes_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTable:
+    """One row per joint: minimum and maximum of flexion, adduction and internal rotation, deg
+    (NaN ignored): what ``kinefuse run`` prints; the report holds :func:`range_of_motion_table`."""
+    rows = []
+    for j, a in angles.items():
+        a = np.asarray(a, dtype=float)
+        rows.append(
+            tables.TableRow(
+                labels=(j,), values=tuple(v for k in range(3) for v in _extremes(a, k)[:2])
+            )
+        )
+    return tables.ResultTable(
+        title="Joint angles over the recording (deg)",
+        label_headers=("Joint",),
+        value_headers=(
+            "flexion min",
+            "flexion max",
+            "adduction min",
+            "adduction max",
+            "int. rot. min",
+            "int. rot. max",
+        ),
+        rows=tuple(rows),
+        digits=1,
+        notes=(
+            "ISB (Wu et al. 2002/2005), zero in the calibration pose; ankle flexion = "
+            "dorsiflexion. Range and mean per angle, and the time series: the report.",
         ),
     )
 

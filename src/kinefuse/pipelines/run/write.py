@@ -18,7 +18,7 @@ import numpy as np
 
 from kinefuse.conventions import MODE_NAMES, SOURCE_KINDS, SOURCE_NAMES
 from kinefuse.evaluation import ReportOptions, write_report
-from kinefuse.evaluation.angles import angle_section, write_angle_report
+from kinefuse.evaluation.angles import angle_extremes_table, angle_section, write_angle_report
 from kinefuse.evaluation.report import REPORT_NAME
 from kinefuse.exceptions import ConfigError
 from kinefuse.io import ImuStream, JointStream, write_joint_csv, write_trc
@@ -226,6 +226,7 @@ def _run_and_write(cfg, folder: Path) -> RunResult:
         )
     if out.angles:
         result.outputs += _write_angles(out, targets, cfg, False)
+        result.tables.append(angle_extremes_table(out.angles))
         result.angles_deg = {
             j: {
                 "flexion_min": float(np.nanmin(a[:, 0])),
