@@ -174,6 +174,19 @@ def test_one_thigh_without_the_pelvis_starts_at_its_hip(shared_data, tmp_path):
         run_session(legs, tmp_path / "out2")
 
 
+def test_a_sensor_without_a_segment_name_is_left_for_the_user_to_map(shared_data, tmp_path):
+    """x-io's single-sensor CSV: the sensor's name says no segment; the template lists it
+    commented and the message says what to do before `kinefuse run` (which refuses)."""
+    rec = shared_data / "third_party" / "x-io" / "gait-tracking_short_walk.csv"
+    session = tmp_path / "one.toml"
+    res = _init(session, rec)
+    assert res.exit_code == 0, (res.output, cli_stderr(res))
+    said = " ".join(res.output.split())
+    assert "segments none; not recognised: gait-tracking_short_walk" in said
+    assert "Name each sensor's segment in [imu.segments]" in said and "Check it" not in said
+    assert '# ??? = "gait-tracking_short_walk"  # not recognised' in session.read_text()
+
+
 def test_functional_lengths_are_checked_against_the_body_height_lengths(shared_data, tmp_path):
     """The warning for a functional length far from the expected one quotes the length the
     session gives (here body height 1.0 m: thigh 0.245 m), not the placeholder the chain was

@@ -9,6 +9,7 @@ segment geometry) or physics (unit quaternions, gravity, orientation rate = gyro
 from __future__ import annotations
 
 import re
+import shutil
 import warnings
 
 import numpy as np
@@ -508,10 +509,38 @@ def test_unsupported_messages(tmp_path, tp):
         assert "kinefuse reads: " in msg and "mvnx (Xsens MVN" in msg and "trc (" in msg
     with pytest.raises(
         FormatError,
-        match=r"a folder \(1 .amc, 1 .asf\) that is not one recording; kinefuse reads what is in "
-        r"it one at a time \(gsimchoni_backflip.amc: cmu\); pass one of them",
+        match=r"a folder \(4 .trc\) that is not one recording; kinefuse reads what is in it one "
+        r"at a time \(opensim_rajagopal_motion_capture_walk.trc: trc, .*\); pass one of them",
     ):
-        kio.load(tp / "asf_amc")
+        kio.load(tp / "trc")
+
+
+@pytest.mark.filterwarnings("ignore:.*NumFrames")  # the pyomeca file's header (tested elsewhere)
+def test_folder_around_one_recording_reads_it(tmp_path, tp):
+    # the AMC is the folder's one readable file (its ASF, beside it, is the skeleton it reads)
+    assert kio.detect_format(tp / "asf_amc") == "cmu"
+    a, b = kio.load(tp / "asf_amc"), kio.load(tp / "asf_amc" / "gsimchoni_backflip.amc")
+    np.testing.assert_array_equal(a.reference.position_m, b.reference.position_m)
+    # a dataset folder: one recording next to its README and licence (and a hidden file)
+    d = tmp_path / "dataset"
+    d.mkdir()
+    shutil.copy(tp / "trc" / "pyomeca_markers.trc", d / "markers.trc")
+    (d / "README.md").write_text("# markers\n")
+    (d / "LICENSE.txt").write_text("MIT License\n")
+    (d / ".hidden.trc").write_text("not read\n")
+    one = kio.load(d)
+    np.testing.assert_array_equal(
+        one.reference.position_m, kio.load(d / "markers.trc").reference.position_m
+    )
+    assert kio.load(d, format="trc").reference.joints == one.reference.joints
+    # two recordings: which one is the user's to say
+    shutil.copy(d / "markers.trc", d / "again.trc")
+    with pytest.raises(FormatError, match=r"not one recording.*again.trc: trc, markers.trc: trc"):
+        kio.load(d)
+    with pytest.raises(
+        FormatError, match=r"format 'trc' reads one file; this is a folder \(3 .trc"
+    ):
+        kio.load(d, format="trc")
 
 
 @needs_opensim

@@ -222,7 +222,11 @@ def init_session(
             f"From {sk.path} ({sk.format}): segments {mapped}"
             + (f"; not recognised: {', '.join(sk.unmapped)}" if sk.unmapped else "")
             + (f"; functional calibration: {sk.no_still_window}" if sk.no_still_window else "")
-            + ". Check it"
+            + (
+                ". Name each sensor's segment in [imu.segments] (kinefuse run needs one at least)"
+                if not sk.segments
+                else ". Check it"
+            )
         )
     path.write_text(text, encoding="utf-8")
     stdout().print(

@@ -14,7 +14,7 @@ from pathlib import Path
 import scipy  # scipy.io loads on first use (SciPy imports its subpackages lazily)
 
 from kinefuse.exceptions import FormatError, InputError
-from kinefuse.io._unsupported import unsupported_message
+from kinefuse.io._unsupported import looks_like, unsupported_message
 from kinefuse.io.recording import Recording
 
 __all__ = ["FORMATS", "detect_format", "load"]
@@ -242,6 +242,9 @@ def detect_format(path) -> str:
     fmt = None
     if path.is_dir():
         fmt = _detect_dir(path)
+        only = _only_recording(path) if fmt is None else None
+        if only is not None:
+            return detect_format(only)
     else:
         ext = path.suffix.lower()
         if ext == ".mat":
@@ -275,6 +278,29 @@ def detect_format(path) -> str:
     if fmt is None:
         raise FormatError(path, unsupported_message(path, FORMATS, _detect_entry))
     return fmt
+
+
+#: Formats whose reader takes a folder.
+_FOLDER_FORMATS = frozenset({"ximu3", "neura", "opensense", "xsens_dot"})
+
+
+def _only_recording(folder: Path, format: str | None = None) -> Path | None:
+    """The one file of ``folder`` kinefuse can read (of ``format``, when given), when there is
+    exactly one and the folder's layout is no format's own (e.g. a dataset folder holding one
+    ``.mat`` next to its README and licence); else None."""
+    found = []
+    for p in sorted(folder.iterdir()):
+        if not p.is_file() or p.name.startswith("."):
+            continue
+        try:
+            fmt = detect_format(p)
+        except (ValueError, OSError):
+            continue
+        if format is None or fmt == format:
+            found.append(p)
+        if len(found) > 1:
+            return None
+    return found[0] if found else None
 
 
 def _sniff(path: Path) -> str | None:
@@ -314,8 +340,9 @@ def load(path, format: str | None = None, **options) -> Recording:
     Parameters
     ----------
     path : str or Path or (path, path)
-        A file, a dataset folder (x-IMU3 log, OpenSense folder, Neura sample), or a pair of
-        files (UTD-MHAD inertial + skeleton, in either order).
+        A file, a dataset folder (x-IMU3 log, OpenSense folder, Neura sample), a folder holding
+        exactly one readable recording besides other files (e.g. a README and a licence: that
+        recording is read), or a pair of files (UTD-MHAD inertial + skeleton, in either order).
     format : str or None
         A key of :data:`FORMATS`; ``None`` detects it from content, extension and layout.
     **options
@@ -350,5 +377,12 @@ def load(path, format: str | None = None, **options) -> Recording:
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"{p}: no such file or directory")
+    if p.is_dir() and format not in _FOLDER_FORMATS and (format or _detect_dir(p) is None):
+        only = _only_recording(p, format)  # a folder around one recording: that file
+        if only is None and format is not None:
+            raise FormatError(
+                p, f"format {format!r} reads one file; this is {looks_like(p, _detect_entry)}"
+            )
+        p = only or p
     fmt = format or detect_format(p)
     return _reader(fmt)(p, **options)
