@@ -142,6 +142,18 @@ def test_hand_imus_are_segments_that_locate_the_wrist(shared_data, tmp_path):
     assert any("hand_r: IMUs used for the wrist centres only" in n for n in summary.notes)
 
 
+def test_both_arms_get_the_mid_shoulder_point_as_their_root(shared_data, tmp_path):
+    """Xsens MVNX (trunk, both arms and hands): root 'fixed' is the mid-shoulder point, the
+    shoulders hang from the chest IMU (tests/test_trunk_shoulders.py) and the template says so."""
+    mvnx = shared_data / "third_party" / "xsens" / "blender-mvnx-io_test_mocap.mvnx"
+    session = tmp_path / "ub.toml"
+    res = _init(session, mvnx)
+    assert res.exit_code == 0, (res.output, cli_stderr(res))
+    text = session.read_text(encoding="utf-8")
+    assert 'chest = "T8"' in text and 'root = "fixed"' in text
+    assert "the mid-shoulder point, m; the shoulders hang from the chest IMU" in text
+
+
 def test_one_leg_with_the_pelvis_places_only_its_hip(shared_data, tmp_path):
     """Xsens DOT: pelvis + left thigh and shank only. The pelvis root used to place both hips
     and the chain refused the unknown hip_r; now the session runs for the left leg."""

@@ -69,6 +69,10 @@ from kinefuse.kinematics.static import (
 from kinefuse.kinematics.still import MAX_ACC_STD_M_S2, MAX_RATE_RAD_S
 from kinefuse.orientation.resample import slerp_resample
 
+#: Trunk segments a static calibration gives a frame (the pose: upright, facing forward) without
+#: being skeleton segments: the pelvis (places the hips), the chest (the shoulders).
+TRUNK_SEGMENTS = ("pelvis", "chest")
+
 #: The default facing: north in the IMU world frame (ENU).
 _NORTH = (0.0, 1.0, 0.0)
 
@@ -100,6 +104,7 @@ def calibrate(
     max_rate_rad_s: float = MAX_RATE_RAD_S,
     max_acc_std_m_s2: float = MAX_ACC_STD_M_S2,
     flexion_axes: str = "auto",
+    proximal_segments: Mapping[str, str] | None = None,
 ) -> Calibration:
     """Calibrate the segment axis ``a_i`` in each IMU frame (and the camera/reference alignment).
 
@@ -148,8 +153,9 @@ def calibrate(
         ``"rotation"``: any rotation (camera frames). ``"auto"``: ``"none"`` when every used IMU
         stream's ``frame`` equals the joint stream's ``frame``, else ``"rotation"``.
     segments : sequence of str, optional
-        Calibrate only these skeleton segments (default: all); ``skeleton.root_segment``
-        (e.g. ``"pelvis"``) may be included for static calibration.
+        Calibrate only these skeleton segments (default: all); ``skeleton.root_segment`` and
+        the trunk segments :data:`TRUNK_SEGMENTS` (``"pelvis"``, ``"chest"``) may be included
+        for static calibration (their frame in the pose).
     heading : {"none", "static"}
         Static only: ``"static"`` brings the sensors' world frames into one heading, assuming
         every sensor faces the same way on the body in the still pose (the heading of each
@@ -174,6 +180,10 @@ def calibrate(
         when the facing is not known (``heading="static"``: 6-D orientations; or
         ``facing="auto"``), else ``"pose"``.
 
+    proximal_segments : mapping joint -> segment, optional
+        Functional only: the IMU proximal to a root joint, instead of the skeleton's
+        ``root_segment`` (e.g. ``{"shoulder_l": "chest", "shoulder_r": "chest"}``; see
+        :func:`~kinefuse.kinematics.functional.functional_calibration`).
     Returns
     -------
     Calibration
@@ -198,10 +208,11 @@ def calibrate(
             window_s=None if start_s is None else window_s,
             segments=segments,
             declared_axes=mounting,
+            proximal_segments=proximal_segments,
         )
     segs = list(skeleton.segments) if segments is None else list(segments)
     for s in segs:
-        if not (method == "static" and s == skeleton.root_segment):
+        if not (method == "static" and s in (skeleton.root_segment, *TRUNK_SEGMENTS)):
             skeleton.index(s)
     imus = {s: oriented_imu(recording, s, "calibration") for s in segs}
     if method != "static":

@@ -41,7 +41,8 @@ CALIBRATIONS = {
 }
 #: ``[skeleton] root`` values: where the chain starts.
 ROOTS = {
-    "fixed": "a position measured once (root_position_m, default the origin)",
+    "fixed": "a position measured once (root_position_m, default the origin); both arms: the "
+    "mid-shoulder point, shoulders from the chest IMU",
     "pelvis": "positions relative to the pelvis; hips from the pelvis IMU",
     "vision": "the camera joints; needs [camera]",
     "reference": "the reference joints; needs [reference]",

@@ -151,7 +151,22 @@ def filled_template(name: str, filename: str, sk: RecordingSketch) -> str:
         ('name = "paper-a"\n', f'name = "{"kinefuse" if sk.camera else "imu-only"}"\n'),
     ]  # fmt: skip
     first = next((s for s in sk.segments if s[:-2] in _PROXIMAL_JOINT), None)
-    if root == "fixed" and first is not None and not first.startswith("upper_arm"):
+    arms = {s[-1] for s in sk.segments if s.startswith(("upper_arm_", "forearm_", "hand_"))}
+    if root == "fixed" and len(arms) == 2:  # the shoulders hang from the trunk IMU
+        trunk = next((s for s in ("chest", "pelvis") if s in sk.segments), None)
+        reps.append(
+            (
+                "the measured root joint (here the shoulder), m",
+                "the mid-shoulder point, m; "
+                + (
+                    f"the shoulders hang from the {trunk} IMU"
+                    if trunk
+                    else "map 'chest' (the shoulders hang from it), or give each shoulder: "
+                    "{shoulder_l = [...], shoulder_r = [...]}"
+                ),
+            )
+        )
+    elif root == "fixed" and first is not None and not first.startswith("upper_arm"):
         joint = f"{_PROXIMAL_JOINT[first[:-2]]}_{first[-1]}"  # the chain starts there
         reps.append(
             (

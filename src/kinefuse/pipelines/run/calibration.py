@@ -75,7 +75,8 @@ def no_still_window(streams: Mapping) -> str:
     )
 
 
-def _calibration_kwargs(params: Mapping, calib: str, six_d, axes_decl, cal_segs) -> dict:
+def _calibration_kwargs(params: Mapping, calib: str, six_d, axes_decl, cal_segs,
+                        proximal=None) -> dict:  # fmt: skip
     """Keyword arguments of :func:`kinefuse.kinematics.calibrate` for ``calib``."""
     window = float(params.get("calibration_window_s", CALIBRATION_WINDOW_S))
     start = params.get("calibration_start_s")
@@ -99,6 +100,8 @@ def _calibration_kwargs(params: Mapping, calib: str, six_d, axes_decl, cal_segs)
         kw["align"] = params.get("align", "auto")
     elif calib == "functional":
         kw["mounting"] = {s: a for s, a in axes_decl.items() if s in cal_segs}
+        if proximal:
+            kw["proximal_segments"] = dict(proximal)
     return kw
 
 
@@ -112,8 +115,12 @@ def calibrate_session(
     cal_segs: Sequence[str],
     notes: list[str],
     provenance: dict,
+    proximal: Mapping[str, str] | None = None,
 ):
     """Calibrate the chain as ``calib`` says; notes and provenance are appended to in place.
+
+    ``proximal``: the IMU proximal to each root joint the functional calibration locates, where
+    it is not the skeleton's ``root_segment`` (e.g. the chest for the shoulders).
 
     Returns
     -------
@@ -125,7 +132,7 @@ def calibrate_session(
     if calib == "none":
         notes.append("calibration: none; the segment axes are the configured sensor axes")
         return recording, None
-    kw = _calibration_kwargs(params, calib, six_d, axes_decl, cal_segs)
+    kw = _calibration_kwargs(params, calib, six_d, axes_decl, cal_segs, proximal)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         cal = calibrate(recording, skeleton, calib, **kw)

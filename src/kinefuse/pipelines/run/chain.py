@@ -203,29 +203,96 @@ def hip_width_m(body_height_m) -> float:
 def pelvis_right_in_sensor(cal) -> np.ndarray:
     """The pelvis right axis (ISB Z) in the pelvis sensor's frame: the calibrated pelvis frame's,
     else the sensor's x (a right-front-up sensor: ISB X fwd = y, Y up = z, Z right = x)."""
-    if cal is not None and "pelvis" in cal.frames:
-        return np.asarray(cal.frames["pelvis"])[:, 2]
-    return np.array([1.0, 0.0, 0.0])
+    return trunk_frame_in_sensor(cal, "pelvis")[:, 2]
+
+
+def trunk_frame_in_sensor(cal, segment: str) -> np.ndarray:
+    """``R_sensor_from_segment (3, 3)`` of a trunk segment (``pelvis``, ``chest``): columns ISB
+    X anterior, Y superior, Z right in the sensor's frame. The calibrated frame (static pose),
+    else the sensor taken as right-front-up (X = sensor y, Y = sensor z, Z = sensor x)."""
+    if cal is not None and segment in cal.frames:
+        return np.asarray(cal.frames[segment], dtype=float)
+    return np.eye(3)[:, [1, 2, 0]]
+
+
+def shoulders_from_trunk(plan: Mapping) -> bool:
+    """Whether a session plan places its shoulders from the trunk IMU: both arms, or arms and
+    legs, without a root position per joint (``plan["shoulders"]``, set by the plan, which
+    checked that a trunk IMU is mapped)."""
+    return bool(plan.get("shoulders"))
+
+
+def shoulder_trunk(imus) -> str | None:
+    """The IMU the shoulders are placed from: the chest's, else the pelvis's, else None."""
+    return next((s for s in ("chest", "pelvis") if s in imus), None)
+
+
+def shoulder_offsets_m(body_height_m, above_hips: bool) -> dict[str, np.ndarray]:
+    """Shoulder centres in the trunk's ISB frame (X anterior, Y up, Z right), m: ± half the
+    shoulder width 0.259 H along Z, and 0.288 H up (the acromion, 0.818 H, above the greater
+    trochanter, 0.530 H) when the origin is the mid-hip point (Winter 2009, Fig. 4.1)."""
+    if body_height_m is None:
+        raise ConfigError(
+            "the shoulders are placed from the trunk IMU with the shoulder width 0.259 x body "
+            "height (Winter 2009); give [skeleton] body_height_m"
+        )
+    H = float(body_height_m)
+    up = ANTHROPOMETRIC_RATIOS["chest_to_hip"] * H if above_hips else 0.0
+    half = 0.5 * ANTHROPOMETRIC_RATIOS["shoulder_width"] * H
+    return {"shoulder_l": np.array([0.0, up, -half]), "shoulder_r": np.array([0.0, up, half])}
+
+
+def _trunk_orientation(recording, cal, t, segment: str) -> tuple[np.ndarray, str]:
+    """``R_world_from_segment (T, 3, 3)`` of a trunk segment on ``t`` (ISB columns, see
+    :func:`trunk_frame_in_sensor`) and how it was found."""
+    if cal is not None and segment in cal.frames:
+        R = segment_orientations(recording, cal, t, [segment])[segment]
+        return R, f"the {segment} frame of the static calibration (Z = right in the pose)"
+    st = recording.imu[segment]
+    R = as_rotation_matrices(slerp_resample(st.t_s, st.q_world_from_sensor, t))
+    how = f"the {segment} sensor frame taken as right-front-up (no calibrated {segment} frame)"
+    return R @ trunk_frame_in_sensor(None, segment), how
 
 
 def _hip_roots(recording, cal, t, origin, body_height_m, notes) -> dict[str, np.ndarray]:
     """Hip joint centres from the pelvis IMU: origin (mid-hip) ± half the hip width along the
     pelvis right axis (:func:`pelvis_right_in_sensor`)."""
     w = hip_width_m(body_height_m)
-    if cal is not None and "pelvis" in cal.frames:
-        R = segment_orientations(recording, cal, t, ["pelvis"])["pelvis"]
-        how = "the pelvis frame of the static calibration (Z = right in the pose)"
-    else:
-        st = recording.imu["pelvis"]
-        R = as_rotation_matrices(slerp_resample(st.t_s, st.q_world_from_sensor, t))
-        R = R[..., [1, 2, 0]]  # right-front-up sensor (pelvis_right_in_sensor)
-        how = "the pelvis sensor frame taken as right-front-up (no calibrated pelvis frame)"
+    R, how = _trunk_orientation(recording, cal, t, "pelvis")
     notes.append(
         f"hips: pelvis origin (mid-hip) ± {w / 2:.3f} m along the pelvis right axis "
         f"(hip width 0.191 x {float(body_height_m):g} m, Winter 2009), from {how}"
     )
     right = R[..., :, 2]
     return {"hip_l": origin - 0.5 * w * right, "hip_r": origin + 0.5 * w * right}
+
+
+def _shoulder_roots(recording, cal, t, origin, above_hips, body_height_m, notes):
+    """Shoulder centres from the trunk IMU (:func:`shoulder_trunk`) at the offsets of
+    :func:`shoulder_offsets_m` from ``origin`` (the mid-hip point when ``above_hips``, else the
+    mid-shoulder point)."""
+    trunk = shoulder_trunk(recording.imu)
+    R, how = _trunk_orientation(recording, cal, t, trunk)
+    off = shoulder_offsets_m(body_height_m, above_hips)
+    up, half = off["shoulder_r"][1], off["shoulder_r"][2]
+    notes.append(
+        "shoulders: "
+        + (f"{up:.3f} m up the {trunk} axis from the mid-hip point, then " if above_hips else "")
+        + f"± {half:.3f} m along the {trunk} right axis (shoulder width 0.259 x "
+        + f"{float(body_height_m):g} m"
+        + (
+            f"; acromion 0.288 x {float(body_height_m):g} m above the hip joint"
+            if above_hips
+            else ""
+        )
+        + f", Winter 2009), from {how}"
+        + (
+            "; the trunk is taken as rigid with the pelvis (no chest IMU)"
+            if trunk == "pelvis"
+            else ""
+        )
+    )
+    return {j: origin + R @ o for j, o in off.items()}
 
 
 def _resolve_lengths(
@@ -291,22 +358,31 @@ def _place_roots(recording, params, plan, roots, root_stream, t, cal, cal_segs, 
         root_desc = "fixed " + ", ".join(f"{j} at {list(rp[j])} m" for j in roots)
     else:
         origin = np.tile(np.asarray(rp, dtype=float), (t.size, 1))
-        if plan["hips"] and "pelvis" in recording.imu:
-            hips = _hip_roots(recording, cal, t, origin, body_height_m, notes)
-            root_pos = {j: p for j, p in hips.items() if j in roots}  # a leg not mapped: no hip
-            root_pos.update({j: origin for j in roots if j not in root_pos})
+        hips = plan["hips"] and "pelvis" in recording.imu
+        from_trunk = shoulders_from_trunk(plan)
+        root_pos = {}
+        if hips:
+            placed = _hip_roots(recording, cal, t, origin, body_height_m, notes)
+            root_pos.update({j: p for j, p in placed.items() if j in roots})  # a leg not mapped
             root_desc = f"pelvis (mid-hip) at {list(map(float, rp))} m, hips from the pelvis IMU"
+        elif from_trunk:
+            root_desc = f"mid-shoulder point at {list(map(float, rp))} m"
         else:
-            root_pos = {j: origin for j in roots}
             root_desc = f"fixed {', '.join(roots)} at {list(map(float, rp))} m"
+        if from_trunk:
+            placed = _shoulder_roots(recording, cal, t, origin, hips, body_height_m, notes)
+            root_pos.update({j: p for j, p in placed.items() if j in roots})  # an arm not mapped
+            root_desc += f", shoulders from the {shoulder_trunk(recording.imu)} IMU"
+        root_pos.update({j: origin for j in roots if j not in root_pos})
     frame = "ENU"
     if cal is not None and cal.world_heading_deg:
         frame += f" (heading of the {cal_segs[0]} sensor)"
     zero = not isinstance(rp, Mapping) and not np.any(np.asarray(rp, dtype=float))
     if zero:
-        frame += (
-            ", relative to the pelvis (mid-hip)"
-            if plan["hips"] and "pelvis" in recording.imu
-            else f", relative to {roots[0]}"
-        )
+        if plan["hips"] and "pelvis" in recording.imu:
+            frame += ", relative to the pelvis (mid-hip)"
+        elif shoulders_from_trunk(plan):
+            frame += ", relative to the mid-shoulder point"
+        else:
+            frame += f", relative to {roots[0]}"
     return root_pos, frame, root_desc

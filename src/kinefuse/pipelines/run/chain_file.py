@@ -2,9 +2,10 @@
 
 ``kinefuse run`` calibrates from the recording (static or functional: IMUs only) and writes the
 chain it then used: each segment's long axis in its *sensor* frame, its length, the root joint
-and, for a pelvis root, the hips as offsets in the pelvis sensor's frame; where the calibration
-gave segment frames (joint angles), each segment's ``R_sensor_from_segment``
-(``segment_frames``, rows of the 3 × 3 matrix). ``kinefuse stream SESSION --chain chain.json``
+and, for a pelvis root, the hips as offsets in the pelvis sensor's frame (the shoulders, where a
+trunk IMU places them, as offsets in its frame, from the mid-hip or the mid-shoulder point
+``spine_shoulder``); where the calibration gave segment frames (joint angles), each segment's
+``R_sensor_from_segment`` (``segment_frames``, rows of the 3 × 3 matrix). ``kinefuse stream SESSION --chain chain.json``
 runs that same chain on live orientation streams (:mod:`kinefuse.streaming`): the positions and
 joint angles equal the offline ones on the same samples.
 
@@ -24,7 +25,12 @@ import numpy as np
 
 from kinefuse.exceptions import InputError
 from kinefuse.kinematics import Skeleton
-from kinefuse.pipelines.run.chain import hip_width_m, pelvis_right_in_sensor
+from kinefuse.pipelines.run.chain import (
+    hip_width_m,
+    pelvis_right_in_sensor,
+    shoulder_offsets_m,
+    trunk_frame_in_sensor,
+)
 
 __all__ = [
     "CHAIN_FILE",
@@ -40,9 +46,16 @@ _FORMAT = "kinefuse-chain"
 _VERSION = 1
 
 
-def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_height_m):
+def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_height_m,
+                      trunk: str | None = None):  # fmt: skip
     """``(description, None)`` of the calibrated chain ``sk`` (axes in the sensor frames,
-    resolved lengths), or ``(None, why)`` when it cannot run live."""
+    resolved lengths), or ``(None, why)`` when it cannot run live. ``trunk``: the IMU the
+    shoulders are placed from (:func:`~kinefuse.pipelines.run.chain.shoulder_trunk`), if so."""
+    if root_kind == "pelvis" and trunk not in (None, "pelvis"):
+        return None, (
+            f"the hips hang from the pelvis IMU and the shoulders from the {trunk} IMU; a live "
+            "chain has one root segment"
+        )
     if root_kind not in ("pelvis", "fixed"):
         return None, f"its root ({root_kind!r}) comes from a stream kinefuse stream does not read"
     if cal is not None and any(abs(h) > 1e-9 for h in (cal.world_heading_deg or {}).values()):
@@ -58,13 +71,21 @@ def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_h
     ]  # fmt: skip
     d = {"format": _FORMAT, "version": _VERSION, "root_kind": root_kind,
          "root_position_m": [float(v) for v in rp], "segments": segs}  # fmt: skip
+    starts = {a for a, p in zip(sk.proximal, sk.parents, strict=True) if p < 0}
+    offsets = {}
     if root_kind == "pelvis":  # the hips as the offline chain places them (_hip_roots)
         w, right = hip_width_m(body_height_m), pelvis_right_in_sensor(cal)
         d["root"], d["root_segment"] = "pelvis", "pelvis"
-        d["offsets_m"] = {h: [float(v) for v in s * 0.5 * w * right]
-                          for h, s in (("hip_l", -1.0), ("hip_r", 1.0))}  # fmt: skip
+        offsets = {h: s * 0.5 * w * right for h, s in (("hip_l", -1.0), ("hip_r", 1.0))}
+    elif trunk is not None:  # fixed: the measured point is the mid-shoulder point
+        d["root"], d["root_segment"] = "spine_shoulder", trunk
     else:
-        d["root"], d["root_segment"], d["offsets_m"] = sk.root, None, {}
+        d["root"], d["root_segment"] = sk.root, None
+    if trunk is not None:  # the shoulders as the offline chain places them (_shoulder_roots)
+        R = trunk_frame_in_sensor(cal, trunk)
+        sh = shoulder_offsets_m(body_height_m, above_hips=root_kind == "pelvis")
+        offsets.update({j: R @ o for j, o in sh.items()})
+    d["offsets_m"] = {j: [float(v) for v in o] for j, o in offsets.items() if j in starts}
     frames = {} if cal is None else cal.frames  # the chain's, and feet for the ankle angles
     d["segment_frames"] = {s: np.asarray(F, float).tolist() for s, F in frames.items()}
     return d, None

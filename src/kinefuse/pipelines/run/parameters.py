@@ -174,7 +174,22 @@ def _plan(recording, method: str, params: Mapping, segs: Sequence[str]) -> dict:
                 f"root {root!r}: the hips {hips} are placed from the pelvis IMU; map 'pelvis' in "
                 "[imu.segments], or give each hip in root_position_m = {hip_l = [...], ...}"
             )
-    if root == "fixed" and isinstance(params.get("root_position_m"), Mapping):
+    shoulders = sorted(j for j in starts if j.startswith("shoulder_"))
+    per_joint = isinstance(params.get("root_position_m"), Mapping)
+    # both arms, or arms and legs, without a measured point each: the trunk IMU places them
+    from_trunk = (
+        root in ("fixed", "pelvis")
+        and not per_joint
+        and (len(shoulders) > 1 or bool(shoulders and hips))
+    )
+    if from_trunk:
+        if not {"chest", "pelvis"} & set(recording.imu):
+            raise ConfigError(
+                f"root {root!r}: the shoulders {shoulders} are placed from the chest IMU (or the "
+                "pelvis IMU); map 'chest' in [imu.segments], or give each shoulder in "
+                "root_position_m = {shoulder_l = [...], shoulder_r = [...]}"
+            )
+    if root == "fixed" and per_joint:
         lack = sorted(starts - set(params["root_position_m"]))
         if lack:
             raise ConfigError(f"root_position_m: no position for the chain start(s) {lack}")
@@ -186,4 +201,5 @@ def _plan(recording, method: str, params: Mapping, segs: Sequence[str]) -> dict:
             raise ConfigError(
                 "calibration 'functional' is not available in this version; use 'static'"
             )
-    return {"calibration": calib, "root": root, "hips": hips, "align": align}
+    return {"calibration": calib, "root": root, "hips": hips, "align": align,
+            "shoulders": shoulders if from_trunk else []}  # fmt: skip

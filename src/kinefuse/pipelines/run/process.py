@@ -41,6 +41,8 @@ from kinefuse.pipelines.run.chain import (
     _place_roots,
     _resolve_lengths,
     build_chain,
+    shoulder_trunk,
+    shoulders_from_trunk,
 )
 from kinefuse.pipelines.run.chain_file import CHAIN_FILE, chain_description
 from kinefuse.pipelines.run.output import SessionOutput
@@ -198,6 +200,9 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     t, root_stream = _output_timeline(recording, method, params, segs, root_kind)
     axes_decl = _declared_axes(params.get("axes"), segs)
     cal_segs = list(segs) + list(angles_only) + (["pelvis"] if root_kind == "pelvis" else [])
+    trunk = shoulder_trunk(recording.imu) if shoulders_from_trunk(plan) else None
+    if trunk is not None and trunk not in cal_segs and calib == "static":
+        cal_segs.append(trunk)  # its frame in the pose places the shoulders
     # the functional calibration checks its lengths against these (measured, else body height)
     expected = _expected_lengths(segs, measured, body_height_m) if calib == "functional" else {}
     sk, roots = build_chain([*segs, *angles_only], {s: expected.get(s, 0.3) for s in cal_segs},
@@ -205,8 +210,9 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     if root_kind == "pelvis":
         sk = replace(sk, root_segment="pelvis")
     provenance: dict = {"calibration": calib, "root": root_kind}
+    proximal = {j: trunk for j in plan["shoulders"]} if trunk == "chest" else None
     recording, cal = calibrate_session(
-        recording, sk, params, calib, six_d, axes_decl, cal_segs, notes, provenance
+        recording, sk, params, calib, six_d, axes_decl, cal_segs, notes, provenance, proximal
     )
     seg_lengths, how = _resolve_lengths(
         recording, segs, cal, calib, root_kind, use_stream_lengths, measured, body_height_m, notes
@@ -240,7 +246,7 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     )
     out = _new_output(recording, method, t, joints, chain, frame, sk, cal, root_kind)
     out.notes, out.warnings, out.root, out.provenance = notes, run_warnings, root_desc, provenance
-    out.chain_description, why = chain_description(sk, root_kind, params, cal, body_height_m)
+    out.chain_description, why = chain_description(sk, root_kind, params, cal, body_height_m, trunk)
     if why is not None:
         notes.append(f"no {CHAIN_FILE} for kinefuse stream --chain: {why}")
     if cal is not None:
