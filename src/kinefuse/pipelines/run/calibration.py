@@ -14,7 +14,13 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from kinefuse.kinematics import calibrate, find_still_window, joint_angles, segment_orientations
+from kinefuse.kinematics import (
+    JOINT_ANGLE_COMPONENTS,
+    calibrate,
+    find_still_window,
+    joint_angles,
+    segment_orientations,
+)
 from kinefuse.kinematics.angles import JOINTS
 from kinefuse.kinematics.functional import align_headings
 from kinefuse.orientation.resample import slerp_resample
@@ -264,4 +270,39 @@ def _joint_angles(
             notes.append(f"warning: {msg}")
             if warnings is not None:
                 warnings.append(msg)
+    for msg in _pose_angle_check(angles, t, cal):
+        notes.append(f"warning: {msg}")
+        if warnings is not None:
+            warnings.append(msg)
     return angles
+
+
+#: A joint angle farther than this from zero in a static calibration's pose is a warning, deg.
+POSE_ANGLE_WARN_DEG = 20.0
+
+
+def _pose_angle_check(angles: Mapping[str, np.ndarray], t: np.ndarray, cal) -> list[str]:
+    """Static calibration: every joint angle is zero in the pose by construction (each frame is
+    built from it); one that is not says the frames disagree (e.g. a facing the hinges did not
+    confirm, or sensors whose headings differ). The circular mean over the window, per angle."""
+    if cal.still is None or not angles:
+        return []
+    win = (t >= cal.window_s[0]) & (t <= cal.window_s[1])
+    out = []
+    for j, a in angles.items():
+        rad = np.radians(a[win])
+        ok = np.all(np.isfinite(rad), axis=-1)
+        if not ok.any():
+            continue
+        mean = np.degrees(np.angle(np.mean(np.exp(1j * rad[ok]), axis=0)))
+        bad = [f"{c.replace('_', ' ')} {v:.0f}" for c, v in zip(JOINT_ANGLE_COMPONENTS, mean, strict=True)
+               if abs(v) > POSE_ANGLE_WARN_DEG]  # fmt: skip
+        if bad:
+            out.append(
+                f"{j} reads {', '.join(bad)} deg in the calibration pose ({cal.window_s[0]:.2f}-"
+                f"{cal.window_s[1]:.2f} s), where every angle is zero by construction: its "
+                "segment frames disagree (the facing, or sensor headings that differ: see the "
+                'calibration notes; declare [calibration] facing, or heading = "static" for '
+                "6-D sensors)"
+            )
+    return out
