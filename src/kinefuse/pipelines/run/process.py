@@ -210,7 +210,9 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     if root_kind == "pelvis":
         sk = replace(sk, root_segment="pelvis")
     provenance: dict = {"calibration": calib, "root": root_kind}
-    proximal = {j: trunk for j in plan["shoulders"]} if trunk == "chest" else None
+    # a functional calibration locates the shoulders from the chest IMU, whatever the root
+    shoulders = [j for j in roots if j.startswith("shoulder_")]
+    proximal = {j: "chest" for j in shoulders} if "chest" in recording.imu else None
     recording, cal = calibrate_session(
         recording, sk, params, calib, six_d, axes_decl, cal_segs, notes, provenance, proximal
     )
