@@ -23,7 +23,7 @@ out_dir = "results/{name}"  # output folder; kinefuse refuses to overwrite a rep
 
 [imu]
 format = "imu_csv"               # reader of the IMU file: one of {formats}
-path = "data/imu.csv"            # the IMU recording (a file, or a folder for ximu3 / neura / opensense)
+path = "data/imu.csv"            # the IMU recording: a file, a folder for ximu3 / neura / opensense / xsens_dot, or a folder holding one recording
 rate_hz = 100.0                  # only used when the file has no time stamps; delete otherwise
 
 [imu.segments]
