@@ -265,3 +265,12 @@ def test_ctrl_c_during_the_swap_is_held_until_the_new_set_is_in(tmp_path, monkey
         stage.commit()
     assert len(calls) == 4  # 2 old out, 2 new in: all done before the interrupt
     assert {p.name: p.read_text() for p in out.iterdir()} == {"a.txt": "new a", "b.txt": "new b"}
+
+
+def test_run_names_its_stages_as_it_goes(synthetic_files, tmp_path):
+    """`kinefuse run` shows the stage on its progress bar (a long recording takes minutes)."""
+    stages: list[str] = []
+    run_session(_good(synthetic_files), tmp_path / "o", stage=stages.append)
+    assert [s.split(" ")[0] for s in stages] == ["reading", "calibrating,", "writing", "writing"]
+    assert stages[-1] == "writing the report"
+    assert ".toml" not in stages[0]  # the recording's files, not the session's

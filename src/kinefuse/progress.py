@@ -38,7 +38,8 @@ def progress(
     Yields
     ------
     callable
-        ``advance(n=1)``: n more steps done.
+        ``advance(n=1)``: n more steps done; ``advance.describe(text)`` replaces the
+        description (e.g. the stage a long step is in).
 
     Examples
     --------
@@ -47,7 +48,7 @@ def progress(
     ...         advance()
     """
     if quiet:
-        yield lambda n=1: None
+        yield _Advance(None, None)
         return
     columns = [bars.SpinnerColumn(), bars.TextColumn("{task.description}"), bars.BarColumn()]
     if total is not None:
@@ -55,4 +56,19 @@ def progress(
     columns.append(bars.TimeElapsedColumn())
     with bars.Progress(*columns, console=_stderr(), transient=True) as bar:
         task = bar.add_task(escape(description), total=total)  # text, not markup (a name)
-        yield lambda n=1: bar.advance(task, n)
+        yield _Advance(bar, task)
+
+
+class _Advance:
+    """``advance(n=1)`` and ``advance.describe(text)`` of one bar (no-ops without a bar)."""
+
+    def __init__(self, bar, task):
+        self._bar, self._task = bar, task
+
+    def __call__(self, n: float = 1) -> None:
+        if self._bar is not None:
+            self._bar.advance(self._task, n)
+
+    def describe(self, text: str) -> None:
+        if self._bar is not None:
+            self._bar.update(self._task, description=escape(text))

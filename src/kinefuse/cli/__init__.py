@@ -27,7 +27,7 @@ ImportError:
 command       back-end call
 ============  =========================================================================
 demo          ``kinefuse.apps.demo.run_demo(out_dir, force, quiet) -> summary``
-run           ``kinefuse.pipelines.run.run_session(path, out_dir, force) -> summary``
+run           ``kinefuse.pipelines.run.run_session(path, out_dir, force, stage=) -> summary``
 evaluate      ``kinefuse.pipelines.run.evaluate_recording(path, method) -> summary``
 experiment    ``kinefuse.apps.experiments.run_experiment(name, data_dir) -> summary``
 batch         ``kinefuse.batch.run_study(study, *, force, workers, scheduler, dashboard,

@@ -163,8 +163,10 @@ def run(
     if kernels == "compile":
         compile_kernels_now(quiet)
     # the back-end checks every earlier result and writability before any processing
-    with progress(f"Processing {cfg.name}", quiet=quiet):
-        summary = run_session(cfg.path, out_dir, force)
+    with progress(f"Processing {cfg.name}", quiet=quiet) as bar:
+        summary = run_session(
+            cfg.path, out_dir, force, stage=lambda s: bar.describe(f"Processing {cfg.name}: {s}")
+        )
     present(summary, quiet=quiet, json_file=json_file, force=force)
 
 

@@ -121,7 +121,7 @@ def _stem(cfg) -> str:
     return "".join(ch if ch.isalnum() or ch in "-_." else "-" for ch in cfg.name) or "session"
 
 
-def run_session(path, out_dir=None, force: bool = False) -> RunResult:
+def run_session(path, out_dir=None, force: bool = False, stage=None) -> RunResult:
     """Back-end of ``kinefuse run``: process the recording a session file describes.
 
     Parameters
@@ -132,6 +132,9 @@ def run_session(path, out_dir=None, force: bool = False) -> RunResult:
         Output folder (default the session's ``out_dir``); created if needed.
     force : bool
         Replace the results of an earlier run in ``out_dir``.
+    stage : callable, optional
+        ``stage(text)`` is called as each stage starts (reading, processing, writing, the
+        report), e.g. to show it on a progress bar.
 
     Returns
     -------
@@ -170,7 +173,7 @@ def run_session(path, out_dir=None, force: bool = False) -> RunResult:
     cfg = path if isinstance(path, SessionConfig) else load_session(path)
     out_dir = Path(cfg.out_dir if out_dir is None else out_dir)
     targets = _outputs(out_dir, _stem(cfg))
-    stage = OutputFolder(
+    folder = OutputFolder(
         out_dir,
         [p.name for p in targets.values()],
         force=force,
@@ -178,10 +181,10 @@ def run_session(path, out_dir=None, force: bool = False) -> RunResult:
         what="output folder",
     )
     try:
-        result = _run_and_write(cfg, stage.path)
-        stage.commit()
+        result = _run_and_write(cfg, folder.path, stage or (lambda text: None))
+        folder.commit()
     except BaseException:
-        stage.discard()
+        folder.discard()
         raise
     final = {p: out_dir / p.name for p in result.outputs}
     result.outputs = [final[p] for p in result.outputs]
@@ -190,12 +193,14 @@ def run_session(path, out_dir=None, force: bool = False) -> RunResult:
     return result
 
 
-def _run_and_write(cfg, folder: Path) -> RunResult:
+def _run_and_write(cfg, folder: Path, stage) -> RunResult:
     """Process the session and write every result into ``folder`` (the staging folder)."""
     targets = _outputs(folder, _stem(cfg))
     params = cfg.processing_parameters()
     strict = params.get("strict_units", True)
+    stage(f"reading {_input_size(p for p in cfg.inputs if Path(p) != Path(cfg.path))}")
     recording, notes = load_streams(cfg, strict_units=bool(strict))
+    stage(f"calibrating, {cfg.method.name}")
     try:
         out = process_recording(
             recording,
@@ -207,6 +212,7 @@ def _run_and_write(cfg, folder: Path) -> RunResult:
     except ConfigError as exc:
         raise ConfigError(f"{cfg.path.name}: {exc}") from None
     out.notes[:0] = notes
+    stage("writing the joints, angles and orientations")
     result = RunResult(
         outputs=_write_positions(out, cfg, targets),
         notes=out.notes,
@@ -234,8 +240,20 @@ def _run_and_write(cfg, folder: Path) -> RunResult:
             }
             for j, a in out.angles.items()
         }
+    stage("writing the report")
     _write_report(out, cfg, folder, result)
     return result
+
+
+def _input_size(paths) -> str:
+    """``"name (12 MB)"`` of the session's inputs (folders: their files)."""
+    parts = []
+    for p in paths:
+        p = Path(p)
+        files = [f for f in p.rglob("*") if f.is_file()] if p.is_dir() else [p]
+        size = sum(f.stat().st_size for f in files if f.exists())
+        parts.append(f"{p.name} ({size / 1e6:.0f} MB)" if size >= 1e6 else p.name)
+    return ", ".join(parts)
 
 
 def _write_positions(out: SessionOutput, cfg, targets: Mapping[str, Path]) -> list[Path]:
