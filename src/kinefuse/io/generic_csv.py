@@ -36,7 +36,7 @@ from kinefuse.exceptions import FormatError, InputError
 from kinefuse.io._checks import DEG2RAD, G, finish_recording, make_metadata
 from kinefuse.io._names import map_joints, map_segments
 from kinefuse.io._text import Table, check_time, read_table, table_time, time_column_s
-from kinefuse.io._write import fmt_float, write_text_safely
+from kinefuse.io._write import fixed_point_rows, fmt_float, write_text_safely
 from kinefuse.io.recording import ImuStream, JointStream, Recording
 
 __all__ = ["read_generic_csv", "read_imu_csv", "read_joint_csv", "write_imu_csv", "write_joint_csv"]
@@ -464,10 +464,12 @@ def write_joint_csv(
     for k, v in (metadata or {}).items():
         lines.append(f"# {k}: {v}".replace("\n", " "))
     lines.append(",".join(header))
-    for i in range(T):
-        row = [repr(float(stream.t_s[i]))]
-        row += [_cell(c[i], decimals) for c in cols[1:]]
-        lines.append(",".join(row))
+    times = [repr(float(t)) for t in stream.t_s]
+    try:
+        values = fixed_point_rows(cols[1:], decimals)
+    except TypeError:  # an extra column of text: value by value
+        values = [",".join(_cell(c[i], decimals) for c in cols[1:]) for i in range(T)]
+    lines += [f"{t},{v}" if cols[1:] else t for t, v in zip(times, values or [""] * T, strict=True)]
     return write_text_safely(path, "\n".join(lines) + "\n", force=force)
 
 

@@ -25,7 +25,7 @@ from kinefuse.exceptions import FormatError, FormatWarning, InputError
 from kinefuse.io._checks import ZERO_RULE, finish_recording, make_metadata, zero_samples
 from kinefuse.io._names import map_joints
 from kinefuse.io._text import check_time, read_text
-from kinefuse.io._write import fmt_float, write_text_safely
+from kinefuse.io._write import fixed_point_rows, write_text_safely
 from kinefuse.io.recording import JointStream, Recording
 
 __all__ = ["read_trc", "write_trc"]
@@ -319,12 +319,13 @@ def write_trc(
         "\t".join(["", ""] + [f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(J)]),
         "",
     ]
+    flat = p.reshape(T, 3 * J)
+    values = fixed_point_rows([flat[:, i] for i in range(3 * J)], decimals, "\t")
     for k in range(T):
-        vals = [fmt_float(v, decimals) for v in p[k].reshape(-1)]
-        row = "\t".join([str(k + 1), repr(float(stream.t_s[k])), *vals])
+        row = f"{k + 1}\t{float(stream.t_s[k])!r}" + (f"\t{values[k]}" if J else "")
         # OpenSim's tokenizer drops one trailing empty field: a row ending in a missing marker
         # gets a closing tab so that every row keeps 2 + 3 J fields there too
-        out.append(row + "\t" if vals and not vals[-1] else row)
+        out.append(row + "\t" if J and not np.isfinite(flat[k, -1]) else row)
     return write_text_safely(path, "\n".join(out) + "\n", force=force)
 
 
