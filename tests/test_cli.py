@@ -483,6 +483,22 @@ def test_console_script_bad_input_subprocess(tmp_path):
     assert "Traceback" not in r.stderr + r.stdout
 
 
+def test_console_script_warnings_are_one_line_each(shared_data):
+    """A reader's warning (a TRC whose header miscounts its frames) reaches the user as one
+    `kinefuse: warning:` line, not Python's `file:line: FormatWarning:` and its source line."""
+    trc = shared_data / "third_party" / "trc" / "pyomeca_markers.trc"
+    env = {k: v for k, v in os.environ.items() if k not in ("KINEFUSE_DEBUG", "PYTHONWARNINGS")}
+    r = subprocess.run(
+        [*_console_script(), "evaluate", str(trc), "--method", "imu-only"],
+        capture_output=True, text=True, timeout=120, env=env,
+    )  # fmt: skip
+    assert r.returncode == 2, (r.stdout, r.stderr)  # no IMU in a marker file: an error after it
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert lines[0].startswith("kinefuse: warning: ") and "NumFrames = 652" in lines[0], lines
+    assert lines[1].startswith("kinefuse: error: ") and len(lines) == 2, lines
+    assert "FormatWarning" not in r.stderr and ".py:" not in r.stderr
+
+
 def test_python_dash_m(tmp_path):
     r = subprocess.run(
         [sys.executable, "-m", "kinefuse", "--version"], capture_output=True, text=True, timeout=120

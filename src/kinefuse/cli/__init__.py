@@ -53,6 +53,8 @@ bench, warm-up), :mod:`kinefuse.cli.study` (batch), :mod:`kinefuse.cli.live` (st
 The commands are registered below, in the order ``kinefuse --help`` lists them.
 """
 
+import warnings
+
 from kinefuse.cli import live, offline, study
 from kinefuse.cli._app import (
     BACKENDS,
@@ -63,6 +65,7 @@ from kinefuse.cli._app import (
     BackendUnavailable,
     app,
     guarded,
+    show_warning,
 )
 from kinefuse.progress import progress
 
@@ -93,5 +96,6 @@ for _name, _command in (
 
 
 def main() -> None:
-    """Console-script entry point (``kinefuse``)."""
+    """Console-script entry point (``kinefuse``): Python warnings print as one line each."""
+    warnings.showwarning = show_warning
     app(prog_name="kinefuse")

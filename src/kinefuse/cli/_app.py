@@ -5,6 +5,7 @@ import importlib
 import os
 import sys
 import traceback
+import warnings
 from collections.abc import Callable
 from types import ModuleType
 from typing import Annotated
@@ -89,6 +90,15 @@ def stderr() -> Console:
 
 def _debug() -> bool:
     return _STATE["debug"] or os.environ.get("KINEFUSE_DEBUG", "") not in ("", "0")
+
+
+def show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """``warnings.showwarning`` of the console script: one ``kinefuse: warning:`` line on stderr
+    (Python's ``file:line: Category:`` form, with the source line, under ``--debug``)."""
+    if _debug():
+        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+        return
+    stderr().print(Text(f"kinefuse: warning: {one_line(str(message))}", style="yellow"))
 
 
 def one_line(message: str) -> str:
