@@ -379,3 +379,13 @@ def test_public_reexports():
     for name in ev.__all__:
         assert hasattr(ev, name)
     assert ev.evaluate is metrics.evaluate
+
+
+def test_table_cells_never_show_minus_zero():
+    """A value that rounds to zero prints unsigned (a range table read "-0.0" for an angle that
+    stayed at zero); other values keep their sign and rounding."""
+    t = tables.ResultTable("t", ("a",), ("b",), (), digits=1)
+    assert [t.cell(v) for v in (-0.0, -0.04, 0.04, -0.06, -1.25, 2)] == [
+        "0.0", "0.0", "0.0", "-0.1", "-1.2", "2.0",
+    ]  # fmt: skip
+    assert t.cell(float("nan")) == "–" and t.cell(None) == "–" and t.cell("n/a") == "n/a"

@@ -125,7 +125,8 @@ class ResultTable:
         v = float(value)
         if not math.isfinite(v):
             return "–"
-        return f"{v:.{self.digits}f}"
+        text = f"{v:.{self.digits}f}"
+        return text[1:] if text.startswith("-") and not text.strip("-0.") else text  # no "-0.0"
 
 
 def _paper_values(paper, key, n: int) -> tuple | None:
