@@ -21,7 +21,13 @@ from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.kinematics.skeleton import Skeleton, unit_axis, window_mask
 from kinefuse.kinematics.still import StillWindow, find_still_window
 
-__all__ = ["POSE_WARN_DEG", "facing_free_segments", "static_calibration", "window_orientations"]
+__all__ = [
+    "POSE_WARN_DEG",
+    "facing_free_segments",
+    "pose_headings",
+    "static_calibration",
+    "window_orientations",
+]
 
 #: Angle (deg) beyond which a static-pose segment gets a warning naming it.
 POSE_WARN_DEG = 20.0
@@ -205,6 +211,49 @@ def window_orientations(imus, still: StillWindow):
         R_win[s] = R[ok]
         R_mean[s] = Rotation.from_matrix(R[ok]).mean().as_matrix()
     return R_win, R_mean
+
+
+def pose_headings(
+    imus, frames, window_s: float, *, max_rate_rad_s: float, max_acc_std_m_s2: float
+) -> tuple[StillWindow, dict[str, float] | None]:
+    """Heading offsets that bring sensors of arbitrary headings (6-D) into one world frame,
+    from a still pose and the sensors' calibrated segment frames.
+
+    In the calibration pose every segment frame (``R_world_from_sensor @ R_sensor_from_segment``)
+    has the same heading; each sensor's world frame is turned about the vertical so that its
+    segment frame's heading equals the first sensor's (the reference, ψ = 0).
+
+    Parameters
+    ----------
+    imus : mapping of str -> ImuStream
+        Orientations (``q_world_from_sensor``) of every sensor, in their own world frames.
+    frames : mapping of str -> ndarray, shape (3, 3)
+        ``R_sensor_from_segment`` of each sensor (a static calibration's ``frames``).
+    window_s : float
+        Length of the still window, s (the earliest one, :func:`find_still_window`).
+    max_rate_rad_s, max_acc_std_m_s2 : float
+        Stillness thresholds.
+
+    Returns
+    -------
+    still : StillWindow
+    psi_rad : dict of str -> float, or None
+        Per sensor, the rotation about the vertical (rad, ENU z) to apply to its world frame:
+        ``q ← R_z(ψ) q``; None when no window is still (``still.still`` False).
+    """
+    still = find_still_window(
+        imus, window_s, max_rate_rad_s=max_rate_rad_s, max_acc_std_m_s2=max_acc_std_m_s2
+    )
+    if not still.still:
+        return still, None
+    _, R_mean = window_orientations(imus, still)
+    names = list(imus)
+    seg = {s: R_mean[s] @ np.asarray(frames[s], dtype=float) for s in names}
+    psi = {}
+    for s in names:
+        G = seg[names[0]] @ seg[s].T
+        psi[s] = float(np.arctan2(G[1, 0] - G[0, 1], G[0, 0] + G[1, 1]))
+    return still, psi
 
 
 def _common_heading(segs, R_win: dict, R_mean: dict) -> dict[str, float]:

@@ -84,6 +84,7 @@ from kinefuse.streaming.engine_types import (
     EngineEvent,
     EngineOutput,
 )
+from kinefuse.streaming.heading import PoseHeading
 from kinefuse.streaming.processors import Processor
 
 # the configuration and output types are part of the engine's interface: re-exported (their
@@ -154,6 +155,11 @@ class Engine:
         self._meta: deque = deque()  # metadata of frames waiting for lagged outputs
         self._n_out = 0
         self.accepted = {"imu": {s: [] for s in config.segments}, "camera": [], "frames": []}
+        self.heading = (
+            None
+            if config.heading_pose_s is None
+            else PoseHeading(config.segment_frames, config.heading_pose_s, config.segments)
+        )
 
     # ------------------------------------------------------------------ helpers
     def _event(self, t, kind, stream, detail, level=logging.WARNING):
@@ -213,10 +219,12 @@ class Engine:
                 buf.estimator = OrientationEstimator(1.0 / buf.period_s, self.config.vqf_params)
             q = buf.estimator.update(acc, gyr, mag)
         q = unit_quaternion(q, f"push_imu({segment!r})")
+        if self.config.record:  # as received: offline_causal turns them itself
+            self.accepted["imu"][segment].append((t, q))
+        if self.heading is not None and self.heading.aligned:
+            q = self.heading.turn(segment, q)
         self._insert_imu(buf, i, t, q, now)
         self._data_arrived(t)
-        if self.config.record:
-            self.accepted["imu"][segment].append((t, q))
         return True
 
     def _imu_slot(self, buf: SegmentBuffer, t: float) -> int | None:
@@ -392,6 +400,8 @@ class Engine:
         """Process every frame that is ready; return the outputs produced (oldest first)."""
         now_eff = self._now(now)
         outs: list[EngineOutput] = []
+        if self.heading is not None and not self._find_heading():
+            return outs  # no frame before the sensors share a heading
         while True:
             frame = self._next_frame(now_eff)
             if frame is None:
@@ -402,10 +412,30 @@ class Engine:
             self._process(frame, forced, outs)
         return outs
 
+    def _find_heading(self, force: bool = False) -> bool:
+        """6-D sensors: look for the still pose in the buffered samples; once found, turn
+        them (and, in :meth:`push_imu`, every later sample) into the common heading."""
+        h = self.heading
+        if h.aligned:
+            return True
+        if not h.find({b.name: (b.t, b.q) for b in self._seg_list}, force=force):
+            return False
+        for b in self._seg_list:
+            b.q = list(h.turn(b.name, np.array(b.q)))
+        turns = ", ".join(f"{s} {v:+.1f}" for s, v in h.psi_deg.items())
+        self._event(h.still.start_s, "heading", "imu",
+                    f"sensor headings from the still pose {h.still.start_s:.2f}-"
+                    f"{h.still.end_s:.2f} s (deg): {turns}", logging.INFO)  # fmt: skip
+        return True
+
     def flush(self, now: float | None = None) -> list[EngineOutput]:
         """End of run: process all pending camera frames (holding orientations as needed)
         and emit the outputs a fixed-lag smoother still holds back."""
         outs: list[EngineOutput] = []
+        if self.heading is not None and not self._find_heading(force=True):
+            self._event(self._data_now, "heading", "imu",
+                        "no still pose of the sensors: no output (6-D headings unknown)")  # fmt: skip
+            return outs
         while self._pending:
             frame = self._next_frame(math.inf)  # the next real frame, or a slot of a gap before it
             forced = any(b.last_t < frame[0] for b in self._seg_list)

@@ -92,6 +92,10 @@ class EngineConfig:
     angle_joints : tuple of str
         Derived: the joints of :data:`kinefuse.kinematics.angles.JOINTS` whose two segments
         are engine segments with a frame, in that table's order.
+    heading_pose_s : float or None
+        Sensors of arbitrary headings (6-D): find each one's heading from a still pose of this
+        length at the start (:mod:`kinefuse.streaming.heading`); every engine segment needs a
+        frame in ``segment_frames``. None (default): the streams share one world frame.
     """
 
     skeleton: Skeleton
@@ -109,6 +113,7 @@ class EngineConfig:
     vqf_params: Mapping | None = None
     record: bool = False
     segment_frames: Mapping[str, np.ndarray] | None = None
+    heading_pose_s: float | None = None
     segments: tuple[str, ...] = field(init=False)
     angle_joints: tuple[str, ...] = field(init=False)
 
@@ -133,6 +138,14 @@ class EngineConfig:
         object.__setattr__(self, "segment_frames", frames)
         object.__setattr__(self, "segments", tuple(dict.fromkeys([*segs, *frames])))
         have = set(frames)
+        if self.heading_pose_s is not None:
+            positive_finite(self.heading_pose_s, "heading_pose_s")
+            lack = [s for s in self.segments if s not in have]
+            if lack:
+                raise InputError(
+                    f"heading_pose_s: the headings come from the segment frames in the pose; "
+                    f"no frame for {lack}"
+                )
         angle_joints = tuple(j for j, (p, d, _) in ANGLE_JOINTS.items() if {p, d} <= have)
         object.__setattr__(self, "angle_joints", angle_joints)
         if self.camera:
@@ -183,7 +196,8 @@ class EngineConfig:
 @dataclass(frozen=True)
 class EngineEvent:
     """Something the engine noticed. ``kind`` in ``stream_stale``, ``camera_stale``,
-    ``resumed``, ``time_jump``, ``late``, ``duplicate``, ``reordered``, ``forced``."""
+    ``resumed``, ``time_jump``, ``late``, ``duplicate``, ``reordered``, ``forced``, ``heading``
+    (6-D sensors: their headings found from the pose, or never found)."""
 
     t_s: float
     kind: str

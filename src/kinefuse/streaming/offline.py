@@ -18,6 +18,7 @@ import numpy as np
 from kinefuse.exceptions import InputError
 from kinefuse.streaming.alignment import FrameAssembler, SegmentBuffer, camera_frame_due
 from kinefuse.streaming.engine_types import EngineConfig
+from kinefuse.streaming.heading import PoseHeading
 from kinefuse.streaming.processors import Processor
 
 __all__ = ["OfflineCausalResult", "offline_causal"]
@@ -140,6 +141,15 @@ def offline_causal(
         t = _frame_times(ct, cfg.frame_period_s)
     else:
         t = np.asarray(frame_times, dtype=float)
+    if cfg.heading_pose_s is not None:  # 6-D: the engine's heading search, on the whole record
+        heading = PoseHeading(cfg.segment_frames, cfg.heading_pose_s, cfg.segments)
+        turned = heading.apply(imu)
+        if turned is None:
+            raise InputError(
+                f"offline_causal: no still pose of {cfg.heading_pose_s:g} s in the IMU samples "
+                "(6-D headings unknown; the engine outputs nothing)"
+            )
+        imu = turned
     buffers = []
     for s in cfg.segments:
         ts, qs = imu.get(s, (np.zeros(0), np.zeros((0, 4))))

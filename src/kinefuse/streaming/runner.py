@@ -125,6 +125,7 @@ def build_engine(
         stale_after_s=cfg.stale_after_s, gap_factor=cfg.gap_factor, record=record,
         root_position_m=root_position,
         segment_frames=_chain_frames(cfg),
+        heading_pose_s=(cfg.chain or {}).get("heading", {}).get("window_s"),
     )  # fmt: skip
     return Engine(ecfg, proc)
 
@@ -153,6 +154,8 @@ def warm_up(engine, seconds: float = 2.0) -> None:
     bridging processor trains once).
     """
     cfg = dataclasses.replace(engine.config, record=False)
+    if cfg.heading_pose_s is not None:  # the synthetic input is still: one second of it will do
+        cfg = dataclasses.replace(cfg, heading_pose_s=min(cfg.heading_pose_s, seconds / 2))
     # the engine's own processor, returned to its state afterwards: a deep copy would hold
     # writable copies of the processor's read-only arrays, which numba compiles as another
     # specialisation (the copy would compile code the real processor never runs)

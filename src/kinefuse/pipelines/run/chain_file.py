@@ -11,8 +11,10 @@ joint angles equal the offline ones on the same samples.
 
 Only IMU-only roots are described (``pelvis``: hips from the pelvis IMU; ``fixed``: a root
 joint at a measured position); a camera or reference root has no live counterpart here. 6-D
-sensors whose headings the calibration aligned are refused: the live streams would not carry
-that alignment.
+sensors (headings aligned by a static calibration) get ``"heading": {"from": "pose",
+"window_s": W}``: live streams have headings of their own, which the engine finds again from the
+same still pose at the start of streaming (:mod:`kinefuse.streaming.heading`); after a
+functional calibration they are refused.
 """
 
 from __future__ import annotations
@@ -58,8 +60,12 @@ def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_h
         )
     if root_kind not in ("pelvis", "fixed"):
         return None, f"its root ({root_kind!r}) comes from a stream kinefuse stream does not read"
-    if cal is not None and any(abs(h) > 1e-9 for h in (cal.world_heading_deg or {}).values()):
-        return None, "6-D sensors: their headings were aligned by the calibration"
+    six_d = cal is not None and any(abs(h) > 1e-9 for h in (cal.world_heading_deg or {}).values())
+    if six_d and cal.still is None:
+        return None, (
+            "6-D sensors whose headings a functional calibration aligned: live streams have "
+            "headings of their own, and only a static pose can find them again"
+        )
     rp = params.get("root_position_m", (0.0, 0.0, 0.0))
     if isinstance(rp, Mapping):
         return None, "a root position per chain start"
@@ -88,6 +94,11 @@ def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_h
     d["offsets_m"] = {j: [float(v) for v in o] for j, o in offsets.items() if j in starts}
     frames = {} if cal is None else cal.frames  # the chain's, and feet for the ankle angles
     d["segment_frames"] = {s: np.asarray(F, float).tolist() for s, F in frames.items()}
+    if six_d:  # the engine finds each live sensor's heading from the pose (streaming.heading)
+        lack = [s for s in (*sk.segments, d["root_segment"]) if s and s not in frames]
+        if lack:
+            return None, f"6-D sensors, and no segment frame for {lack} to align them live"
+        d["heading"] = {"from": "pose", "window_s": float(cal.window_s[1] - cal.window_s[0])}
     return d, None
 
 
@@ -109,6 +120,14 @@ def read_chain(path) -> dict:
         )
     skeleton_from_chain(d, str(p))  # every field checked once, here
     segment_frames_from_chain(d, str(p))
+    h = d.get("heading")
+    if h is not None:
+        w = h.get("window_s") if isinstance(h, dict) else None
+        if (not isinstance(h, dict) or h.get("from") != "pose" or isinstance(w, bool)
+                or not isinstance(w, (int, float)) or not w > 0):  # fmt: skip
+            raise InputError(
+                f'--chain {p}: heading: expected {{"from": "pose", "window_s": > 0}}, got {h!r}'
+            )
     return d
 
 
