@@ -338,15 +338,14 @@ class PaperBCore:
                   ELM-2.fit(ẑ or FIR-3, RTS − FIR-3) (seed + 1) on that segment ∩ win
         In the episode: out = FIR-3 + clip(ELM-2(ẑ or FIR-3)), cov = FIR-3 cov + cov_add.
         """
-        imu_ok = np.all(np.isfinite(z_imu), axis=-1)  # (J, L): the chain measured the joint
-        all_imu = imu_ok.all()
+        all_imu = bool(np.isfinite(z_imu).all())  # the common frame: no per-joint masks
         if (not all_imu and np.isinf(z_imu).any()) or (
             features is not None and np.isinf(features).any()
         ):
             raise InputError("expected z_imu and features finite or NaN (missing), got ±inf")
-        av = available & np.all(np.isfinite(z_cam), axis=-1)
-        if not av.all():
-            z_cam = np.where(av[..., None], z_cam, np.nan)
+        all_av = bool(available.all()) and bool(np.isfinite(z_cam).all())
+        av = available if all_av else available & np.all(np.isfinite(z_cam), axis=-1)
+        z_cam = z_cam if all_av else np.where(av[..., None], z_cam, np.nan)
         x = z_imu if features is None else np.concatenate([z_imu, features], axis=-1)
         J, L = av.shape
         state.fir1, m1, P1 = _run_filter(self.fir1, z_imu, state.fir1)
@@ -368,13 +367,14 @@ class PaperBCore:
         state.history.append(self.params.train_window, x, z_cam, r_imm.mean, r_imm.cov, av)
         pos = r_imm.position.copy()
         cov = pos_cov(r_imm.cov).copy()
-        src = np.where(av, _FUSED_I8, _NONE_I8)
+        src = np.full((J, L), _FUSED_I8) if all_av else np.where(av, _FUSED_I8, _NONE_I8)
         flags = np.zeros((2, J, L), bool)  # imu_fallback, elm2_skipped
         out = (pos, cov, src, flags)
-        if state.mode.any() or not av.all():  # (the common frame has no episode: skip the scan)
+        if not all_av or state.mode.any():  # (the common frame has no episode: skip the scan)
             for j in np.flatnonzero((state.mode != MODE_NONE) | ~av.all(axis=1)):
                 self._episodes_of_joint(state, j, x[j], av[j], (m1[j], P1[j]), out)
         if not all_imu:  # neither the chain nor the camera measured it: a prediction
+            imu_ok = np.all(np.isfinite(z_imu), axis=-1)  # (J, L): the chain measured the joint
             src[~imu_ok & ~av & (src != _NONE_I8)] = _PREDICTED_I8
         state.k += L
         if not np.isfinite(pos).all():
