@@ -61,13 +61,14 @@ def test_a_6d_chain_finds_its_headings_from_the_pose(arm):
     assert chain == json.loads(json.dumps(out.chain_description))
     assert chain["heading"] == {"from": "pose", "window_s": 1.0}
     assert engine.config.heading_pose_s == 1.0
-    off = offline_causal(engine.config, engine.processor, imu, None, frame_times=out.t_s)
+    every = slice(None, None, 5)  # 2000 of the 10000 samples: the oracle, at a fifth the cost
+    off = offline_causal(engine.config, engine.processor, imu, None, frame_times=out.t_s[every])
     assert (off.imu_status == IMU_FRESH).mean() > 0.99
     # kinefuse run aligned the headings with the pose, then refined the forearm's with the
     # elbow's hinge fit, building the frames in those headings; from the frames in the pose
     # the engine finds the same headings to the fit's convergence (measured 1.6e-6 m at most)
-    np.testing.assert_allclose(off.z_imu, out.chain, atol=1e-5, rtol=0)
-    assert np.ptp(out.chain[:, 1, 2]) > 0.3  # the wrist moved
+    np.testing.assert_allclose(off.z_imu, out.chain[every], atol=1e-5, rtol=0)
+    assert np.ptp(out.chain[every, 1, 2]) > 0.3  # the wrist moved
 
 
 def test_turning_each_sensor_turns_the_output_by_the_reference_only(arm):
@@ -75,13 +76,14 @@ def test_turning_each_sensor_turns_the_output_by_the_reference_only(arm):
     sensors); the pose gives ψ_k + δ_ref − δ_k, so the output turns by δ_ref about the root."""
     out, _, engine, imu = arm
     cfg = engine.config
-    base = offline_causal(cfg, engine.processor, imu, None, frame_times=out.t_s)
+    t = out.t_s[::5]
+    base = offline_causal(cfg, engine.processor, imu, None, frame_times=t)
     delta = {"upper_arm_r": 1.1, "forearm_r": -2.3}
     turned = {}
-    for s, (t, q) in imu.items():
+    for s, (ts, q) in imu.items():
         r = Rotation.from_euler("z", delta[s]) * Rotation.from_quat(q, scalar_first=True)
-        turned[s] = (t, r.as_quat(scalar_first=True))
-    res = offline_causal(cfg, engine.processor, turned, None, frame_times=out.t_s)
+        turned[s] = (ts, r.as_quat(scalar_first=True))
+    res = offline_causal(cfg, engine.processor, turned, None, frame_times=t)
     root = np.array(cfg.root_position_m)
     Rz = Rotation.from_euler("z", delta[cfg.segments[0]]).as_matrix()
     np.testing.assert_allclose(res.z_imu - root, (base.z_imu - root) @ Rz.T, atol=1e-9)
