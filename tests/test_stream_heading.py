@@ -9,10 +9,13 @@ reference sensor's angle only), and the engine fed sample by sample (= its batch
 
 from __future__ import annotations
 
+import io
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from rich.console import Console
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import InputError
@@ -21,9 +24,10 @@ from kinefuse.pipelines.run.chain_file import CHAIN_FILE, read_chain
 from kinefuse.pipelines.run.streams import load_streams
 from kinefuse.session_file import load_session
 from kinefuse.streaming.config import stream_config_from_session
+from kinefuse.streaming.engine import Engine
 from kinefuse.streaming.engine_types import IMU_FRESH
 from kinefuse.streaming.offline import offline_causal
-from kinefuse.streaming.runner import build_engine
+from kinefuse.streaming.runner import _status_printer, build_engine
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*has no online form:UserWarning")
 
@@ -122,3 +126,17 @@ def test_a_malformed_heading_is_refused(arm, tmp_path):
         p.write_text(json.dumps(dict(chain, heading=bad)), encoding="utf-8")
         with pytest.raises(InputError, match=r"heading: expected"):
             read_chain(p)
+
+
+def test_the_live_status_says_to_hold_the_pose(arm):
+    """Until the pose is found nothing comes out: the terminal status says why."""
+    _, _, engine, _ = arm
+    fresh = Engine(engine.config, engine.processor)
+    console = Console(file=io.StringIO(), width=120, force_terminal=False)
+    live, show = _status_printer(console, SimpleNamespace(output_stream_name="arm_fused"))
+    try:
+        show(fresh, [])
+    finally:
+        live.stop()
+    text = console.file.getvalue()
+    assert "hold the calibration pose: stand still for 1 s" in text, text

@@ -230,6 +230,10 @@ def _status_printer(console, cfg):
                 f"{j} {a:.0f}°" if math.isfinite(a) else f"{j} -"
                 for j, a in zip(engine.config.angle_joints, ang[:, 0], strict=True)
             )
+        h = engine.heading
+        if h is not None and not h.aligned:  # 6-D sensors: nothing comes out before the pose
+            joints = (f"[yellow]hold the calibration pose: stand still for {h.window_s:g} s "
+                      "(6-D sensors: their headings come from it)[/yellow]")  # fmt: skip
         c = engine.counters
         tab.caption = (f"outputs {c['outputs']}  latency {lat_txt}\n{joints}\n"
                        f"late {c['late']} dup {c['duplicate']} reordered {c['reordered']} jumps {c['time_jump']} "
