@@ -63,7 +63,7 @@ def arm(shared_data, tmp_path_factory):
 def test_a_6d_chain_finds_its_headings_from_the_pose(arm):
     out, chain, engine, imu = arm
     assert chain == json.loads(json.dumps(out.chain_description))
-    assert chain["heading"] == {"from": "pose", "window_s": 1.0}
+    assert chain["heading"] == {"from": "pose", "window_s": 1.0, "reference": "upper_arm_r"}
     assert engine.config.heading_pose_s == 1.0
     every = slice(None, None, 5)  # 2000 of the 10000 samples: the oracle, at a fifth the cost
     off = offline_causal(engine.config, engine.processor, imu, None, frame_times=out.t_s[every])
@@ -121,7 +121,9 @@ def test_the_engine_waits_for_the_pose_then_equals_its_batch_form(arm):
 
 def test_a_malformed_heading_is_refused(arm, tmp_path):
     _, chain, _, _ = arm
-    for bad in ({"from": "magnetometer", "window_s": 1.0}, {"from": "pose", "window_s": 0}, "pose"):
+    for bad in ({"from": "magnetometer", "window_s": 1.0, "reference": "upper_arm_r"},
+                {"from": "pose", "window_s": 0, "reference": "upper_arm_r"},
+                {"from": "pose", "window_s": 1.0}, "pose"):  # fmt: skip
         p = tmp_path / "c.json"
         p.write_text(json.dumps(dict(chain, heading=bad)), encoding="utf-8")
         with pytest.raises(InputError, match=r"heading: expected"):

@@ -166,3 +166,70 @@ def test_the_live_chain_places_the_shoulders_as_kinefuse_run(tmp_path):
     want = _expected(seg)
     k = out.joints.index("wrist_r")
     np.testing.assert_allclose(out.chain[:, k], want["wrist_r"], atol=1e-6)
+
+
+def _full_body(T: int = 800):
+    """The upper body of :func:`_upper_body` on a pelvis that turns less than the chest, with
+    legs swinging from it (hip and knee flexion about the right axis)."""
+    seg, _ = _upper_body(T)
+    t = np.arange(T) / FS
+    m = np.clip(t - 2.5, 0.0, None)
+    pelvis = Rotation.from_euler("z", 15.0 * np.sin(0.8 * m)[:, None], degrees=True)
+    seg["pelvis"] = pelvis
+    for side, k in (("l", 1.0), ("r", -1.3)):
+        hip = Rotation.from_euler("x", 25.0 * np.sin(1.2 * k * m)[:, None], degrees=True)
+        knee = Rotation.from_euler("x", -40.0 * (1 - np.cos(1.2 * k * m))[:, None], degrees=True)
+        seg[f"thigh_{side}"] = pelvis * hip
+        seg[f"shank_{side}"] = pelvis * hip * knee
+    mounts = dict(MOUNTS, pelvis=Rotation.from_euler("xyz", [0, 10, -70], degrees=True))
+    for i, s in enumerate(("thigh_l", "thigh_r", "shank_l", "shank_r")):
+        mounts[s] = Rotation.from_euler("xyz", [20 * i, -35, 50 + 40 * i], degrees=True)
+    imu = {
+        s: ImuStream(t_s=t, q_world_from_sensor=(R * mounts[s]).as_quat(scalar_first=True), name=s)
+        for s, R in seg.items()
+    }
+    return seg, Recording(imu=imu)
+
+
+def test_full_body_shoulders_on_the_chest_hips_on_the_pelvis_live_too(tmp_path):
+    """Pelvis root: the hips hang from the pelvis IMU, the shoulders 0.288 H up the chest from
+    the mid-hip point (closed form); chain.json carries both (offset_segments: the chest) and
+    the live engine gives the same joints."""
+    seg, rec = _full_body()
+    write_imu_csv(tmp_path / "imu.csv", rec)
+    lines = "\n".join(f'{s} = "{s}"' for s in rec.imu)
+    session = tmp_path / "fb.toml"
+    session.write_text(
+        f'[session]\nname = "fb"\n[imu]\nformat = "imu_csv"\npath = "imu.csv"\n'
+        f'[imu.segments]\n{lines}\n[skeleton]\nbody_height_m = {H}\nroot = "pelvis"\n'
+        '[calibration]\nmethod = "static"\nfacing = [0.0, 1.0, 0.0]\n[method]\nname = "imu-only"\n',
+        encoding="utf-8",
+    )
+    run_session(session, tmp_path / "out")
+    chain = read_chain(tmp_path / "out" / CHAIN_FILE)
+    assert chain["root_segment"] == "pelvis"
+    assert chain["offset_segments"] == {"shoulder_l": "chest", "shoulder_r": "chest"}
+    cfg = load_session(session)
+    rec2, _ = load_streams(cfg, strict_units=True)
+    out = process_recording(rec2, "imu-only", cfg.processing_parameters(),
+                            body_height_m=cfg.skeleton.body_height_m)  # fmt: skip
+    down = np.array([0.0, 0.0, -1.0])
+    r = ANTHROPOMETRIC_RATIOS
+    for side, sign in (("l", -1.0), ("r", 1.0)):
+        shoulder = seg["chest"].apply(
+            [sign * 0.5 * r["shoulder_width"] * H, 0.0, r["chest_to_hip"] * H]
+        )
+        elbow = shoulder + r["upper_arm"] * H * seg[f"upper_arm_{side}"].apply(down)
+        hip = seg["pelvis"].apply([sign * 0.5 * r["hip_width"] * H, 0.0, 0.0])
+        knee = hip + r["thigh"] * H * seg[f"thigh_{side}"].apply(down)
+        for j, want in ((f"elbow_{side}", elbow), (f"knee_{side}", knee)):
+            np.testing.assert_allclose(
+                out.chain[:, out.joints.index(j)], want, atol=1e-6, err_msg=j
+            )
+    scfg = stream_config_from_session(cfg, chain)
+    engine = build_engine(scfg, camera=False, camera_rate_hz=30.0, imu_rate_hz=FS)
+    imu = {s: (st.t_s, st.q_world_from_sensor) for s, st in rec2.imu.items()}
+    off = offline_causal(engine.config, engine.processor, imu, None, frame_times=out.t_s)
+    fresh = off.imu_status == IMU_FRESH
+    assert fresh.mean() > 0.95
+    np.testing.assert_allclose(off.z_imu[fresh], out.chain[fresh], atol=1e-9, rtol=0)

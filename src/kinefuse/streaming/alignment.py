@@ -85,7 +85,9 @@ class Chain:
         self.segments = config.segments
         seg_index = {s: i for i, s in enumerate(self.segments)}
         self.root = sk.root
-        offsets = [(j, seg_index[sk.root_segment], np.array(o)) for j, o in sk.offsets_m.items()]
+        carrier = config.offset_segments  # the segment each offset joint hangs from
+        offsets = [(j, seg_index[carrier.get(j, sk.root_segment)], np.array(o))
+                   for j, o in sk.offsets_m.items()]  # fmt: skip
         steps = [
             (sk.proximal[i], sk.distal[i], seg_index[s], sk.lengths_m[i] * np.array(sk.axes[i]))
             for i, s in enumerate(sk.segments)

@@ -158,7 +158,12 @@ class Engine:
         self.heading = (
             None
             if config.heading_pose_s is None
-            else PoseHeading(config.segment_frames, config.heading_pose_s, config.segments)
+            else PoseHeading(
+                config.segment_frames,
+                config.heading_pose_s,
+                config.segments,
+                config.heading_reference,
+            )  # fmt: skip
         )
 
     # ------------------------------------------------------------------ helpers

@@ -92,10 +92,17 @@ class EngineConfig:
     angle_joints : tuple of str
         Derived: the joints of :data:`kinefuse.kinematics.angles.JOINTS` whose two segments
         are engine segments with a frame, in that table's order.
+    offset_segments : mapping of str -> str, optional
+        The IMU segment whose orientation carries each offset joint of the skeleton (default
+        its ``root_segment``), e.g. the shoulders on the chest when the hips hang from the
+        pelvis (``chain.json``'s ``offset_segments``).
     heading_pose_s : float or None
         Sensors of arbitrary headings (6-D): find each one's heading from a still pose of this
         length at the start (:mod:`kinefuse.streaming.heading`); every engine segment needs a
         frame in ``segment_frames``. None (default): the streams share one world frame.
+    heading_reference : str, optional
+        With ``heading_pose_s``: the segment whose sensor's heading the outputs keep (default
+        the first engine segment; ``chain.json`` names the one its calibration kept).
     """
 
     skeleton: Skeleton
@@ -113,7 +120,9 @@ class EngineConfig:
     vqf_params: Mapping | None = None
     record: bool = False
     segment_frames: Mapping[str, np.ndarray] | None = None
+    offset_segments: Mapping[str, str] | None = None
     heading_pose_s: float | None = None
+    heading_reference: str | None = None
     segments: tuple[str, ...] = field(init=False)
     angle_joints: tuple[str, ...] = field(init=False)
 
@@ -125,8 +134,14 @@ class EngineConfig:
             raise InputError(f"expected unique output joints, got {joints}")
         object.__setattr__(self, "joints", joints)
         segs = list(self.skeleton.segments)
+        carriers = dict(self.offset_segments or {})
+        unknown = sorted(set(carriers) - set(self.skeleton.offsets_m))
+        if unknown:
+            raise InputError(f"offset_segments: {unknown} are not offset joints of the skeleton")
+        object.__setattr__(self, "offset_segments", carriers)
         if self.skeleton.root_segment is not None and self.skeleton.offsets_m:
             segs.insert(0, self.skeleton.root_segment)
+        segs[:0] = [s for s in dict.fromkeys(carriers.values()) if s not in segs]
         frames = {}
         for s, F in (self.segment_frames or {}).items():
             R = np.array(F, dtype=float)
@@ -145,6 +160,11 @@ class EngineConfig:
                 raise InputError(
                     f"heading_pose_s: the headings come from the segment frames in the pose; "
                     f"no frame for {lack}"
+                )
+            if self.heading_reference not in (None, *self.segments):
+                raise InputError(
+                    f"heading_reference {self.heading_reference!r}: not an engine segment "
+                    f"{list(self.segments)}"
                 )
         angle_joints = tuple(j for j, (p, d, _) in ANGLE_JOINTS.items() if {p, d} <= have)
         object.__setattr__(self, "angle_joints", angle_joints)

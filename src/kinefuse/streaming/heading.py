@@ -46,11 +46,16 @@ class PoseHeading:
     window_s : float
         Still time needed, s (the calibration's window).
     segments : sequence of str
-        The engine's segments (the first is the reference: ψ = 0).
+        The engine's segments.
+    reference : str, optional
+        The segment whose sensor keeps its heading (ψ = 0); default the first.
     """
 
-    def __init__(self, frames: Mapping, window_s: float, segments):
+    def __init__(self, frames: Mapping, window_s: float, segments, reference=None):
         self.segments = list(segments)
+        if reference is not None:  # first: pose_headings turns the others onto it
+            self.segments.remove(reference)
+            self.segments.insert(0, reference)
         self.frames = {s: np.asarray(frames[s], dtype=float) for s in self.segments}
         self.window_s = float(window_s)
         self.rotation: dict[str, np.ndarray] | None = None  # per segment, wxyz, once found

@@ -125,7 +125,9 @@ def build_engine(
         stale_after_s=cfg.stale_after_s, gap_factor=cfg.gap_factor, record=record,
         root_position_m=root_position,
         segment_frames=_chain_frames(cfg),
+        offset_segments=(cfg.chain or {}).get("offset_segments"),
         heading_pose_s=(cfg.chain or {}).get("heading", {}).get("window_s"),
+        heading_reference=(cfg.chain or {}).get("heading", {}).get("reference"),
     )  # fmt: skip
     return Engine(ecfg, proc)
 
@@ -309,7 +311,8 @@ class _Inputs:
 
 def _resolve_inputs(cfg: StreamConfig) -> _Inputs:
     segments = EngineConfig(engine_skeleton(cfg)[0], joints=cfg.joints,
-                            segment_frames=_chain_frames(cfg)).segments  # fmt: skip
+                            segment_frames=_chain_frames(cfg),
+                            offset_segments=(cfg.chain or {}).get("offset_segments")).segments  # fmt: skip
     cam_name = cfg.camera_stream_name
     wanted = {cfg.imu_stream_name(seg): seg for seg in segments}
     found = resolve_many(([cam_name] if cam_name else []) + list(wanted), cfg.resolve_timeout_s)

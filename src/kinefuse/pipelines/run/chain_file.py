@@ -4,7 +4,8 @@
 chain it then used: each segment's long axis in its *sensor* frame, its length, the root joint
 and, for a pelvis root, the hips as offsets in the pelvis sensor's frame (the shoulders, where a
 trunk IMU places them, as offsets in its frame, from the mid-hip or the mid-shoulder point
-``spine_shoulder``); where the calibration gave segment frames (joint angles), each segment's
+``spine_shoulder``; ``offset_segments`` names the chest when the hips hang from the pelvis);
+where the calibration gave segment frames (joint angles), each segment's
 ``R_sensor_from_segment`` (``segment_frames``, rows of the 3 × 3 matrix). ``kinefuse stream SESSION --chain chain.json``
 runs that same chain on live orientation streams (:mod:`kinefuse.streaming`): the positions and
 joint angles equal the offline ones on the same samples.
@@ -53,11 +54,6 @@ def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_h
     """``(description, None)`` of the calibrated chain ``sk`` (axes in the sensor frames,
     resolved lengths), or ``(None, why)`` when it cannot run live. ``trunk``: the IMU the
     shoulders are placed from (:func:`~kinefuse.pipelines.run.chain.shoulder_trunk`), if so."""
-    if root_kind == "pelvis" and trunk not in (None, "pelvis"):
-        return None, (
-            f"the hips hang from the pelvis IMU and the shoulders from the {trunk} IMU; a live "
-            "chain has one root segment"
-        )
     if root_kind not in ("pelvis", "fixed"):
         return None, f"its root ({root_kind!r}) comes from a stream kinefuse stream does not read"
     six_d = cal is not None and any(abs(h) > 1e-9 for h in (cal.world_heading_deg or {}).values())
@@ -91,14 +87,19 @@ def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_h
         R = trunk_frame_in_sensor(cal, trunk)
         sh = shoulder_offsets_m(body_height_m, above_hips=root_kind == "pelvis")
         offsets.update({j: R @ o for j, o in sh.items()})
+        if trunk != d["root_segment"]:  # hips on the pelvis, shoulders on the chest
+            d["offset_segments"] = {j: trunk for j in sh if j in starts}
     d["offsets_m"] = {j: [float(v) for v in o] for j, o in offsets.items() if j in starts}
     frames = {} if cal is None else cal.frames  # the chain's, and feet for the ankle angles
     d["segment_frames"] = {s: np.asarray(F, float).tolist() for s, F in frames.items()}
     if six_d:  # the engine finds each live sensor's heading from the pose (streaming.heading)
-        lack = [s for s in (*sk.segments, d["root_segment"]) if s and s not in frames]
+        carriers = (d["root_segment"], *d.get("offset_segments", {}).values())
+        lack = [s for s in dict.fromkeys((*sk.segments, *carriers)) if s and s not in frames]
         if lack:
             return None, f"6-D sensors, and no segment frame for {lack} to align them live"
-        d["heading"] = {"from": "pose", "window_s": float(cal.window_s[1] - cal.window_s[0])}
+        ref = next(s for s, h in cal.world_heading_deg.items() if abs(h) <= 1e-9)
+        d["heading"] = {"from": "pose", "window_s": float(cal.window_s[1] - cal.window_s[0]),
+                        "reference": ref}  # the sensor whose heading the outputs keep  # fmt: skip
     return d, None
 
 
@@ -120,11 +121,19 @@ def read_chain(path) -> dict:
         )
     skeleton_from_chain(d, str(p))  # every field checked once, here
     segment_frames_from_chain(d, str(p))
+    carriers = d.get("offset_segments", {})
+    if not isinstance(carriers, dict) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in carriers.items()
+    ):
+        raise InputError(
+            f"--chain {p}: offset_segments: expected {{joint: segment}} names, got {carriers!r}"
+        )
     h = d.get("heading")
     if h is not None:
         w = h.get("window_s") if isinstance(h, dict) else None
         if (not isinstance(h, dict) or h.get("from") != "pose" or isinstance(w, bool)
-                or not isinstance(w, (int, float)) or not w > 0):  # fmt: skip
+                or not isinstance(w, (int, float)) or not w > 0
+                or not isinstance(h.get("reference"), str)):  # fmt: skip
             raise InputError(
                 f'--chain {p}: heading: expected {{"from": "pose", "window_s": > 0}}, got {h!r}'
             )
