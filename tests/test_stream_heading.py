@@ -19,6 +19,8 @@ from rich.console import Console
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import InputError
+from kinefuse.io import ImuStream
+from kinefuse.kinematics.static import pose_headings, relative_yaw
 from kinefuse.pipelines.run import process_recording, run_session
 from kinefuse.pipelines.run.chain_file import CHAIN_FILE, read_chain
 from kinefuse.pipelines.run.streams import load_streams
@@ -63,15 +65,18 @@ def arm(shared_data, tmp_path_factory):
 def test_a_6d_chain_finds_its_headings_from_the_pose(arm):
     out, chain, engine, imu = arm
     assert chain == json.loads(json.dumps(out.chain_description))
-    assert chain["heading"] == {"from": "pose", "window_s": 1.0, "reference": "upper_arm_r"}
+    h = chain["heading"]
+    assert (h["from"], h["window_s"], h["reference"]) == ("pose", 1.0, "upper_arm_r")
+    # the frames' headings in the pose, relative to the upper arm's, as the calibration left them
+    assert h["pose_yaw_deg"]["upper_arm_r"] == 0.0 and abs(h["pose_yaw_deg"]["forearm_r"]) < 5.0
     assert engine.config.heading_pose_s == 1.0
     every = slice(None, None, 5)  # 2000 of the 10000 samples: the oracle, at a fifth the cost
     off = offline_causal(engine.config, engine.processor, imu, None, frame_times=out.t_s[every])
     assert (off.imu_status == IMU_FRESH).mean() > 0.99
     # kinefuse run aligned the headings with the pose, then refined the forearm's with the
-    # elbow's hinge fit, building the frames in those headings; from the frames in the pose
-    # the engine finds the same headings to the fit's convergence (measured 1.6e-6 m at most)
-    np.testing.assert_allclose(off.z_imu, out.chain[every], atol=1e-5, rtol=0)
+    # elbow's hinge fit; with the frames' relative headings in the pose that the calibration
+    # left (pose_yaw_deg) the engine finds the same turns: the same chain, to rounding
+    np.testing.assert_allclose(off.z_imu, out.chain[every], atol=1e-9, rtol=0)
     assert np.ptp(out.chain[every, 1, 2]) > 0.3  # the wrist moved
 
 
@@ -123,7 +128,9 @@ def test_a_malformed_heading_is_refused(arm, tmp_path):
     _, chain, _, _ = arm
     for bad in ({"from": "magnetometer", "window_s": 1.0, "reference": "upper_arm_r"},
                 {"from": "pose", "window_s": 0, "reference": "upper_arm_r"},
-                {"from": "pose", "window_s": 1.0}, "pose"):  # fmt: skip
+                {"from": "pose", "window_s": 1.0},
+                {"from": "pose", "window_s": 1.0, "reference": "upper_arm_r",
+                 "pose_yaw_deg": {"forearm_r": "north"}}, "pose"):  # fmt: skip
         p = tmp_path / "c.json"
         p.write_text(json.dumps(dict(chain, heading=bad)), encoding="utf-8")
         with pytest.raises(InputError, match=r"heading: expected"):
@@ -142,3 +149,24 @@ def test_the_live_status_says_to_hold_the_pose(arm):
         live.stop()
     text = console.file.getvalue()
     assert "hold the calibration pose: stand still for 1 s" in text, text
+
+
+def test_the_turns_keep_the_pose_headings_the_calibration_left():
+    """Closed form: still sensors with arbitrary orientations and frames; the turns make each
+    segment frame's heading relative to the reference's equal the one given (the calibration's
+    pose_yaw), 0 by default."""
+    rng = np.random.default_rng(3)
+    t = np.arange(300) / 100.0
+    names = ("pelvis", "thigh_l", "shank_l")
+    R = {s: Rotation.random(random_state=rng) for s in names}
+    frames = {s: Rotation.random(random_state=rng).as_matrix() for s in names}
+    imus = {s: ImuStream(t_s=t, q_world_from_sensor=np.tile(R[s].as_quat(scalar_first=True), (t.size, 1)))
+            for s in names}  # fmt: skip
+    for keep in ({}, {"thigh_l": 0.4, "shank_l": -2.0}):
+        still, psi = pose_headings(imus, frames, 2.0, max_rate_rad_s=0.1, max_acc_std_m_s2=0.2,
+                                   pose_yaw_rad=keep)  # fmt: skip
+        assert still.still and psi["pelvis"] == 0.0
+        S = {s: Rotation.from_euler("z", psi[s]).as_matrix() @ R[s].as_matrix() @ frames[s]
+             for s in names}  # fmt: skip
+        for s in names[1:]:
+            assert relative_yaw(S["pelvis"], S[s]) == pytest.approx(keep.get(s, 0.0), abs=1e-12)

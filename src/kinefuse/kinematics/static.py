@@ -25,6 +25,7 @@ __all__ = [
     "POSE_WARN_DEG",
     "facing_free_segments",
     "pose_headings",
+    "relative_yaw",
     "static_calibration",
     "window_orientations",
 ]
@@ -213,9 +214,17 @@ def window_orientations(imus, still: StillWindow):
     return R_win, R_mean
 
 
+def relative_yaw(R_ref: np.ndarray, R: np.ndarray) -> float:
+    """The angle about the vertical (rad, ENU z) from ``R``'s heading to ``R_ref``'s: the
+    rotation part of the horizontal block of ``R_ref Rᵀ``; additive under turns about z."""
+    G = R_ref @ R.T
+    return float(np.arctan2(G[1, 0] - G[0, 1], G[0, 0] + G[1, 1]))
+
+
 def pose_headings(
-    imus, frames, window_s: float, *, max_rate_rad_s: float, max_acc_std_m_s2: float
-) -> tuple[StillWindow, dict[str, float] | None]:
+    imus, frames, window_s: float, *, max_rate_rad_s: float, max_acc_std_m_s2: float,
+    pose_yaw_rad=None,
+) -> tuple[StillWindow, dict[str, float] | None]:  # fmt: skip
     """Heading offsets that bring sensors of arbitrary headings (6-D) into one world frame,
     from a still pose and the sensors' calibrated segment frames.
 
@@ -233,6 +242,10 @@ def pose_headings(
         Length of the still window, s (the earliest one, :func:`find_still_window`).
     max_rate_rad_s, max_acc_std_m_s2 : float
         Stillness thresholds.
+    pose_yaw_rad : mapping of str -> float, optional
+        The heading of each segment frame relative to the first's in the calibration pose, as
+        the calibration found it (:func:`relative_yaw`; default 0): kept, so that the frames
+        relate as they did there, including a calibration whose frames did not quite agree.
 
     Returns
     -------
@@ -249,10 +262,8 @@ def pose_headings(
     _, R_mean = window_orientations(imus, still)
     names = list(imus)
     seg = {s: R_mean[s] @ np.asarray(frames[s], dtype=float) for s in names}
-    psi = {}
-    for s in names:
-        G = seg[names[0]] @ seg[s].T
-        psi[s] = float(np.arctan2(G[1, 0] - G[0, 1], G[0, 0] + G[1, 1]))
+    keep = dict(pose_yaw_rad or {})
+    psi = {s: relative_yaw(seg[names[0]], seg[s]) - keep.get(s, 0.0) for s in names}
     return still, psi
 
 

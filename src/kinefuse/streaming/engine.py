@@ -163,6 +163,7 @@ class Engine:
                 config.heading_pose_s,
                 config.segments,
                 config.heading_reference,
+                config.heading_pose_yaw_deg,
             )  # fmt: skip
         )
 

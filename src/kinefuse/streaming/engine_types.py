@@ -103,6 +103,9 @@ class EngineConfig:
     heading_reference : str, optional
         With ``heading_pose_s``: the segment whose sensor's heading the outputs keep (default
         the first engine segment; ``chain.json`` names the one its calibration kept).
+    heading_pose_yaw_deg : mapping of str -> float, optional
+        With ``heading_pose_s``: each segment frame's heading relative to the reference's in
+        the calibration pose (default 0: the frames share one heading there).
     """
 
     skeleton: Skeleton
@@ -123,6 +126,7 @@ class EngineConfig:
     offset_segments: Mapping[str, str] | None = None
     heading_pose_s: float | None = None
     heading_reference: str | None = None
+    heading_pose_yaw_deg: Mapping[str, float] | None = None
     segments: tuple[str, ...] = field(init=False)
     angle_joints: tuple[str, ...] = field(init=False)
 

@@ -4,8 +4,9 @@ A 6-D orientation (no magnetometer) has a heading of its own per sensor and per 
 the heading offsets a calibration found offline do not carry to a live session. With
 ``chain.json``'s segment frames the engine finds them again: the subject stands in the
 calibration pose for ``window_s`` at the start of streaming; in the earliest still window
-(:func:`kinefuse.kinematics.static.pose_headings`) every segment frame has the same heading,
-which gives each sensor's rotation about the vertical. Until then the engine outputs nothing;
+(:func:`kinefuse.kinematics.static.pose_headings`) each sensor is turned about the vertical so
+that the segment frames' headings relate as in the calibration pose (``pose_yaw_deg``, 0 where
+the calibration's frames agreed there). Until then the engine outputs nothing;
 the samples it buffered are then turned and processed like later ones. The batch form
 (:func:`kinefuse.streaming.offline.offline_causal`) applies the same computation to the whole
 recording: the earliest still window is the one the engine found (its candidate windows do
@@ -49,9 +50,14 @@ class PoseHeading:
         The engine's segments.
     reference : str, optional
         The segment whose sensor keeps its heading (ψ = 0); default the first.
+    pose_yaw_deg : mapping of str -> float, optional
+        The segment frames' headings relative to the reference's in the calibration pose
+        (``chain.json``'s ``heading.pose_yaw_deg``): kept.
     """
 
-    def __init__(self, frames: Mapping, window_s: float, segments, reference=None):
+    def __init__(self, frames: Mapping, window_s: float, segments, reference=None,
+                 pose_yaw_deg=None):  # fmt: skip
+        self.pose_yaw_rad = {s: np.radians(v) for s, v in dict(pose_yaw_deg or {}).items()}
         self.segments = list(segments)
         if reference is not None:  # first: pose_headings turns the others onto it
             self.segments.remove(reference)
@@ -87,6 +93,7 @@ class PoseHeading:
         still, psi = pose_headings(
             imus, self.frames, self.window_s,
             max_rate_rad_s=MAX_RATE_RAD_S, max_acc_std_m_s2=MAX_ACC_STD_M_S2,
+            pose_yaw_rad=self.pose_yaw_rad,
         )  # fmt: skip
         if psi is None:
             return False

@@ -143,7 +143,7 @@ def offline_causal(
         t = np.asarray(frame_times, dtype=float)
     if cfg.heading_pose_s is not None:  # 6-D: the engine's heading search, on the whole record
         heading = PoseHeading(cfg.segment_frames, cfg.heading_pose_s, cfg.segments,
-                              cfg.heading_reference)  # fmt: skip
+                              cfg.heading_reference, cfg.heading_pose_yaw_deg)  # fmt: skip
         turned = heading.apply(imu)
         if turned is None:
             raise InputError(

@@ -128,6 +128,7 @@ def build_engine(
         offset_segments=(cfg.chain or {}).get("offset_segments"),
         heading_pose_s=(cfg.chain or {}).get("heading", {}).get("window_s"),
         heading_reference=(cfg.chain or {}).get("heading", {}).get("reference"),
+        heading_pose_yaw_deg=(cfg.chain or {}).get("heading", {}).get("pose_yaw_deg"),
     )  # fmt: skip
     return Engine(ecfg, proc)
 

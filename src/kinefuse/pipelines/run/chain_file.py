@@ -28,6 +28,7 @@ import numpy as np
 
 from kinefuse.exceptions import InputError
 from kinefuse.kinematics import Skeleton
+from kinefuse.kinematics.static import relative_yaw, window_orientations
 from kinefuse.pipelines.run.chain import (
     hip_width_m,
     pelvis_right_in_sensor,
@@ -50,10 +51,11 @@ _VERSION = 1
 
 
 def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_height_m,
-                      trunk: str | None = None):  # fmt: skip
+                      trunk: str | None = None, recording=None):  # fmt: skip
     """``(description, None)`` of the calibrated chain ``sk`` (axes in the sensor frames,
     resolved lengths), or ``(None, why)`` when it cannot run live. ``trunk``: the IMU the
-    shoulders are placed from (:func:`~kinefuse.pipelines.run.chain.shoulder_trunk`), if so."""
+    shoulders are placed from (:func:`~kinefuse.pipelines.run.chain.shoulder_trunk`), if so;
+    ``recording``: the calibrated one (6-D: the frames' headings in its pose are kept)."""
     if root_kind not in ("pelvis", "fixed"):
         return None, f"its root ({root_kind!r}) comes from a stream kinefuse stream does not read"
     six_d = cal is not None and any(abs(h) > 1e-9 for h in (cal.world_heading_deg or {}).values())
@@ -99,8 +101,18 @@ def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_h
             return None, f"6-D sensors, and no segment frame for {lack} to align them live"
         ref = next(s for s, h in cal.world_heading_deg.items() if abs(h) <= 1e-9)
         d["heading"] = {"from": "pose", "window_s": float(cal.window_s[1] - cal.window_s[0]),
-                        "reference": ref}  # the sensor whose heading the outputs keep  # fmt: skip
+                        "reference": ref,  # the sensor whose heading the outputs keep
+                        "pose_yaw_deg": _pose_yaw_deg(recording, cal, frames, ref)}  # fmt: skip
     return d, None
+
+
+def _pose_yaw_deg(recording, cal, frames, ref: str) -> dict[str, float]:
+    """Each calibrated segment frame's heading relative to ``ref``'s in the calibration pose,
+    deg, in the calibration's common heading (0 where the frames agree there)."""
+    imus = {s: recording.imu[s] for s in frames}
+    _, R_mean = window_orientations(imus, cal.still)
+    S = {s: cal.heading_matrix(s) @ R_mean[s] @ np.asarray(F, float) for s, F in frames.items()}
+    return {s: float(np.degrees(relative_yaw(S[ref], S[s]))) for s in frames}
 
 
 def read_chain(path) -> dict:
@@ -131,9 +143,11 @@ def read_chain(path) -> dict:
     h = d.get("heading")
     if h is not None:
         w = h.get("window_s") if isinstance(h, dict) else None
+        yaw = h.get("pose_yaw_deg", {}) if isinstance(h, dict) else None
         if (not isinstance(h, dict) or h.get("from") != "pose" or isinstance(w, bool)
                 or not isinstance(w, (int, float)) or not w > 0
-                or not isinstance(h.get("reference"), str)):  # fmt: skip
+                or not isinstance(h.get("reference"), str) or not isinstance(yaw, dict)
+                or not all(isinstance(v, (int, float)) and np.isfinite(v) for v in yaw.values())):  # fmt: skip
             raise InputError(
                 f'--chain {p}: heading: expected {{"from": "pose", "window_s": > 0}}, got {h!r}'
             )

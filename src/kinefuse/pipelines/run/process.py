@@ -248,7 +248,9 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     )
     out = _new_output(recording, method, t, joints, chain, frame, sk, cal, root_kind)
     out.notes, out.warnings, out.root, out.provenance = notes, run_warnings, root_desc, provenance
-    out.chain_description, why = chain_description(sk, root_kind, params, cal, body_height_m, trunk)
+    out.chain_description, why = chain_description(
+        sk, root_kind, params, cal, body_height_m, trunk, recording
+    )
     if why is not None:
         notes.append(f"no {CHAIN_FILE} for kinefuse stream --chain: {why}")
     if cal is not None:
