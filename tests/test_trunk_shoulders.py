@@ -39,7 +39,6 @@ MOUNTS = {
     "forearm_l": Rotation.from_euler("xyz", [-40, 20, 65], degrees=True),
     "forearm_r": Rotation.from_euler("xyz", [30, -50, -10], degrees=True),
 }
-_SEGMENTS = ("upper_arm_l", "upper_arm_r", "forearm_l", "forearm_r")
 
 
 def _upper_body(T: int = 800):
@@ -132,40 +131,52 @@ def test_two_arms_without_a_trunk_imu_are_refused_before_any_work():
     assert "fixed shoulder_l at [0, 0, 1.4] m" in out.root
 
 
-def test_the_live_chain_places_the_shoulders_as_kinefuse_run(tmp_path):
-    """Oracle: kinefuse run's chain on the same samples (as tests/test_stream_chain.py for the
-    hips): chain.json carries the shoulders as offsets in the chest sensor's frame."""
-    seg, rec = _upper_body()
+def _run_session(tmp_path, rec, root: str):
+    """kinefuse run on ``rec`` written as the generic IMU CSV (static pose, facing north,
+    body height H); returns chain.json, the session, and kinefuse run's computation."""
     write_imu_csv(tmp_path / "imu.csv", rec)
-    lines = "\n".join(f'{s} = "{s}"' for s in ("chest", *_SEGMENTS))
-    session = tmp_path / "ub.toml"
+    lines = "\n".join(f'{s} = "{s}"' for s in rec.imu)
+    session = tmp_path / "s.toml"
     session.write_text(
-        f'[session]\nname = "ub"\n[imu]\nformat = "imu_csv"\npath = "imu.csv"\n'
-        f'[imu.segments]\n{lines}\n[skeleton]\nbody_height_m = {H}\nroot = "fixed"\n'
-        f'root_position_m = {ROOT.tolist()}\n[calibration]\nmethod = "static"\n'
-        "facing = [0.0, 1.0, 0.0]\n"
-        '[method]\nname = "imu-only"\n',
+        f'[session]\nname = "s"\n[imu]\nformat = "imu_csv"\npath = "imu.csv"\n'
+        f"[imu.segments]\n{lines}\n[skeleton]\nbody_height_m = {H}\n{root}\n"
+        '[calibration]\nmethod = "static"\nfacing = [0.0, 1.0, 0.0]\n[method]\nname = "imu-only"\n',
         encoding="utf-8",
     )
     run_session(session, tmp_path / "out")
     chain = read_chain(tmp_path / "out" / CHAIN_FILE)
-    assert chain["root"] == "spine_shoulder" and chain["root_segment"] == "chest"
-    assert set(chain["offsets_m"]) == {"shoulder_l", "shoulder_r"}
     cfg = load_session(session)
     rec2, _ = load_streams(cfg, strict_units=True)
     out = process_recording(rec2, "imu-only", cfg.processing_parameters(),
                             body_height_m=cfg.skeleton.body_height_m)  # fmt: skip
     assert chain == json.loads(json.dumps(out.chain_description))
-    scfg = stream_config_from_session(cfg, chain)
-    engine = build_engine(scfg, camera=False, camera_rate_hz=30.0, imu_rate_hz=FS)
-    imu = {s: (st.t_s, st.q_world_from_sensor) for s, st in rec2.imu.items()}
+    return chain, cfg, rec2, out
+
+
+def _assert_live_is_offline(chain, cfg, rec, out) -> None:
+    """The online engine with chain.json, on the same samples and frame times, gives
+    kinefuse run's chain wherever it had a fresh sample."""
+    engine = build_engine(stream_config_from_session(cfg, chain), camera=False,
+                          camera_rate_hz=30.0, imu_rate_hz=FS)  # fmt: skip
+    imu = {s: (st.t_s, st.q_world_from_sensor) for s, st in rec.imu.items()}
     off = offline_causal(engine.config, engine.processor, imu, None, frame_times=out.t_s)
     fresh = off.imu_status == IMU_FRESH
     assert fresh.mean() > 0.95
     np.testing.assert_allclose(off.z_imu[fresh], out.chain[fresh], atol=1e-9, rtol=0)
-    want = _expected(seg)
+
+
+def test_the_live_chain_places_the_shoulders_as_kinefuse_run(tmp_path):
+    """Oracle: kinefuse run's chain on the same samples (as tests/test_stream_chain.py for the
+    hips): chain.json carries the shoulders as offsets in the chest sensor's frame."""
+    seg, rec = _upper_body()
+    chain, cfg, rec2, out = _run_session(
+        tmp_path, rec, f'root = "fixed"\nroot_position_m = {ROOT.tolist()}'
+    )
+    assert chain["root"] == "spine_shoulder" and chain["root_segment"] == "chest"
+    assert set(chain["offsets_m"]) == {"shoulder_l", "shoulder_r"}
+    _assert_live_is_offline(chain, cfg, rec2, out)
     k = out.joints.index("wrist_r")
-    np.testing.assert_allclose(out.chain[:, k], want["wrist_r"], atol=1e-6)
+    np.testing.assert_allclose(out.chain[:, k], _expected(seg)["wrist_r"], atol=1e-6)
 
 
 def _full_body(T: int = 800):
@@ -196,23 +207,9 @@ def test_full_body_shoulders_on_the_chest_hips_on_the_pelvis_live_too(tmp_path):
     the mid-hip point (closed form); chain.json carries both (offset_segments: the chest) and
     the live engine gives the same joints."""
     seg, rec = _full_body()
-    write_imu_csv(tmp_path / "imu.csv", rec)
-    lines = "\n".join(f'{s} = "{s}"' for s in rec.imu)
-    session = tmp_path / "fb.toml"
-    session.write_text(
-        f'[session]\nname = "fb"\n[imu]\nformat = "imu_csv"\npath = "imu.csv"\n'
-        f'[imu.segments]\n{lines}\n[skeleton]\nbody_height_m = {H}\nroot = "pelvis"\n'
-        '[calibration]\nmethod = "static"\nfacing = [0.0, 1.0, 0.0]\n[method]\nname = "imu-only"\n',
-        encoding="utf-8",
-    )
-    run_session(session, tmp_path / "out")
-    chain = read_chain(tmp_path / "out" / CHAIN_FILE)
+    chain, cfg, rec2, out = _run_session(tmp_path, rec, 'root = "pelvis"')
     assert chain["root_segment"] == "pelvis"
     assert chain["offset_segments"] == {"shoulder_l": "chest", "shoulder_r": "chest"}
-    cfg = load_session(session)
-    rec2, _ = load_streams(cfg, strict_units=True)
-    out = process_recording(rec2, "imu-only", cfg.processing_parameters(),
-                            body_height_m=cfg.skeleton.body_height_m)  # fmt: skip
     down = np.array([0.0, 0.0, -1.0])
     r = ANTHROPOMETRIC_RATIOS
     for side, sign in (("l", -1.0), ("r", 1.0)):
@@ -226,10 +223,4 @@ def test_full_body_shoulders_on_the_chest_hips_on_the_pelvis_live_too(tmp_path):
             np.testing.assert_allclose(
                 out.chain[:, out.joints.index(j)], want, atol=1e-6, err_msg=j
             )
-    scfg = stream_config_from_session(cfg, chain)
-    engine = build_engine(scfg, camera=False, camera_rate_hz=30.0, imu_rate_hz=FS)
-    imu = {s: (st.t_s, st.q_world_from_sensor) for s, st in rec2.imu.items()}
-    off = offline_causal(engine.config, engine.processor, imu, None, frame_times=out.t_s)
-    fresh = off.imu_status == IMU_FRESH
-    assert fresh.mean() > 0.95
-    np.testing.assert_allclose(off.z_imu[fresh], out.chain[fresh], atol=1e-9, rtol=0)
+    _assert_live_is_offline(chain, cfg, rec2, out)
