@@ -27,6 +27,7 @@ from kinefuse.kinematics import (
     segment_orientations,
     upper_limb,
 )
+from kinefuse.pipelines.run import run_session
 from kinefuse.session_file import METHODS
 
 SESSIONS = Path(__file__).parent / "data" / "sessions"
@@ -492,6 +493,14 @@ def test_opensense_walk_facing_from_the_knees(shared_data, tmp_path):
         assert -20 < np.nanmin(hip) < -5 and 20 < np.nanmax(hip) < 40, side
 
 
+def test_a_mapped_sensor_nothing_reads_is_said(shared_data, tmp_path):
+    """The OpenSense example's chest IMU, mapped with the legs: nothing reads it (it would place
+    the shoulders): the notes say so instead of ignoring it silently."""
+    body = OPENSENSE.replace('pelvis = "00B42279"', 'pelvis = "00B42279"\n    chest = "00B42268"')
+    summary = run_session(_session(tmp_path, body.format(data=shared_data)), tmp_path / "o")
+    assert any(n.startswith("chest: mapped in [imu.segments] but not used") for n in summary.notes)
+
+
 NEURA_FUNCTIONAL = """\
     [session]
     name = "nf"
@@ -613,8 +622,6 @@ def test_reference_is_evaluation_only_unless_asked(shared_data, tmp_path):
         + f'path = "{shared_data}/neura_sparse_sample/vicon/S02-Trial-Walk-1.csv"\n'
     )
     p = _session(tmp_path, body)
-    from kinefuse.pipelines.run import run_session
-
     with pytest.raises(InputError, match="no still window"):
         run_session(p, tmp_path / "out")
     with pytest.raises(ConfigError, match="'vision' needs a \\[camera\\]"):
