@@ -6,16 +6,18 @@ and, for a pelvis root, the hips as offsets in the pelvis sensor's frame (the sh
 trunk IMU places them, as offsets in its frame, from the mid-hip or the mid-shoulder point
 ``spine_shoulder``; ``offset_segments`` names the chest when the hips hang from the pelvis);
 where the calibration gave segment frames (joint angles), each segment's
-``R_sensor_from_segment`` (``segment_frames``, rows of the 3 × 3 matrix). ``kinefuse stream SESSION --chain chain.json``
-runs that same chain on live orientation streams (:mod:`kinefuse.streaming`): the positions and
-joint angles equal the offline ones on the same samples.
+``R_sensor_from_segment`` (``segment_frames``, rows of the 3 × 3 matrix).
+``kinefuse stream SESSION --chain chain.json`` runs that same chain on live orientation streams
+(:mod:`kinefuse.streaming`): the positions and joint angles equal the offline ones on the same
+samples.
 
 Only IMU-only roots are described (``pelvis``: hips from the pelvis IMU; ``fixed``: a root
 joint at a measured position); a camera or reference root has no live counterpart here. 6-D
 sensors (headings aligned by a static calibration) get ``"heading": {"from": "pose",
-"window_s": W}``: live streams have headings of their own, which the engine finds again from the
-same still pose at the start of streaming (:mod:`kinefuse.streaming.heading`); after a
-functional calibration they are refused.
+"window_s": W, "reference": SEGMENT, "pose_yaw_deg": {SEGMENT: deg}}``: live streams have
+headings of their own, which the engine finds again from the same still pose at the start of
+streaming, keeping the segment frames' relative headings in the calibration pose
+(:mod:`kinefuse.streaming.heading`); after a functional calibration they are refused.
 """
 
 from __future__ import annotations
@@ -149,7 +151,8 @@ def read_chain(path) -> dict:
                 or not isinstance(h.get("reference"), str) or not isinstance(yaw, dict)
                 or not all(isinstance(v, (int, float)) and np.isfinite(v) for v in yaw.values())):  # fmt: skip
             raise InputError(
-                f'--chain {p}: heading: expected {{"from": "pose", "window_s": > 0}}, got {h!r}'
+                f'--chain {p}: heading: expected {{"from": "pose", "window_s": > 0, "reference": '
+                f'segment, "pose_yaw_deg": {{segment: deg}}}}, got {h!r}'
             )
     return d
 
