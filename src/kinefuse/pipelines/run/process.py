@@ -203,11 +203,6 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     trunk = shoulder_trunk(recording.imu) if shoulders_from_trunk(plan) else None
     if trunk is not None and trunk not in cal_segs and calib == "static":
         cal_segs.append(trunk)  # its frame in the pose places the shoulders
-    if "chest" in recording.imu and trunk != "chest" and "chest" not in cal_segs:
-        notes.append(
-            "chest: mapped in [imu.segments] but not used: the chest IMU places the shoulders "
-            "when both arms (or arms and legs) are mapped, and no joint angle reads it"
-        )
     # the functional calibration checks its lengths against these (measured, else body height)
     expected = _expected_lengths(segs, measured, body_height_m) if calib == "functional" else {}
     sk, roots = build_chain([*segs, *angles_only], {s: expected.get(s, 0.3) for s in cal_segs},
@@ -221,6 +216,12 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     recording, cal = calibrate_session(
         recording, sk, params, calib, six_d, axes_decl, cal_segs, notes, provenance, proximal
     )
+    if (root_kind in ("fixed", "pelvis") and "chest" in recording.imu and "chest" not in cal_segs
+            and trunk != "chest" and not (calib == "functional" and proximal)):  # fmt: skip
+        notes.append(
+            "chest: mapped in [imu.segments] but not used: the chest IMU places the shoulders "
+            "when both arms (or arms and legs) are mapped, and no joint angle reads it"
+        )
     seg_lengths, how = _resolve_lengths(
         recording, segs, cal, calib, root_kind, use_stream_lengths, measured, body_height_m, notes
     )
