@@ -272,8 +272,7 @@ def _common_heading(segs, R_win: dict, R_mean: dict) -> dict[str, float]:
     heading_deg: dict[str, float] = {}
     ref = segs[0]
     for s in segs:
-        G = R_mean[ref] @ R_mean[s].T
-        psi = float(np.arctan2(G[1, 0] - G[0, 1], G[0, 0] + G[1, 1]))
+        psi = relative_yaw(R_mean[ref], R_mean[s])
         heading_deg[s] = float(np.degrees(psi))
         Hs = Rotation.from_rotvec([0.0, 0.0, psi]).as_matrix()
         R_win[s] = np.einsum("ij,kjl->kil", Hs, R_win[s])
