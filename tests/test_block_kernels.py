@@ -16,6 +16,9 @@ from kinefuse.filters._kernels_linalg import floor_clip, floor_clip_lapack
 from kinefuse.models import constant_velocity
 from test_kalman import random_cv, simulate, with_gaps
 
+# compiles general-route kernels that `kinefuse warm-up` does not: one worker (tests/conftest.py)
+pytestmark = pytest.mark.xdist_group("oracle-kernels")
+
 ALL = ("mean", "cov", "position", "observed", "innovation", "distance")
 
 

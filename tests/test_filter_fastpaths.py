@@ -21,6 +21,9 @@ from kinefuse.filters.integrated import IntegratedFilter
 from kinefuse.filters.ufir import UFIRFilter, ufir_model_arrays
 from kinefuse.models import LinearGaussianModel, constant_velocity
 
+# compiles general-route kernels that `kinefuse warm-up` does not: one worker (tests/conftest.py)
+pytestmark = pytest.mark.xdist_group("oracle-kernels")
+
 DT = 1.0 / 30.0
 
 

@@ -10,6 +10,9 @@ from kinefuse.filters._base import FilterResult, initial_covariance
 from kinefuse.models import constant_velocity
 from test_kalman import random_cv, simulate, with_gaps
 
+# compiles general-route kernels that `kinefuse warm-up` does not: one worker (tests/conftest.py)
+pytestmark = pytest.mark.xdist_group("oracle-kernels")
+
 ATOL = 1e-8
 
 
