@@ -16,6 +16,7 @@ medio-lateral axis Z, then the floating axis X, then the distal segment's long a
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 
 import numpy as np
@@ -33,8 +34,16 @@ JOINT_ANGLE_COMPONENTS = ("flexion", "adduction", "internal_rotation")
 #: With Z to the right, +α moves the distal segment's end anteriorly: elbow and hip flexion,
 #: but knee *extension*, so the knee's sign is −1 (ISB: knee flexion positive). At the ankle
 #: +α turns the foot's anterior axis (the toes) up: dorsiflexion, positive as in ISB (Wu et
-#: al. 2002: the tibia's Z is the dorsi/plantarflexion axis).
+#: al. 2002: the tibia's Z is the dorsi/plantarflexion axis). The shoulder is the humerus in
+#: the thorax (the chest IMU's segment), with the sequence of the other joints: the
+#: coordinates OpenSim's models and OpenSense report (``arm_flex``, ``arm_add``, ``arm_rot``).
+#: Wu et al. (2005) recommend Y-X-Y for the thorax-humerus instead; that sequence is singular
+#: with the arm hanging (the N-pose, where this one reads zero), this one with the arm
+#: horizontal to the side (adduction ±90°, the T-pose), where flexion and internal rotation are
+#: not defined: near it they are ill-conditioned, and on it flexion takes the whole turn about
+#: the vertical and internal rotation reads 0.
 JOINTS = {
+    **{f"shoulder_{s}": ("chest", f"upper_arm_{s}", 1.0) for s in "lr"},
     **{f"elbow_{s}": (f"upper_arm_{s}", f"forearm_{s}", 1.0) for s in "lr"},
     **{f"knee_{s}": (f"thigh_{s}", f"shank_{s}", -1.0) for s in "lr"},
     **{f"hip_{s}": ("pelvis", f"thigh_{s}", 1.0) for s in "lr"},
@@ -45,7 +54,8 @@ JOINTS = {
 def joint_angles(
     orientations: Mapping[str, object], joints: Sequence[str] | None = None
 ) -> dict[str, np.ndarray]:
-    """Flexion, adduction and internal rotation of elbows, knees, hips and ankles, degrees.
+    """Flexion, adduction and internal rotation of shoulders, elbows, knees, hips and ankles,
+    degrees.
 
     Parameters
     ----------
@@ -54,15 +64,15 @@ def joint_angles(
         segment, ``(..., T, 3, 3)`` matrices or ``(..., T, 4)`` ``wxyz`` quaternions, e.g. from
         :func:`kinefuse.kinematics.segment_orientations`. NaN rows give NaN angles.
     joints : sequence of str, optional
-        Joints of :data:`JOINTS` (``elbow_r``, ``knee_l``, ``hip_r``...). Default: every joint
+        Joints of :data:`JOINTS` (``shoulder_r``, ``elbow_r``, ``knee_l``, ``hip_r``...). Default: every joint
         whose two segments are in ``orientations``.
 
     Returns
     -------
     dict of str -> ndarray, shape (..., T, 3)
         Per joint ``[flexion, adduction, internal_rotation]`` (:data:`JOINT_ANGLE_COMPONENTS`),
-        deg. Signs (ISB, both sides): flexion positive (elbow and knee bent, hip with the
-        thigh forward, ankle dorsiflexed: toes up); adduction positive (distal segment towards
+        deg. Signs (ISB, both sides): flexion positive (elbow and knee bent, shoulder and hip
+        with the arm or thigh forward, ankle dorsiflexed: toes up); adduction positive (distal segment towards
         the midline; at the elbow this is varus); internal rotation positive (at the elbow this
         is pronation). Zero in
         the calibration pose of :func:`kinefuse.kinematics.calibrate` (``"static"``).
@@ -77,7 +87,9 @@ def joint_angles(
     ``R = R_pᵀ R_d = R_Z(α) R_X(β) R_Y(γ)`` (intrinsic Z-X-Y, SciPy ``"ZXY"``); flexion
     ``= s α`` with the sign ``s`` of :data:`JOINTS`, adduction ``= β`` (right) or ``−β`` (left),
     internal rotation ``= γ`` (right) or ``−γ`` (left), so that both sides read alike. The
-    decomposition is singular at ``β = ±90°`` (never reached by a healthy knee or elbow).
+    decomposition is singular at ``β = ±90°``: never reached by a healthy knee or elbow; at the
+    shoulder, the arm horizontal to the side (see :data:`JOINTS`; there ``γ`` is set to 0 and
+    ``α`` takes the whole turn, without SciPy's gimbal-lock warning).
     """
     if not isinstance(orientations, Mapping):
         raise InputError(
@@ -106,7 +118,9 @@ def joint_angles(
         ang = np.full((R.shape[0], 3), np.nan)
         ok = np.all(np.isfinite(R), axis=(1, 2))
         if np.any(ok):
-            ang[ok] = Rotation.from_matrix(R[ok]).as_euler("ZXY", degrees=True)
+            with warnings.catch_warnings():  # β = ±90°: documented above
+                warnings.filterwarnings("ignore", "Gimbal lock detected", UserWarning)
+                ang[ok] = Rotation.from_matrix(R[ok]).as_euler("ZXY", degrees=True)
         side = 1.0 if j.endswith("_r") else -1.0
         ang *= np.array([sign, side, side])
         out[j] = ang.reshape(*Rp.shape[:-2], 3)

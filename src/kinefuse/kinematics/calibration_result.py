@@ -70,6 +70,11 @@ class Calibration:
         Static: where ``facing`` came from: ``"declared"``, ``"hinges"`` (estimated from the
         flexion axes fitted to the movement, :func:`kinefuse.kinematics.hinge.hinge_facing`)
         or ``"default"`` (north, nothing to estimate it from).
+    pose_angles_deg : dict of str -> ndarray, shape (3,)
+        Static: the joint angles (:func:`kinefuse.kinematics.joint_angles`) that the pose itself
+        implies, per joint whose two segments it calibrated: zero, except the shoulders in the
+        T-pose (adduction −90°, flexion and internal rotation 0 by convention: the arm
+        horizontal to the side is the decomposition's singular position).
     """
 
     axes: Mapping[str, np.ndarray]
@@ -86,6 +91,7 @@ class Calibration:
     hinge_residual_rad_s: Mapping[str, float] = field(default_factory=dict)
     facing: np.ndarray | None = None
     facing_from: str = ""
+    pose_angles_deg: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     def heading_matrix(self, segment: str) -> np.ndarray:
         """``R_z(ψ)`` applied to ``segment``'s sensor world frame (identity if none), (3, 3)."""

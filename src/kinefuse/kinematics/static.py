@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.io.recording import ImuStream
 from kinefuse.kinematics.alignment import angles_deg, unit_direction
+from kinefuse.kinematics.angles import joint_angles
 from kinefuse.kinematics.calibration_result import Calibration
 from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.kinematics.skeleton import Skeleton, unit_axis, window_mask
@@ -112,7 +113,7 @@ def static_calibration(
         still = _check_still(imus, start_s, window_s, **thresholds)
     R_win, R_mean = window_orientations(imus, still)
     heading_deg = _common_heading(segs, R_win, R_mean) if heading == "static" else {}
-    axes, resid, frames, pose_res = {}, {}, {}, {}
+    axes, resid, frames, pose_res, in_pose = {}, {}, {}, {}, {}
     mounting = dict(mounting or {})
     for s in segs:
         a = unit_direction(np.einsum("kji,j->i", R_win[s], d0[s]), f"segment {s!r}")
@@ -121,7 +122,8 @@ def static_calibration(
         # the pose frame turned with the segment; a foot's (X along it) is the body's
         turn = (np.eye(3) if s.startswith("foot_")
                 else Rotation.align_vectors(d0[s][None], _DOWN[None])[0].as_matrix())  # fmt: skip
-        frames[s] = R_mean[s].T @ (turn @ B)
+        in_pose[s] = turn @ B  # R_world_from_segment in the pose
+        frames[s] = R_mean[s].T @ in_pose[s]
         if s in mounting:
             m = unit_axis(mounting[s], f"mounting[{s!r}]")
             pose_res[s] = float(np.sqrt(np.mean(angles_deg(R_win[s] @ m, d0[s][None]) ** 2)))
@@ -136,6 +138,9 @@ def static_calibration(
         world_heading_deg=heading_deg,
         still=still,
         pose_residual_deg=pose_res,
+        pose_angles_deg={
+            j: a[0] for j, a in joint_angles({s: R[None] for s, R in in_pose.items()}).items()
+        },
     )
 
 

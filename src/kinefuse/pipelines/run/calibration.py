@@ -282,25 +282,35 @@ POSE_ANGLE_WARN_DEG = 20.0
 
 
 def _pose_angle_check(angles: Mapping[str, np.ndarray], t: np.ndarray, cal) -> list[str]:
-    """Static calibration: every joint angle is zero in the pose by construction (each frame is
-    built from it); one that is not says the frames disagree (e.g. a facing the hinges did not
-    confirm, or sensors whose headings differ). The circular mean over the window, per angle."""
+    """Static calibration: every joint angle reads the pose's own in the pose by construction
+    (each frame is built from it: zero, or a T-pose's shoulder abduction, ``pose_angles_deg``);
+    one that does not says the frames disagree (e.g. a facing the hinges did not confirm, or
+    sensors whose headings differ). The circular mean over the window, per angle."""
     if cal.still is None or not angles:
         return []
     win = (t >= cal.window_s[0]) & (t <= cal.window_s[1])
     out = []
     for j, a in angles.items():
+        want = np.asarray(cal.pose_angles_deg.get(j, np.zeros(3)))
         rad = np.radians(a[win])
         ok = np.all(np.isfinite(rad), axis=-1)
         if not ok.any():
             continue
         mean = np.degrees(np.angle(np.mean(np.exp(1j * rad[ok]), axis=0)))
-        bad = [f"{c.replace('_', ' ')} {v:.0f}" for c, v in zip(JOINT_ANGLE_COMPONENTS, mean, strict=True)
-               if abs(v) > POSE_ANGLE_WARN_DEG]  # fmt: skip
+        off = (mean - want + 180.0) % 360.0 - 180.0
+        if abs(abs(want[1]) - 90.0) < 1.0:  # a T-pose shoulder: flexion and rotation undefined
+            off[[0, 2]] = 0.0
+        bad = [f"{c.replace('_', ' ')} {v:.0f}"
+               for c, v, d in zip(JOINT_ANGLE_COMPONENTS, mean, off, strict=True)
+               if abs(d) > POSE_ANGLE_WARN_DEG]  # fmt: skip
         if bad:
+            pose = "zero"
+            if np.any(np.abs(want) > 0.5):
+                pose = ", ".join(f"{c.replace('_', ' ')} {v:.0f}"
+                                 for c, v in zip(JOINT_ANGLE_COMPONENTS, want, strict=True))  # fmt: skip
             out.append(
                 f"{j} reads {', '.join(bad)} deg in the calibration pose ({cal.window_s[0]:.2f}-"
-                f"{cal.window_s[1]:.2f} s), where every angle is zero by construction: its "
+                f"{cal.window_s[1]:.2f} s), where it reads {pose} by construction: its "
                 "segment frames disagree (the facing, or sensor headings that differ: see the "
                 'calibration notes; declare [calibration] facing, or heading = "static" for '
                 "6-D sensors)"
