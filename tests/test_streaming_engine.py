@@ -434,6 +434,62 @@ def test_run_loop_ctrl_c_flushes_and_closes(rec):
     assert [o.index for o in outlet.pushed] == list(range(n_cam))
 
 
+def test_run_loop_sigint_inside_a_pass_loses_no_frame(rec):
+    """SIGINT while an output is being pushed (the engine has counted its frame): the loop
+    takes it between passes, so that output and every pending frame are still pushed. Raised
+    as a KeyboardInterrupt inside the push, that output was lost (outputs = frames - 1: the
+    race tests/test_lsl.py::test_sigint_flushes_and_closes met once under load)."""
+    import os
+    import signal
+
+    ev = events(rec)
+
+    class Input:
+        lost = False
+        closed = False
+
+        def __init__(self, items):
+            self.items = items
+
+        def pull(self):
+            chunk, self.items = self.items[:25], self.items[25:]
+            return chunk, [e[4] for e in chunk]
+
+        def feed(self, engine, data, ts, now):
+            for e in data:
+                if e[2] == "imu":
+                    engine.push_imu(e[3], e[4], e[5])
+                else:
+                    engine.push_camera(e[4], *e[5])
+
+        def refresh_clock(self):
+            pass
+
+        def close(self):
+            self.closed = True
+
+    class Outlet:
+        def __init__(self):
+            self.pushed, self.closed, self.sent = [], False, False
+
+        def push(self, o):
+            if len(self.pushed) == 10 and not self.sent:
+                self.sent = True
+                os.kill(os.getpid(), signal.SIGINT)  # delivered here, in the main thread
+            self.pushed.append(o)
+
+        def close(self):
+            self.closed = True
+
+    inp, outlet = Input(ev), Outlet()
+    eng = Engine(make_config(rec), KalmanFusionProcessor(1 / 30, lag=3))
+    res = run_loop(eng, [inp], outlet, clock=lambda: eng._data_now)
+    assert res.interrupted and inp.closed and outlet.closed
+    assert len(outlet.pushed) == eng.counters["frames"] > 10
+    assert [o.index for o in outlet.pushed] == list(range(len(outlet.pushed)))
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
 def test_replay_waits_for_every_reader_or_a_grace_after_the_first():
     """A consumer that reads only some streams (IMU-only capture, no camera) must not hold the
     replay for the whole --wait-for-consumers: after the first reader, CONSUMER_GRACE_S more."""

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import gc
 import logging
+import signal
+import threading
 import time
 from collections import deque
 from typing import NamedTuple
@@ -156,16 +158,23 @@ def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=N
     as ``catch_up_outputs`` and not timed (they measure the connection time, not the
     processing). Outputs released by ``max_latency_s`` / staleness are not timed either.
 
-    Ctrl-C (KeyboardInterrupt, i.e. SIGINT in the main thread) ends the loop; pending frames
-    are then processed (:meth:`Engine.flush`) and pushed, and inputs and outlet are closed.
+    Ctrl-C (SIGINT) ends the loop; pending frames are then processed (:meth:`Engine.flush`)
+    and pushed, and inputs and outlet are closed. In the main thread the signal is taken
+    between two loop passes (a handler sets a flag; the previous handler is restored before
+    the flush), so a frame the engine has processed is never lost to an interrupt inside a
+    pass; elsewhere a KeyboardInterrupt ends the loop as it comes.
     """
     start = time.monotonic()
     loop = _Loop(engine, inputs, outlet, clock, on_output)
     interrupted = False
+    sigint: list = []
+    main = threading.current_thread() is threading.main_thread()
+    # (None: a handler not installed from Python, restored as Python's default)
+    previous = signal.signal(signal.SIGINT, lambda *_: sigint.append(True)) if main else None
     gc.collect()
     gc.freeze()  # set-up objects out of the collector's way: short collections in the loop
     try:
-        while True:
+        while not sigint:
             got = loop.pass_once()
             mono = time.monotonic()
             loop.housekeeping(mono, got, status, reattach)
@@ -173,10 +182,16 @@ def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=N
                 break
             if not got:
                 time.sleep(0.0005)
+        interrupted = bool(sigint)
     except KeyboardInterrupt:
         interrupted = True
-        log.warning("interrupted (Ctrl-C): flushing pending frames and closing streams")
     finally:
+        if main:
+            signal.signal(
+                signal.SIGINT, signal.default_int_handler if previous is None else previous
+            )
+        if interrupted:
+            log.warning("interrupted (Ctrl-C): flushing pending frames and closing streams")
         gc.unfreeze()
         loop.close()
     return LoopResult(interrupted, np.asarray(loop.latencies), loop.n_out, loop.n_catch_up)
