@@ -494,10 +494,23 @@ def test_opensense_walk_facing_from_the_knees(shared_data, tmp_path):
 
 
 def test_a_mapped_sensor_nothing_reads_is_said(shared_data, tmp_path):
-    """The OpenSense example's chest IMU, mapped with the legs: nothing reads it (it would place
-    the shoulders): the notes say so instead of ignoring it silently."""
+    """The OpenSense example's chest IMU, mapped with the legs: a static calibration reads it
+    for the trunk angles (the chest in the pelvis). With one leg on a fixed root and no pelvis
+    IMU nothing reads it (it would place the shoulders): the notes say so instead of ignoring
+    it silently."""
     body = OPENSENSE.replace('pelvis = "00B42279"', 'pelvis = "00B42279"\n    chest = "00B42268"')
     summary = run_session(_session(tmp_path, body.format(data=shared_data)), tmp_path / "o")
+    assert not any(n.startswith("chest: mapped in") for n in summary.notes)
+    ang = np.genfromtxt(
+        tmp_path / "o" / "opensense_angles.csv", delimiter=",", names=True, skip_header=6
+    )
+    flex = ang["trunk_flexion_deg"]  # walking: the trunk leans forward a little on the pelvis
+    assert 0 < np.nanmedian(flex) < 15 and np.nanmax(np.abs(ang["trunk_axial_rotation_deg"])) < 25
+    one_leg = body.replace('pelvis = "00B42279"\n', "").replace('thigh_l = "00B421EE"\n', "")
+    one_leg = one_leg.replace('shank_l = "00B421ED"\n', "")
+    one_leg = one_leg.replace('root = "pelvis"', 'root = "fixed"\n    root_position_m = [0, 0, 1]')
+    assert "pelvis =" not in one_leg and "thigh_l" not in one_leg and "chest =" in one_leg
+    summary = run_session(_session(tmp_path, one_leg.format(data=shared_data)), tmp_path / "f")
     assert any(n.startswith("chest: mapped in [imu.segments] but not used") for n in summary.notes)
 
 

@@ -1,10 +1,12 @@
-"""Shoulder angles: the upper arm in the chest's frame (ISB axes, Z-X-Y as the other joints).
+"""Shoulder and trunk angles: the upper arm in the chest's frame, the chest in the pelvis's
+(ISB axes, Z-X-Y as the other joints).
 
 Closed-form oracle: a synthetic upper body whose trunk turns and leans while each upper arm is
 set in the chest's ISB frame by known flexion, adduction and internal rotation
-(``R = R_Z(α) R_X(β) R_Y(γ)``; ISB signs, mirrored on the left). The calibration sees only the
-sensors (mounted at arbitrary angles) in a still pose; the angles it gives back must be the
-ones the body was built from, offline and live.
+(``R = R_Z(α) R_X(β) R_Y(γ)``; ISB signs, mirrored on the left), and (with a pelvis) the chest
+in the pelvis by known trunk flexion, lateral bending and axial rotation. The calibration sees
+only the sensors (mounted at arbitrary angles) in a still pose; the angles it gives back must
+be the ones the body was built from, offline and live.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ MOUNTS = {
     "upper_arm_r": Rotation.from_euler("xyz", [-60, 15, 40], degrees=True),
     "forearm_l": Rotation.from_euler("xyz", [-40, 20, 65], degrees=True),
     "forearm_r": Rotation.from_euler("xyz", [30, -50, -10], degrees=True),
+    "pelvis": Rotation.from_euler("xyz", [0, 10, -70], degrees=True),
 }
 PARAMS = {"root": "fixed", "root_position_m": [0.0, 0.0, 1.4], "calibration": "static",
           "facing": [0.0, 1.0, 0.0]}  # fmt: skip
@@ -51,15 +54,23 @@ def _zxy(angles_deg: np.ndarray) -> Rotation:
     return Rotation.from_matrix(B @ R @ B.T)
 
 
-def _upper_body(T: int = 900, pose: str = "n"):
+def _upper_body(T: int = 900, pose: str = "n", pelvis: bool = False):
     """Segment orientations (world from segment; identity = N-pose facing north), the shoulder
-    angles they were built from (ISB signs) and the recording of the sensors."""
+    (and trunk) angles they were built from (ISB signs) and the recording of the sensors."""
     t = np.arange(T) / FS
     m = np.clip(t - 2.5, 0.0, None)  # still for 2.5 s (the default window: 2 s)
     trunk = Rotation.from_euler(
         "zx", np.stack([35.0 * np.sin(0.8 * m), -20.0 * (1 - np.cos(0.6 * m))], 1), degrees=True
     )
     seg, want = {"chest": trunk}, {}
+    if pelvis:  # the pelvis turns; the chest bends forward, sideways and turns on it
+        seg["pelvis"] = Rotation.from_euler("z", 25.0 * np.sin(0.5 * m)[:, None], degrees=True)
+        flex, bend = 20.0 * (1 - np.cos(0.7 * m)), 15.0 * np.sin(0.9 * m)
+        turn = 25.0 * np.sin(1.1 * m)
+        want["trunk"] = np.stack([flex, bend, turn], 1)
+        # flexion is -α (the chest's superior axis tilting forward); bending β, rotation γ
+        trunk = seg["pelvis"] * _zxy(np.stack([-flex, bend, turn], 1))
+        seg["chest"] = trunk
     for side, k, mirror in (("l", 1.0, -1.0), ("r", 1.4, 1.0)):
         flex = 75.0 * (1 - np.cos(0.9 * k * m))  # 0 ... 150 deg
         add = -35.0 * (1 - np.cos(0.5 * k * m))  # abduction 0 ... 70 deg
@@ -90,6 +101,28 @@ def test_shoulder_angles_equal_the_angles_the_body_was_built_from():
         np.testing.assert_allclose(out.angles[j], want[j], atol=1e-5, err_msg=j)
     assert np.ptp(out.angles["shoulder_r"][:, 0]) > 140.0  # the test spans the range
     assert any("shoulder_l" in n for n in out.notes if n.startswith("joint angles"))
+
+
+def test_trunk_angles_equal_the_angles_the_body_was_built_from():
+    want, rec = _upper_body(pelvis=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = process_recording(rec, "imu-only", dict(PARAMS), body_height_m=H)
+    for j in ("trunk", "shoulder_l", "shoulder_r"):
+        np.testing.assert_allclose(out.angles[j], want[j], atol=1e-5, err_msg=j)
+    assert min(np.ptp(out.angles["trunk"], axis=0)) > 29.0  # each angle moves
+
+
+def test_the_isb_signs_of_a_plain_trunk_flexion_bending_and_turn():
+    """Independent of the decomposition: bending forward is flexion, to the right is positive
+    lateral bending, turning to the left (seen from above) positive axial rotation."""
+    pelvis = np.broadcast_to(np.eye(3), (1, 3, 3))
+    for rotvec, k in (([0, 0, -1], 0), ([1, 0, 0], 1), ([0, 1, 0], 2)):  # ISB X ant., Y up, Z right
+        chest = Rotation.from_rotvec(np.radians(20.0) * np.array(rotvec, float)).as_matrix()[None]
+        a = joint_angles({"pelvis": pelvis, "chest": chest})["trunk"][0]
+        np.testing.assert_allclose(a, 20.0 * np.eye(3)[k], atol=1e-9)
+        y, x = chest[0][:, 1], chest[0][:, 0]  # the chest's superior and anterior axes
+        assert {0: y[0] > 0.3, 1: y[2] > 0.3, 2: x[2] < -0.3}[k]  # forward, right, left
 
 
 def test_the_isb_signs_of_a_plain_flexion_and_abduction():
@@ -148,10 +181,10 @@ def test_the_pose_check_expects_the_poses_own_shoulder_angles():
     assert msg.startswith("elbow_r reads flexion 25 deg") and "reads zero by construction" in msg
 
 
-def test_the_live_shoulder_angles_are_kinefuse_runs(tmp_path):
+def test_the_live_shoulder_and_trunk_angles_are_kinefuse_runs(tmp_path):
     """Oracle: kinefuse run's angles on the same samples; chain.json carries the chest's
-    frame, so the engine computes the shoulders live."""
-    _, rec = _upper_body(T=600)
+    and the pelvis's frames, so the engine computes the shoulders and the trunk live."""
+    _, rec = _upper_body(T=600, pelvis=True)
     write_imu_csv(tmp_path / "imu.csv", rec)
     lines = "\n".join(f'{s} = "{s}"' for s in rec.imu)
     session = tmp_path / "s.toml"
@@ -171,7 +204,7 @@ def test_the_live_shoulder_angles_are_kinefuse_runs(tmp_path):
     assert chain == json.loads(json.dumps(out.chain_description))
     engine = build_engine(stream_config_from_session(cfg, chain), camera=False,
                           camera_rate_hz=30.0, imu_rate_hz=FS)  # fmt: skip
-    assert {"shoulder_l", "shoulder_r"} <= set(engine.config.angle_joints)
+    assert {"shoulder_l", "shoulder_r", "trunk"} <= set(engine.config.angle_joints)
     imu = {s: (st.t_s, st.q_world_from_sensor) for s, st in rec2.imu.items()}
     off = offline_causal(engine.config, engine.processor, imu, None, frame_times=out.t_s)
     fresh = np.all(off.imu_status == IMU_FRESH, axis=1)  # every segment (the chest too)
@@ -180,4 +213,5 @@ def test_the_live_shoulder_angles_are_kinefuse_runs(tmp_path):
         ok = fresh & np.all(np.isfinite(out.angles[j]), axis=-1)
         np.testing.assert_allclose(off.angles_deg[ok, a], out.angles[j][ok], atol=1e-6, err_msg=j)
     header = (tmp_path / "out").glob("*angles.csv")
-    assert any("shoulder_r_flexion_deg" in p.read_text().splitlines()[6] for p in header)
+    head = [p.read_text().splitlines()[6] for p in header]
+    assert any("shoulder_r_flexion_deg" in h and "trunk_lateral_bending_deg" in h for h in head)

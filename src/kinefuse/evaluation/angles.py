@@ -23,6 +23,7 @@ from kinefuse import __version__
 from kinefuse.evaluation import plots, tables
 from kinefuse.evaluation.report import REPORT_CSS, REPORT_NAME
 from kinefuse.exceptions import InputError
+from kinefuse.kinematics.angles import angle_components
 
 __all__ = [
     "angle_extremes_table",
@@ -32,7 +33,17 @@ __all__ = [
     "write_angle_report",
 ]
 
-_COMPONENTS = ("flexion", "adduction", "internal rotation")
+
+def _names(joint: str) -> tuple[str, ...]:
+    """``joint``'s three angle names as words ("internal rotation", "lateral bending"...)."""
+    return tuple(c.replace("_", " ") for c in angle_components(joint))
+
+
+#: The note of a table with a trunk row, whose three angles are not a limb joint's.
+_TRUNK_NOTE = (
+    "trunk (chest in pelvis; ISB spine, Wu et al. 2002): flexion = bending forward, then lateral "
+    "bending (to the right positive) and axial rotation (to the left positive)"
+)
 
 
 def _check(t_s, angles: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -56,7 +67,7 @@ def range_of_motion_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTabl
     rows = []
     for j, a in angles.items():
         a = np.asarray(a, dtype=float)
-        for k, comp in enumerate(_COMPONENTS):
+        for k, comp in enumerate(_names(j)):
             lo, hi, mean = _extremes(a, k)
             vals = (lo, hi, hi - lo, mean) if lo is not None else (None,) * 4
             rows.append(tables.TableRow(labels=(j, comp), values=vals))
@@ -72,6 +83,7 @@ def range_of_motion_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTabl
             "(elbow: varus), internal rotation about the distal long axis (elbow: pronation); "
             "ankle flexion is dorsiflexion (toes up; plantarflexion negative); zero in the "
             "calibration pose.",
+            *([_TRUNK_NOTE + "."] if "trunk" in angles else []),
         ),
     )
 
@@ -103,6 +115,11 @@ def angle_extremes_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTable
         notes=(
             "ISB (Wu et al. 2002/2005), zero in the calibration pose; ankle flexion = "
             "dorsiflexion. Range and mean per angle, and the time series: the report.",
+            *(
+                [_TRUNK_NOTE + ", in the adduction and int. rot. columns."]
+                if "trunk" in angles
+                else []
+            ),  # fmt: skip
         ),
     )
 
@@ -114,11 +131,12 @@ def angle_figure(t_s, angles: Mapping[str, np.ndarray]):
     fig = plots._figure(9.0, 1.9 * n + 0.4)
     axs = fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]
     for ax, (j, a) in zip(axs, angles.items(), strict=False):
-        for k, comp in enumerate(_COMPONENTS):
+        for k, comp in enumerate(_names(j)):
             ax.plot(t, np.asarray(a)[:, k], lw=1.0 if k == 0 else 0.7, label=comp)
         ax.set_ylabel(f"{j} (deg)")
         ax.grid(alpha=0.3)
-    axs[0].legend(loc="upper right", fontsize=8, ncols=3)
+        if ax is axs[0] or j == "trunk":  # the trunk's angles have their own names
+            ax.legend(loc="upper right", fontsize=8, ncols=3)
     axs[-1].set_xlabel("time (s)")
     return fig
 

@@ -1,7 +1,7 @@
 """Skeleton (parent-index tree), forward kinematics and sensor-to-segment calibration (SPEC §2)."""
 
 from kinefuse.kinematics.alignment import heading_rotation, kabsch_rotation
-from kinefuse.kinematics.angles import JOINT_ANGLE_COMPONENTS, joint_angles
+from kinefuse.kinematics.angles import JOINT_ANGLE_COMPONENTS, angle_components, joint_angles
 from kinefuse.kinematics.calibration import calibrate
 from kinefuse.kinematics.calibration_result import Calibration
 from kinefuse.kinematics.chain import chain_positions, segment_orientations
@@ -27,6 +27,7 @@ __all__ = [
     "JOINT_ANGLE_COMPONENTS",
     "Skeleton",
     "StillWindow",
+    "angle_components",
     "as_rotation_matrices",
     "calibrate",
     "chain_positions",

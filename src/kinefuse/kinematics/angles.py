@@ -25,10 +25,15 @@ from scipy.spatial.transform import Rotation
 from kinefuse.exceptions import InputError
 from kinefuse.kinematics.forward import as_rotation_matrices
 
-__all__ = ["JOINTS", "JOINT_ANGLE_COMPONENTS", "joint_angles"]
+__all__ = ["JOINTS", "JOINT_ANGLE_COMPONENTS", "angle_components", "joint_angles"]
 
-#: The three angles of every joint, in the order returned (degrees).
+#: The three angles of every limb joint, in the order returned (degrees).
 JOINT_ANGLE_COMPONENTS = ("flexion", "adduction", "internal_rotation")
+
+#: The three angles of the midline joint ``trunk`` (the chest in the pelvis), in the order
+#: returned: ISB's spine (Wu et al. 2002), OpenSim's ``lumbar_extension`` (sign flipped),
+#: ``lumbar_bending``, ``lumbar_rotation``.
+TRUNK_ANGLE_COMPONENTS = ("flexion", "lateral_bending", "axial_rotation")
 
 #: Joint -> (proximal segment, distal segment, sign of flexion relative to +α about Z).
 #: With Z to the right, +α moves the distal segment's end anteriorly: elbow and hip flexion,
@@ -48,14 +53,26 @@ JOINTS = {
     **{f"knee_{s}": (f"thigh_{s}", f"shank_{s}", -1.0) for s in "lr"},
     **{f"hip_{s}": ("pelvis", f"thigh_{s}", 1.0) for s in "lr"},
     **{f"ankle_{s}": (f"shank_{s}", f"foot_{s}", 1.0) for s in "lr"},
+    "trunk": ("pelvis", "chest", -1.0),
 }
+#: The trunk (the chest IMU's segment in the pelvis IMU's) bends forward when the chest's
+#: superior axis tilts anteriorly: −α, so its sign is −1 (flexion positive). It is on the
+#: midline: its other two angles are not mirrored but read by the right-hand rule about ISB's
+#: axes, as OpenSim's lumbar coordinates: lateral bending positive to the right, axial rotation
+#: positive to the left (the chest turning towards the left, seen from above).
+
+
+def angle_components(joint: str) -> tuple[str, str, str]:
+    """The names of ``joint``'s three angles, in the order :func:`joint_angles` returns them:
+    :data:`TRUNK_ANGLE_COMPONENTS` for ``"trunk"``, else :data:`JOINT_ANGLE_COMPONENTS`."""
+    return TRUNK_ANGLE_COMPONENTS if joint == "trunk" else JOINT_ANGLE_COMPONENTS
 
 
 def joint_angles(
     orientations: Mapping[str, object], joints: Sequence[str] | None = None
 ) -> dict[str, np.ndarray]:
     """Flexion, adduction and internal rotation of shoulders, elbows, knees, hips and ankles,
-    degrees.
+    and flexion, lateral bending and axial rotation of the trunk, degrees.
 
     Parameters
     ----------
@@ -70,8 +87,8 @@ def joint_angles(
     Returns
     -------
     dict of str -> ndarray, shape (..., T, 3)
-        Per joint ``[flexion, adduction, internal_rotation]`` (:data:`JOINT_ANGLE_COMPONENTS`),
-        deg. Signs (ISB, both sides): flexion positive (elbow and knee bent, shoulder and hip
+        Per joint ``[flexion, adduction, internal_rotation]`` (:data:`JOINT_ANGLE_COMPONENTS`;
+        the trunk's: :data:`TRUNK_ANGLE_COMPONENTS`, signs at :data:`JOINTS`), deg. Signs (ISB, both sides): flexion positive (elbow and knee bent, shoulder and hip
         with the arm or thigh forward, ankle dorsiflexed: toes up); adduction positive (distal segment towards
         the midline; at the elbow this is varus); internal rotation positive (at the elbow this
         is pronation). Zero in
@@ -86,7 +103,8 @@ def joint_angles(
     -----
     ``R = R_pᵀ R_d = R_Z(α) R_X(β) R_Y(γ)`` (intrinsic Z-X-Y, SciPy ``"ZXY"``); flexion
     ``= s α`` with the sign ``s`` of :data:`JOINTS`, adduction ``= β`` (right) or ``−β`` (left),
-    internal rotation ``= γ`` (right) or ``−γ`` (left), so that both sides read alike. The
+    internal rotation ``= γ`` (right) or ``−γ`` (left), so that both sides read alike; the
+    trunk's lateral bending ``= β`` and axial rotation ``= γ``. The
     decomposition is singular at ``β = ±90°``: never reached by a healthy knee or elbow; at the
     shoulder, the arm horizontal to the side (see :data:`JOINTS`; there ``γ`` is set to 0 and
     ``α`` takes the whole turn, without SciPy's gimbal-lock warning).
@@ -121,7 +139,7 @@ def joint_angles(
             with warnings.catch_warnings():  # β = ±90°: documented above
                 warnings.filterwarnings("ignore", "Gimbal lock detected", UserWarning)
                 ang[ok] = Rotation.from_matrix(R[ok]).as_euler("ZXY", degrees=True)
-        side = 1.0 if j.endswith("_r") else -1.0
+        side = -1.0 if j.endswith("_l") else 1.0  # the right side and the midline as computed
         ang *= np.array([sign, side, side])
         out[j] = ang.reshape(*Rp.shape[:-2], 3)
     return out

@@ -595,11 +595,13 @@ def stream_config_from_session(session, chain: Mapping | None = None, **override
 
 def _not_in_chain(session, chain: Mapping) -> list[str]:
     """With a calibrated chain: the session's segments must be the chain's (the calibration,
-    axes and root are the chain's own)."""
+    axes and root are the chain's own), or read for joint angles only (the feet; the pelvis and
+    chest of the trunk angles, with a frame in the chain)."""
     segs = (
         {s["name"] for s in chain["segments"]}
         | ({chain["root_segment"]} if chain.get("root_segment") else set())
         | set((chain.get("offset_segments") or {}).values())
+        | ({"pelvis", "chest"} & set(chain.get("segment_frames") or {}))
     )
     extra = sorted(set(session.imu.segments) - segs - {"foot_l", "foot_r", "hand_l", "hand_r"})
     return [f"[imu.segments] {', '.join(extra)} (not in the chain file)"] if extra else []

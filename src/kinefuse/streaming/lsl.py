@@ -18,7 +18,7 @@ fused output   ``MoCap`` per joint ``{joint}_x _y _z`` (m), ``{joint}_std_x _y _
                          (bit mask, ``desc/flags``); nominal rate = camera rate
 joint angles   ``Angles`` with a calibrated chain (``--chain`` with segment frames): per joint
                          ``{joint}_flexion``, ``_adduction``, ``_internal_rotation`` (deg,
-                         ISB); named ``{fused}-angles``, same timestamps as the fused output
+                         ISB; ``trunk_flexion``, ``_lateral_bending``, ``_axial_rotation``); named ``{fused}-angles``, same timestamps as the fused output
 =============  ========  ===============================================================
 
 Clocks: an inlet's timestamps are in the sender's ``local_clock``. With ``clock="manual"``
@@ -39,7 +39,7 @@ import numpy as np
 
 from kinefuse.conventions import SOURCE_NAMES
 from kinefuse.exceptions import InputError
-from kinefuse.kinematics.angles import JOINT_ANGLE_COMPONENTS
+from kinefuse.kinematics.angles import angle_components
 from kinefuse.streaming import engine_types as _engine
 from kinefuse.streaming.config import import_pylsl
 from kinefuse.streaming.processors import SOURCE_NONE
@@ -99,8 +99,9 @@ def output_channels(joints) -> list[tuple[str, str, str]]:
 
 
 def angle_channels(joints) -> list[tuple[str, str, str]]:
-    """Joint-angle stream channels: flexion, adduction, internal rotation per joint (deg)."""
-    return [(f"{j}_{c}", "deg", "Angle") for j in joints for c in JOINT_ANGLE_COMPONENTS]
+    """Joint-angle stream channels: flexion, adduction, internal rotation per joint (the
+    trunk's: flexion, lateral bending, axial rotation), deg."""
+    return [(f"{j}_{c}", "deg", "Angle") for j in joints for c in angle_components(j)]
 
 
 def make_outlet(name, stype, channels, srate, *, source_id="", desc=None, chunk_size=1):

@@ -331,7 +331,8 @@
       ["joint", "flexion", "adduction", "int. rotation"].forEach(function (h) { hr.appendChild(el("th", {}, h)); });
       at.appendChild(hr);
       angJ.forEach(function (name) {
-        var tr = el("tr"); tr.appendChild(el("td", {}, name));
+        // the trunk's three angles are flexion, lateral bending (right +), axial rotation (left +)
+        var tr = el("tr"); tr.appendChild(el("td", {}, name === "trunk" ? "trunk (flex., lat. bend R+, axial rot. L+)" : name));
         var row = [0, 1, 2].map(function () { var td = el("td", {}, "–"); tr.appendChild(td); return td; });
         at.appendChild(tr); angCells.push(row);
       });

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.kinematics import (
-    JOINT_ANGLE_COMPONENTS,
+    angle_components,
     calibrate,
     find_still_window,
     joint_angles,
@@ -301,13 +301,13 @@ def _pose_angle_check(angles: Mapping[str, np.ndarray], t: np.ndarray, cal) -> l
         if abs(abs(want[1]) - 90.0) < 1.0:  # a T-pose shoulder: flexion and rotation undefined
             off[[0, 2]] = 0.0
         bad = [f"{c.replace('_', ' ')} {v:.0f}"
-               for c, v, d in zip(JOINT_ANGLE_COMPONENTS, mean, off, strict=True)
+               for c, v, d in zip(angle_components(j), mean, off, strict=True)
                if abs(d) > POSE_ANGLE_WARN_DEG]  # fmt: skip
         if bad:
             pose = "zero"
             if np.any(np.abs(want) > 0.5):
                 pose = ", ".join(f"{c.replace('_', ' ')} {v:.0f}"
-                                 for c, v in zip(JOINT_ANGLE_COMPONENTS, want, strict=True))  # fmt: skip
+                                 for c, v in zip(angle_components(j), want, strict=True))  # fmt: skip
             out.append(
                 f"{j} reads {', '.join(bad)} deg in the calibration pose ({cal.window_s[0]:.2f}-"
                 f"{cal.window_s[1]:.2f} s), where it reads {pose} by construction: its "

@@ -203,6 +203,8 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     trunk = shoulder_trunk(recording.imu) if shoulders_from_trunk(plan) else None
     if trunk is not None and trunk not in cal_segs and calib == "static":
         cal_segs.append(trunk)  # its frame in the pose places the shoulders
+    if calib == "static" and {"pelvis", "chest"} <= set(recording.imu):
+        cal_segs += [s for s in ("pelvis", "chest") if s not in cal_segs]  # the trunk angles
     # the functional calibration checks its lengths against these (measured, else body height)
     expected = _expected_lengths(segs, measured, body_height_m) if calib == "functional" else {}
     sk, roots = build_chain([*segs, *angles_only], {s: expected.get(s, 0.3) for s in cal_segs},

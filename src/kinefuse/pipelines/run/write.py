@@ -26,7 +26,7 @@ from kinefuse.io._write import write_text_safely
 from kinefuse.io.mot import write_mot
 from kinefuse.io.opensim import write_opensense_sto
 from kinefuse.io.output_folder import OutputFolder
-from kinefuse.kinematics import JOINT_ANGLE_COMPONENTS
+from kinefuse.kinematics import angle_components
 from kinefuse.pipelines.run.chain_file import CHAIN_FILE
 from kinefuse.pipelines.run.output import SessionOutput
 from kinefuse.pipelines.run.process import process_recording
@@ -342,7 +342,7 @@ def _write_angles(out: SessionOutput, targets: Mapping[str, Path], cfg, force: b
     cols = {
         f"{j}_{c}_deg": a[:, k]
         for j, a in out.angles.items()
-        for k, c in enumerate(JOINT_ANGLE_COMPONENTS)
+        for k, c in enumerate(angle_components(j))
     }
     head = [
         "# kinefuse joint angles (deg), ISB conventions (Wu et al. 2002/2005, Grood & Suntay 1983)",
