@@ -11,23 +11,21 @@ be the ones the body was built from, offline and live.
 
 from __future__ import annotations
 
-import json
 import warnings
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from kinefuse.io import ImuStream, Recording, write_imu_csv
+from kinefuse.io import ImuStream, Recording
 from kinefuse.kinematics import joint_angles
-from kinefuse.pipelines.run import process_recording, run_session
-from kinefuse.pipelines.run.chain_file import CHAIN_FILE, read_chain
-from kinefuse.pipelines.run.streams import load_streams
-from kinefuse.session_file import load_session
+from kinefuse.pipelines.run import process_recording
 from kinefuse.streaming.config import stream_config_from_session
 from kinefuse.streaming.engine_types import IMU_FRESH
 from kinefuse.streaming.offline import offline_causal
 from kinefuse.streaming.runner import build_engine
+from test_trunk_shoulders import MOUNTS as ARM_MOUNTS  # chest, upper arms, forearms
+from test_trunk_shoulders import _run_session  # kinefuse run, chain.json and its computation
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*has no online form:UserWarning")
 
@@ -36,14 +34,7 @@ H = 1.75
 #: ISB axes of the body facing north in the world (x east, y north, z up): columns X anterior
 #: (north), Y superior (up), Z right (east)
 B = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-MOUNTS = {
-    "chest": Rotation.from_euler("xyz", [5, -20, 100], degrees=True),
-    "upper_arm_l": Rotation.from_euler("xyz", [10, 80, -30], degrees=True),
-    "upper_arm_r": Rotation.from_euler("xyz", [-60, 15, 40], degrees=True),
-    "forearm_l": Rotation.from_euler("xyz", [-40, 20, 65], degrees=True),
-    "forearm_r": Rotation.from_euler("xyz", [30, -50, -10], degrees=True),
-    "pelvis": Rotation.from_euler("xyz", [0, 10, -70], degrees=True),
-}
+MOUNTS = {**ARM_MOUNTS, "pelvis": Rotation.from_euler("xyz", [0, 10, -70], degrees=True)}
 PARAMS = {"root": "fixed", "root_position_m": [0.0, 0.0, 1.4], "calibration": "static",
           "facing": [0.0, 1.0, 0.0]}  # fmt: skip
 
@@ -185,23 +176,9 @@ def test_the_live_shoulder_and_trunk_angles_are_kinefuse_runs(tmp_path):
     """Oracle: kinefuse run's angles on the same samples; chain.json carries the chest's
     and the pelvis's frames, so the engine computes the shoulders and the trunk live."""
     _, rec = _upper_body(T=600, pelvis=True)
-    write_imu_csv(tmp_path / "imu.csv", rec)
-    lines = "\n".join(f'{s} = "{s}"' for s in rec.imu)
-    session = tmp_path / "s.toml"
-    session.write_text(
-        f'[session]\nname = "s"\n[imu]\nformat = "imu_csv"\npath = "imu.csv"\n'
-        f'[imu.segments]\n{lines}\n[skeleton]\nbody_height_m = {H}\nroot = "fixed"\n'
-        "root_position_m = [0.0, 0.0, 1.4]\n"
-        '[calibration]\nmethod = "static"\nfacing = [0.0, 1.0, 0.0]\n[method]\nname = "imu-only"\n',
-        encoding="utf-8",
+    chain, cfg, rec2, out = _run_session(
+        tmp_path, rec, 'root = "fixed"\nroot_position_m = [0, 0, 1.4]'
     )
-    run_session(session, tmp_path / "out")
-    chain = read_chain(tmp_path / "out" / CHAIN_FILE)
-    cfg = load_session(session)
-    rec2, _ = load_streams(cfg, strict_units=True)
-    out = process_recording(rec2, "imu-only", cfg.processing_parameters(),
-                            body_height_m=cfg.skeleton.body_height_m)  # fmt: skip
-    assert chain == json.loads(json.dumps(out.chain_description))
     engine = build_engine(stream_config_from_session(cfg, chain), camera=False,
                           camera_rate_hz=30.0, imu_rate_hz=FS)  # fmt: skip
     assert {"shoulder_l", "shoulder_r", "trunk"} <= set(engine.config.angle_joints)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import pickle
+import signal
 
 import numpy as np
 import pytest
@@ -382,50 +384,60 @@ def test_kf_fusion_matches_information_form(rng, path):
     assert src[5, 1] in (SOURCE_FUSED, SOURCE_IMU)
 
 
+class _ChunkInput:
+    """A loop input handing out ``items`` (``events(rec)``) 25 at a time; a KeyboardInterrupt
+    on pull number ``interrupt_at`` + 1 (never by default)."""
+
+    lost = False
+
+    def __init__(self, items, interrupt_at=None):
+        self.items, self.interrupt_at = items, interrupt_at
+        self.closed = False
+        self.calls = 0
+
+    def pull(self):
+        self.calls += 1
+        if self.interrupt_at is not None and self.calls > self.interrupt_at:
+            raise KeyboardInterrupt
+        chunk, self.items = self.items[:25], self.items[25:]
+        return chunk, [e[4] for e in chunk]
+
+    def feed(self, engine, data, ts, now):
+        for e in data:
+            if e[2] == "imu":
+                engine.push_imu(e[3], e[4], e[5])
+            else:
+                engine.push_camera(e[4], *e[5])
+
+    def refresh_clock(self):
+        pass
+
+    def close(self):
+        self.closed = True
+
+
+class _ListOutlet:
+    """A loop outlet keeping what it is pushed; with ``sigint_at``, sends this process one
+    SIGINT from inside that push (the main thread receives it there)."""
+
+    def __init__(self, sigint_at=None):
+        self.pushed, self.closed, self.sigint_at = [], False, sigint_at
+
+    def push(self, o):
+        if len(self.pushed) == self.sigint_at:
+            self.sigint_at = None
+            os.kill(os.getpid(), signal.SIGINT)
+        self.pushed.append(o)
+
+    def close(self):
+        self.closed = True
+
+
 def test_run_loop_ctrl_c_flushes_and_closes(rec):
     """KeyboardInterrupt in the loop: pending frames and the lagged outputs are pushed, inputs
     and outlet closed."""
     ev = events(rec)
-
-    class FakeInput:
-        lost = False
-
-        def __init__(self, items):
-            self.items = items
-            self.closed = False
-            self.calls = 0
-
-        def pull(self):
-            self.calls += 1
-            if self.calls > 40:
-                raise KeyboardInterrupt
-            chunk, self.items = self.items[:25], self.items[25:]
-            return chunk, [e[4] for e in chunk]
-
-        def feed(self, engine, data, ts, now):
-            for e in data:
-                if e[2] == "imu":
-                    engine.push_imu(e[3], e[4], e[5])
-                else:
-                    engine.push_camera(e[4], *e[5])
-
-        def refresh_clock(self):
-            pass
-
-        def close(self):
-            self.closed = True
-
-    class FakeOutlet:
-        def __init__(self):
-            self.pushed, self.closed = [], False
-
-        def push(self, o):
-            self.pushed.append(o)
-
-        def close(self):
-            self.closed = True
-
-    inp, outlet = FakeInput(ev), FakeOutlet()
+    inp, outlet = _ChunkInput(ev, interrupt_at=40), _ListOutlet()
     eng = Engine(make_config(rec), KalmanFusionProcessor(1 / 30, lag=3))
     res = run_loop(eng, [inp], outlet, clock=lambda: eng._data_now)
     assert res.interrupted and inp.closed and outlet.closed
@@ -439,49 +451,7 @@ def test_run_loop_sigint_inside_a_pass_loses_no_frame(rec):
     takes it between passes, so that output and every pending frame are still pushed. Raised
     as a KeyboardInterrupt inside the push, that output was lost (outputs = frames - 1: the
     race tests/test_lsl.py::test_sigint_flushes_and_closes met once under load)."""
-    import os
-    import signal
-
-    ev = events(rec)
-
-    class Input:
-        lost = False
-        closed = False
-
-        def __init__(self, items):
-            self.items = items
-
-        def pull(self):
-            chunk, self.items = self.items[:25], self.items[25:]
-            return chunk, [e[4] for e in chunk]
-
-        def feed(self, engine, data, ts, now):
-            for e in data:
-                if e[2] == "imu":
-                    engine.push_imu(e[3], e[4], e[5])
-                else:
-                    engine.push_camera(e[4], *e[5])
-
-        def refresh_clock(self):
-            pass
-
-        def close(self):
-            self.closed = True
-
-    class Outlet:
-        def __init__(self):
-            self.pushed, self.closed, self.sent = [], False, False
-
-        def push(self, o):
-            if len(self.pushed) == 10 and not self.sent:
-                self.sent = True
-                os.kill(os.getpid(), signal.SIGINT)  # delivered here, in the main thread
-            self.pushed.append(o)
-
-        def close(self):
-            self.closed = True
-
-    inp, outlet = Input(ev), Outlet()
+    inp, outlet = _ChunkInput(events(rec)), _ListOutlet(sigint_at=10)
     eng = Engine(make_config(rec), KalmanFusionProcessor(1 / 30, lag=3))
     res = run_loop(eng, [inp], outlet, clock=lambda: eng._data_now)
     assert res.interrupted and inp.closed and outlet.closed
