@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,8 +41,10 @@ class Table:
         The file read.
     columns : list of str
         Header names, stripped.
-    rows : list of list of str
-        Fields of each data row (already padded/validated to ``len(columns)``).
+    rows : list of list of str, or None
+        Fields of each data row (already padded/validated to ``len(columns)``); None when
+        :func:`read_table` took its numeric fast path (``fast=True``): the columns are then
+        held parsed, and the rows are split only if a method needs a numeric column's text.
     lines : ndarray of int, shape (n,)
         1-based line number of each row in the file.
     comments : list of str
@@ -56,9 +59,22 @@ class Table:
     lines: np.ndarray
     comments: list[str] = field(default_factory=list)
     header_line: int = 1
+    #: fast path: column name -> float64 array, or list of str (a text column)
+    parsed: dict | None = field(default=None, repr=False)
+    #: fast path: the data lines, split into ``rows`` on demand
+    data_lines: list | None = field(default=None, repr=False)
+    delimiter: str = ","
+    #: fast path: an empty field was read as NaN (``floats(allow_empty=False)`` checks again)
+    empty_filled: bool = False
 
     def __len__(self) -> int:
-        return len(self.rows)
+        return len(self.lines)
+
+    def _split_rows(self) -> list[list[str]]:
+        """``rows``, split from the fast path's data lines on first need."""
+        if self.rows is None:
+            self.rows = [ln.split(self.delimiter)[: len(self.columns)] for ln in self.data_lines]
+        return self.rows
 
     def has(self, name: str) -> bool:
         return name in self.columns
@@ -76,7 +92,9 @@ class Table:
 
     def strings(self, name: str) -> list[str]:
         i = self.index(name)
-        return [r[i].strip() for r in self.rows]
+        if self.parsed is not None and isinstance(self.parsed.get(name), list):
+            return [v.strip() for v in self.parsed[name]]
+        return [r[i].strip() for r in self._split_rows()]
 
     def floats(self, name: str, *, allow_empty: bool = True) -> np.ndarray:
         """Column ``name`` as float64; empty fields are NaN when ``allow_empty``.
@@ -87,7 +105,12 @@ class Table:
             Naming the line and column of the first field that is not a number.
         """
         i = self.index(name)
-        raw = [r[i] for r in self.rows]
+        got = self.parsed.get(name) if self.parsed is not None else None
+        if isinstance(got, np.ndarray) and (
+            allow_empty or not self.empty_filled or not np.isnan(got).any()
+        ):  # (a NaN that was an empty field where none is allowed: the row reader names it)
+            return got.copy()
+        raw = [r[i] for r in self._split_rows()]
         try:
             out = np.array(raw, dtype=np.float64)
         except ValueError:
@@ -179,6 +202,7 @@ def read_table(
     comment_prefixes: Sequence[str] = ("#", "//"),
     min_rows: int = 1,
     is_header=None,
+    fast: bool = False,
 ) -> Table:
     """Read a delimited text file with an optional comment preamble and one header line.
 
@@ -196,6 +220,13 @@ def read_table(
         ``is_header(line) -> bool``: the header is the first line it accepts; lines before it are
         a preamble, kept in ``comments`` (for exports whose preamble has no comment prefix).
         None: the first line that is not a comment.
+    fast : bool
+        Try the numeric fast path first (NumPy's C parser, :func:`numpy.loadtxt`, 2-4x faster
+        on a large file): when every data line has the header's field count and no comment or
+        blank line, and every column whose first field reads as a number reads as one on every
+        row (finite or NaN; an empty field is NaN, as row by row). Otherwise, or on any doubt,
+        the rows are read one by one as without it; the numbers are the same either way (both
+        parse with Python's correctly rounded conversion).
 
     Returns
     -------
@@ -219,12 +250,70 @@ def read_table(
     while columns and not columns[-1]:
         columns.pop()
     header_line = k + 1
+    if fast:
+        got = _parse_numeric(lines[k + 1 :], columns, delimiter, tuple(comment_prefixes))
+        if got is not None and len(lines) - k - 1 >= min_rows:
+            n = len(lines) - k - 1
+            return Table(path, columns, None, np.arange(k + 2, k + 2 + n), comments, header_line,
+                         got[0], lines[k + 1 :], delimiter, got[1])  # fmt: skip
     rows, line_no = _rows(path, lines, k + 1, len(columns), delimiter, tuple(comment_prefixes))
     if len(rows) < min_rows:
         raise FormatError(
             path, f"expected at least {min_rows} data rows after the header, found {len(rows)}"
         )
     return Table(path, columns, rows, np.asarray(line_no, dtype=int), comments, header_line)
+
+
+def _parse_numeric(
+    data: list[str], columns: list[str], delimiter: str, prefixes: tuple
+) -> tuple[dict, bool] | None:
+    """Columns of ``data`` (the lines after the header) by :func:`numpy.loadtxt`: name ->
+    float64 array, or list of str for a column whose first field is not a number; and whether
+    an empty field was read as NaN. None when a line has another field count, the data has a
+    comment, blank line, ±inf, an empty text field, or loadtxt refuses a field
+    (``read_table`` then reads row by row, which names it). A comment line (``prefixes``)
+    cannot pass: its first field is not a number, and a text first column is checked."""
+    n, d = len(columns), delimiter
+    if not data or len(set(columns)) != n:
+        return None
+    counts = np.fromiter((ln.count(d) for ln in data), np.int64, len(data))
+    if np.any(counts != n - 1):
+        return None
+    filled = data
+    blob = "\n".join(data)
+    empty = d + d in blob or f"\n{d}" in blob or f"{d}\n" in blob
+    empty = empty or blob.startswith(d) or blob.endswith(d)
+    if empty and n > 1:  # empty fields are missing samples: NaN, as the row reader reads them
+        blob = blob.replace(d + d, f"{d}nan{d}").replace(d + d, f"{d}nan{d}")
+        blob = blob.replace(f"\n{d}", f"\nnan{d}").replace(f"{d}\n", f"{d}nan\n")
+        blob = ("nan" if blob.startswith(d) else "") + blob + ("nan" if blob.endswith(d) else "")
+        filled = blob.split("\n")
+    text = []
+    for i, f in enumerate(filled[0].split(d)):
+        try:
+            float(f)
+        except ValueError:
+            text.append(i)
+    numeric = [i for i in range(n) if i not in text]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # e.g. "input contained no data": not this path
+            values = np.loadtxt(filled, delimiter=d, usecols=numeric, comments=None,
+                                dtype=np.float64, ndmin=2)  # fmt: skip
+    except (ValueError, UserWarning):
+        return None
+    if values.shape != (len(data), len(numeric)) or np.isinf(values).any():
+        return None
+    out: dict = {columns[i]: np.ascontiguousarray(values[:, k]) for k, i in enumerate(numeric)}
+    for i in text:
+        col = [ln.split(d, i + 1)[i] for ln in data]
+        if any(not v.strip() for v in col):
+            return None
+        # a comment line fails a number in the first column; a text first column is checked
+        if i == 0 and any(v.lstrip().startswith(prefixes) for v in col):
+            return None
+        out[columns[i]] = col
+    return out, bool(empty)
 
 
 def _preamble(path: Path, lines: list[str], prefixes: tuple, is_header) -> tuple[int, list[str]]:

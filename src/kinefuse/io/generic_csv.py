@@ -101,7 +101,7 @@ def read_imu_csv(
         within a sensor, a sensor with neither orientation nor acc+gyr.
     """
     path = Path(path)
-    tab = read_table(path)
+    tab = read_table(path, fast=True)  # large recordings: NumPy's parser (same numbers)
     hdr = tab.comment_dict()
     acc_unit, gyr_unit = _imu_units(path, hdr, acc_unit, gyr_unit)
     times = time_column_s(tab)
@@ -258,7 +258,7 @@ def read_joint_csv(
         columns, non-numeric coordinates, non-monotonic time.
     """
     path = Path(path)
-    tab = read_table(path)
+    tab = read_table(path, fast=True)  # large recordings: NumPy's parser (same numbers)
     hdr = tab.comment_dict()
     role, units = _joint_options(path, hdr, role, units)
     t, tcol = table_time(tab, rate_hz=rate_hz)
