@@ -453,11 +453,30 @@ def test_run_loop_sigint_inside_a_pass_loses_no_frame(rec):
     race tests/test_lsl.py::test_sigint_flushes_and_closes met once under load)."""
     inp, outlet = _ChunkInput(events(rec)), _ListOutlet(sigint_at=10)
     eng = Engine(make_config(rec), KalmanFusionProcessor(1 / 30, lag=3))
-    res = run_loop(eng, [inp], outlet, clock=lambda: eng._data_now)
+    # Python's own handler, as in a terminal (a background job, CI's, starts with SIG_IGN)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        res = run_loop(eng, [inp], outlet, clock=lambda: eng._data_now)
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    finally:
+        signal.signal(signal.SIGINT, before)
     assert res.interrupted and inp.closed and outlet.closed
     assert len(outlet.pushed) == eng.counters["frames"] > 10
     assert [o.index for o in outlet.pushed] == list(range(len(outlet.pushed)))
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+
+
+def test_run_loop_keeps_an_ignored_sigint_ignored(rec):
+    """A process started with SIGINT ignored (nohup, a background job): the loop does not take
+    it over; the stream runs to its end."""
+    inp, outlet = _ChunkInput(events(rec)), _ListOutlet(sigint_at=10)
+    eng = Engine(make_config(rec), KalmanFusionProcessor(1 / 30, lag=3))
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        res = run_loop(eng, [inp], outlet, clock=lambda: eng._data_now, idle_timeout_s=0.2)
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert not res.interrupted and len(outlet.pushed) == eng.counters["frames"] > 20
 
 
 def test_replay_waits_for_every_reader_or_a_grace_after_the_first():

@@ -162,13 +162,16 @@ def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=N
     and pushed, and inputs and outlet are closed. In the main thread the signal is taken
     between two loop passes (a handler sets a flag; the previous handler is restored before
     the flush), so a frame the engine has processed is never lost to an interrupt inside a
-    pass; elsewhere a KeyboardInterrupt ends the loop as it comes.
+    pass; elsewhere a KeyboardInterrupt ends the loop as it comes. A process that ignores
+    SIGINT (started in the background) keeps ignoring it.
     """
     start = time.monotonic()
     loop = _Loop(engine, inputs, outlet, clock, on_output)
     interrupted = False
     sigint: list = []
+    # in the main thread, unless SIGINT is ignored (a background job: it stays ignored)
     main = threading.current_thread() is threading.main_thread()
+    main = main and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
     # (None: a handler not installed from Python, restored as Python's default)
     previous = signal.signal(signal.SIGINT, lambda *_: sigint.append(True)) if main else None
     gc.collect()
