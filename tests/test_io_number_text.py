@@ -1,10 +1,13 @@
-"""Number text of the writers: the table formatter equals the value-by-value one.
+"""Number text of the writers: the table formatters equal the value-by-value ones.
 
 Oracle: :func:`kinefuse.io._write.fmt_float` (one value at a time, the writers' rule: fixed point,
-NaN/inf as an empty field, a value that rounds to zero as ``0``) and ``str(int(v))`` for flags.
+NaN/inf as an empty field, a value that rounds to zero as ``0``) and ``str(int(v))`` for flags;
+for the orientation ``.sto``, each value's ``repr`` (``NaN`` if not finite).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
@@ -12,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from kinefuse.io._write import fixed_point_rows, fmt_float
+from kinefuse.io.opensim import _sto_rows
 
 _SPECIAL = [0.0, -0.0, 1e-12, -1e-12, 4.9999e-7, -5e-7, 0.5, -0.5, 1e20, -1e20, np.nan, np.inf,
             -np.inf, 1.0, -1.0, 123.456789012]  # fmt: skip
@@ -55,3 +59,27 @@ def test_table_text_equals_value_by_value(T, n, decimals, sep, seed):
 def test_a_text_column_is_left_to_the_caller():
     with pytest.raises(TypeError, match="not a number column"):
         fixed_point_rows([np.zeros(2), np.array(["a", "b"])], 3)
+
+
+def _sto_value(v: float) -> str:
+    """One .sto value as OpenSense's files hold it: shortest round-trip repr, NaN if not finite."""
+    return repr(float(v)) if math.isfinite(v) else "NaN"
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    n=st.integers(0, 12),
+    k=st.integers(1, 3),
+    data=st.data(),
+)
+def test_sto_rows_equal_formatting_value_by_value(n, k, data):
+    """The one-pass .sto rows equal joining each value's repr (NaN for nan, +-inf)."""
+    vals = st.floats(allow_nan=True, allow_infinity=True, width=64)
+    t = np.array(data.draw(st.lists(vals, min_size=n, max_size=n)), float)
+    qs = [np.array(data.draw(st.lists(st.lists(vals, min_size=4, max_size=4), min_size=n,
+                                      max_size=n)), float).reshape(n, 4) for _ in range(k)]  # fmt: skip
+    want = [
+        "\t".join([_sto_value(t[i])] + [",".join(_sto_value(v) for v in q[i]) for q in qs])
+        for i in range(n)
+    ]
+    assert _sto_rows(t, qs) == want

@@ -20,7 +20,7 @@ OpenSense inverse kinematics (``OpenSim::IMUInverseKinematicsTool``).
 
 from __future__ import annotations
 
-import math
+import re
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -357,8 +357,23 @@ def read_opensense_sto(path, *, sensor_map: Mapping[str, str] | None = None) -> 
     return Recording(imu=imu, metadata=md)
 
 
-def _sto_float(v: float) -> str:
-    return repr(float(v)) if math.isfinite(v) else "NaN"
+#: a non-finite value written by ``%r`` (``nan``, ``inf``, ``-inf``) as one field
+_NON_FINITE = re.compile(r"(?<![^\t,\n])-?(?:nan|inf)(?![^\t,\n])")
+
+
+def _sto_rows(t: np.ndarray, qs: list) -> list[str]:
+    """The data rows of an orientation ``.sto``: time, then each ``(T, 4)`` quaternion's four
+    values joined by commas, tab-separated; each value its shortest round-trip ``repr``
+    (``NaN`` if not finite), formatted in one pass (tests/test_io_number_text.py compares it
+    with formatting value by value)."""
+    if not t.size:
+        return []
+    cols = [np.asarray(t, float).tolist()] + [
+        c for q in qs for c in np.asarray(q, float).T.tolist()
+    ]
+    fmt = "\t".join(["%r"] + [",".join(["%r"] * 4)] * len(qs))
+    text = "\n".join(fmt % row for row in zip(*cols, strict=True))
+    return _NON_FINITE.sub("NaN", text).split("\n")
 
 
 def write_opensense_sto(
@@ -418,11 +433,7 @@ def write_opensense_sto(
         raise InputError(f"write_opensense_sto: expected rate_hz > 0, got {rate_hz!r}")
     out = [f"DataRate={float(rate_hz):.6f}", "DataType=Quaternion", "version=3", "endheader"]
     out.append("\t".join(["time", *labels]))
-    qs = [s.q_world_from_sensor for s in streams.values()]
-    for i in range(t.size):
-        out.append(
-            "\t".join([_sto_float(t[i])] + [",".join(_sto_float(v) for v in q[i]) for q in qs])
-        )
+    out += _sto_rows(t, [s.q_world_from_sensor for s in streams.values()])
     protect = [md.get("source")] + list(md.get("files", []))
     return write_text_safely(path, "\n".join(out) + "\n", force=force, protect=protect)
 
