@@ -297,10 +297,10 @@ def _parse_numeric(
     numeric = [i for i in range(n) if i not in text]
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("error")  # e.g. "input contained no data": not this path
+            warnings.simplefilter("error")  # any warning ("input contained no data"...): not here
             values = np.loadtxt(filled, delimiter=d, usecols=numeric, comments=None,
                                 dtype=np.float64, ndmin=2)  # fmt: skip
-    except (ValueError, UserWarning):
+    except (ValueError, Warning):
         return None
     if values.shape != (len(data), len(numeric)) or np.isinf(values).any():
         return None
