@@ -167,6 +167,8 @@ def test_both_arms_get_the_mid_shoulder_point_as_their_root(shared_data, tmp_pat
     text = session.read_text(encoding="utf-8")
     assert 'chest = "T8"' in text and 'root = "fixed"' in text
     assert "the mid-shoulder point, m; the shoulders hang from the chest IMU" in text
+    line = next(ln for ln in text.splitlines() if ln.startswith("chest = "))
+    assert line.endswith("# the shoulders hang from it"), line  # functional: no angles there
 
 
 def test_one_leg_with_the_pelvis_places_only_its_hip(shared_data, tmp_path):

@@ -115,10 +115,26 @@ def _order(item) -> int:
     return SEGMENTS.index(item[0])
 
 
+def _chest_comment(calibration: str, mapped) -> str:
+    """What the chest IMU gives the session (the shoulders with both arms; with a static
+    calibration their angles, and the trunk's with the pelvis), as a line comment."""
+    uses = []
+    if {"upper_arm_l", "upper_arm_r"} <= set(mapped):
+        uses.append(
+            "the shoulders hang from it"
+            + (" (and their angles)" if calibration == "static" else "")
+        )
+    if "pelvis" in mapped and calibration == "static":
+        uses.append("with the pelvis: the trunk angles")
+    return f"  # {'; '.join(uses)}" if uses else ""
+
+
 def _segment_line(s: str, n: str, calibration: str, mapped) -> str:
     """The ``[imu.segments]`` line of segment ``s`` (sensor ``n``): a foot or hand, which body
     height cannot size, is mapped where the calibration uses it without a length, else
     commented with what its measured length adds."""
+    if s == "chest":
+        return f'{s} = "{n}"' + _chest_comment(calibration, mapped)
     if s not in NO_HEIGHT_RATIO:
         return f'{s} = "{n}"'
     joint = "ankle" if s.startswith("foot") else "wrist"
