@@ -166,6 +166,45 @@ def test_outage_runs():
     assert plots.outage_runs(np.zeros(0, dtype=bool)) == []
 
 
+@pytest.mark.parametrize("three_d", [False, True])
+@pytest.mark.parametrize("palette", [False, True])
+def test_figure_to_png_has_the_pixels_of_savefig(palette, three_d):
+    """figure_to_png draws a 2-D figure once instead of savefig's two draws: the pixels (RGBA,
+    or after the same 256-colour palette) are matplotlib's savefig ones, with or without a
+    3-D axes, and the figure keeps its dpi."""
+    import io
+
+    from PIL import Image
+
+    def figure():  # constrained layout, a legend, shading (+ a 3-D axes): what reports use
+        fig = plots.trajectory_figure(
+            np.arange(90) / 30.0,
+            np.sin(np.arange(270.0).reshape(90, 3) / 20.0),
+            {"KF": np.cos(np.arange(270.0).reshape(90, 3) / 20.0)},
+            outage=np.arange(90) % 40 < 8,
+            joint="wrist_r",
+        )
+        if three_d:
+            fig.add_subplot(4, 4, 16, projection="3d").plot([0, 1], [0, 1], [0, 1])
+        return fig
+
+    buf = io.BytesIO()
+    figure().savefig(buf, format="png", dpi=70)
+    want = Image.open(io.BytesIO(buf.getvalue())).convert("RGBA")
+    if palette:
+        want = want.convert("RGB").quantize(
+            colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE
+        )
+    fig = figure()
+    dpi0 = fig.dpi
+    got = Image.open(io.BytesIO(plots.figure_to_png(fig, dpi=70, palette=palette)))
+    assert fig.dpi == dpi0
+    assert got.mode == ("P" if palette else "RGBA") and got.size == want.size
+    assert np.array_equal(np.asarray(got.convert("RGBA")), np.asarray(want.convert("RGBA")))
+    if not palette:
+        assert got.info.get("Software") == "kinefuse"
+
+
 def test_report_renders_in_chromium_with_every_figure(report, tmp_path):
     browser = ensure_chromium()
     n_images, n_loaded = count_loaded_images(browser, report)
