@@ -69,6 +69,16 @@ def lsl_env(tmp_path):
     return {"env": env, "cfg": cfg, "log": log, "prefix": sid.replace("-", "_")}
 
 
+def ctrl_c_default() -> None:
+    """``preexec_fn`` of a child process that a test interrupts with SIGINT: Ctrl-C as in a
+    terminal, whatever pytest inherited. A background job (CI starts pytest as one) ignores
+    SIGINT, and Python keeps an ignored SIGINT ignored: the child would not be interrupted."""
+    import signal
+
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def cli_stderr(result) -> str:
     """stderr of a typer/click ``CliRunner`` result (older click: mixed into the output)."""
     try:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -20,7 +21,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from conftest import LSL_PRELUDE, cli_stderr
+from conftest import LSL_PRELUDE, cli_stderr, ctrl_c_default
 from kinefuse import cli
 
 CHILD_TIMEOUT_S = 150
@@ -315,7 +316,8 @@ def _view_url(log_dir, proc, timeout_s: float) -> str | None:
 def test_cli_stream_view_in_chromium(lsl_env, tmp_path):
     """`kinefuse stream --view` during a loopback replay: two pages in headless Chromium
     receive and draw frames, one is closed mid-stream, and the stream loses, repeats or
-    forces no sample meanwhile."""
+    forces no sample meanwhile; Ctrl-C ends the replay, and the stream still gets every sample
+    the replay counts."""
     from _chromium import browser, canvas_stats, color_fraction
 
     env, prefix = lsl_env["env"], lsl_env["prefix"]
@@ -332,14 +334,16 @@ def test_cli_stream_view_in_chromium(lsl_env, tmp_path):
                    "--record-inputs", "--no-status", "--view", "--json", str(summary_json)]  # fmt: skip
     procs = {}
     seen = {}
-    # the browser starts before the streams, and the replay lasts 30 s: a cold Chromium start
-    # (seen taking longer than 10 s in CI), or the pages' steps on a machine busy with the other
-    # test worker (a 10 s replay ended before the second page saw 10 more frames), must not
-    # outlast the stream they are to watch
+    # the browser starts before the streams, and the replay lasts up to 30 s: a cold Chromium
+    # start (seen taking longer than 10 s in CI), or the pages' steps on a machine busy with the
+    # other test worker (a 10 s replay ended before the second page saw 10 more frames), must
+    # not outlast the stream they are to watch. Once the pages are checked, Ctrl-C ends it.
     with browser() as (ctx, log):
         first, second = ctx.new_page(), ctx.new_page()
         try:
-            procs["replay"] = _start(replay_args, env, tmp_path, "replay")
+            procs["replay"] = _start(
+                replay_args, env, tmp_path, "replay", preexec_fn=ctrl_c_default
+            )
             procs["stream"] = _start(stream_args, env, tmp_path, "stream")
             url = _view_url(tmp_path, procs["stream"], CHILD_TIMEOUT_S)
             if url is None:
@@ -364,6 +368,7 @@ def test_cli_stream_view_in_chromium(lsl_env, tmp_path):
             canvas2 = second.locator("#kf-viewer canvas").screenshot()
             print(f"\nlive view screenshot: {tmp_path / 'live_view.png'}; first frame after "
                   f"{seen['first_frame_s']:.2f} s; frames seen {seen['first']} / {seen['second']}")  # fmt: skip
+            procs["replay"].send_signal(signal.SIGINT)  # the stream ends 2 s after its last input
             for name in ("stream", "replay"):
                 procs[name].wait(CHILD_TIMEOUT_S)
         finally:
@@ -385,6 +390,7 @@ def test_cli_stream_view_in_chromium(lsl_env, tmp_path):
     c = res["counters"]
     assert c["late"] == c["duplicate"] == c["forced_frames"] == 0, c
     assert res["outputs"] == res["frames"] == len(rec["frame_t"]) and not res["missing"]
+    assert rep["interrupted"] or rep["recording_s"] == 60.0, rep  # Ctrl-C, unless it had ended
     segments = [str(s) for s in rec["segments"]]
     for seg in segments:  # every pushed sample was accepted while the pages were open
         assert len(rec[f"imu_{seg}_t"]) == rep["samples"][f"{prefix}_imu_{seg}"], seg

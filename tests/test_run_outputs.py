@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 import test_session_run as _base
+from conftest import ctrl_c_default
 from kinefuse import cli
 from kinefuse.exceptions import InputError
 from kinefuse.io import read_joint_csv
@@ -173,14 +174,6 @@ def test_failure_while_writing_leaves_previous_results(
     assert not (tmp_path / "new").exists()
 
 
-def _ctrl_c_default() -> None:
-    """In the child before exec: Ctrl-C as in a terminal, whatever the test runner inherited (a
-    background job, as CI starts pytest, ignores SIGINT, and Python keeps an ignored SIGINT
-    ignored: the child would not be interrupted at all)."""
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 @pytest.mark.parametrize("delay_s", [1.0, 3.0, 5.0])
 def test_sigint_leaves_previous_or_complete_new_results(
     synthetic_files,
@@ -195,7 +188,7 @@ def test_sigint_leaves_previous_or_complete_new_results(
     proc = subprocess.Popen(
         [sys.executable, "-m", "kinefuse", "run", str(_good(synthetic_files)), "--out", str(out),
          "--force", "-q"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, preexec_fn=_ctrl_c_default,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, preexec_fn=ctrl_c_default,
     )  # fmt: skip
     time.sleep(delay_s)
     proc.send_signal(signal.SIGINT)

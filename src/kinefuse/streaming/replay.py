@@ -196,7 +196,9 @@ def run_replay(
     quiet : bool
         No progress log lines.
     linger_s : float
-        Keep the outlets open this long after the last sample (in-flight data), s.
+        Keep the outlets open this long after the last sample (in-flight data), s; after a
+        Ctrl-C too, so that a consumer gets every sample the summary counts (a second Ctrl-C
+        closes them at once).
 
     Returns
     -------
@@ -227,8 +229,10 @@ def run_replay(
     except KeyboardInterrupt:
         interrupted = True
     finally:
-        if not interrupted:
-            time.sleep(linger_s)  # let the last samples reach the inlets before closing
+        try:  # the samples pushed so far reach the inlets before the outlets close (Ctrl-C too)
+            time.sleep(linger_s)
+        except KeyboardInterrupt:  # a second Ctrl-C: close at once
+            interrupted = True
         del outlets[:]
     done = min(limit, pub.rep * pub.span if loop else pub.span)
     published = pub.last_rt if interrupted or stopped else done
