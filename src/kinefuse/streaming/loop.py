@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import gc
 import logging
-import signal
-import threading
 import time
 from collections import deque
 from typing import NamedTuple
 
 import numpy as np
+
+from kinefuse.streaming.interrupt import sigint_as_flag
 
 __all__ = ["LoopResult", "run_loop"]
 
@@ -168,31 +168,23 @@ def run_loop(engine, inputs, outlet, *, clock, duration_s=None, idle_timeout_s=N
     start = time.monotonic()
     loop = _Loop(engine, inputs, outlet, clock, on_output)
     interrupted = False
-    sigint: list = []
-    # in the main thread, unless SIGINT is ignored (a background job: it stays ignored)
-    main = threading.current_thread() is threading.main_thread()
-    main = main and signal.getsignal(signal.SIGINT) is not signal.SIG_IGN
-    # (None: a handler not installed from Python, restored as Python's default)
-    previous = signal.signal(signal.SIGINT, lambda *_: sigint.append(True)) if main else None
     gc.collect()
     gc.freeze()  # set-up objects out of the collector's way: short collections in the loop
     try:
-        while not sigint:
-            got = loop.pass_once()
-            mono = time.monotonic()
-            loop.housekeeping(mono, got, status, reattach)
-            if _stop(mono, start, loop.last_data, duration_s, idle_timeout_s, stop_event):
-                break
-            if not got:
-                time.sleep(0.0005)
-        interrupted = bool(sigint)
-    except KeyboardInterrupt:
-        interrupted = True
+        with sigint_as_flag() as sigint:  # the previous handler is back before the flush
+            try:
+                while not sigint:
+                    got = loop.pass_once()
+                    mono = time.monotonic()
+                    loop.housekeeping(mono, got, status, reattach)
+                    if _stop(mono, start, loop.last_data, duration_s, idle_timeout_s, stop_event):
+                        break
+                    if not got:
+                        time.sleep(0.0005)
+                interrupted = bool(sigint)
+            except KeyboardInterrupt:
+                interrupted = True
     finally:
-        if main:
-            signal.signal(
-                signal.SIGINT, signal.default_int_handler if previous is None else previous
-            )
         if interrupted:
             log.warning("interrupted (Ctrl-C): flushing pending frames and closing streams")
         gc.unfreeze()

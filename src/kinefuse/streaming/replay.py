@@ -8,7 +8,8 @@ Sample k of a stream is pushed when ``local_clock() >= t_start + (t_k − t_0) /
 carries exactly that value as its LSL timestamp: the original timestamps, shifted to
 ``local_clock`` and compressed by ``rate``; nominal rates are multiplied by ``rate``. The
 camera's NaN positions (unavailable joints) are sent as NaN with ``available = 0``. Ctrl-C
-stops publishing and closes the outlets.
+stops publishing before the next sample (every sample pushed is counted in the summary) and
+closes the outlets after ``linger_s``, as at a normal end.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from kinefuse.io.recording import Recording
 from kinefuse.sim import virtual_recording
 from kinefuse.streaming.config import import_pylsl
 from kinefuse.streaming.engine_types import SummaryMapping
+from kinefuse.streaming.interrupt import sigint_as_flag
 from kinefuse.streaming.lsl import (
     CAMERA_TYPE,
     IMU_CHANNELS,
@@ -120,13 +122,15 @@ class _Publisher:
         self.t0 = float(self.t_all[0])
         self.span = float(self.t_all[-1] - self.t0) + float(np.median(np.diff(streams[0][3])))
         self.streams, self.rate, self.limit, self.stop_event = streams, rate, limit, stop_event
+        self.sigint: list = []  # non-empty after Ctrl-C (streaming.interrupt.sigint_as_flag)
         self.pushed = [0] * len(streams)
         self.last_rt = 0.0  # recording time of the last sample pushed, s
         self.rep = 0
 
     def run(self, outlets, pylsl, loop: bool, quiet: bool) -> None:
         """Push every sample at ``start + (t_k − t_0) / rate``; raises :class:`_Stop` on the
-        stop event."""
+        stop event or Ctrl-C, checked before each sample (never between a push and its
+        count)."""
         start = pylsl.local_clock() + 0.05
         done = False
         while not done:
@@ -150,11 +154,11 @@ class _Publisher:
 
     def _wait(self, pylsl, due: float) -> None:
         while True:
+            if self.sigint or (self.stop_event is not None and self.stop_event.is_set()):
+                raise _Stop
             now = pylsl.local_clock()
             if now >= due:
                 return
-            if self.stop_event is not None and self.stop_event.is_set():
-                raise _Stop
             time.sleep(min(due - now, 0.005))
 
 
@@ -223,10 +227,13 @@ def run_replay(
     try:
         if wait_for_consumers_s:
             wait_for_consumers(outlets, wait_for_consumers_s)
-        pub.run(outlets, pylsl, loop, quiet)
-    except _Stop:
-        stopped = True
-    except KeyboardInterrupt:
+        with sigint_as_flag() as pub.sigint:  # Ctrl-C between two samples: each push counted
+            try:
+                pub.run(outlets, pylsl, loop, quiet)
+            except _Stop:
+                stopped = True
+            interrupted = bool(pub.sigint)
+    except KeyboardInterrupt:  # while waiting for consumers, or outside the main thread
         interrupted = True
     finally:
         try:  # the samples pushed so far reach the inlets before the outlets close (Ctrl-C too)
