@@ -2,7 +2,8 @@
 
 Oracle: :func:`kinefuse.io._write.fmt_float` (one value at a time, the writers' rule: fixed point,
 NaN/inf as an empty field, a value that rounds to zero as ``0``) and ``str(int(v))`` for flags;
-for the orientation ``.sto``, each value's ``repr`` (``NaN`` if not finite).
+for the orientation ``.sto``, each value's ``repr`` (``NaN`` if not finite); for the ``.mot``,
+each value's f-string fixed point (``NaN`` if not finite).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from kinefuse.io._write import fixed_point_rows, fmt_float
+from kinefuse.io.mot import _mot_rows
 from kinefuse.io.opensim import _sto_rows
 
 _SPECIAL = [0.0, -0.0, 1e-12, -1e-12, 4.9999e-7, -5e-7, 0.5, -0.5, 1e20, -1e20, np.nan, np.inf,
@@ -83,3 +85,27 @@ def test_sto_rows_equal_formatting_value_by_value(n, k, data):
         for i in range(n)
     ]
     assert _sto_rows(t, qs) == want
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    n=st.integers(0, 12),
+    k=st.integers(0, 4),
+    decimals=st.integers(0, 12),
+    data=st.data(),
+)
+def test_mot_rows_equal_formatting_value_by_value(n, k, decimals, data):
+    """The one-pass .mot rows equal formatting each value (time with at least 9 digits), as the
+    writer did value by value: ``NaN`` for nan and ±inf, ``-0.000`` kept as it is."""
+    vals = st.floats(allow_nan=True, allow_infinity=True, width=64)
+    M = np.array(data.draw(st.lists(st.lists(vals, min_size=k + 1, max_size=k + 1), min_size=n,
+                                    max_size=n)), float).reshape(n, k + 1)  # fmt: skip
+    dt = max(decimals, 9)
+    want = [
+        "\t".join(
+            f"{x:.{dt if c == 0 else decimals}f}" if math.isfinite(x) else "NaN"
+            for c, x in enumerate(row)
+        )
+        for row in M.tolist()
+    ]
+    assert _mot_rows(M, decimals) == want

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["current_umask", "fixed_point_rows", "fmt_float", "write_text_safely"]
+__all__ = ["current_umask", "fixed_point_rows", "fmt_float", "printf_rows", "write_text_safely"]
 
 
 def current_umask() -> int:
@@ -128,3 +128,33 @@ def fixed_point_rows(columns: Sequence[np.ndarray], decimals: int, sep: str = ",
     text = re.sub(rf"{field}-?(?:nan|inf){end}", "", text, flags=re.M)
     text = re.sub(rf"{field}-?0(?:\.0+)?{end}", "0", text, flags=re.M)
     return text.split("\n")
+
+
+#: A non-finite value's text (``nan``, ``inf``, ``-inf``) as a whole field: between tabs, commas
+#: or line ends.
+_NON_FINITE_FIELD = re.compile(r"(?<![^\t,\n])-?(?:nan|inf)(?![^\t,\n])")
+
+
+def printf_rows(columns: Sequence, row_format: str) -> list[str]:
+    """The rows ``row_format % (v_1, …, v_n)`` of float columns, in one pass; a non-finite
+    value is written ``NaN``.
+
+    Parameters
+    ----------
+    columns : sequence of array_like, shape (T,)
+        Float columns.
+    row_format : str
+        A ``%`` format with one conversion per column (``%r``, ``%.6f``…), its fields separated
+        by tabs or commas (how a non-finite field is found).
+
+    Returns
+    -------
+    list of str
+        T rows; identical to formatting value by value with ``NaN`` for a non-finite value
+        (tested for the ``.mot`` and orientation ``.sto`` writers).
+    """
+    values = [np.asarray(c, dtype=float).tolist() for c in columns]
+    if not values or not len(values[0]):
+        return []
+    text = "\n".join(row_format % row for row in zip(*values, strict=True))
+    return _NON_FINITE_FIELD.sub("NaN", text).split("\n")

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from kinefuse.exceptions import InputError
-from kinefuse.io._write import write_text_safely
+from kinefuse.io._write import printf_rows, write_text_safely
 
 __all__ = ["write_mot"]
 
@@ -95,15 +95,16 @@ def write_mot(
     head = [name or path.stem, "version=1", f"nRows={M.shape[0]}", f"nColumns={1 + len(names)}"]
     head += _header_lines(in_degrees, rate_hz, int(np.sum(~keep)), metadata)
     head += ["endheader", "\t".join(["time", *names])]
-    dt = max(int(decimals), 9)
-    body = [
-        "\t".join(
-            f"{x:.{dt if k == 0 else decimals}f}" if np.isfinite(x) else "NaN"
-            for k, x in enumerate(row)
-        )
-        for row in M
-    ]
+    body = _mot_rows(M, decimals)
     return write_text_safely(path, "\n".join(head + body) + "\n", force=force)
+
+
+def _mot_rows(M: np.ndarray, decimals: int) -> list[str]:
+    """The data rows of ``M (T, 1 + n)`` (time first), tab-separated: time with
+    ``max(decimals, 9)`` digits, values with ``decimals``, ``NaN`` where not finite (one pass:
+    :func:`~kinefuse.io._write.printf_rows`)."""
+    spec = [f"%.{max(int(decimals), 9)}f"] + [f"%.{int(decimals)}f"] * (M.shape[1] - 1)
+    return printf_rows(M.T, "\t".join(spec))
 
 
 def _check_series(t_s, columns: Mapping[str, object]):

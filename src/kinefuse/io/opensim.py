@@ -20,7 +20,6 @@ OpenSense inverse kinematics (``OpenSim::IMUInverseKinematicsTool``).
 
 from __future__ import annotations
 
-import re
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -32,7 +31,7 @@ from kinefuse.exceptions import FormatError, FormatWarning, InputError
 from kinefuse.io._checks import make_metadata
 from kinefuse.io._names import map_segments
 from kinefuse.io._text import check_time, read_text
-from kinefuse.io._write import write_text_safely
+from kinefuse.io._write import printf_rows, write_text_safely
 from kinefuse.io.recording import ImuStream, Recording
 
 __all__ = [
@@ -358,22 +357,13 @@ def read_opensense_sto(path, *, sensor_map: Mapping[str, str] | None = None) -> 
 
 
 #: a non-finite value written by ``%r`` (``nan``, ``inf``, ``-inf``) as one field
-_NON_FINITE = re.compile(r"(?<![^\t,\n])-?(?:nan|inf)(?![^\t,\n])")
-
-
 def _sto_rows(t: np.ndarray, qs: list) -> list[str]:
     """The data rows of an orientation ``.sto``: time, then each ``(T, 4)`` quaternion's four
     values joined by commas, tab-separated; each value its shortest round-trip ``repr``
     (``NaN`` if not finite), formatted in one pass (tests/test_io_number_text.py compares it
     with formatting value by value)."""
-    if not t.size:
-        return []
-    cols = [np.asarray(t, float).tolist()] + [
-        c for q in qs for c in np.asarray(q, float).T.tolist()
-    ]
-    fmt = "\t".join(["%r"] + [",".join(["%r"] * 4)] * len(qs))
-    text = "\n".join(fmt % row for row in zip(*cols, strict=True))
-    return _NON_FINITE.sub("NaN", text).split("\n")
+    cols = [t] + [c for q in qs for c in np.asarray(q, float).T]
+    return printf_rows(cols, "\t".join(["%r"] + [",".join(["%r"] * 4)] * len(qs)))
 
 
 def write_opensense_sto(
