@@ -139,9 +139,11 @@ def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool):
     # moved about its axis only): 1 rad costs a 1 % RMS relative-rate misfit per sample
     w_prior = HEADING_PRIOR * np.sqrt(RA.shape[0]) * float(np.sqrt(np.mean((wB - wA) ** 2)))
 
+    b_world = RB @ a2  # B's long axis in B's world frame (K, 3); ψ turns it about z
+
     def res(x):
         H = rotation_z(x[2] if refine_heading else 0.0)
-        n = np.cross(RA @ j1_of(x), (H @ RB) @ a2)
+        n = np.cross(RA @ j1_of(x), b_world @ H.T)
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
         r = np.einsum("ki,ki->k", wB @ H.T - wA, n)
         return np.append(r, w_prior * x[2])
