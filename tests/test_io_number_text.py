@@ -2,8 +2,8 @@
 
 Oracle: :func:`kinefuse.io._write.fmt_float` (one value at a time, the writers' rule: fixed point,
 NaN/inf as an empty field, a value that rounds to zero as ``0``) and ``str(int(v))`` for flags;
-for the orientation ``.sto``, each value's ``repr`` (``NaN`` if not finite); for the ``.mot``,
-each value's f-string fixed point (``NaN`` if not finite).
+for the orientation ``.sto``, each value's ``repr`` (``NaN`` if not finite); for the ``.mot``
+and the joint-angle CSV, each value's f-string fixed point (``NaN`` / empty if not finite).
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from kinefuse.io._write import fixed_point_rows, fmt_float
 from kinefuse.io.mot import _mot_rows
 from kinefuse.io.opensim import _sto_rows
+from kinefuse.pipelines.run.write import _angle_rows
 
 _SPECIAL = [0.0, -0.0, 1e-12, -1e-12, 4.9999e-7, -5e-7, 0.5, -0.5, 1e20, -1e20, np.nan, np.inf,
             -np.inf, 1.0, -1.0, 123.456789012]  # fmt: skip
@@ -109,3 +110,17 @@ def test_mot_rows_equal_formatting_value_by_value(n, k, decimals, data):
         for row in M.tolist()
     ]
     assert _mot_rows(M, decimals) == want
+
+
+@settings(max_examples=200, deadline=None)
+@given(n=st.integers(0, 12), k=st.integers(0, 4), data=st.data())
+def test_angle_csv_rows_equal_formatting_value_by_value(n, k, data):
+    """The joint-angle CSV rows: time as repr, angles with 4 decimals, empty if not finite."""
+    vals = st.floats(allow_nan=True, allow_infinity=True, width=64)
+    t = np.array(data.draw(st.lists(st.floats(0, 1e6), min_size=n, max_size=n)), float)
+    cols = [np.array(data.draw(st.lists(vals, min_size=n, max_size=n)), float) for _ in range(k)]
+    want = [
+        ",".join([repr(float(t[i]))] + [f"{v[i]:.4f}" if np.isfinite(v[i]) else "" for v in cols])
+        for i in range(n)
+    ]
+    assert _angle_rows(t, cols) == want

@@ -135,9 +135,9 @@ def fixed_point_rows(columns: Sequence[np.ndarray], decimals: int, sep: str = ",
 _NON_FINITE_FIELD = re.compile(r"(?<![^\t,\n])-?(?:nan|inf)(?![^\t,\n])")
 
 
-def printf_rows(columns: Sequence, row_format: str) -> list[str]:
+def printf_rows(columns: Sequence, row_format: str, nan: str = "NaN") -> list[str]:
     """The rows ``row_format % (v_1, …, v_n)`` of float columns, in one pass; a non-finite
-    value is written ``NaN``.
+    value is written ``nan``.
 
     Parameters
     ----------
@@ -146,15 +146,17 @@ def printf_rows(columns: Sequence, row_format: str) -> list[str]:
     row_format : str
         A ``%`` format with one conversion per column (``%r``, ``%.6f``…), its fields separated
         by tabs or commas (how a non-finite field is found).
+    nan : str
+        The text of a non-finite value (``NaN``; ``""``: an empty field).
 
     Returns
     -------
     list of str
-        T rows; identical to formatting value by value with ``NaN`` for a non-finite value
-        (tested for the ``.mot`` and orientation ``.sto`` writers).
+        T rows; identical to formatting value by value with ``nan`` for a non-finite value
+        (tested for the ``.mot``, orientation ``.sto`` and joint-angle CSV writers).
     """
     values = [np.asarray(c, dtype=float).tolist() for c in columns]
     if not values or not len(values[0]):
         return []
     text = "\n".join(row_format % row for row in zip(*values, strict=True))
-    return _NON_FINITE_FIELD.sub("NaN", text).split("\n")
+    return _NON_FINITE_FIELD.sub(nan, text).split("\n")

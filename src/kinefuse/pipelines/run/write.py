@@ -10,7 +10,7 @@ metrics; all staged and moved into the output folder as one set
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -22,7 +22,7 @@ from kinefuse.evaluation.angles import angle_extremes_table, angle_section, writ
 from kinefuse.evaluation.report import REPORT_NAME
 from kinefuse.exceptions import ConfigError
 from kinefuse.io import ImuStream, JointStream, write_joint_csv, write_trc
-from kinefuse.io._write import write_text_safely
+from kinefuse.io._write import printf_rows, write_text_safely
 from kinefuse.io.mot import write_mot
 from kinefuse.io.opensim import write_opensense_sto
 from kinefuse.io.output_folder import OutputFolder
@@ -337,6 +337,12 @@ def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> N
         )
 
 
+def _angle_rows(t_s, columns: Sequence) -> list[str]:
+    """The rows of the joint-angle CSV: time as its shortest round-trip ``repr``, each angle
+    with 4 decimals, an empty field where not finite (one pass: :func:`printf_rows`)."""
+    return printf_rows([t_s, *columns], ",".join(["%r"] + ["%.4f"] * len(columns)), nan="")
+
+
 def _write_angles(out: SessionOutput, targets: Mapping[str, Path], cfg, force: bool) -> list:
     """Joint angles next to the positions: CSV (``t_s`` + one column per angle) and ``.mot``."""
     cols = {
@@ -353,12 +359,7 @@ def _write_angles(out: SessionOutput, targets: Mapping[str, Path], cfg, force: b
         f"# frame: {out.frame}",
         "t_s," + ",".join(cols),
     ]
-    rows = [
-        ",".join(
-            [repr(float(t))] + [f"{v[i]:.4f}" if np.isfinite(v[i]) else "" for v in cols.values()]
-        )
-        for i, t in enumerate(out.t_s)
-    ]
+    rows = _angle_rows(out.t_s, list(cols.values()))
     csv = write_text_safely(targets["angles_csv"], "\n".join(head + rows) + "\n", force=force)
     mot = write_mot(
         targets["mot"],
