@@ -103,8 +103,9 @@ def figure_to_png(
     The pixels are those of ``fig.savefig(..., dpi=dpi)``. ``savefig`` with a layout engine
     draws a figure twice (a layout pass, then the pixels) and encodes a PNG that the palette
     step would decode again; one Agg draw does both the constrained layout and the pixels, so
-    2-D figures are drawn once, about 40 % faster. A 3-D axes places its tick labels from the
-    draw before, so figures with one go through ``savefig``.
+    2-D figures are drawn once (the demo's 20 figures: 10.4 s -> 7.9 s, byte-identical). A 3-D
+    axes places its tick labels from the draw before, so figures with one go through
+    ``savefig``.
     """
     img = _rgba(fig, dpi)
     out = io.BytesIO()

@@ -356,7 +356,6 @@ def read_opensense_sto(path, *, sensor_map: Mapping[str, str] | None = None) -> 
     return Recording(imu=imu, metadata=md)
 
 
-#: a non-finite value written by ``%r`` (``nan``, ``inf``, ``-inf``) as one field
 def _sto_rows(t: np.ndarray, qs: list) -> list[str]:
     """The data rows of an orientation ``.sto``: time, then each ``(T, 4)`` quaternion's four
     values joined by commas, tab-separated; each value its shortest round-trip ``repr``
