@@ -23,7 +23,7 @@ from kinefuse import __version__
 from kinefuse.evaluation import plots, tables
 from kinefuse.evaluation.report import REPORT_CSS, REPORT_NAME
 from kinefuse.exceptions import InputError
-from kinefuse.kinematics.angles import angle_components
+from kinefuse.kinematics.angles import angle_words
 
 __all__ = [
     "angle_extremes_table",
@@ -32,11 +32,6 @@ __all__ = [
     "range_of_motion_table",
     "write_angle_report",
 ]
-
-
-def _names(joint: str) -> tuple[str, ...]:
-    """``joint``'s three angle names as words ("internal rotation", "lateral bending"...)."""
-    return tuple(c.replace("_", " ") for c in angle_components(joint))
 
 
 #: The note of a table with a trunk row, whose three angles are not a limb joint's.
@@ -67,7 +62,7 @@ def range_of_motion_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTabl
     rows = []
     for j, a in angles.items():
         a = np.asarray(a, dtype=float)
-        for k, comp in enumerate(_names(j)):
+        for k, comp in enumerate(angle_words(j)):
             lo, hi, mean = _extremes(a, k)
             vals = (lo, hi, hi - lo, mean) if lo is not None else (None,) * 4
             rows.append(tables.TableRow(labels=(j, comp), values=vals))
@@ -131,7 +126,7 @@ def angle_figure(t_s, angles: Mapping[str, np.ndarray]):
     fig = plots._figure(9.0, 1.9 * n + 0.4)
     axs = fig.subplots(n, 1, sharex=True, squeeze=False)[:, 0]
     for ax, (j, a) in zip(axs, angles.items(), strict=False):
-        for k, comp in enumerate(_names(j)):
+        for k, comp in enumerate(angle_words(j)):
             ax.plot(t, np.asarray(a)[:, k], lw=1.0 if k == 0 else 0.7, label=comp)
         ax.set_ylabel(f"{j} (deg)")
         ax.grid(alpha=0.3)

@@ -25,7 +25,7 @@ from scipy.spatial.transform import Rotation
 from kinefuse.exceptions import InputError
 from kinefuse.kinematics.forward import as_rotation_matrices
 
-__all__ = ["JOINTS", "JOINT_ANGLE_COMPONENTS", "angle_components", "joint_angles"]
+__all__ = ["JOINTS", "JOINT_ANGLE_COMPONENTS", "angle_components", "angle_words", "joint_angles"]
 
 #: The three angles of every limb joint, in the order returned (degrees).
 JOINT_ANGLE_COMPONENTS = ("flexion", "adduction", "internal_rotation")
@@ -68,6 +68,11 @@ def angle_components(joint: str) -> tuple[str, str, str]:
     return TRUNK_ANGLE_COMPONENTS if joint == "trunk" else JOINT_ANGLE_COMPONENTS
 
 
+def angle_words(joint: str) -> tuple[str, str, str]:
+    """:func:`angle_components` as words for tables and messages ("internal rotation")."""
+    return tuple(c.replace("_", " ") for c in angle_components(joint))
+
+
 def joint_angles(
     orientations: Mapping[str, object], joints: Sequence[str] | None = None
 ) -> dict[str, np.ndarray]:
@@ -81,18 +86,19 @@ def joint_angles(
         segment, ``(..., T, 3, 3)`` matrices or ``(..., T, 4)`` ``wxyz`` quaternions, e.g. from
         :func:`kinefuse.kinematics.segment_orientations`. NaN rows give NaN angles.
     joints : sequence of str, optional
-        Joints of :data:`JOINTS` (``shoulder_r``, ``elbow_r``, ``knee_l``, ``hip_r``...). Default: every joint
-        whose two segments are in ``orientations``.
+        Joints of :data:`JOINTS` (``shoulder_r``, ``elbow_r``, ``knee_l``, ``hip_r``...).
+        Default: every joint whose two segments are in ``orientations``.
 
     Returns
     -------
     dict of str -> ndarray, shape (..., T, 3)
         Per joint ``[flexion, adduction, internal_rotation]`` (:data:`JOINT_ANGLE_COMPONENTS`;
-        the trunk's: :data:`TRUNK_ANGLE_COMPONENTS`, signs at :data:`JOINTS`), deg. Signs (ISB, both sides): flexion positive (elbow and knee bent, shoulder and hip
-        with the arm or thigh forward, ankle dorsiflexed: toes up); adduction positive (distal segment towards
-        the midline; at the elbow this is varus); internal rotation positive (at the elbow this
-        is pronation). Zero in
-        the calibration pose of :func:`kinefuse.kinematics.calibrate` (``"static"``).
+        the trunk's: :data:`TRUNK_ANGLE_COMPONENTS`, signs at :data:`JOINTS`), deg. Signs
+        (ISB, both sides): flexion positive (elbow and knee bent, shoulder and hip with the arm
+        or thigh forward, ankle dorsiflexed: toes up); adduction positive (distal segment
+        towards the midline; at the elbow this is varus); internal rotation positive (at the
+        elbow this is pronation). Zero in the calibration pose of
+        :func:`kinefuse.kinematics.calibrate` (``"static"``).
 
     Raises
     ------
@@ -104,10 +110,10 @@ def joint_angles(
     ``R = R_pᵀ R_d = R_Z(α) R_X(β) R_Y(γ)`` (intrinsic Z-X-Y, SciPy ``"ZXY"``); flexion
     ``= s α`` with the sign ``s`` of :data:`JOINTS`, adduction ``= β`` (right) or ``−β`` (left),
     internal rotation ``= γ`` (right) or ``−γ`` (left), so that both sides read alike; the
-    trunk's lateral bending ``= β`` and axial rotation ``= γ``. The
-    decomposition is singular at ``β = ±90°``: never reached by a healthy knee or elbow; at the
-    shoulder, the arm horizontal to the side (see :data:`JOINTS`; there ``γ`` is set to 0 and
-    ``α`` takes the whole turn, without SciPy's gimbal-lock warning).
+    trunk's lateral bending ``= β`` and axial rotation ``= γ``. The decomposition is singular
+    at ``β = ±90°``: never reached by a healthy knee or elbow; at the shoulder, the arm
+    horizontal to the side (see :data:`JOINTS`; there ``γ`` is set to 0 and ``α`` takes the
+    whole turn, without SciPy's gimbal-lock warning).
     """
     if not isinstance(orientations, Mapping):
         raise InputError(

@@ -18,7 +18,9 @@ fused output   ``MoCap`` per joint ``{joint}_x _y _z`` (m), ``{joint}_std_x _y _
                          (bit mask, ``desc/flags``); nominal rate = camera rate
 joint angles   ``Angles`` with a calibrated chain (``--chain`` with segment frames): per joint
                          ``{joint}_flexion``, ``_adduction``, ``_internal_rotation`` (deg,
-                         ISB; ``trunk_flexion``, ``_lateral_bending``, ``_axial_rotation``); named ``{fused}-angles``, same timestamps as the fused output
+                         ISB; ``trunk_flexion``, ``_lateral_bending``,
+                         ``_axial_rotation``); named ``{fused}-angles``, same
+                         timestamps as the fused output
 =============  ========  ===============================================================
 
 Clocks: an inlet's timestamps are in the sender's ``local_clock``. With ``clock="manual"``

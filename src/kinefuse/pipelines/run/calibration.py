@@ -15,13 +15,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from kinefuse.kinematics import (
-    angle_components,
     calibrate,
     find_still_window,
     joint_angles,
     segment_orientations,
 )
-from kinefuse.kinematics.angles import JOINTS
+from kinefuse.kinematics.angles import JOINTS, angle_words
 from kinefuse.kinematics.functional import align_headings
 from kinefuse.orientation.resample import slerp_resample
 from kinefuse.session_file.from_recording import (
@@ -300,14 +299,13 @@ def _pose_angle_check(angles: Mapping[str, np.ndarray], t: np.ndarray, cal) -> l
         off = (mean - want + 180.0) % 360.0 - 180.0
         if abs(abs(want[1]) - 90.0) < 1.0:  # a T-pose shoulder: flexion and rotation undefined
             off[[0, 2]] = 0.0
-        bad = [f"{c.replace('_', ' ')} {v:.0f}"
-               for c, v, d in zip(angle_components(j), mean, off, strict=True)
+        names = angle_words(j)
+        bad = [f"{c} {v:.0f}" for c, v, d in zip(names, mean, off, strict=True)
                if abs(d) > POSE_ANGLE_WARN_DEG]  # fmt: skip
         if bad:
             pose = "zero"
             if np.any(np.abs(want) > 0.5):
-                pose = ", ".join(f"{c.replace('_', ' ')} {v:.0f}"
-                                 for c, v in zip(angle_components(j), want, strict=True))  # fmt: skip
+                pose = ", ".join(f"{c} {v:.0f}" for c, v in zip(names, want, strict=True))
             out.append(
                 f"{j} reads {', '.join(bad)} deg in the calibration pose ({cal.window_s[0]:.2f}-"
                 f"{cal.window_s[1]:.2f} s), where it reads {pose} by construction: its "
