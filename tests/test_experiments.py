@@ -102,6 +102,8 @@ def test_paper_b_quick_tuning_set_tables_name_the_set_and_baselines(shared_data)
     # the oracle bound (chain + the best linear offset per outage, from the hidden reference)
     # can only be at or below offset interp, which is of that form
     assert t["oracle_linear_offset_vs_offset_interp_pct"] <= 0.0
+    # the constant bound is of offset hold's form: at or below offset hold
+    assert t["oracle_constant_offset_vs_offset_interp_pct"] is not None
 
 
 def test_oracle_linear_offset_closed_form():
@@ -137,3 +139,34 @@ def test_oracle_linear_offset_closed_form():
     rms = np.sqrt(np.mean(np.sum(np.concatenate(expect) ** 2, -1)))
     assert oracle_linear_offset([part]) == pytest.approx(rms, rel=1e-9)
     assert oracle_linear_offset([{**part, "outage": np.zeros((T, 2), bool)}]) is None
+
+
+def test_oracle_constant_offset_closed_form():
+    """Reference - offset hold = a constant per outage + known noise: the bound is the RMS of
+    the noise less its mean per outage; a line per outage is not absorbed (only its mean)."""
+    from kinefuse.apps.paper_b_tables import oracle_constant_offset
+
+    rng = np.random.default_rng(4)
+    T = 300
+    out = np.zeros((T, 2), bool)
+    spans = ((0, (20, 90)), (1, (120, 200)), (0, (230, 290)))
+    for j, (a, b) in spans:
+        out[a:b, j] = True
+    base = rng.normal(size=(T, 2, 3))
+    const = np.zeros((T, 2, 3))
+    for j, (a, b) in spans:
+        const[a:b, j] = rng.normal(size=3)
+    part = {"estimates": {"offset hold": base}, "reference": base + const, "outage": out}
+    assert oracle_constant_offset([part]) == pytest.approx(0.0, abs=1e-9)
+    noise = rng.normal(scale=0.01, size=(T, 2, 3))
+    noise[~out] = 5.0  # outside the outages: not counted
+    part["reference"] = base + const + noise
+    expect = [noise[a:b, j] - noise[a:b, j].mean(0) for j, (a, b) in spans]
+    rms = np.sqrt(np.mean(np.sum(np.concatenate(expect) ** 2, -1)))
+    assert oracle_constant_offset([part]) == pytest.approx(rms, rel=1e-9)
+    # a slope inside each outage: the best constant leaves the line minus its mean
+    k = np.arange(T, dtype=float)[:, None, None] * np.array([0.01, -0.02, 0.005])
+    part["reference"] = base + const + k * out[..., None]
+    expect = [k[a:b, 0] - k[a:b, 0].mean(0) for j, (a, b) in spans]
+    rms = np.sqrt(np.mean(np.sum(np.concatenate(expect) ** 2, -1)))
+    assert oracle_constant_offset([part]) == pytest.approx(rms, rel=1e-9)

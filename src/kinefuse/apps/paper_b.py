@@ -24,6 +24,7 @@ from kinefuse.apps.demo import run_scenario
 from kinefuse.apps.paper_b_tables import (
     cdf_table,
     in_view_table,
+    oracle_constant_offset,
     oracle_linear_offset,
     summary_table,
     targets_table,
@@ -304,6 +305,7 @@ def _dataset_tables(ds_name: str, parts: list[dict], labels, split: DataSplit):
         "summary": sres,
         "in_view_vs_camera_pct": vres,
         "cdf_0.9": cres,
+        "oracle_constant_offset_rmse_3d_outage_m": oracle_constant_offset(parts),
         "oracle_linear_offset_rmse_3d_outage_m": oracle_linear_offset(parts),
         "trials": [p["name"] for p in parts],
         "split": split.name,
@@ -339,7 +341,10 @@ def run_paper_b(run: ExperimentRun) -> dict:
         tables += ds_tables
         if vres is not None:
             in_view[ds_name] = vres
-    oracles = {ds: r["oracle_linear_offset_rmse_3d_outage_m"] for ds, r in results.items()}
+    oracles = {
+        ds: {k: r[f"oracle_{k}_offset_rmse_3d_outage_m"] for k in ("constant", "linear")}
+        for ds, r in results.items()
+    }
     tt, tres = targets_table(summaries, split, in_view, oracles)
     tables.append(tt)
     return {"tables": tables, "results": results, "targets": tres}
