@@ -426,6 +426,18 @@ def test_load_session_full(tmp_path):
     assert cfg.method.name == "elm-fir"
 
 
+def test_load_session_accepts_the_stream_table(tmp_path):
+    """One file for `kinefuse run` and `kinefuse stream` (README, docs/streaming.md): the
+    offline loader leaves [stream] to the stream command, and still refuses unknown tables."""
+    p = _session(tmp_path, '[stream]\nname_prefix = "x"\n')
+    assert load_session(p).method.name == "imu-only"
+    p = _session(tmp_path, '[streem]\nname_prefix = "x"\n')
+    with pytest.raises(
+        ConfigError, match=r"\[top level\] streem: unknown key \(did you mean 'stream'"
+    ):
+        load_session(p)
+
+
 # ------------------------------------------------------------------------------------------
 # demo and output-overwrite protection
 # ------------------------------------------------------------------------------------------

@@ -37,6 +37,9 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 __all__ = ["load_session", "read_toml"]
 
 _SECTIONS = ("session", "imu", "skeleton", "calibration", "camera", "reference", "method")
+#: Tables of other commands that a session file may hold: ``kinefuse stream`` reads and checks
+#: ``[stream]`` (docs/streaming.md); ``kinefuse run`` leaves it alone.
+_OTHER_COMMANDS = ("stream",)
 _CALIBRATION_KEYS = (
     "method",
     "window_s",
@@ -103,7 +106,7 @@ def load_session(path: str | Path, *, document: Mapping | None = None) -> Sessio
         )
     p = p.resolve()
     c = _Ctx(p)
-    c.check_keys(doc, "top level", _SECTIONS)
+    c.check_keys(doc, "top level", _SECTIONS + _OTHER_COMMANDS)
     name, out_dir = _session(c, doc)
     imu = _imu(c, doc)
     skeleton = _skeleton(c, doc)
