@@ -254,17 +254,61 @@ def _trunk_orientation(recording, cal, t, segment: str) -> tuple[np.ndarray, str
     return R @ trunk_frame_in_sensor(None, segment), how
 
 
-def _hip_roots(recording, cal, t, origin, body_height_m, notes) -> dict[str, np.ndarray]:
-    """Hip joint centres from the pelvis IMU: origin (mid-hip) ± half the hip width along the
-    pelvis right axis (:func:`pelvis_right_in_sensor`)."""
+#: Plausible distance between the two hip joint centres, m (adults: about 0.15-0.25 m; Winter
+#: 2009's 0.191 x body height); a functional estimate outside it is not used.
+HIP_WIDTH_RANGE_M = (0.10, 0.40)
+
+
+def hip_offsets_in_pelvis_sensor(cal, body_height_m) -> tuple[dict[str, np.ndarray], str]:
+    """The hip joint centres relative to the mid-hip point in the pelvis sensor's frame, m, and
+    where they come from.
+
+    A functional calibration that fitted both hips against the pelvis IMU gives them directly
+    (each hip's sensor-to-centre vector ``r_proximal_m``, minus their mean), when their distance
+    is plausible (:data:`HIP_WIDTH_RANGE_M`). Otherwise ± half the hip width 0.191 x body
+    height (Winter 2009) along the pelvis right axis (:func:`pelvis_right_in_sensor`: the
+    calibrated pelvis frame's, else the sensor taken as right-front-up).
+    """
+    fits = getattr(cal, "joints", None) or {}
+    r = {h: getattr(fits.get(h), "r_proximal_m", None) for h in ("hip_l", "hip_r")}
+    from_pelvis = all(fits.get(h) is not None and fits[h].proximal == "pelvis" for h in r)
+    if from_pelvis and all(v is not None and np.all(np.isfinite(v)) for v in r.values()):
+        mid = 0.5 * (r["hip_l"] + r["hip_r"])
+        w = float(np.linalg.norm(r["hip_r"] - r["hip_l"]))
+        lo, hi = HIP_WIDTH_RANGE_M
+        if lo <= w <= hi:
+            how = (
+                f"the hip centres of the functional calibration in the pelvis sensor frame "
+                f"(hip width {w:.3f} m)"
+            )
+            return {h: v - mid for h, v in r.items()}, how
+        rejected = f"; the functional hip centres ({w:.3f} m apart) are outside {lo}-{hi} m"
+    else:
+        rejected = ""
     w = hip_width_m(body_height_m)
-    R, how = _trunk_orientation(recording, cal, t, "pelvis")
-    notes.append(
-        f"hips: pelvis origin (mid-hip) ± {w / 2:.3f} m along the pelvis right axis "
-        f"(hip width 0.191 x {float(body_height_m):g} m, Winter 2009), from {how}"
+    right = pelvis_right_in_sensor(cal)
+    frame = (
+        "the calibrated pelvis frame"
+        if cal is not None and "pelvis" in cal.frames
+        else "the pelvis sensor frame taken as right-front-up (no calibrated pelvis frame)"
     )
-    right = R[..., :, 2]
-    return {"hip_l": origin - 0.5 * w * right, "hip_r": origin + 0.5 * w * right}
+    how = (
+        f"± {w / 2:.3f} m along the pelvis right axis (hip width 0.191 x "
+        f"{float(body_height_m):g} m, Winter 2009) of {frame}{rejected}"
+    )
+    return {"hip_l": -0.5 * w * right, "hip_r": 0.5 * w * right}, how
+
+
+def _hip_roots(recording, cal, t, origin, body_height_m, notes) -> dict[str, np.ndarray]:
+    """Hip joint centres from the pelvis IMU: origin (mid-hip) plus the offsets of
+    :func:`hip_offsets_in_pelvis_sensor` turned by the pelvis sensor's orientation."""
+    off, how = hip_offsets_in_pelvis_sensor(cal, body_height_m)
+    st = recording.imu["pelvis"]
+    R = as_rotation_matrices(slerp_resample(st.t_s, st.q_world_from_sensor, t))
+    if cal is not None and getattr(cal, "world_heading_deg", None):
+        R = cal.heading_matrix("pelvis") @ R
+    notes.append(f"hips: pelvis origin (mid-hip) plus {how}")
+    return {h: origin + R @ o for h, o in off.items()}
 
 
 def _shoulder_roots(recording, cal, t, origin, above_hips, body_height_m, notes):

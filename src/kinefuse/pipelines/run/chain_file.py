@@ -32,8 +32,7 @@ from kinefuse.exceptions import InputError
 from kinefuse.kinematics import Skeleton
 from kinefuse.kinematics.static import relative_yaw, window_orientations
 from kinefuse.pipelines.run.chain import (
-    hip_width_m,
-    pelvis_right_in_sensor,
+    hip_offsets_in_pelvis_sensor,
     shoulder_offsets_m,
     trunk_frame_in_sensor,
 )
@@ -80,9 +79,8 @@ def chain_description(sk: Skeleton, root_kind: str, params: Mapping, cal, body_h
     starts = {a for a, p in zip(sk.proximal, sk.parents, strict=True) if p < 0}
     offsets = {}
     if root_kind == "pelvis":  # the hips as the offline chain places them (_hip_roots)
-        w, right = hip_width_m(body_height_m), pelvis_right_in_sensor(cal)
+        offsets = hip_offsets_in_pelvis_sensor(cal, body_height_m)[0]
         d["root"], d["root_segment"] = "pelvis", "pelvis"
-        offsets = {h: s * 0.5 * w * right for h, s in (("hip_l", -1.0), ("hip_r", 1.0))}
     elif trunk is not None:  # fixed: the measured point is the mid-shoulder point
         d["root"], d["root_segment"] = "spine_shoulder", trunk
     else:
