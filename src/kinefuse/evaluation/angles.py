@@ -163,11 +163,13 @@ def write_angle_report(
     notes: Sequence[str] = (),
     provenance: Mapping | None = None,
     force: bool = False,
+    unscored: str = "no reference",
 ) -> Path:
     """A self-contained ``report.html`` without scores (no reference): notes and joint angles.
 
     Also writes ``figures/joint_angles.png`` and ``provenance.json`` (which data calibrated
     what). Refuses to overwrite ``report.html`` unless ``force`` (FileExistsError).
+    ``unscored`` says in the header why there are no scores.
     """
     out = Path(out_dir)
     path = out / REPORT_NAME
@@ -178,8 +180,8 @@ def write_angle_report(
     e = html.escape
     meta = (
         f"generated {_dt.datetime.now().strftime('%Y-%m-%d %H:%M')} by kinefuse {e(__version__)}"
-        f" · {t.size} samples ({float(t[-1] - t[0]) if t.size > 1 else 0.0:.1f} s) · no reference:"
-        " positions and angles are not scored"
+        f" · {t.size} samples ({float(t[-1] - t[0]) if t.size > 1 else 0.0:.1f} s) · "
+        f"{e(unscored)}: positions and angles are not scored"
     )
     parts = [
         '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">',

@@ -365,16 +365,25 @@ def _label_and_align(out: SessionOutput, recording, plan: dict, reference, tags=
             tags.append("aligned to reference")
             notes.append(
                 "estimates rigidly aligned to the reference (Kabsch rotation + translation over "
-                "all samples, as asked: align_to_reference = 'rigid') before evaluation"
+                "all samples, as asked: [reference] align = 'rigid') before evaluation"
             )
             provenance["alignment"] = "rigid (Kabsch) to the reference, as asked"
         elif ref_frame != out.frame:
-            notes.append(
-                f"no scores: the output frame ({out.frame}) is not the reference frame "
-                f"({ref_frame}); positions in different frames are not comparable. Set "
-                "align_to_reference = 'rigid' for scores after a rigid alignment (labelled), or "
-                "root = 'reference' to start the chain at the reference joints"
+            if "relative to" in out.frame:  # a moving origin: no rigid alignment maps it
+                fix = "set [skeleton] root = 'reference' (the chain starts at the reference joints)"
+            else:
+                fix = (
+                    "set [reference] align = 'rigid' (a rigid alignment to the reference) or "
+                    "[skeleton] root = 'reference' (the chain starts at the reference joints)"
+                )
+            msg = (
+                f"not scored: the output frame ({out.frame}) is not the reference frame "
+                f"({ref_frame}); positions in different frames are not comparable. To score, "
+                + fix
+                + "; the scores are then labelled so"
             )
+            out.warnings.append(msg)
+            notes.append(f"WARNING: {msg}")
             out.reference = None
             provenance["alignment"] = "none (frames differ: not scored)"
         else:

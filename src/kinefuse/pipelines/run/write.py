@@ -334,6 +334,11 @@ def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> N
             title=title,
             notes=out.notes,
             provenance=out.provenance,
+            unscored=(
+                "reference given, frames differ (see the notes)"
+                if str(out.provenance.get("alignment", "")).startswith("none (frames differ")
+                else "no reference"
+            ),
         )
 
 
