@@ -257,7 +257,15 @@ def test_cli_stream_accepts_offline_session(lsl_env, tmp_path):
         (["replay", "missing.csv"], ["RECORDING missing.csv: file not found"]),
         (["replay", "demo", "--rate", "0"], ["--rate", "> 0"]),
         (["replay", "demo", "--duration", "-1"], ["--duration", "> 0"]),
-        (["stream", "bad.toml"], ["bad.toml", "unknown key(s) ['bogus']"]),
+        (
+            ["stream", "bad.toml"],
+            ["bad.toml: [stream] bogus: unknown key (allowed keys: name_prefix, imu_streams,"],
+        ),
+        (
+            ["stream", "typo.toml"],
+            ["typo.toml: [stream] name_prefx: unknown key (did you mean 'name_prefix'?)"],
+        ),
+        (["stream", "notab.toml"], ["notab.toml: [stream]: expected a table, got int"]),
         (["stream", "broken.toml"], ["broken.toml: not valid TOML"]),
         (["stream", "missing.toml"], ["missing.toml: file not found"]),
         (["stream", "s.toml", "--out", "existing"], ["existing.npz already exists", "--force"]),
@@ -270,6 +278,8 @@ def test_cli_stream_replay_bad_input_exits_2_before_lsl(args, needles, tmp_path,
     monkeypatch.chdir(tmp_path)
     (tmp_path / "s.toml").write_text('[stream]\nname_prefix = "kftest_unused"\n')
     (tmp_path / "bad.toml").write_text('[stream]\nname_prefix = "x"\nbogus = 1\n')
+    (tmp_path / "typo.toml").write_text('[stream]\nname_prefx = "x"\n')
+    (tmp_path / "notab.toml").write_text("stream = 1\n")
     (tmp_path / "broken.toml").write_text("[stream\n")
     (tmp_path / "existing.npz").write_bytes(b"keep me")
     result = runner.invoke(cli.app, args)
@@ -295,6 +305,27 @@ def test_cli_stream_replay_help(command, options):
     assert result.exit_code == 0, result.output
     for option in options:
         assert option in result.output, option
+
+
+def test_cli_stream_help_lists_every_published_channel():
+    """The help names each channel family of the fused and joint-angle outlets as the code
+    builds them (kinefuse.streaming.lsl), and every joint that has angles."""
+    from kinefuse.kinematics.angles import JOINTS
+    from kinefuse.streaming.lsl import angle_channels, output_channels
+
+    result = runner.invoke(cli.app, ["stream", "--help"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    fused = [label for label, *_ in output_channels(["JOINT"]) if label[-2:] not in ("_y", "_z")]
+    assert fused == ["JOINT_x", "JOINT_std_x", "JOINT_source", "JOINT_flags"]
+    for label in fused:
+        assert label in text, label
+    for joint in dict.fromkeys(j.removesuffix("_l").removesuffix("_r") for j in JOINTS):
+        assert joint in text, joint
+        first, *others = [label for label, *_ in angle_channels([joint])]
+        assert (first if joint == "trunk" else first.replace(joint, "JOINT")) in text, first
+        for label in others:
+            assert label.removeprefix(joint) in text, label
 
 
 def _view_url(log_dir, proc, timeout_s: float) -> str | None:

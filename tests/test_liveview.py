@@ -3,8 +3,11 @@ a stalled or departed viewer never holds the publisher up."""
 
 from __future__ import annotations
 
+import http.client
 import json
+import logging
 import socket
+import struct
 import threading
 import urllib.request
 from types import SimpleNamespace
@@ -170,3 +173,59 @@ def test_liveview_shows_the_joint_angles_it_is_given(tmp_path):
     finally:
         view.close()
         plain.close()
+
+
+def _reset(port: int, request: bytes = b"", read: int = 0) -> None:
+    """Connect, send ``request``, read ``read`` bytes, then reset the connection (SO_LINGER 0
+    sends RST, as a browser tab killed mid-load or ``curl URL | head -c 300`` do)."""
+    s = socket.create_connection((HOST, port), timeout=5)
+    if request:
+        s.sendall(request)
+    got = b""
+    while len(got) < read and (chunk := s.recv(read - len(got))):
+        got += chunk
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    s.close()
+
+
+def _requests_handled(timeout_s: float = 30.0) -> bool:
+    """Wait until no request thread of a live view is running (each ends with its connection)."""
+    for _ in range(int(timeout_s / 0.05)):
+        if not any("process_request" in t.name for t in threading.enumerate()):
+            return True
+        threading.Event().wait(0.05)
+    return False
+
+
+def test_liveview_ignores_clients_that_reset_and_reports_other_errors_in_one_line(capsys, caplog):
+    """A viewer going away (connection reset, broken pipe) is normal: nothing on stderr, no
+    traceback; another failure of a request is one warning line, not socketserver's traceback."""
+    view = LiveView(["a", "b"], [("a", "b")], port=0)
+    try:
+        port = view._server.server_address[1]
+        view.publish(_frame(1))
+        _reset(port)  # before sending a request
+        _reset(port, b"GET / HTTP/1.1\r\nHost: x\r\n\r\n", read=300)  # mid-page
+        _reset(port, b"GET /status HTTP/1.1\r\nHost: x\r\n\r\n", read=1)  # kept alive, then reset
+        _reset(port, b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n", read=1)  # a viewer leaves
+        assert _requests_handled()
+        assert _status(view)["viewers"] == 0
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and "Exception occurred" not in err, err
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+
+        def broken_page():
+            raise RuntimeError("page broke")
+
+        view._page = broken_page  # any other error: reported, in one line
+        with caplog.at_level(logging.WARNING, logger="kinefuse.streaming"):
+            with pytest.raises((urllib.error.URLError, ConnectionError, http.client.HTTPException)):
+                urllib.request.urlopen(view.url, timeout=5)
+            assert _requests_handled()
+        err = capsys.readouterr().err
+        assert "Traceback" not in err and "Exception occurred" not in err, err
+        lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+        assert len(lines) == 1 and "RuntimeError: page broke" in lines[0], lines
+        assert "\n" not in lines[0]
+    finally:
+        view.close()

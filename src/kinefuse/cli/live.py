@@ -222,9 +222,12 @@ def stream(
 
     Inputs: PREFIX_imu_SEGMENT (type IMU) per segment and PREFIX_camera (type MoCap), see replay.
 
-    Output: PREFIX_fused (type MoCap), one sample per camera frame: x, y, z, std (m) per joint.
-    With --chain and calibrated segment frames also PREFIX_fused-angles (type Angles): flexion,
-    adduction, internal rotation (deg, ISB) per knee, hip, ankle and elbow.
+    Output: PREFIX_fused (type MoCap), one sample per camera frame (without a camera: per
+    1/output_rate_hz); per joint JOINT_x/_y/_z and JOINT_std_x/_y/_z (m), JOINT_source (code)
+    and JOINT_flags (bit mask), both codes listed in the stream's desc (docs/streaming.md).
+    With --chain and calibrated segment frames also PREFIX_fused-angles (type Angles), deg, ISB,
+    for each joint whose two segments have frames: JOINT_flexion/_adduction/_internal_rotation
+    per shoulder, elbow, hip, knee and ankle; trunk_flexion/_lateral_bending/_axial_rotation.
 
     PREFIX: name_prefix of a streaming session (stream table), or an offline session's name.
     """

@@ -45,7 +45,7 @@ from kinefuse import methods
 from kinefuse.conventions import PAPER_B_JOINTS
 from kinefuse.exceptions import ConfigError, InputError
 from kinefuse.kinematics import full_body
-from kinefuse.session_file import read_toml
+from kinefuse.session_file import _Ctx, read_toml
 
 __all__ = [
     "LSL_CONFIG_ENV",
@@ -185,7 +185,9 @@ def check_lsl_config(path: str | Path | None = None) -> dict:
         norm = None if got is None else got.replace(" ", "").lower()
         ok = norm == want.lower() or (want == "disable" and norm == "disabled")
         if not ok:
-            problems.append(f"[{sec}] {key} = {want} expected, got {got!r}")
+            elsewhere = [f"[{s}]" for s, k in settings if k.lower() == key.lower()]
+            hint = f" (it is under {', '.join(elsewhere)})" if got is None and elsewhere else ""
+            problems.append(f"[{sec}] {key} = {want} expected, got {got!r}{hint}")
     for key in ("AddressesOverride", "TTLOverride"):
         if ("multicast", key.lower()) in lower:
             problems.append(f"[multicast] {key} is set: it overrides ResolveScope")
@@ -494,12 +496,9 @@ def load_stream_config(path: str | Path) -> StreamConfig:
     """
     p = Path(path).expanduser()
     doc = read_toml(p, missing="stream session file not found")
-    st = dict(doc.get("stream") or {})
-    unknown = sorted(set(st) - set(_STREAM_KEYS))
-    if unknown:
-        raise ConfigError(
-            f"{p.name}: [stream] unknown key(s) {unknown}; expected some of {list(_STREAM_KEYS)}"
-        )
+    c = _Ctx(p)  # the offline sections' checks: "<file>: [stream] <key>: unknown key (...)"
+    st = dict(c.table(doc, "stream", required=False) or {})
+    c.check_keys(st, "stream", _STREAM_KEYS)
     kw = dict(st)
     if "joints" in kw:
         kw["joints"] = tuple(kw["joints"])

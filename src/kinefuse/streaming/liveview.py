@@ -15,7 +15,9 @@ serves
 The stream never waits for a viewer: :meth:`LiveView.publish` only replaces the latest frame
 under a lock and wakes the viewer threads; each viewer is sent the newest frame when it is
 ready (a slow viewer skips frames, it never delays the stream). Any number of viewers may
-watch; a viewer that closes its page ends only its own thread.
+watch; a viewer that closes its page ends only its own thread. A client that goes away
+(connection reset, broken pipe) is normal and ignored quietly; any other failure of a request is
+logged as one warning line (``kinefuse.streaming``), never as a traceback on the terminal.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import html
 import json
 import logging
 import math
+import sys
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
@@ -41,10 +44,23 @@ HOST = "127.0.0.1"
 
 _KEEPALIVE_S = 10.0
 
+#: What a client that went away raises on its connection (normal: not reported).
+_CLIENT_GONE = (BrokenPipeError, ConnectionResetError, ConnectionAbortedError)
+
 
 class _Server(ThreadingHTTPServer):
     daemon_threads = True
     allow_reuse_address = True
+
+    def handle_error(self, request, client_address):
+        """Called by socketserver inside ``except``: replaces its traceback on stderr."""
+        exc = sys.exc_info()[1]
+        peer = ":".join(str(p) for p in client_address[:2])
+        if isinstance(exc, _CLIENT_GONE):
+            log.debug("live view: client %s went away (%s)", peer, type(exc).__name__)
+            return
+        log.warning("live view: request from %s failed: %s: %s", peer, type(exc).__name__,
+                    " ".join(str(exc).split()))  # fmt: skip
 
 
 class LiveView:
@@ -216,8 +232,8 @@ class LiveView:
                         self._events()
                     else:
                         self._send(404, "text/plain; charset=utf-8", b"not found\n")
-                except (BrokenPipeError, ConnectionResetError, ConnectionAbortedError):
-                    pass  # the viewer went away: only this thread ends
+                except _CLIENT_GONE:
+                    self.close_connection = True  # the viewer went away: only this thread ends
 
             def _events(self):
                 self.send_response(200)
