@@ -262,3 +262,21 @@ def test_sketch_paths_are_relative_below_the_session_else_absolute(shared_data, 
     rec = shared_data / "xio_imu_mocap_lower_body"
     assert sketch_recording(rec, rec.parent).path == "xio_imu_mocap_lower_body"
     assert sketch_recording(rec, tmp_path).path == str(rec.resolve())
+
+
+@pytest.mark.parametrize(
+    "kind", ["Inertial/a9_s1_t1_inertial.mat", "Skeleton/a9_s1_t1_skeleton.mat"]
+)
+def test_a_utd_mhad_trial_from_either_file_names_both_and_runs(kind, shared_data, tmp_path):
+    """A UTD-MHAD trial is two files read as a pair: from either one, the session names the
+    inertial file in [imu] and the skeleton file in [camera], and `kinefuse run` reads them
+    (the camera section had the inertial file: 'missing variable d_skel')."""
+    utd = shared_data / "utd_mhad"
+    session = tmp_path / "utd.toml"
+    res = _init(session, utd / kind)
+    assert res.exit_code == 0, (res.output, cli_stderr(res))
+    cfg = load_session(session)
+    assert cfg.imu.path == (utd / "Inertial/a9_s1_t1_inertial.mat").resolve()
+    assert cfg.camera.path == (utd / "Skeleton/a9_s1_t1_skeleton.mat").resolve()
+    summary = run_session(session, tmp_path / "out")
+    assert "wrist_r" in summary.coverage

@@ -56,6 +56,9 @@ class RecordingSketch(NamedTuple):
     """Empty when the mapped sensors hold still somewhere (or nobody looked); else why a static
     calibration cannot work here (the stillest window and its motion), and the template
     chooses functional calibration."""
+    camera_path: str = ""
+    """The ``[camera] path`` when it is another file than ``path`` (a UTD-MHAD trial: the
+    skeleton file, ``path`` the inertial one); empty: ``path``."""
 
 
 def sketch_recording(
@@ -99,16 +102,30 @@ def sketch_recording(
             segments[key] = name
         else:
             unmapped.append(name)
-    try:  # relative below the session's folder (the pair moves together), else absolute
+    # a recording of two files (UTD-MHAD: inertial + skeleton, read as a pair): the IMU section
+    # names the inertial file and the camera section the skeleton file
+    files = (rec.metadata or {}).get("files")  # other readers list their files
+    files = files if isinstance(files, dict) else {}
+    pair = bool(files.get("inertial") and files.get("skeleton") and rec.vision is not None)
+    imu_path = Path(files["inertial"]) if pair else p
+    mapped = {s: rec.imu[s] for s in segments}
+    return RecordingSketch(fmt, _session_path(imu_path, session_dir),
+                           dict(sorted(segments.items(), key=_order)), tuple(unmapped),
+                           rec.vision is not None, rec.reference is not None,
+                           still(mapped) if still and mapped and rec.vision is None else "",
+                           _session_path(Path(files["skeleton"]), session_dir) if pair else "")  # fmt: skip
+
+
+def _session_path(p: Path, session_dir: Path) -> str:
+    """``p`` as a session file writes it: relative below the session's folder (the pair moves
+    together), else absolute; POSIX separators."""
+    try:
         rel = os.path.relpath(p.resolve(), Path(session_dir).resolve())
     except ValueError:  # another drive (Windows)
         rel = str(p.resolve())
     if rel.startswith(".."):
         rel = str(p.resolve())
-    mapped = {s: rec.imu[s] for s in segments}
-    return RecordingSketch(fmt, Path(rel).as_posix(), dict(sorted(segments.items(), key=_order)),
-                           tuple(unmapped), rec.vision is not None, rec.reference is not None,
-                           still(mapped) if still and mapped and rec.vision is None else "")  # fmt: skip
+    return Path(rel).as_posix()
 
 
 def _order(item) -> int:
@@ -197,7 +214,7 @@ def filled_template(name: str, filename: str, sk: RecordingSketch) -> str:
         ))  # fmt: skip
     if sk.camera:
         reps.append(('# [camera]\n# format = "kinect_v2"\n# path = "data/kinect.csv"\n',
-                     f'[camera]\nformat = "{sk.format}"\npath = "{sk.path}"\n'))  # fmt: skip
+                     f'[camera]\nformat = "{sk.format}"\npath = "{sk.camera_path or sk.path}"\n'))  # fmt: skip
     if sk.reference:
         reps.append(('# [reference]\n# format = "c3d"\n# path = "data/reference.c3d"\n# align',
                      f'[reference]\nformat = "{sk.format}"\npath = "{sk.path}"\nalign'))  # fmt: skip

@@ -65,8 +65,9 @@ def _load(
             ) from None
         except FileNotFoundError as exc:
             raise ConfigError(f"{source}: [{section}] path: {exc}") from None
-        except FormatError as exc:
-            raise ConfigError(f"{source}: [{section}] path: {exc}") from None
+        except FormatError as exc:  # of a pair, the file at fault names its own section
+            at = "camera" if pair is not None and Path(exc.path) == Path(pair) else section
+            raise ConfigError(f"{source}: [{at}] path: {exc}") from None
         except InputError as exc:
             raise ConfigError(f"{source}: [{section}]: {exc}") from None
     _check_no_inf(rec, path, section, source)
