@@ -21,7 +21,7 @@ from typer.testing import CliRunner
 from kinefuse import batch as kb
 from kinefuse import cli
 from kinefuse.batch.tasks import task_dir
-from kinefuse.exceptions import ConfigError
+from kinefuse.exceptions import ConfigError, InputError
 
 runner = CliRunner()
 SESSION = Path(__file__).parent / "data" / "sessions" / "utd_mhad_a9_s1_t1.toml"
@@ -479,3 +479,251 @@ def test_summary_without_any_reference_says_so_instead_of_an_empty_table():
     )
     run, scores = summary_tables(summary)
     assert "scores" not in [r.labels[0] for r in run.rows] and len(scores.rows) == 1
+
+
+# ---- a study's layers, compare-workers, refused input (no cluster) ----
+
+
+def _minimal_session(utd: Path, name: str, extra: str = "") -> str:
+    stem = "a9_s1_t1"
+    return textwrap.dedent(
+        f"""\
+        [session]
+        name = "{name}"
+        [imu]
+        format = "utd_mhad"
+        path = "{utd / "Inertial" / f"{stem}_inertial.mat"}"
+        [imu.segments]
+        forearm_r = "utd_mhad_inertial"
+        [camera]
+        format = "utd_mhad"
+        path = "{utd / "Skeleton" / f"{stem}_skeleton.mat"}"
+        [reference]
+        format = "utd_mhad"
+        path = "{utd / "Skeleton" / f"{stem}_skeleton.mat"}"
+        [method]
+        name = "imu-only"
+        """
+    ) + textwrap.dedent(extra)
+
+
+_LAYERED_STUDY = """\
+[study]
+name = "layers"
+[defaults]
+{defaults}
+[[recordings]]
+sessions = ["sessions/*.toml"]
+{overrides}
+"""
+
+
+def _layered(tmp_path, shared_data, session_extra, defaults, overrides=""):
+    """A study of one session (``session_extra`` appended) under ``defaults`` and ``overrides``;
+    the task's merged parameters (as `kinefuse run` would process them)."""
+    from kinefuse.session_file import load_session
+
+    (tmp_path / "sessions").mkdir()
+    (tmp_path / "sessions" / "s.toml").write_text(
+        _minimal_session(shared_data / "utd_mhad", "rec-1", session_extra), encoding="utf-8"
+    )
+    p = tmp_path / "study.toml"
+    p.write_text(_LAYERED_STUDY.format(defaults=defaults, overrides=overrides), encoding="utf-8")
+    (task,) = kb.load_study(p).tasks
+    assert task.error is None, task.error
+    return load_session(task.source, document=task.document).processing_parameters()
+
+
+DOC_DEFAULTS = """\
+skeleton = { body_height_m = 1.75 }
+method = { parameters = { calibration = "vision", calibration_window_s = 10.0 } }"""
+
+
+def test_defaults_yield_to_the_sessions_own_calibration_section(tmp_path, shared_data):
+    """docs/batch.md's defaults and a session's own `[calibration] method`: the session wins
+    (they are one setting), the defaults' other settings still apply."""
+    params = _layered(tmp_path, shared_data, '[calibration]\nmethod = "reference"\n', DOC_DEFAULTS)
+    assert params["calibration"] == "reference"
+    assert params["calibration_window_s"] == 10.0
+
+
+def test_defaults_calibration_section_yields_to_the_sessions_parameters(tmp_path, shared_data):
+    params = _layered(
+        tmp_path,
+        shared_data,
+        '[method.parameters]\ncalibration = "reference"\nroot = "reference"\n',
+        '[defaults.calibration]\nmethod = "vision"\nwindow_s = 4.0\n'
+        '[defaults.skeleton]\nbody_height_m = 1.75\nroot = "vision"',
+    )
+    assert params["calibration"] == "reference" and params["root"] == "reference"
+    assert params["calibration_window_s"] == 4.0
+
+
+def test_overrides_win_over_the_sessions_own_calibration(tmp_path, shared_data):
+    params = _layered(
+        tmp_path,
+        shared_data,
+        '[calibration]\nmethod = "reference"\n',
+        DOC_DEFAULTS,
+        '[overrides."rec-*"]\nmethod = { parameters = { calibration = "vision" } }',
+    )
+    assert params["calibration"] == "vision"
+
+
+def test_same_setting_table_is_what_processing_parameters_merges(tmp_path):
+    """Every pair of spellings the study layers treat as one setting is one that
+    `SessionConfig.processing_parameters` merges, and it merges no other."""
+    from kinefuse.batch.study import _SAME_SETTING
+    from kinefuse.session_file import (
+        CalibrationConfig,
+        ImuConfig,
+        MethodConfig,
+        ReferenceConfig,
+        SessionConfig,
+        SkeletonConfig,
+    )
+
+    sections = {"calibration": {}, "skeleton": {}, "reference": {}}
+    for _, (section, key) in _SAME_SETTING:
+        sections[section][key] = f"value of [{section}] {key}"
+    sk, ref = sections["skeleton"], sections["reference"]
+    cfg = SessionConfig(
+        path=tmp_path / "s.toml",
+        name="s",
+        out_dir=tmp_path,
+        imu=ImuConfig(format="csv", path=tmp_path, rate_hz=None, segments={}),
+        skeleton=SkeletonConfig(
+            body_height_m=1.75,
+            root=sk["root"],
+            root_position_m=sk["root_position_m"],
+            axes={"forearm_r": sk["axes"]},
+        ),
+        camera=None,
+        reference=ReferenceConfig(format="csv", path=tmp_path, align=ref["align"]),
+        method=MethodConfig(name="imu-only"),
+        calibration=CalibrationConfig(settings=sections["calibration"]),
+    )
+    params = cfg.processing_parameters()
+    expected = {
+        param: (
+            {"forearm_r": sk["axes"]}
+            if (section, key) == ("skeleton", "axes")
+            else sections[section][key]
+        )
+        for (_, _, param), (section, key) in _SAME_SETTING
+    }
+    assert params == expected
+
+
+def _broken_sessions(tmp_path) -> Path:
+    d = tmp_path / "sessions"
+    d.mkdir()
+    for name in ("bad-1", "bad-2"):
+        (d / f"{name}.toml").write_text(
+            _minimal_session(tmp_path / "no_such_folder", name), encoding="utf-8"
+        )
+    return d
+
+
+def _no_cluster(monkeypatch):
+    import kinefuse.batch.runner as runner_mod
+
+    def no_cluster(*a, **k):
+        raise AssertionError("this command must not start a cluster")
+
+    monkeypatch.setattr(runner_mod, "connect", no_cluster)
+
+
+def test_cli_compare_workers_lists_failed_tasks_and_exits_1(tmp_path, monkeypatch):
+    """Sessions that fail when loaded need no cluster: each timed run records them as failed,
+    and --compare-workers reports them as a plain run does."""
+    _no_cluster(monkeypatch)
+    d = _broken_sessions(tmp_path)
+    args = ["batch", str(d), "--out", str(tmp_path / "out")]
+    plain = runner.invoke(cli.app, args)
+    res = runner.invoke(cli.app, [*args, "--compare-workers", "1,2"])
+    assert plain.exit_code == 1 and res.exit_code == 1, (res.output, _err(res))
+    assert "Failed tasks (2)" in plain.output and "Failed tasks (2)" in res.output
+    assert res.output.count("Failed tasks") == 1  # same failures in both runs: listed once
+    assert "bad-1/imu-only" in res.output and "no_such_folder" in res.output
+    assert "2 of 2 tasks failed with 1 worker(s); 2 of 2 tasks failed with 2" in _err(res)
+
+
+@pytest.mark.parametrize("counts", ["0,2", "1,-1"])
+def test_cli_compare_workers_refuses_counts_below_1(tmp_path, monkeypatch, counts):
+    _no_cluster(monkeypatch)
+    res = runner.invoke(
+        cli.app, ["batch", str(_broken_sessions(tmp_path)), "--compare-workers", counts]
+    )
+    assert res.exit_code == 2
+    assert "--compare-workers: expected worker counts of at least 1" in _err(res)
+    assert not (tmp_path / "sessions-batch").exists()
+    study = kb.study_from_sessions(tmp_path / "sessions", out_dir=tmp_path / "out")
+    with pytest.raises(InputError, match=r"expected each at least 1, got \[0, 2\]"):
+        kb.compare_workers(study, [0, 2])
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("target", ["nope.toml", "nope", "nope/"])
+def test_cli_study_that_does_not_exist_is_named(tmp_path, monkeypatch, target):
+    monkeypatch.chdir(tmp_path)
+    res = runner.invoke(cli.app, ["batch", target])
+    assert res.exit_code == 2
+    assert f"{target}: no such file or folder" in _err(res)
+
+
+def test_cli_existing_json_is_refused_before_running_and_says_what_force_does(
+    tmp_path, monkeypatch
+):
+    def no_run(*a, **k):
+        raise AssertionError("an existing --json file must be refused before the study runs")
+
+    monkeypatch.setattr(kb, "run_study", no_run)
+    monkeypatch.setattr(kb, "compare_workers", no_run)
+    out = tmp_path / "out.json"
+    out.write_text("{}", encoding="utf-8")
+    d = _broken_sessions(tmp_path)
+    for extra in ([], ["--force"], ["--compare-workers", "1"]):
+        res = runner.invoke(cli.app, ["batch", str(d), "--json", str(out), *extra])
+        assert res.exit_code == 2, (res.output, _err(res))
+        err = " ".join(_err(res).split())
+        assert "file exists; remove it or choose another file" in err
+        assert "--force redoes every finished task and does not overwrite the --json file" in err
+        assert "pass --force" not in err
+    assert out.read_text(encoding="utf-8") == "{}"
+
+
+def test_docs_table_snippet_runs_with_the_batch_extra_alone(tmp_path, monkeypatch):
+    """docs/batch.md's Python snippet on a written study table, with pandas not importable
+    (`pip install 'kinefuse[batch]'` installs distributed and pyarrow only)."""
+    import re
+    import sys
+
+    from kinefuse.batch.table import flatten, write_table
+
+    def res(recording, method, values):
+        rows = [
+            {"estimate": e, "joint": "wrist_r", "subset": "all", "metric": "rmse_3d",
+             "value": v, "unit": "m"}
+            for e, v in values.items()
+        ]  # fmt: skip
+        return {"recording": recording, "method": method, "status": "done", "rows": rows}
+
+    results = [
+        res("r1", "kinefuse", {"kinefuse": 0.01, "IMU chain": 0.05}),
+        res("r2", "kinefuse", {"kinefuse": 0.03, "IMU chain": 0.07}),
+        res("r3", "kinefuse", {"kinefuse": 0.02, "IMU chain": None}),
+        {"recording": "r4", "method": "kinefuse", "status": "failed", "error": "x", "rows": []},
+    ]
+    parquet, _ = write_table(tmp_path, flatten(results))
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "batch.md").read_text(encoding="utf-8")
+    (snippet,) = [
+        b for b in re.findall(r"```python\n(.*?)```", doc, re.S) if "study_results.parquet" in b
+    ]
+    snippet = snippet.replace("results/utd-mhad-wrist/study_results.parquet", str(parquet))
+    assert str(parquet) in snippet
+    monkeypatch.setitem(sys.modules, "pandas", None)  # import pandas -> ImportError
+    printed = []
+    monkeypatch.setattr("builtins.print", lambda *a: printed.append(" ".join(map(str, a))))
+    exec(compile(snippet, "docs/batch.md", "exec"), {})
+    assert printed == ["kinefuse IMU chain wrist_r 0.060", "kinefuse kinefuse wrist_r 0.020"]

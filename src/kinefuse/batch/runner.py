@@ -457,8 +457,17 @@ def compare_workers(study: Study, counts: Sequence[int], *, quiet: bool = False)
     Each run writes into ``out_dir/compare/workers-N`` with ``force`` (table, per-recording
     outputs and study report, as a plain run); the numba cache is warmed first so no run pays
     the compile cost. Returns one mapping per count: ``workers``, ``wall_s`` (cluster start to
-    report), ``tasks_wall_s``, ``counts``, ``table`` and ``report`` (paths).
+    report), ``tasks_wall_s``, ``counts``, ``failed`` (``(key, error)`` list, as
+    :func:`run_study`), ``table`` and ``report`` (paths).
+
+    Raises
+    ------
+    InputError
+        A worker count below 1.
     """
+    bad = [n for n in counts if n < 1]
+    if bad:
+        raise InputError(f"worker counts: expected each at least 1, got {list(counts)}")
     if not _kernels_cached() and study.tasks:  # compile before any timed run
         warm = replace(study, out_dir=study.out_dir / "compare" / "warm-up")
         first = next((t for t in study.tasks if t.error is None), None)
@@ -474,6 +483,7 @@ def compare_workers(study: Study, counts: Sequence[int], *, quiet: bool = False)
                 "wall_s": s["wall_s"],
                 "tasks_wall_s": s["tasks_wall_s"],
                 "counts": s["counts"],
+                "failed": s["failed"],
                 "table": s["table"],
                 "report": s["report"],
             }
@@ -511,15 +521,38 @@ def summary_tables(summary: Mapping) -> list:
     if scores is not None and scores.rows:
         out.append(scores)
     if summary["failed"]:
-        out.append(
-            ResultTable(
-                title=f"Failed tasks ({len(summary['failed'])})",
-                label_headers=("Task", "Error"),
-                value_headers=(),
-                rows=tuple(TableRow(labels=(k, e), values=()) for k, e in summary["failed"]),
-            )
-        )
+        out.append(failed_table(summary["failed"]))
     return out
+
+
+def failed_table(failed: Sequence[tuple[str, str]], where: str = "") -> ResultTable:
+    """The table "Failed tasks (n)": one row per failed task with its one-line error."""
+    return ResultTable(
+        title=f"Failed tasks{where} ({len(failed)})",
+        label_headers=("Task", "Error"),
+        value_headers=(),
+        rows=tuple(TableRow(labels=(k, e), values=()) for k, e in failed),
+    )
+
+
+def compare_tables(runs: Sequence[Mapping]) -> list:
+    """The tables ``kinefuse batch --compare-workers`` prints: timings, then failed tasks.
+
+    The failed tasks are listed once when every run failed the same tasks with the same errors,
+    else once per run that had failures.
+    """
+    out = [compare_table(runs)]
+    failing = [r for r in runs if r["failed"]]
+    if failing and all(list(r["failed"]) == list(runs[0]["failed"]) for r in runs):
+        out.append(failed_table(runs[0]["failed"]))
+    else:
+        out += [failed_table(r["failed"], f", {r['workers']} worker(s)") for r in failing]
+    return out
+
+
+def _ratio(a: float, b: float) -> float:
+    """``a / b``; NaN when ``b`` is 0 (no task ran on the cluster: nothing was timed)."""
+    return a / b if b > 0 else float("nan")
 
 
 def compare_table(runs: Sequence[Mapping]):
@@ -531,8 +564,8 @@ def compare_table(runs: Sequence[Mapping]):
             values=(
                 r["wall_s"],
                 r["tasks_wall_s"],
-                base["wall_s"] / r["wall_s"],
-                base["tasks_wall_s"] / r["tasks_wall_s"],
+                _ratio(base["wall_s"], r["wall_s"]),
+                _ratio(base["tasks_wall_s"], r["tasks_wall_s"]),
             ),
         )
         for r in runs

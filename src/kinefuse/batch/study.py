@@ -32,7 +32,10 @@ validates a session file. Example::
     methods = ["imu-only"]                   # optional: other methods for these recordings
 
 Precedence: ``[defaults]`` < the recording's own session < every matching ``[overrides]`` (in
-file order) < the study's ``methods`` (which set ``[method] name``). Relative paths in the study
+file order) < the study's ``methods`` (which set ``[method] name``). A setting that a session file
+can give in two places (``[method.parameters] calibration`` and ``[calibration] method``, ...:
+:data:`_SAME_SETTING`) is one setting here: the higher layer's value wins, in whichever place it
+is given, instead of the two being refused as "given twice". Relative paths in the study
 file are resolved against its folder, those of a session file against the session's folder. The
 sessions' own ``out_dir`` is not used: a batch writes every recording's outputs under the
 study's ``out_dir`` (``recordings/<recording>/<method>/``).
@@ -142,6 +145,61 @@ def _merge(base: Mapping, over: Mapping) -> dict:
         else:
             out[k] = copy.deepcopy(v)
     return out
+
+
+#: One setting that a session file can give in two places: ``[method.parameters] <name>`` and a
+#: key of another section, which :meth:`kinefuse.session_file.SessionConfig.processing_parameters`
+#: merges into the parameters (refusing two different values: "given twice"). A study's layers
+#: (:func:`_layer`) treat both spellings as one setting.
+_SAME_SETTING: tuple[tuple[tuple[str, ...], tuple[str, ...]], ...] = tuple(
+    (("method", "parameters", param), section_key)
+    for param, section_key in (
+        ("calibration", ("calibration", "method")),
+        ("calibration_window_s", ("calibration", "window_s")),
+        ("calibration_start_s", ("calibration", "start_s")),
+        ("pose", ("calibration", "pose")),
+        ("facing", ("calibration", "facing")),
+        ("heading", ("calibration", "heading")),
+        ("flexion_axes", ("calibration", "flexion_axes")),
+        ("measured_lengths", ("calibration", "lengths_from_data")),
+        ("max_rate_rad_s", ("calibration", "max_rate_rad_s")),
+        ("max_acc_std_m_s2", ("calibration", "max_acc_std_m_s2")),
+        ("root", ("skeleton", "root")),
+        ("root_position_m", ("skeleton", "root_position_m")),
+        ("axes", ("skeleton", "axes")),
+        ("align_to_reference", ("reference", "align")),
+    )
+)
+
+
+def _has(doc: Mapping, keys: Sequence[str]) -> bool:
+    for k in keys:
+        if not isinstance(doc, Mapping) or k not in doc:
+            return False
+        doc = doc[k]
+    return True
+
+
+def _layer(base: Mapping, over: Mapping) -> dict:
+    """``over`` (the layer of higher precedence) merged over ``base``.
+
+    A setting with two spellings (:data:`_SAME_SETTING`) that ``over`` gives is first removed
+    from ``base`` in the other spelling, so that ``over`` wins instead of the two making a
+    "given twice" conflict (e.g. a study default ``[method.parameters] calibration = "vision"``
+    under a session's own ``[calibration] method = "functional"``). The same spelling merges
+    as any key (:func:`_merge`).
+    """
+    out = copy.deepcopy(dict(base))
+    for spellings in _SAME_SETTING:
+        said = [s for s in spellings if _has(over, s)]
+        for s in spellings:
+            if said and s not in said and _has(out, s):
+                *parents, leaf = s
+                table = out
+                for k in parents:
+                    table = table[k]
+                del table[leaf]
+    return _merge(out, over)
 
 
 def _absolute_paths(doc: dict, base: Path) -> dict:
@@ -279,11 +337,11 @@ def _task_list(
         if error is not None:
             tasks.append(Task(name, "", source, {}, error))
             continue
-        merged = _merge(defaults, doc)
+        merged = _layer(defaults, doc)
         mine = methods
         for pattern, over, over_methods in overrides:
             if fnmatch.fnmatchcase(name, pattern):
-                merged = _merge(merged, over)
+                merged = _layer(merged, over)
                 mine = over_methods or mine
         if mine is None:
             m = merged.get("method")
@@ -450,9 +508,15 @@ def study_from_sessions(
     Raises
     ------
     ConfigError
-        Nothing matches, a method is unknown, two sessions share a name.
+        ``target`` does not exist, nothing matches, a method is unknown, two sessions share a
+        name.
     """
     t = Path(target).expanduser()
+    if not _glob.has_magic(str(t)) and not t.exists():
+        raise ConfigError(
+            f"{target}: no such file or folder (expected a study file, a folder of session "
+            "files or a glob of them)"
+        )
     if t.is_dir():
         files = sorted(t.glob("*.toml"))
         name = t.resolve().name

@@ -1,8 +1,11 @@
 """The study table: one tidy row per recording x method x estimate x joint x subset x metric.
 
 Columns (:data:`COLUMNS`): ``study``, ``recording``, ``method`` (the method run),
-``estimate`` (what is evaluated: the method's label, or the baselines its evaluation includes,
-``IMU chain`` and ``camera``), ``joint`` (``all`` for run times), ``subset`` (``all``,
+``estimate`` (what is scored, :meth:`kinefuse.pipelines.run.output.SessionOutput.trajectories`:
+the method's label; ``IMU chain`` unless it equals the method's output; with a camera method the
+baselines ``camera gap-fill``, ``offset interp``, ``offset hold``; ``camera`` only when the camera
+differs from the reference; labels may end in a tag such as ``" [calibrated on reference]"``; and
+``task``, the row of ``task_wall_s``), ``joint`` (``all`` for run times), ``subset`` (``all``,
 ``in_view``, ``outage``: samples outside / inside camera outages), ``metric`` (``rmse_<axis>``,
 ``rmse_mean``, ``rmse_3d``, ``error_cdf_0.9``, ``n_samples``, ``run_time_s`` of the method,
 ``task_wall_s`` of the whole task), ``value``, ``unit``, ``calibrated_on`` (what the
