@@ -3,6 +3,7 @@ and `kinefuse run` / `evaluate` / `init-session` on real IMU-only recordings (x-
 
 from __future__ import annotations
 
+import ast
 import json
 import textwrap
 import warnings
@@ -686,6 +687,8 @@ def test_calibration_docs_example_runs(shared_data, monkeypatch, capsys):
     exec(compile(code, "docs/calibration.md", "exec"), {})
     out = capsys.readouterr().out
     assert "mean angular rate" in out and "knee_l" in out
+    peaks = ast.literal_eval(out.strip().splitlines()[-1])  # the printed peak flexion per joint
+    assert all(np.isfinite(v) and 40 < v < 150 for v in peaks.values()), peaks
     assert "tests/data/sessions/ximu3_lower_body.toml" in text  # the CLI example is tested above
 
 
