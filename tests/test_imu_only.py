@@ -676,6 +676,12 @@ def test_evaluate_takes_folders_and_format(shared_data):
         ["evaluate", str(shared_data / "xio_imu_mocap_lower_body"), "--method", "imu-only"],
     )
     assert res.exit_code == 2 and "no reference" in _err(res), _err(res)
+    # a camera method on a recording with a reference and no camera: refused before any work,
+    # without a session's advice ("add a [camera] section") that evaluate cannot take
+    res = runner.invoke(cli.app, [*args[:4], "--method", "elm-fir"])
+    assert res.exit_code == 2, _err(res)
+    assert "needs a camera, and this recording has none (only a reference" in _err(res)
+    assert "[camera]" not in _err(res)
 
 
 def test_calibration_docs_example_runs(shared_data, monkeypatch, capsys):

@@ -251,7 +251,10 @@ _Method = Annotated[
         "--method",
         "-m",
         metavar="NAME",
-        help="Method to evaluate (see `kinefuse init-session` for the names).",
+        help=(
+            f"Method to evaluate: {', '.join(METHODS)} (what each needs: the template of "
+            "`kinefuse init-session`; the camera methods need a camera besides the reference)."
+        ),
     ),
 ]
 _Format = Annotated[

@@ -122,5 +122,11 @@ def _load_scorable(path, format, method: str):
                 "stream is used as the reference; try 'imu-only' or 'paper-a'"
             )
         rec = replace(rec, reference=rec.vision)
+    elif rec.vision is None and method in _CAMERA_METHODS:
+        raise InputError(
+            f"{path}: method {method!r} needs a camera, and this recording has none (only a "
+            "reference, which kinefuse scores against and never feeds to a method); try "
+            "'imu-only' or 'paper-a'"
+        )
     rec = replace(rec, imu=imu)
     return rec
