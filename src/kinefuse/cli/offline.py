@@ -73,8 +73,8 @@ def demo(
     # compiling them (minutes on 2 cores). Results are identical.
     if not _kernel_mode.kernels_cached() and _kernel_mode.interpret_kernels() and not quiet:
         stderr().print(
-            "[yellow]First run on this machine: filter kernels run interpreted (identical "
-            "results; `kinefuse run/experiment/bench` compile them once).[/yellow]"
+            "[yellow]The filter kernels are not compiled on this machine yet: they run "
+            "interpreted (identical results; `kinefuse warm-up` compiles them once).[/yellow]"
         )
     summary = backend("demo")(out_dir, force, quiet)
     present(summary, quiet=quiet, json_file=json_file, force=force)
@@ -114,10 +114,11 @@ def first_run_kernels(inputs, quiet: bool) -> str:
     if not _kernel_mode.interpret_kernels():
         return "compiled"  # kernel modules already loaded here: they compile as used
     if not quiet:
+        amount = f"{size / 1e6:.1f} MB" if size >= 100_000 else f"{max(size, 1) / 1e3:.0f} kB"
         stderr().print(
-            f"[yellow]First run on this machine: the filter kernels run interpreted for these "
-            f"{size / 1e6:.1f} MB of input (identical results, no compile wait); `kinefuse "
-            "warm-up` compiles them once (about 2 min) for long recordings.[/yellow]"
+            f"[yellow]The filter kernels are not compiled on this machine yet: they run "
+            f"interpreted for these {amount} of input (identical results, no compile wait); "
+            "`kinefuse warm-up` compiles them once (about 2 min) for long recordings.[/yellow]"
         )
     return "interpreted"
 

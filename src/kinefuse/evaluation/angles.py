@@ -76,8 +76,12 @@ def range_of_motion_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTabl
             "ISB joint coordinate systems (Wu et al. 2002/2005; Grood & Suntay 1983): flexion "
             "about the proximal segment's medio-lateral axis, adduction about the floating axis "
             "(elbow: varus), internal rotation about the distal long axis (elbow: pronation); "
-            "ankle flexion is dorsiflexion (toes up; plantarflexion negative); zero in the "
-            "calibration pose.",
+            + (
+                "ankle flexion is dorsiflexion (toes up; plantarflexion negative); "
+                if any(j.startswith("ankle") for j in angles)
+                else ""
+            )
+            + "zero in the calibration pose.",
             *([_TRUNK_NOTE + "."] if "trunk" in angles else []),
         ),
     )
@@ -108,8 +112,13 @@ def angle_extremes_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTable
         rows=tuple(rows),
         digits=1,
         notes=(
-            "ISB (Wu et al. 2002/2005), zero in the calibration pose; ankle flexion = "
-            "dorsiflexion. Range and mean per angle, and the time series: the report.",
+            "ISB (Wu et al. 2002/2005), zero in the calibration pose"
+            + (
+                "; ankle flexion = dorsiflexion"
+                if any(j.startswith("ankle") for j in angles)
+                else ""
+            )
+            + ". Range and mean per angle, and the time series: the report.",
             *(
                 [_TRUNK_NOTE + ", in the adduction and int. rot. columns."]
                 if "trunk" in angles
