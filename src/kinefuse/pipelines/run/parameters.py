@@ -82,6 +82,21 @@ def _number_or_table(value, joints: Sequence[str], name: str) -> list[float]:
     return [value] * len(joints)
 
 
+#: Parameters that are numbers (a number, or numbers per joint / per model).
+_NUMERIC_KEYS = ("q", "r", "r_imu", "r_cam", "horizon", "threshold1", "threshold2", "n_em_iter",
+                 "mu_floor", "n_hidden", "alpha", "train_window", "clip_factor", "min_train",
+                 "fixed_lag", "seed")  # fmt: skip
+
+
+def _numeric(v) -> bool:
+    """A number (not a bool), or a table / list of them (nested)."""
+    if isinstance(v, Mapping):
+        return bool(v) and all(_numeric(x) for x in v.values())
+    if isinstance(v, (list, tuple)):
+        return bool(v) and all(_numeric(x) for x in v)
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def _check_params(params: Mapping, method: str) -> None:
     allowed = set(_GENERAL_KEYS) | set(_PAPER_A_KEYS) | set(_VISION_KEYS)
     unknown = sorted(set(params) - allowed)
@@ -101,6 +116,12 @@ def _check_params(params: Mapping, method: str) -> None:
             raise ConfigError(
                 f"[method.parameters] {key}: expected one of {', '.join(choices)}, got "
                 f"{params[key]!r}"
+            )
+    for key in _NUMERIC_KEYS:  # used or not by this method: a number (or numbers) or an error
+        if key in params and not _numeric(params[key]):
+            raise ConfigError(
+                f"[method.parameters] {key}: expected a number (or a table of numbers per "
+                f"joint), got {params[key]!r}"
             )
     if "rate_hz" in params:
         v = params["rate_hz"]

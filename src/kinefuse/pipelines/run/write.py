@@ -181,7 +181,7 @@ def run_session(path, out_dir=None, force: bool = False, stage=None) -> RunResul
         what="output folder",
     )
     try:
-        result = _run_and_write(cfg, folder.path, stage or (lambda text: None))
+        result = _run_and_write(cfg, folder.path, stage or (lambda text: None), out_dir)
         folder.commit()
     except BaseException:
         folder.discard()
@@ -193,8 +193,9 @@ def run_session(path, out_dir=None, force: bool = False, stage=None) -> RunResul
     return result
 
 
-def _run_and_write(cfg, folder: Path, stage) -> RunResult:
-    """Process the session and write every result into ``folder`` (the staging folder)."""
+def _run_and_write(cfg, folder: Path, stage, out_dir: Path) -> RunResult:
+    """Process the session and write every result into ``folder`` (the staging folder, moved
+    to ``out_dir`` when complete)."""
     targets = _outputs(folder, _stem(cfg))
     params = cfg.processing_parameters()
     strict = params.get("strict_units", True)
@@ -227,8 +228,8 @@ def _run_and_write(cfg, folder: Path, stage) -> RunResult:
         text = json.dumps(out.chain_description, indent=1) + "\n"
         result.outputs.append(write_text_safely(targets["chain"], text))
         out.notes.append(
-            f"{CHAIN_FILE}: the calibrated chain; kinefuse stream {cfg.path.name} --chain "
-            f"{CHAIN_FILE} runs it on live IMU streams (docs/streaming.md)"
+            f"{CHAIN_FILE}: the calibrated chain; kinefuse stream {_shown(cfg.path)} --chain "
+            f"{_shown(out_dir / CHAIN_FILE)} runs it on live IMU streams (docs/streaming.md)"
         )
     if out.angles:
         result.outputs += _write_angles(out, targets, cfg, False)
@@ -340,6 +341,16 @@ def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> N
                 else "no reference"
             ),
         )
+
+
+def _shown(path) -> str:
+    """``path`` as a command typed here would take it: relative to the working folder when
+    below it, else absolute."""
+    p = Path(path).resolve()
+    try:
+        return p.relative_to(Path.cwd().resolve()).as_posix()
+    except ValueError:
+        return str(p)
 
 
 def _angle_rows(t_s, columns: Sequence) -> list[str]:
