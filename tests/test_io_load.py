@@ -51,7 +51,7 @@ def test_undetectable_and_missing(tmp_path):
     with pytest.raises(
         FormatError,
         match=r"notes.xyz: unsupported format: this looks like a text file without a recognisable "
-        r"header \(.xyz\); kinefuse reads: .*trc \(TRC marker file",
+        r"header \(.xyz\); kinefuse reads: .*, trc, .*--format NAME \(Python: format=NAME\)",
     ):
         kio.load(f)
     with pytest.raises(FileNotFoundError, match="nope.csv: no such file"):

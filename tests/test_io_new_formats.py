@@ -506,7 +506,8 @@ def test_unsupported_messages(tmp_path, tp):
         msg = str(e.value)
         assert f"{name}: unsupported format: this looks like " in msg
         assert re.search(what, msg), msg
-        assert "kinefuse reads: " in msg and "mvnx (Xsens MVN" in msg and "trc (" in msg
+        assert "kinefuse reads: " in msg and ", mvnx, " in msg and ", trc, " in msg
+        assert len(msg) < 600, msg  # one readable line: the reader names, not their descriptions
     with pytest.raises(
         FormatError,
         match=r"a folder \(4 .trc\) that is not one recording; kinefuse reads what is in it one "

@@ -125,9 +125,11 @@ def looks_like(path, detect=None) -> str:
 
 
 def unsupported_message(path, formats: Mapping[str, str], detect=None) -> str:
-    """``"unsupported format: this looks like X; kinefuse reads: ..."`` for ``path``."""
-    reads = "; ".join(f"{k} ({v})" for k, v in sorted(formats.items()))
+    """``"unsupported format: this looks like X; kinefuse reads: a, b, ..."`` for ``path``: the
+    reader names only (their descriptions: ``kinefuse.io.FORMATS``, docs/formats.md), so that
+    the message stays one readable line."""
     return (
-        f"unsupported format: this looks like {looks_like(path, detect)}; kinefuse reads: {reads}. "
-        "Pass format= to force one of them"
+        f"unsupported format: this looks like {looks_like(path, detect)}; kinefuse reads: "
+        f"{', '.join(sorted(formats))} (docs/formats.md describes each). To read it as one of "
+        "them anyway: --format NAME (Python: format=NAME)"
     )
