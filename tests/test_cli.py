@@ -426,6 +426,18 @@ def test_load_session_full(tmp_path):
     assert cfg.method.name == "elm-fir"
 
 
+def test_unknown_format_names_the_formats_not_the_aliases(tmp_path):
+    from kinefuse.pipelines.run.streams import load_streams
+
+    p = _session(tmp_path)
+    p.write_text(p.read_text().replace('format = "csv"', 'format = "kinect_v3"'))
+    with pytest.raises(ConfigError) as info:
+        load_streams(load_session(p))
+    msg = str(info.value)
+    assert "[imu] format: unknown format 'kinect_v3' (did you mean 'kinect_v2'? known" in msg
+    assert "xsens_dot" in msg and "asf-amc" not in msg and "gaittoolbox" not in msg
+
+
 def test_load_session_accepts_the_stream_table(tmp_path):
     """One file for `kinefuse run` and `kinefuse stream` (README, docs/streaming.md): the
     offline loader leaves [stream] to the stream command, and still refuses unknown tables."""

@@ -8,6 +8,7 @@ format, unreadable file, unknown sensor, infinite values, wrong units) is a
 
 from __future__ import annotations
 
+import difflib
 import warnings
 from pathlib import Path
 
@@ -38,9 +39,11 @@ def _format_name(fmt: str, section: str, source: str) -> str:
     key = fmt.strip().lower()
     key = FORMAT_ALIASES.get(key, key.replace("-", "_"))
     if key not in FORMATS:
-        known = ", ".join(sorted({*FORMATS, *FORMAT_ALIASES}))
+        near = difflib.get_close_matches(key, [*FORMATS, *FORMAT_ALIASES], n=1)
+        fix = f"did you mean {near[0]!r}? " if near else ""
         raise ConfigError(
-            f"{source}: [{section}] format: unknown format {fmt!r} (known formats: {known})"
+            f"{source}: [{section}] format: unknown format {fmt!r} ({fix}known formats: "
+            f"{', '.join(sorted(FORMATS))})"
         )
     return key
 
