@@ -36,7 +36,7 @@ def test_recording_shapes_rate_frame(shared_data):
         "shank_l",
     }
     assert rec.reference_orientation["thigh_l"].q_world_from_sensor.shape == (343, 4)
-    assert rec.metadata["format"] == "asf/amc" and rec.metadata["subject"] == "02"
+    assert rec.metadata["format"] == "cmu" and rec.metadata["subject"] == "02"
     assert rec.imu == {} and rec.vision is None
 
 

@@ -456,7 +456,7 @@ def test_bvh_units_checked(tp):
 def test_asf_amc_backflip_keeps_working(tp):
     rec = kio.load(tp / "asf_amc" / "gsimchoni_backflip.amc")
     r, md = rec.reference, rec.metadata
-    assert md["format"] == "asf/amc" and set(KINECT_LIMB_JOINTS) <= set(r.joints)
+    assert md["format"] == "cmu" and set(KINECT_LIMB_JOINTS) <= set(r.joints)
     assert len(r) == 247
     assert (
         0.3 < md["segment_length_m"]["thigh_l"] < 0.55

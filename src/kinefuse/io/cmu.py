@@ -487,7 +487,7 @@ def load_motion_asf_amc(amc_path, asf_path=None, *, rate_hz: float = CMU_RATE_HZ
     metadata = {
         "source": str(amc_path),
         "skeleton": str(asf),
-        "format": "asf/amc",
+        "format": "cmu",
         "subject": amc_path.stem.split("_")[0],
         "trial": amc_path.stem,
         "rate_hz": float(rate_hz),
@@ -520,7 +520,7 @@ def read_asf_amc(amc_path, asf_path=None, *, rate_hz: float = CMU_RATE_HZ) -> Re
     Recording
         ``reference``: canonical joint positions (T, 22, 3), m, ENU, at 120 Hz;
         ``reference_orientation``: ``q_world_from_segment`` per canonical segment;
-        ``metadata``: source, format ``"asf/amc"``, subject, rate, unit conversion, bone
+        ``metadata``: source, format ``"cmu"`` (the reader name), subject, rate, unit conversion, bone
         lengths, segment/joint maps. No IMU and no vision streams.
     """
     return load_motion_asf_amc(amc_path, asf_path, rate_hz=rate_hz).to_recording()
