@@ -193,7 +193,10 @@ def test_one_thigh_without_the_pelvis_starts_at_its_hip(shared_data, tmp_path):
     assert "the measured root joint (hip_r), m" in session.read_text(encoding="utf-8")
     summary = run_session(session, tmp_path / "out")
     assert summary.coverage["knee_r"]["available"] == summary.coverage["knee_r"]["samples"] > 0
-    assert "# frame: ENU, relative to hip_r" in (tmp_path / "out" / "thigh_joints.csv").read_text()
+    assert (
+        "# frame: xsens_global_z_up, relative to hip_r"
+        in (tmp_path / "out" / "thigh_joints.csv").read_text()
+    )
     # two thighs without the pelvis: one position cannot place both hips (refused, with how)
     legs = tmp_path / "legs.toml"
     assert _init(legs, shared_data / "xio_imu_mocap_lower_body").exit_code == 0

@@ -418,15 +418,38 @@ def _place_roots(recording, params, plan, roots, root_stream, t, cal, cal_segs, 
             root_pos.update({j: p for j, p in placed.items() if j in roots})  # an arm not mapped
             root_desc += f", shoulders from the {shoulder_trunk(recording.imu)} IMU"
         root_pos.update({j: origin for j in roots if j not in root_pos})
-    frame = "ENU"
+    # the IMUs' world frame when they declare one between them (e.g. a lab's 'vicon' frame)
+    declared = {recording.imu[s].frame for s in cal_segs if s in recording.imu}
+    frame = declared.pop() if len(declared) == 1 else "ENU"
     if cal is not None and cal.world_heading_deg:
         frame += f" (heading of the {cal_segs[0]} sensor)"
     zero = not isinstance(rp, Mapping) and not np.any(np.asarray(rp, dtype=float))
     if zero:
         if plan["hips"] and "pelvis" in recording.imu:
-            frame += ", relative to the pelvis (mid-hip)"
+            frame += RELATIVE_TO["hips"]
         elif shoulders_from_trunk(plan):
-            frame += ", relative to the mid-shoulder point"
+            frame += RELATIVE_TO["shoulders"]
         else:
             frame += f", relative to {roots[0]}"
     return root_pos, frame, root_desc
+
+
+#: The frame suffix of root-relative outputs whose origin is the midpoint of two joints.
+RELATIVE_TO = {
+    "hips": ", relative to the pelvis (mid-hip)",
+    "shoulders": ", relative to the mid-shoulder point",
+}
+
+
+def relative_origin_joints(frame: str, world: str) -> tuple[str, ...] | None:
+    """The joints whose mean is the origin of an output in ``frame`` when ``frame`` is
+    ``world`` made relative to a point (:func:`_place_roots`' labels), else None."""
+    if not frame.startswith(world + ", relative to "):
+        return None
+    rest = frame[len(world) :]
+    if rest == RELATIVE_TO["hips"]:
+        return ("hip_l", "hip_r")
+    if rest == RELATIVE_TO["shoulders"]:
+        return ("shoulder_l", "shoulder_r")
+    joint = rest[len(", relative to ") :]
+    return (joint,) if joint and " " not in joint else None

@@ -41,6 +41,7 @@ from kinefuse.pipelines.run.chain import (
     _place_roots,
     _resolve_lengths,
     build_chain,
+    relative_origin_joints,
     shoulder_trunk,
     shoulders_from_trunk,
 )
@@ -58,6 +59,7 @@ from kinefuse.pipelines.run.timeline import (
     _output_timeline,
     _sample_joints,
     apply_coverage,
+    sample_joint,
 )
 
 __all__ = ["process_recording"]
@@ -368,6 +370,15 @@ def _label_and_align(out: SessionOutput, recording, plan: dict, reference, tags=
                 "all samples, as asked: [reference] align = 'rigid') before evaluation"
             )
             provenance["alignment"] = "rigid (Kabsch) to the reference, as asked"
+        elif _score_relative(out, recording.reference):
+            origin = relative_origin_joints(out.frame, ref_frame)
+            tags.append(f"scored relative to the reference's {_origin_name(origin)}")
+            notes.append(
+                f"scored root-relative: the output ({out.frame}) against the reference minus "
+                f"its own {' and '.join(origin)} (their mean) at "
+                "each sample; no other use of the reference (no alignment)"
+            )
+            provenance["alignment"] = "none; scored relative to the reference's root joints"
         elif ref_frame != out.frame:
             if "relative to" in out.frame:  # a moving origin: no rigid alignment maps it
                 fix = "set [skeleton] root = 'reference' (the chain starts at the reference joints)"
@@ -390,6 +401,25 @@ def _label_and_align(out: SessionOutput, recording, plan: dict, reference, tags=
             provenance["alignment"] = "none"
     out.tag = f" [{', '.join(tags)}]" if tags else ""
     provenance["labels"] = out.tag.strip() or "IMU/camera data only"
+
+
+def _origin_name(joints: Sequence[str]) -> str:
+    """``("hip_l", "hip_r")`` -> ``"mid-hip"``; one joint: its name."""
+    if len(joints) == 2:
+        return "mid-" + joints[0].rsplit("_", 1)[0]
+    return joints[0]
+
+
+def _score_relative(out: SessionOutput, ref_stream) -> bool:
+    """A root-relative output in the reference's world frame: make ``out.reference`` relative
+    to the reference's own root joints (their mean, sampled on the output timeline) and say
+    True; else leave it and say False."""
+    joints = relative_origin_joints(out.frame, ref_stream.frame)
+    if not joints or not all(j in ref_stream.joints for j in joints):
+        return False
+    origin = np.mean([sample_joint(ref_stream, j, out.t_s, fill=False) for j in joints], axis=0)
+    out.reference = out.reference - origin[:, None, :]
+    return True
 
 
 def _camera_is_reference(recording) -> bool:
