@@ -682,6 +682,12 @@ def test_evaluate_takes_folders_and_format(shared_data):
     assert res.exit_code == 2, _err(res)
     assert "needs a camera, and this recording has none (only a reference" in _err(res)
     assert "[camera]" not in _err(res)
+    # advice in session terms gets evaluate's own option beside it
+    utd = shared_data / "utd_mhad" / "Skeleton" / "a3_s1_t1_skeleton.mat"
+    res = runner.invoke(cli.app, ["evaluate", str(utd), "--method", "imu-only"])
+    assert res.exit_code == 2 and "--calibration reference calibrates from the reference" in _err(
+        res
+    )
 
 
 def test_calibration_docs_example_runs(shared_data, monkeypatch, capsys):

@@ -283,3 +283,20 @@ def test_a_utd_mhad_trial_from_either_file_names_both_and_runs(kind, shared_data
     assert cfg.camera.path == (utd / "Skeleton/a9_s1_t1_skeleton.mat").resolve()
     summary = run_session(session, tmp_path / "out")
     assert "wrist_r" in summary.coverage
+
+
+def test_a_reference_without_the_output_joints_is_said_not_scored(shared_data, tmp_path):
+    """BROAD: the reference is the optical rigid body 'imu', not a joint the chain outputs.
+    The run says once that nothing is scored and why (it said the reference covered 0 % of
+    the samples and that the metrics were computed on that part, then gave frame advice)."""
+    rec = shared_data / "broad" / "data_mat" / "04_undisturbed_slow_rotation_with_breaks_A.mat"
+    session = tmp_path / "b.toml"
+    assert _init(session, rec).exit_code == 0
+    text = session.read_text(encoding="utf-8")
+    session.write_text(text.replace("[imu.segments]\n", '[imu.segments]\nforearm_r = "imu"\n', 1))
+    summary = run_session(session, tmp_path / "out")
+    said = [w for w in summary.warnings if "not scored" in w or "covers only" in w]
+    assert said == [
+        "not scored: the reference has none of the output joints (wrist_r); it has ['imu']"
+    ]
+    assert summary.evaluation is None

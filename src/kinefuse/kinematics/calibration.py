@@ -334,7 +334,8 @@ def _joint_stream_calibration(
             warnings.warn(
                 f"calibrate: the {align} alignment between the IMU world and the {method} frame is poorly "
                 f"determined by this window (a 5 deg change about world {weak} stays within the misfit noise); "
-                "use a window with rotations about several axes, or align='none' if the frames are shared",
+                "use a window with rotations about several axes, or align='none' if the frames are shared "
+                '(a session: [method.parameters] align = "none")',
                 NumericalWarning,
                 stacklevel=3,
             )

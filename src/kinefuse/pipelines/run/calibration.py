@@ -159,7 +159,8 @@ def calibrate_session(
     res = ", ".join(f"{s} {v:.1f}" for s, v in cal.residual_deg.items())
     line = (
         f"calibration {calib!r} ({_WHAT[calib]}) over {cal.window_s[0]:.2f}-"
-        f"{cal.window_s[1]:.2f} s, alignment {cal.align!r}; RMS residual (deg): {res}"
+        f"{cal.window_s[1]:.2f} s, alignment {cal.align!r}"
+        + (f"; RMS residual (deg): {res}" if res else "")
     )
     if cal.still is not None:
         line += f"; stillness {cal.still.describe()}"

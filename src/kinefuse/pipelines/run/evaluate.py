@@ -94,12 +94,25 @@ def evaluate_recording(
         params["align_to_reference"] = align
     try:
         out = process_recording(rec, method, params, body_height_m=body_height_m, tags=tags)
-    except ConfigError as exc:
-        raise InputError(f"{path}: {exc}") from None
+    except (ConfigError, InputError) as exc:
+        raise InputError(f"{path}: {exc}{_evaluate_hint(str(exc), params)}") from None
     ev = out.evaluation()
     if ev is None:
         raise InputError(f"{path}: nothing to score: {out.notes[-1]}")
     return ev
+
+
+def _evaluate_hint(message: str, params: Mapping) -> str:
+    """What ``kinefuse evaluate`` (no session file) can do about an error whose advice names
+    session keys or Python arguments: its own options."""
+    if "declared_axes" in message or "[skeleton.axes]" in message or "needs a [camera]" in message:
+        if params.get("calibration") != "reference":
+            return (
+                " (kinefuse evaluate takes no session file: --calibration reference calibrates "
+                "from the reference, labelled so in every table; or write a session with "
+                "`kinefuse init-session --from` and run it)"
+            )
+    return ""
 
 
 def _load_scorable(path, format, method: str):
@@ -111,8 +124,16 @@ def _load_scorable(path, format, method: str):
     except FormatError:
         raise
     imu = {k: v for k, v in rec.imu.items() if k in SEGMENTS}
+    if not rec.imu:
+        raise InputError(
+            f"{path}: no IMU data: the file holds joint or marker positions only (kinefuse "
+            "evaluate scores IMU methods; kinefuse.io.load reads it)"
+        )
     if not imu:
-        raise InputError(f"{path}: no IMU on a canonical segment (found {sorted(rec.imu)})")
+        raise InputError(
+            f"{path}: no IMU on a canonical segment (found {sorted(rec.imu)}); name the "
+            "segments in a session ([imu.segments], `kinefuse init-session --from`)"
+        )
     if rec.reference is None:
         if rec.vision is None:
             raise InputError(f"{path}: the recording has no reference to evaluate against")

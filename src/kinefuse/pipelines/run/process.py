@@ -142,9 +142,26 @@ def process_recording(
             "calibration cannot locate a toe or fingertip without an IMU past it; declare "
             "[skeleton.axes] and [skeleton.lengths] for them to output those segments)"
         )
+    _drop_unmatched_reference(out, recording)
     _run_method(out, recording, method, params, ctx)
     _label_and_align(out, recording, plan, ctx["reference"], tags)
     return out
+
+
+def _drop_unmatched_reference(out: SessionOutput, recording) -> None:
+    """A reference that has none of the output joints scores nothing: say so (one warning) and
+    drop it, instead of a coverage of 0 % and advice about frames."""
+    ref = recording.reference
+    if out.reference is None or ref is None or any(j in ref.joints for j in out.joints):
+        return
+    msg = (
+        f"not scored: the reference has none of the output joints ({', '.join(out.joints)}); "
+        f"it has {list(ref.joints)}"
+    )
+    out.warnings.append(msg)
+    out.notes.append(f"WARNING: {msg}")
+    out.reference = None
+    out.provenance["alignment"] = "none (the reference has none of the output joints)"
 
 
 def _functional_segments(segs, plan: dict, params: Mapping) -> tuple[list, list]:

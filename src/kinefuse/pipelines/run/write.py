@@ -336,8 +336,8 @@ def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> N
             notes=out.notes,
             provenance=out.provenance,
             unscored=(
-                "reference given, frames differ (see the notes)"
-                if str(out.provenance.get("alignment", "")).startswith("none (frames differ")
+                "reference given, not scored (see the notes)"
+                if str(out.provenance.get("alignment", "")).startswith("none (")
                 else "no reference"
             ),
         )
