@@ -28,7 +28,7 @@ def test_implausible_functional_width_falls_back_to_winter(width):
     lo, hi = HIP_WIDTH_RANGE_M
     assert not lo <= width <= hi
     off, how = hip_offsets_in_pelvis_sensor(_cal([0, -width / 2, 0], [0, width / 2, 0]), 1.75)
-    w = 0.191 * 1.75  # Winter 2009; right-front-up sensor: the right axis is sensor x
+    w = 0.0928 * 1.75  # OpenSim gait2392 spacing; right-front-up sensor: the right axis is sensor x
     np.testing.assert_allclose(off["hip_r"], [w / 2, 0, 0], atol=1e-15)
     np.testing.assert_allclose(off["hip_l"], [-w / 2, 0, 0], atol=1e-15)
     assert "outside" in how and "right-front-up" in how
@@ -38,9 +38,9 @@ def test_without_pelvis_fits_the_calibrated_pelvis_frame_is_used():
     F = np.eye(3)[:, [2, 0, 1]]  # a calibrated pelvis frame whose right axis (Z) is sensor y
     cal = SimpleNamespace(joints={}, frames={"pelvis": F})
     off, how = hip_offsets_in_pelvis_sensor(cal, 1.8)
-    w = 0.191 * 1.8
+    w = 0.0928 * 1.8
     np.testing.assert_allclose(off["hip_r"], w / 2 * F[:, 2], atol=1e-15)
     assert "calibrated pelvis frame" in how
     # hips fitted against another sensor (not the pelvis IMU) are not pelvis offsets
     off2, _ = hip_offsets_in_pelvis_sensor(_cal([0, -0.1, 0], [0, 0.1, 0], proximal="chest"), 1.8)
-    np.testing.assert_allclose(off2["hip_r"], [0.191 * 1.8 / 2, 0, 0], atol=1e-15)
+    np.testing.assert_allclose(off2["hip_r"], [0.0928 * 1.8 / 2, 0, 0], atol=1e-15)

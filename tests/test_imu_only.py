@@ -389,7 +389,7 @@ def test_ximu3_lower_body_imu_only_session(shared_data, tmp_path):
     read_trc(out / f"{stem}_joints.trc")
     # both thighs (and shanks) the same length, from body height
     st = rec.vision
-    hip_w = ANTHROPOMETRIC_RATIOS["hip_width"] * 1.75
+    hip_w = ANTHROPOMETRIC_RATIOS["hip_joint_spacing"] * 1.75
     for side in "lr":
         knee, ankle = st.position(f"knee_{side}"), st.position(f"ankle_{side}")
         shank = np.linalg.norm(ankle - knee, axis=1)

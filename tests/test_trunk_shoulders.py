@@ -217,7 +217,7 @@ def test_full_body_shoulders_on_the_chest_hips_on_the_pelvis_live_too(tmp_path):
             [sign * 0.5 * r["shoulder_width"] * H, 0.0, r["chest_to_hip"] * H]
         )
         elbow = shoulder + r["upper_arm"] * H * seg[f"upper_arm_{side}"].apply(down)
-        hip = seg["pelvis"].apply([sign * 0.5 * r["hip_width"] * H, 0.0, 0.0])
+        hip = seg["pelvis"].apply([sign * 0.5 * r["hip_joint_spacing"] * H, 0.0, 0.0])
         knee = hip + r["thigh"] * H * seg[f"thigh_{side}"].apply(down)
         for j, want in ((f"elbow_{side}", elbow), (f"knee_{side}", knee)):
             np.testing.assert_allclose(

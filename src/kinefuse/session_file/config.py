@@ -81,7 +81,8 @@ class SkeletonConfig:
     Attributes
     ----------
     body_height_m : float or None
-        Body height, m, for anthropometric segment lengths (Winter 2009) and the hip width.
+        Body height, m, for anthropometric segment lengths (Winter 2009) and the hip joint
+        spacing.
     lengths_m : dict of str -> float
         Measured segment lengths, m, by segment name (override the anthropometric ones).
     root : str or None

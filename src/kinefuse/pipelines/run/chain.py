@@ -191,13 +191,15 @@ def _declared_axes(value, segs) -> dict[str, tuple]:
 
 
 def hip_width_m(body_height_m) -> float:
-    """Hip width for hips placed from the pelvis IMU: 0.191 x body height (Winter 2009), m."""
+    """Distance between the hip joint centres for hips placed from the pelvis IMU, m: 0.0928
+    x body height (OpenSim gait2392, Delp et al. 1990; ``ANTHROPOMETRIC_RATIOS
+    ["hip_joint_spacing"]``, which says why not Winter's hip breadth)."""
     if body_height_m is None:
         raise ConfigError(
-            "the hips are placed from the pelvis IMU with the hip width 0.191 x body height "
-            "(Winter 2009); give [skeleton] body_height_m"
+            "the hips are placed from the pelvis IMU with the hip joint spacing 0.0928 x body "
+            "height (OpenSim gait2392); give [skeleton] body_height_m"
         )
-    return ANTHROPOMETRIC_RATIOS["hip_width"] * float(body_height_m)
+    return ANTHROPOMETRIC_RATIOS["hip_joint_spacing"] * float(body_height_m)
 
 
 def pelvis_right_in_sensor(cal) -> np.ndarray:
@@ -254,8 +256,8 @@ def _trunk_orientation(recording, cal, t, segment: str) -> tuple[np.ndarray, str
     return R @ trunk_frame_in_sensor(None, segment), how
 
 
-#: Plausible distance between the two hip joint centres, m (adults: about 0.15-0.25 m; Winter
-#: 2009's 0.191 x body height); a functional estimate outside it is not used.
+#: Plausible distance between the two hip joint centres, m (adults: about 0.15-0.20 m); a
+#: functional estimate outside it is not used.
 HIP_WIDTH_RANGE_M = (0.10, 0.40)
 
 
@@ -265,8 +267,8 @@ def hip_offsets_in_pelvis_sensor(cal, body_height_m) -> tuple[dict[str, np.ndarr
 
     A functional calibration that fitted both hips against the pelvis IMU gives them directly
     (each hip's sensor-to-centre vector ``r_proximal_m``, minus their mean), when their distance
-    is plausible (:data:`HIP_WIDTH_RANGE_M`). Otherwise ± half the hip width 0.191 x body
-    height (Winter 2009) along the pelvis right axis (:func:`pelvis_right_in_sensor`: the
+    is plausible (:data:`HIP_WIDTH_RANGE_M`). Otherwise ± half the hip joint spacing 0.0928 x
+    body height (:func:`hip_width_m`) along the pelvis right axis (:func:`pelvis_right_in_sensor`: the
     calibrated pelvis frame's, else the sensor taken as right-front-up).
     """
     fits = getattr(cal, "joints", None) or {}
@@ -293,8 +295,8 @@ def hip_offsets_in_pelvis_sensor(cal, body_height_m) -> tuple[dict[str, np.ndarr
         else "the pelvis sensor frame taken as right-front-up (no calibrated pelvis frame)"
     )
     how = (
-        f"± {w / 2:.3f} m along the pelvis right axis (hip width 0.191 x "
-        f"{float(body_height_m):g} m, Winter 2009) of {frame}{rejected}"
+        f"± {w / 2:.3f} m along the pelvis right axis (hip joint spacing 0.0928 x "
+        f"{float(body_height_m):g} m, OpenSim gait2392) of {frame}{rejected}"
     )
     return {"hip_l": -0.5 * w * right, "hip_r": 0.5 * w * right}, how
 

@@ -88,7 +88,7 @@ def process_recording(
     lengths : mapping of str -> float, optional
         Measured segment lengths, m (win over everything else).
     body_height_m : float, optional
-        Body height for anthropometric lengths (Winter 2009) and the hip width.
+        Body height for anthropometric lengths (Winter 2009) and the hip joint spacing.
     tags : sequence of str
         Said first in the evaluated methods' label (``SessionOutput.tag``), before the tags
         of what the reference was used for, e.g. a calibration the caller chose.
