@@ -35,6 +35,7 @@ def test_pelvis_rooted_output_is_scored_against_the_reference_minus_its_mid_hip(
         np.testing.assert_allclose(out.reference[:, i], at(j) - mid, atol=1e-12)
     ev = out.evaluation()
     assert ev is not None and np.all(np.isfinite(ev.errors[0]))
+    assert tuple(ev.axes) == ("X", "Y", "Z")  # a Vicon frame: not east, north, up
 
 
 def test_scores_do_not_move_with_the_reference_s_world_position(neura):

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from kinefuse.conventions import AXES_ENU
 from kinefuse.evaluation import evaluate
 
 __all__ = ["SessionOutput"]
@@ -147,4 +148,6 @@ class SessionOutput:
             outage,
             {self.label + self.tag: self.run_time_s} if math.isfinite(self.run_time_s) else None,
             joints=self.joints,
+            # the axes' names: east/north/up only in an ENU frame (e.g. not Vicon's x, y, z)
+            axes=AXES_ENU if self.frame.startswith("ENU") else ("X", "Y", "Z"),
         )

@@ -322,6 +322,10 @@ def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> N
             options=ReportOptions(
                 title=title,
                 notes=out.notes,
+                # east/north/up only in an ENU frame (e.g. not a Vicon frame's x, y, z)
+                axis_labels=("East", "North", "Up")
+                if out.frame.startswith("ENU")
+                else ("X", "Y", "Z"),
                 skeleton_edges=out.edges or None,
                 sections=[angle_section(out.t_s, out.angles, folder / "figures")],
                 extra_metrics={"provenance": out.provenance},
