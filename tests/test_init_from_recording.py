@@ -180,6 +180,10 @@ def test_one_leg_with_the_pelvis_places_only_its_hip(shared_data, tmp_path):
     assert set(load_session(session).imu.segments) == {"pelvis", "thigh_l", "shank_l"}
     summary = run_session(session, tmp_path / "out")
     assert set(summary.coverage) == {"knee_l", "ankle_l"}
+    # the reader's count of dropped packets reaches the terminal (it was in metadata only)
+    assert any(
+        w.startswith("imu: LFemur (thigh_l): 157 packets dropped") for w in summary.warnings
+    ), summary.warnings
     assert all(c["available"] > 0 for c in summary.coverage.values())
 
 

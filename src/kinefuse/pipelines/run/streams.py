@@ -83,7 +83,7 @@ def _load(
                 "strict_units = false in [method.parameters])"
             )
         if not issubclass(w.category, DeprecationWarning):
-            msgs.append(f"{section}: {w.message}")
+            msgs.append(f"WARNING: {section}: {w.message}")  # the reader's: shown when run
     return rec, msgs
 
 
@@ -163,6 +163,7 @@ def load_streams(cfg, *, strict_units: bool = True):
     if not rec.imu:
         raise ConfigError(f"{src}: [imu] path: the file holds no IMU data ({cfg.imu.path.name})")
     imu = _map_segments(rec, cfg, src)
+    notes += _dropped_packets(rec, imu)
     vision = None
     if cfg.camera is not None:
         if pair is not None:
@@ -189,6 +190,27 @@ def load_streams(cfg, *, strict_units: bool = True):
     md = dict(rec.metadata or {})
     md["session"] = str(cfg.path)
     return Recording(imu=imu, vision=vision, reference=reference, metadata=md), notes
+
+
+def _dropped_packets(rec, imu: dict) -> list[str]:
+    """A warning per mapped sensor whose reader counted dropped packets (Xsens DOT's packet
+    counter): how many, against the samples kept; the gaps are bridged like any missing
+    sample (docs/formats.md)."""
+    dropped = (rec.metadata or {}).get("dropped_packets")
+    if not isinstance(dropped, dict):
+        return []
+    out = []
+    for seg, st in imu.items():
+        key = next((k for k, v in rec.imu.items() if v is st), seg)
+        n = int(dropped.get(key, 0) or 0)
+        if n > 0:
+            kept = st.t_s.size
+            out.append(
+                f"WARNING: imu: {st.name or key} ({seg}): {n} packets dropped in transmission, "
+                f"{100 * n / (n + kept):.0f} % of its samples (the gaps are bridged where short, "
+                "else its joints are not available there)"
+            )
+    return out
 
 
 def _map_segments(rec, cfg, src: str) -> dict:

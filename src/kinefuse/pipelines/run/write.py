@@ -213,6 +213,7 @@ def _run_and_write(cfg, folder: Path, stage, out_dir: Path) -> RunResult:
     except ConfigError as exc:
         raise ConfigError(f"{cfg.path.name}: {exc}") from None
     out.notes[:0] = notes
+    out.warnings[:0] = [n.removeprefix("WARNING: ") for n in notes if n.startswith("WARNING: ")]
     stage("writing the joints, angles and orientations")
     result = RunResult(
         outputs=_write_positions(out, cfg, targets),
