@@ -46,13 +46,9 @@ ANTHROPOMETRIC_RATIOS = {
     # Not in SPEC: vertical distance shoulder (acromion, 0.818 H) to hip joint (greater
     # trochanter, 0.530 H), Winter 2009 Fig. 4.1 [U]; only used by full_body() without data.
     "chest_to_hip": 0.288,
-    # Not in SPEC: distance between the two hip joint centres, 0.167 m in OpenSim's generic
-    # gait2392 model (Delp et al. 1990; hip_r at z = 0.0835 m in the pelvis frame) of a
-    # subject 1.80 m tall: 0.0928 H. SPEC's "hip width" 0.191 H (Winter's figure) is the
-    # breadth across the hips, not this spacing: placing the hip joints 0.191 H apart put the
-    # knees of a standing subject about 0.33 m apart (measured: Vicon hip centres of the Neura
-    # walk 0.185 m apart, CMU subject 02 0.14-0.16 m). Used where kinefuse run places the
-    # hips from the pelvis IMU without a functional estimate (pipelines.run.chain).
+    # Not in SPEC: hip joint centre spacing, 0.167 m in OpenSim's gait2392 (Delp et al. 1990;
+    # hip_r z = 0.0835 m) for 1.80 m: 0.0928 H. SPEC's 0.191 H is the breadth across the hips
+    # (Neura's Vicon hip centres: 0.185 m apart). Used by kinefuse run (pipelines.run.chain).
     "hip_joint_spacing": 0.0928,
 }
 
@@ -587,9 +583,8 @@ def lower_body(*, lengths=None, height_m=None, axes=None, hip_offsets=None) -> S
     hip_offsets : mapping, optional
         ``{"hip_l": (3,), "hip_r": (3,)}`` from the pelvis origin in the pelvis-IMU frame, m.
         Default ``(∓w/2, 0, 0)`` with ``w`` = 0.191 ``height_m`` (right-front-up IMU frame) [J];
-        unknown (NaN) without ``height_m``, so the hips must then be given as roots. SPEC's
-        0.191 H is the breadth across the hips; ``kinefuse run`` places the hip joints
-        ``ANTHROPOMETRIC_RATIOS["hip_joint_spacing"]`` (0.0928 H) apart.
+        unknown (NaN) without ``height_m``, so the hips must then be given as roots
+        (``kinefuse run``: ``ANTHROPOMETRIC_RATIOS["hip_joint_spacing"]``, 0.0928 H).
 
     Notes
     -----
