@@ -304,3 +304,15 @@ def test_a_reference_without_the_output_joints_is_said_not_scored(shared_data, t
         "not scored: the reference has none of the output joints (wrist_r); it has ['imu']"
     ]
     assert summary.evaluation is None
+
+
+def test_pose_warning_advises_only_what_was_not_done(shared_data, tmp_path):
+    """qmt full body (6-D): the headings are aligned in the pose (heading auto = static), so
+    a pose warning no longer advises heading = "static" (following it changed nothing); the
+    9-D DOT case above still gets it."""
+    session = tmp_path / "q.toml"
+    assert _init(session, shared_data / "qmt_full_body_example").exit_code == 0
+    summary = run_session(session, tmp_path / "out")
+    said = [w for w in summary.warnings if "in the calibration pose" in w]
+    assert said and not [w for w in said if 'heading = "static"' in w], said
+    assert all("the headings were already aligned in the pose" in w for w in said), said

@@ -304,6 +304,12 @@ def _pose_angle_check(angles: Mapping[str, np.ndarray], t: np.ndarray, cal) -> l
         bad = [f"{c} {v:.0f}" for c, v, d in zip(names, mean, off, strict=True)
                if abs(d) > POSE_ANGLE_WARN_DEG]  # fmt: skip
         if bad:
+            fix = (  # heading = "static" is advice only where it was not applied already
+                "declare [calibration] facing, or check that each sensor sits on the segment "
+                "it is mapped to (the headings were already aligned in the pose)"
+                if cal.world_heading_deg
+                else 'declare [calibration] facing, or heading = "static" for 6-D sensors'
+            )
             pose = "zero"
             if np.any(np.abs(want) > 0.5):
                 pose = ", ".join(f"{c} {v:.0f}" for c, v in zip(names, want, strict=True))
@@ -311,7 +317,6 @@ def _pose_angle_check(angles: Mapping[str, np.ndarray], t: np.ndarray, cal) -> l
                 f"{j} reads {', '.join(bad)} deg in the calibration pose ({cal.window_s[0]:.2f}-"
                 f"{cal.window_s[1]:.2f} s), where it reads {pose} by construction: its "
                 "segment frames disagree (the facing, or sensor headings that differ: see the "
-                'calibration notes; declare [calibration] facing, or heading = "static" for '
-                "6-D sensors)"
+                f"calibration notes; {fix})"
             )
     return out
