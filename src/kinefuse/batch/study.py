@@ -58,7 +58,7 @@ from pathlib import Path
 
 from kinefuse.exceptions import ConfigError
 from kinefuse.methods import unknown_fix
-from kinefuse.session_file import METHODS, _Ctx, load_session, read_toml
+from kinefuse.session_file import METHODS, SECTION_PARAMETERS, _Ctx, load_session, read_toml
 
 __all__ = ["Study", "Task", "load_study", "study_from_sessions"]
 
@@ -147,28 +147,11 @@ def _merge(base: Mapping, over: Mapping) -> dict:
     return out
 
 
-#: One setting that a session file can give in two places: ``[method.parameters] <name>`` and a
-#: key of another section, which :meth:`kinefuse.session_file.SessionConfig.processing_parameters`
-#: merges into the parameters (refusing two different values: "given twice"). A study's layers
-#: (:func:`_layer`) treat both spellings as one setting.
+#: One setting that a session file can give in two places: ``[method.parameters] <name>`` and
+#: a key of another section (:data:`kinefuse.session_file.SECTION_PARAMETERS`). A study's
+#: layers (:func:`_layer`) treat both spellings as one setting.
 _SAME_SETTING: tuple[tuple[tuple[str, ...], tuple[str, ...]], ...] = tuple(
-    (("method", "parameters", param), section_key)
-    for param, section_key in (
-        ("calibration", ("calibration", "method")),
-        ("calibration_window_s", ("calibration", "window_s")),
-        ("calibration_start_s", ("calibration", "start_s")),
-        ("pose", ("calibration", "pose")),
-        ("facing", ("calibration", "facing")),
-        ("heading", ("calibration", "heading")),
-        ("flexion_axes", ("calibration", "flexion_axes")),
-        ("measured_lengths", ("calibration", "lengths_from_data")),
-        ("max_rate_rad_s", ("calibration", "max_rate_rad_s")),
-        ("max_acc_std_m_s2", ("calibration", "max_acc_std_m_s2")),
-        ("root", ("skeleton", "root")),
-        ("root_position_m", ("skeleton", "root_position_m")),
-        ("axes", ("skeleton", "axes")),
-        ("align_to_reference", ("reference", "align")),
-    )
+    (("method", "parameters", param), where) for param, where in SECTION_PARAMETERS.items()
 )
 
 

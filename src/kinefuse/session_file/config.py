@@ -24,6 +24,7 @@ __all__ = [
     "MethodConfig",
     "ReferenceConfig",
     "SessionConfig",
+    "SECTION_PARAMETERS",
     "SkeletonConfig",
 ]
 
@@ -163,6 +164,27 @@ class MethodConfig:
     parameters: dict = field(default_factory=dict)
 
 
+#: ``[method.parameters]`` names that another section of a session file also sets:
+#: ``name -> (section, key)``. :meth:`SessionConfig.processing_parameters` merges them (two
+#: different values are an error) and a study's layers treat both spellings as one setting.
+SECTION_PARAMETERS = {
+    "calibration": ("calibration", "method"),
+    "calibration_window_s": ("calibration", "window_s"),
+    "calibration_start_s": ("calibration", "start_s"),
+    "pose": ("calibration", "pose"),
+    "facing": ("calibration", "facing"),
+    "heading": ("calibration", "heading"),
+    "flexion_axes": ("calibration", "flexion_axes"),
+    "measured_lengths": ("calibration", "lengths_from_data"),
+    "max_rate_rad_s": ("calibration", "max_rate_rad_s"),
+    "max_acc_std_m_s2": ("calibration", "max_acc_std_m_s2"),
+    "root": ("skeleton", "root"),
+    "root_position_m": ("skeleton", "root_position_m"),
+    "axes": ("skeleton", "axes"),
+    "align_to_reference": ("reference", "align"),
+}
+
+
 @dataclass(frozen=True)
 class SessionConfig:
     """A validated session file.
@@ -202,27 +224,7 @@ class SessionConfig:
             The same setting given in two places with different values.
         """
         params = dict(self.method.parameters)
-        c = dict(self.calibration.settings)
-        new = {
-            "calibration": c.get("method"),
-            "calibration_window_s": c.get("window_s"),
-            "calibration_start_s": c.get("start_s"),
-            "pose": c.get("pose"),
-            "facing": c.get("facing"),
-            "heading": c.get("heading"),
-            "flexion_axes": c.get("flexion_axes"),
-            "measured_lengths": c.get("lengths_from_data"),
-            "max_rate_rad_s": c.get("max_rate_rad_s"),
-            "max_acc_std_m_s2": c.get("max_acc_std_m_s2"),
-            "root": self.skeleton.root,
-            "root_position_m": self.skeleton.root_position_m,
-            "axes": self.skeleton.axes or None,
-            "align_to_reference": (
-                None
-                if self.reference is None or self.reference.align == "none"
-                else self.reference.align
-            ),
-        }
+        new = {k: self._section_value(*where) for k, where in SECTION_PARAMETERS.items()}
         for k, v in new.items():
             if v is None:
                 continue
@@ -233,6 +235,16 @@ class SessionConfig:
                 )
             params[k] = v
         return params
+
+    def _section_value(self, section: str, key: str):
+        """The value ``[section] key`` gave (:data:`SECTION_PARAMETERS`), None if not given."""
+        if section == "calibration":
+            return self.calibration.settings.get(key)
+        if section == "skeleton":
+            return getattr(self.skeleton, key) or None
+        if self.reference is None or self.reference.align == "none":  # [reference] align
+            return None
+        return self.reference.align
 
     @property
     def inputs(self) -> tuple[Path, ...]:
