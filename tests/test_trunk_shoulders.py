@@ -2,8 +2,8 @@
 
 Closed-form oracle: a synthetic upper body (chest, upper arms, forearms) still in the N-pose,
 then the trunk turns and leans while the arms swing and the elbows flex. With a fixed root at
-the mid-shoulder point, each shoulder is that point ± half the shoulder width (0.259 x body
-height, Winter 2009) along the trunk's right axis, each elbow and wrist follows along its
+the mid-shoulder point, each shoulder is that point ± half the shoulder joint spacing (0.189 x
+body height, OpenSim's full-body model) along the trunk's right axis, each elbow and wrist follows along its
 segment, and the live engine running the chain.json `kinefuse run` wrote gives the same joints.
 """
 
@@ -66,7 +66,7 @@ def _upper_body(T: int = 800):
 
 def _expected(seg) -> dict[str, np.ndarray]:
     """The joints in closed form (lengths from body height, arms hanging in the pose)."""
-    half = 0.5 * ANTHROPOMETRIC_RATIOS["shoulder_width"] * H
+    half = 0.5 * ANTHROPOMETRIC_RATIOS["shoulder_joint_spacing"] * H
     down = np.array([0.0, 0.0, -1.0])
     out = {}
     for side, sign in (("l", -1.0), ("r", 1.0)):
@@ -94,13 +94,13 @@ def test_shoulders_hang_from_the_chest_imu():
     for k, j in enumerate(out.joints):
         # exact data, SLERP at the sensors' own times: only the calibration's least squares
         np.testing.assert_allclose(out.chain[:, k], want[j], atol=1e-6, err_msg=j)
-    # in the pose the elbows are a shoulder width apart, along the right axis (east)
+    # in the pose the elbows are a shoulder joint spacing apart, along the right axis (east)
     jl, jr = out.joints.index("elbow_l"), out.joints.index("elbow_r")
-    np.testing.assert_allclose(out.chain[0, jr] - out.chain[0, jl], [0.259 * H, 0, 0], atol=1e-9)
-    assert np.ptp(out.chain[:, jr, 1] - out.chain[:, jl, 1]) > 0.2  # the trunk turned with them
+    np.testing.assert_allclose(out.chain[0, jr] - out.chain[0, jl], [0.189 * H, 0, 0], atol=1e-9)
+    assert np.ptp(out.chain[:, jr, 1] - out.chain[:, jl, 1]) > 0.12  # the trunk turned with them
     assert "shoulders from the chest IMU" in out.root
     assert out.frame.endswith("relative to the mid-shoulder point") is False  # ROOT is not 0
-    assert any("± 0.227 m along the chest right axis" in n for n in out.notes), out.notes
+    assert any("± 0.165 m along the chest right axis" in n for n in out.notes), out.notes
 
 
 def test_without_a_chest_imu_the_pelvis_carries_the_shoulders():
@@ -214,7 +214,7 @@ def test_full_body_shoulders_on_the_chest_hips_on_the_pelvis_live_too(tmp_path):
     r = ANTHROPOMETRIC_RATIOS
     for side, sign in (("l", -1.0), ("r", 1.0)):
         shoulder = seg["chest"].apply(
-            [sign * 0.5 * r["shoulder_width"] * H, 0.0, r["chest_to_hip"] * H]
+            [sign * 0.5 * r["shoulder_joint_spacing"] * H, 0.0, r["chest_to_hip"] * H]
         )
         elbow = shoulder + r["upper_arm"] * H * seg[f"upper_arm_{side}"].apply(down)
         hip = seg["pelvis"].apply([sign * 0.5 * r["hip_joint_spacing"] * H, 0.0, 0.0])

@@ -50,6 +50,10 @@ ANTHROPOMETRIC_RATIOS = {
     # hip_r z = 0.0835 m) for 1.80 m: 0.0928 H. SPEC's 0.191 H is the breadth across the hips
     # (Neura's Vicon hip centres: 0.185 m apart). Used by kinefuse run (pipelines.run.chain).
     "hip_joint_spacing": 0.0928,
+    # Not in SPEC: shoulder (glenohumeral) joint spacing, 0.34 m in OpenSim's full-body models
+    # (Hamner et al. 2010; acromial_r z = 0.17 m) at the same 1.80 m: 0.189 H; SPEC's 0.259 H
+    # is the breadth across the shoulders. Used by kinefuse run (pipelines.run.chain).
+    "shoulder_joint_spacing": 0.189,
 }
 
 #: Named unit axes accepted wherever a segment axis is configured (SPEC §2.2-1: ±e1, ±e2, ±e3).

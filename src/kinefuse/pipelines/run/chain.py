@@ -231,16 +231,18 @@ def shoulder_trunk(imus) -> str | None:
 
 def shoulder_offsets_m(body_height_m, above_hips: bool) -> dict[str, np.ndarray]:
     """Shoulder centres in the trunk's ISB frame (X anterior, Y up, Z right), m: ± half the
-    shoulder width 0.259 H along Z, and 0.288 H up (the acromion, 0.818 H, above the greater
-    trochanter, 0.530 H) when the origin is the mid-hip point (Winter 2009, Fig. 4.1)."""
+    shoulder joint spacing 0.189 H along Z (OpenSim full-body model; ``ANTHROPOMETRIC_RATIOS
+    ["shoulder_joint_spacing"]``, which says why not Winter's shoulder breadth 0.259 H), and
+    0.288 H up (the acromion, 0.818 H, above the greater trochanter, 0.530 H) when the origin is
+    the mid-hip point (Winter 2009, Fig. 4.1)."""
     if body_height_m is None:
         raise ConfigError(
-            "the shoulders are placed from the trunk IMU with the shoulder width 0.259 x body "
-            "height (Winter 2009); give [skeleton] body_height_m"
+            "the shoulders are placed from the trunk IMU with the shoulder joint spacing 0.189 x "
+            "body height (OpenSim full-body model); give [skeleton] body_height_m"
         )
     H = float(body_height_m)
     up = ANTHROPOMETRIC_RATIOS["chest_to_hip"] * H if above_hips else 0.0
-    half = 0.5 * ANTHROPOMETRIC_RATIOS["shoulder_width"] * H
+    half = 0.5 * ANTHROPOMETRIC_RATIOS["shoulder_joint_spacing"] * H
     return {"shoulder_l": np.array([0.0, up, -half]), "shoulder_r": np.array([0.0, up, half])}
 
 
@@ -324,14 +326,14 @@ def _shoulder_roots(recording, cal, t, origin, above_hips, body_height_m, notes)
     notes.append(
         "shoulders: "
         + (f"{up:.3f} m up the {trunk} axis from the mid-hip point, then " if above_hips else "")
-        + f"± {half:.3f} m along the {trunk} right axis (shoulder width 0.259 x "
-        + f"{float(body_height_m):g} m"
+        + f"± {half:.3f} m along the {trunk} right axis (shoulder joint spacing "
+        + f"0.189 x {float(body_height_m):g} m, OpenSim full-body model"
         + (
-            f"; acromion 0.288 x {float(body_height_m):g} m above the hip joint"
+            f"; acromion 0.288 x {float(body_height_m):g} m above the hip joint, Winter 2009"
             if above_hips
             else ""
         )
-        + f", Winter 2009), from {how}"
+        + f"), from {how}"
         + (
             "; the trunk is taken as rigid with the pelvis (no chest IMU)"
             if trunk == "pelvis"
