@@ -385,6 +385,9 @@ def test_ximu3_lower_body_imu_only_session(shared_data, tmp_path):
     rec = read_joint_csv(out / f"{stem}_joints.csv")
     assert rec.vision.frame == "ENU, relative to the pelvis (mid-hip)"
     assert rec.metadata["header"]["root"].startswith("pelvis (mid-hip)")
+    # no filter ran: the header says what the -1 modes and the empty std columns mean
+    assert "-1=no filter" in rec.metadata["header"]["mode_codes"]
+    assert rec.metadata["header"]["std_m"].endswith("empty: imu-only gives none")
     assert "root: pelvis" in (out / f"{stem}_joints.trc").read_text().splitlines()[0]
     read_trc(out / f"{stem}_joints.trc")
     # both thighs (and shanks) the same length, from body height

@@ -281,7 +281,14 @@ def _write_positions(out: SessionOutput, cfg, targets: Mapping[str, Path]) -> li
             "source_codes": ", ".join(
                 f"{k}={v} ({SOURCE_KINDS[k]})" for k, v in SOURCE_NAMES.items()
             ),
-            "mode_codes": ", ".join(f"{k}={v}" for k, v in MODE_NAMES.items()),
+            "mode_codes": ", ".join(f"{k}={v}" for k, v in MODE_NAMES.items())
+            + ", -1=no filter (the method filters nothing)",
+            "std_m": "1-sigma position uncertainty of the filter, m"
+            + (
+                "; empty where the method gives none"
+                if np.isfinite(out.std_m).any()
+                else f"; empty: {cfg.method.name} gives none"
+            ),
             "available": "1 where the inputs the method needs cover the sample (else the "
             "position, if any, is a prediction)",
             "covered": "<stream>_covered: 1 where that input stream has data at the sample",
