@@ -250,3 +250,28 @@ def test_root_gap_is_bridged_or_predicted(synthetic_files, tmp_path, gap_s, avai
     want = SOURCE_BRIDGED if available else SOURCE_PREDICTED
     assert np.all(source[inside] == want)
     assert summary["coverage"]["elbow_r"]["bridged" if available else "predicted"] >= inside.sum()
+
+
+def test_dropped_imu_packets_leave_no_hole_in_the_output_frames():
+    """An IMU-only output follows the first sensor's clock; where that sensor dropped packets
+    the frames stay uniform (TRC/.mot readers expect a constant rate), and a short gap is
+    bridged, so those frames are available and exact (the arm hangs still)."""
+    from scipy.spatial.transform import Rotation
+
+    from kinefuse.io import ImuStream, Recording
+    from kinefuse.pipelines.run import process_recording
+
+    t = np.arange(300) / 100.0
+    keep = np.ones(t.size, bool)
+    keep[[120, 121, 200]] = False  # a 30 ms and a 20 ms hole in the upper arm's stream
+    q = np.tile(Rotation.identity().as_quat(scalar_first=True), (t.size, 1))
+    acc = np.tile([0.0, 0.0, 9.81], (t.size, 1))
+    imu = {
+        "upper_arm_r": ImuStream(t_s=t[keep], q_world_from_sensor=q[keep], acc_m_s2=acc[keep]),
+        "forearm_r": ImuStream(t_s=t, q_world_from_sensor=q, acc_m_s2=acc),
+    }
+    params = {"root": "fixed", "root_position_m": [0.0, 0.0, 1.4], "calibration": "static"}
+    out = process_recording(Recording(imu=imu), "imu-only", params, body_height_m=1.75)
+    np.testing.assert_allclose(out.t_s, t, atol=1e-9)
+    assert out.available.all()
+    np.testing.assert_allclose(out.position, np.broadcast_to(out.position[:1], out.position.shape))

@@ -51,7 +51,8 @@ Method parameters (``[method.parameters]`` of the session file; all optional)
     scoring (labelled). ``[reference] align``.
 ``rate_hz``
     Output/filter rate, Hz (default 30 for ``paper-a`` and the camera methods, else the root
-    stream's own timeline).
+    stream's own timeline; without a root stream, the first IMU's, made uniform over its span
+    where that IMU dropped packets).
 ``filter``
     ``imu-only`` only: ``"none"`` (default), ``"kf"``, ``"fir"``, ``"em-kf"``, ``"em-kf-fir"``;
     ``paper-a`` uses ``"em-kf-fir"`` unless told otherwise.

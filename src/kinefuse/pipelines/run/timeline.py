@@ -330,7 +330,21 @@ def _output_timeline(recording, method: str, params: Mapping, segs, root_kind: s
     t1 = min(float(recording.imu[s].t_s[-1]) for s in segs)
     base = recording.imu[segs[0]].t_s
     base = base[(base >= t0 - 1e-9) & (base <= t1 + 1e-9)]
-    return _timeline(base, None if rate is None else float(rate)), None
+    if rate is None:
+        return _regular(base), None
+    return _timeline(base, float(rate)), None
+
+
+def _regular(t: np.ndarray) -> np.ndarray:
+    """``t`` where its steps are regular, else a uniform grid over its span (ends kept) at about
+    its median step: an IMU that drops packets leaves no holes in the output's frames (TRC and
+    ``.mot`` readers expect a constant rate; the coverage columns say what the inputs covered)."""
+    if t.size < 3:
+        return t
+    step = float(np.median(np.diff(t)))
+    if step <= 0 or np.max(np.diff(t)) <= 1.5 * step:
+        return t
+    return np.linspace(t[0], t[-1], int(np.floor((t[-1] - t[0]) / step + 0.5)) + 1)
 
 
 def _sample_joints(stream, joints, t: np.ndarray) -> np.ndarray:
