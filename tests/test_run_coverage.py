@@ -274,4 +274,5 @@ def test_dropped_imu_packets_leave_no_hole_in_the_output_frames():
     out = process_recording(Recording(imu=imu), "imu-only", params, body_height_m=1.75)
     np.testing.assert_allclose(out.t_s, t, atol=1e-9)
     assert out.available.all()
+    assert np.isnan(out.run_time_s)  # no filter ran: no "0.000 s" run-time table
     np.testing.assert_allclose(out.position, np.broadcast_to(out.position[:1], out.position.shape))

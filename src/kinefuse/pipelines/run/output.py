@@ -43,7 +43,8 @@ class SessionOutput:
     reference : ndarray, shape (T, J, 3) or None
         Reference positions at ``t_s`` in the same frame (NaN where unavailable).
     run_time_s : float
-        Wall-clock time of the method (chain excluded), s.
+        Wall-clock time of the method (chain excluded), s; NaN for ``imu-only`` without a
+        filter (nothing runs beyond the chain, so the report has no run-time table).
     edges : tuple of (str, str)
         Bones between output joints (report skeleton).
     notes : list of str

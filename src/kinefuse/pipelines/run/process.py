@@ -333,7 +333,8 @@ def _run_method(out: SessionOutput, recording, method: str, params: Mapping, ctx
                 out.label = f"IMU only + {out.label}"
     else:
         _vision(out, recording, chain, camera, dt, method, params, ctx["cal"])
-    out.run_time_s = time.perf_counter() - t0
+    # imu-only without a filter runs nothing beyond the chain: no run time to report
+    out.run_time_s = time.perf_counter() - t0 if flt != "none" or method != "imu-only" else np.nan
     apply_coverage(
         out, ctx["coverage"], ctx["root_ok"], ctx["joints"], method, ctx["root_name"], ctx["inputs"]
     )
