@@ -542,6 +542,17 @@ def test_folder_around_one_recording_reads_it(tmp_path, tp):
         FormatError, match=r"format 'trc' reads one file; this is a folder \(3 .trc"
     ):
         kio.load(d, format="trc")
+    # a dataset's top folder (README, licence) whose recordings sit in a sub-folder: named
+    top = tmp_path / "study"
+    top.mkdir()
+    (top / "README.md").write_text("# study\n")
+    shutil.move(d, top / "trials")
+    with pytest.raises(
+        FormatError,
+        match=r"its sub-folder trials/ holds files kinefuse reads \(trc\), e.g. "
+        r"trials/again.trc; pass one of them",
+    ):
+        kio.load(top)
 
 
 @needs_opensim

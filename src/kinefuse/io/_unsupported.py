@@ -43,9 +43,10 @@ _BY_EXTENSION = {
 
 
 def _readable_files(folder: Path, detect, limit: int = 50) -> list[tuple[str, str]]:
-    """(name, format) of the first ``limit`` entries of ``folder`` that ``detect`` recognises."""
+    """(name, format) of the first ``limit`` entries of ``folder`` that ``detect`` recognises
+    (hidden ones left out, as the loader leaves them)."""
     out = []
-    for p in sorted(folder.iterdir())[:limit]:
+    for p in sorted(p for p in folder.iterdir() if not p.name.startswith("."))[:limit]:
         try:  # sub-folders by layout only: no recursion into their own messages
             fmt = detect(p)
         except (ValueError, OSError):
@@ -53,6 +54,22 @@ def _readable_files(folder: Path, detect, limit: int = 50) -> list[tuple[str, st
         if fmt:
             out.append((p.name + ("/" if p.is_dir() else ""), fmt))
     return out
+
+
+def _inside(folder: Path, detect) -> str:
+    """``"; its sub-folder d/ holds files kinefuse reads (fmt), e.g. d/x; pass one of them"``
+    for the first sub-folder (of 10) holding recordings, else ``""`` (a dataset's top folder)."""
+    if detect is None:
+        return ""
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir() and p.name[0] != ".")[:10]:
+        readable = _readable_files(sub, detect)
+        if readable:
+            fmts = ", ".join(sorted({fmt for _n, fmt in readable}))
+            return (
+                f"; its sub-folder {sub.name}/ holds files kinefuse reads ({fmts}), e.g. "
+                f"{sub.name}/{readable[0][0]}; pass one of them"
+            )
+    return ""
 
 
 def _head(path: Path, n: int = 8192) -> bytes:
@@ -92,7 +109,7 @@ def looks_like(path, detect=None) -> str:
                 f"a folder ({top}) that is not one recording; kinefuse reads what is in it one "
                 f"at a time ({shown}{more}); pass one of them"
             )
-        return f"a folder of files kinefuse does not recognise ({top})"
+        return f"a folder of files kinefuse does not recognise ({top}){_inside(path, detect)}"
     ext = path.suffix.lower()
     raw = _head(path)
     if not raw.strip():
