@@ -193,7 +193,12 @@ def test_one_thigh_without_the_pelvis_starts_at_its_hip(shared_data, tmp_path):
     from the pelvis IMU") although one measured position fixes a single chain."""
     rec = shared_data / "third_party" / "xsens" / "dot_transformed_mtmanager"
     session = tmp_path / "thigh.toml"
-    assert _init(session, rec / "XSDot_20210820_202113_RFemur.txt").exit_code == 0
+    res = _init(session, rec / "XSDot_20210820_202113_RFemur.txt")
+    assert res.exit_code == 0
+    # the file is one sensor of a five-sensor recording: the message says how to map them all
+    assert f"one sensor of the recording in {rec}: --from that folder" in " ".join(
+        res.output.split()
+    )
     assert "the measured root joint (hip_r), m" in session.read_text(encoding="utf-8")
     summary = run_session(session, tmp_path / "out")
     assert summary.coverage["knee_r"]["available"] == summary.coverage["knee_r"]["samples"] > 0

@@ -226,6 +226,12 @@ def init_session(
             + (f"; not recognised: {', '.join(sk.unmapped)}" if sk.unmapped else "")
             + (f"; functional calibration: {sk.no_still_window}" if sk.no_still_window else "")
             + (
+                f"; this file is one sensor of the recording in {sk.whole_folder}: --from that "
+                "folder maps every sensor"
+                if sk.whole_folder
+                else ""
+            )
+            + (
                 ". Name each sensor's segment in [imu.segments] (kinefuse run needs one at least)"
                 if not sk.segments
                 else ". Check it"

@@ -59,6 +59,9 @@ class RecordingSketch(NamedTuple):
     camera_path: str = ""
     """The ``[camera] path`` when it is another file than ``path`` (a UTD-MHAD trial: the
     skeleton file, ``path`` the inertial one); empty: ``path``."""
+    whole_folder: str = ""
+    """The folder ``path`` sits in when that folder is itself one recording of the same format
+    (one sensor's file of an Xsens DOT or OpenSense set): passing it maps every sensor."""
 
 
 def sketch_recording(
@@ -109,11 +112,24 @@ def sketch_recording(
     pair = bool(files.get("inertial") and files.get("skeleton") and rec.vision is not None)
     imu_path = Path(files["inertial"]) if pair else p
     mapped = {s: rec.imu[s] for s in segments}
+    whole = _whole_folder(p, fmt) if not pair else ""
     return RecordingSketch(fmt, _session_path(imu_path, session_dir),
                            dict(sorted(segments.items(), key=_order)), tuple(unmapped),
                            rec.vision is not None, rec.reference is not None,
                            still(mapped) if still and mapped and rec.vision is None else "",
-                           _session_path(Path(files["skeleton"]), session_dir) if pair else "")  # fmt: skip
+                           _session_path(Path(files["skeleton"]), session_dir) if pair else "",
+                           whole)  # fmt: skip
+
+
+def _whole_folder(p: Path, fmt: str) -> str:
+    """``str(p.parent)`` when ``p`` is a file of a folder the ``fmt`` reader reads whole."""
+    if not p.is_file():
+        return ""
+    try:
+        same = detect_format(p.parent) == fmt
+    except (ValueError, OSError):  # the folder is not one recording: nothing to suggest
+        return ""
+    return str(p.parent) if same else ""
 
 
 def _session_path(p: Path, session_dir: Path) -> str:
