@@ -56,9 +56,9 @@ from kinefuse.kinematics.alignment import (
 from kinefuse.kinematics.angles import JOINTS
 from kinefuse.kinematics.calibration_result import Calibration, joint_stream, oriented_imu
 from kinefuse.kinematics.chain import chain_positions, segment_orientations
-from kinefuse.kinematics.forward import as_rotation_matrices
+from kinefuse.kinematics.forward import as_rotation_matrices, rotation_z
 from kinefuse.kinematics.functional import functional_calibration
-from kinefuse.kinematics.hinge import HINGES, hinge_facing, hinge_frames
+from kinefuse.kinematics.hinge import HINGES, hinge_facing, hinge_frames, limb_headings
 from kinefuse.kinematics.skeleton import Skeleton, lengths_from_joints, window_mask
 from kinefuse.kinematics.static import (
     POSE_WARN_DEG,
@@ -161,7 +161,11 @@ def calibrate(
         every sensor faces the same way on the body in the still pose (the heading of each
         sensor's mean orientation is rotated onto that of the first segment's). Use it for 6-D
         orientations (no magnetometer), whose headings are arbitrary per sensor; ``"none"``
-        (default) keeps the frames (9-D / magnetometer-referenced data share north).
+        (default) keeps the frames (9-D / magnetometer-referenced data share north). With
+        flexion axes from the movement, each fitted elbow's or knee's limb is then turned so
+        that its flexion axis is the body's medio-lateral axis in the pose
+        (:func:`kinefuse.kinematics.hinge.limb_headings`; ``Calibration.limb_heading_deg``):
+        its sensors need not face as the others do.
     mounting : mapping, optional
         The sensor axis declared to run along each segment (proximal -> distal), e.g.
         ``{"thigh_l": "+e1"}``. Static: its angle to the assumed pose direction is reported as
@@ -236,14 +240,37 @@ def calibrate(
     if auto_facing and flexion_axes == "movement":
         free = facing_free_segments(skeleton, segs, pose, directions)
         kept = [j for j in cal.hinge_residual_rad_s if set(JOINTS[j][:2]) <= free]
-        est = hinge_facing(recording, cal, kept)
+        with warnings.catch_warnings():  # 6-D: limbs that disagree are turned below
+            if heading == "static":
+                warnings.simplefilter("ignore", NumericalWarning)
+            est = hinge_facing(recording, cal, kept)
         if est is not None:  # every pose frame (pelvis, hips, T-pose arms) in that facing
             f0, source = est[0], "hinges"
             with warnings.catch_warnings():  # the first pass said it all (same data)
                 warnings.simplefilter("ignore", NumericalWarning)
                 cal = _in_facing(recording, skeleton, segs, imus, cal, f0, kept, kw)
+    if heading == "static" and flexion_axes == "movement":
+        free = facing_free_segments(skeleton, segs, pose, directions)
+        turn = [j for j in cal.hinge_residual_rad_s if set(JOINTS[j][:2]) <= free]
+        cal = limb_headings(recording, cal, f0, turn)  # the limbs face as the trunk does
+        cal, f0 = _keep_reference_heading(cal, segs[0], f0)
     cal = _feet_on_shanks(imus, cal)
     return replace(cal, facing=np.asarray(f0, dtype=float), facing_from=source)
+
+
+def _keep_reference_heading(cal: Calibration, ref: str, facing):
+    """Turn the whole common world (every heading, and ``facing``) so that the reference
+    sensor ``ref`` (the first segment: the world frame keeps its heading) has heading 0 again;
+    the segment frames, in the sensors, and every relative heading are unchanged."""
+    psi = float(cal.world_heading_deg.get(ref, 0.0))
+    if abs(psi) <= 1e-9:
+        return cal, facing
+    heading = {
+        s: 0.0 if s == ref else float((h - psi + 180.0) % 360.0 - 180.0)
+        for s, h in cal.world_heading_deg.items()
+    }
+    f = rotation_z(np.radians(-psi)) @ np.asarray(facing, dtype=float)
+    return replace(cal, world_heading_deg=heading), f
 
 
 def _feet_on_shanks(imus: Mapping, cal: Calibration) -> Calibration:

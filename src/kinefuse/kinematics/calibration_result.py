@@ -75,6 +75,11 @@ class Calibration:
         implies, per joint whose two segments it calibrated: zero, except the shoulders in the
         T-pose (adduction −90°, flexion and internal rotation 0 by convention: the arm
         horizontal to the side is the decomposition's singular position).
+    limb_heading_deg : dict of str -> float
+        Static with ``heading="static"`` and flexion axes from the movement: per hinge, the turn
+        about the vertical applied to its limb's sensors (included in ``world_heading_deg``) so
+        that its flexion axis is the body's medio-lateral axis in the pose, deg
+        (:func:`kinefuse.kinematics.hinge.limb_headings`).
     """
 
     axes: Mapping[str, np.ndarray]
@@ -92,6 +97,7 @@ class Calibration:
     facing: np.ndarray | None = None
     facing_from: str = ""
     pose_angles_deg: Mapping[str, np.ndarray] = field(default_factory=dict)
+    limb_heading_deg: Mapping[str, float] = field(default_factory=dict)
 
     def heading_matrix(self, segment: str) -> np.ndarray:
         """``R_z(ψ)`` applied to ``segment``'s sensor world frame (identity if none), (3, 3)."""

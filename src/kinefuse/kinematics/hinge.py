@@ -46,7 +46,7 @@ G. Wu et al., ISB recommendations, J. Biomech. 35 (2002), 38 (2005): segment fra
 from __future__ import annotations
 
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -65,9 +65,15 @@ __all__ = [
     "FACING_SPREAD_DEG",
     "HEADING_PRIOR",
     "HINGES",
+    "MAX_AXIS_TILT_DEG",
     "MIN_HINGE_RATE_RAD_S",
+    "OPPOSITE_DEG",
     "hinge_facing",
     "hinge_frames",
+    "limb_headings",
+    "limb_segments",
+    "opposite_hinges_advice",
+    "pose_anterior",
     "segment_frame",
 ]
 
@@ -149,10 +155,13 @@ def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool):
         return np.append(r, w_prior * x[2])
 
     best = None
+    # the heading is multimodal where the sensors' headings are unrelated (6-D): four starts
+    psi0 = np.radians([0.0, 90.0, 180.0, -90.0]) if refine_heading else [0.0]
     for th0 in np.radians([0.0, 45.0, 90.0, 135.0]):
-        sol = least_squares(res, [th0, 0.0, 0.0], x_scale=[1.0, 1.0, 0.1])
-        if best is None or sol.cost < best.cost:
-            best = sol
+        for p0 in psi0:
+            sol = least_squares(res, [th0, 0.0, p0], x_scale=[1.0, 1.0, 0.1])
+            if best is None or sol.cost < best.cost:
+                best = sol
     dpsi = float(best.x[2]) if refine_heading else 0.0
     return j1_of(best.x), dpsi, float(np.sqrt(np.mean(best.fun[:-1] ** 2)))
 
@@ -209,6 +218,8 @@ def hinge_frames(
         # relative angular velocity from the orientations (finite differences), world frame
         wA, wB0 = _world_rate(RA, tk), _world_rate(RB0, tk)
         jA, dpsi, rms = _fit_flexion_axis(RA, RB0, wA, wB0, axes[prox], axes[dist], refine_heading)
+        if not _perpendicular(jA, axes[prox], j, prox, dist, rms):
+            continue
         psi = psi0 + dpsi
         RB = rotation_z(psi - psi0) @ RB0
         # the distal frame's Z: the flexion axis carried into the distal sensor in the pose
@@ -259,42 +270,143 @@ def hinge_facing(
         ``facing (3,)``: horizontal unit vector, the normalised mean of the hinges' directions;
         ``per_joint``: each hinge's direction as degrees from north towards east. None when no
         hinge was fitted or two hinges' directions differ by more than
-        :data:`FACING_SPREAD_DEG` (then a NumericalWarning names them).
+        :data:`FACING_SPREAD_DEG` (then a NumericalWarning names them, and a hinge nearly
+        opposite to the others as a possibly swapped pair of sensors).
     """
     dirs = {}
     for j in sorted(calibration.hinge_residual_rad_s):
         if joints is not None and j not in joints:
             continue
-        prox = JOINTS[j][0]
-        RA, _, tk = _hinge_orientations(recording, calibration, j, None, None)
-        w0 = (tk >= calibration.window_s[0]) & (tk <= calibration.window_s[1])
-        if not np.any(w0):
-            continue
-        x = np.einsum("kij,j->i", RA[w0], calibration.frames[prox][:, 0])
-        x[2] = 0.0
-        if np.linalg.norm(x) > 1e-6:
-            dirs[j] = x / np.linalg.norm(x)
+        x = pose_anterior(recording, calibration, j)
+        if x is not None:
+            dirs[j] = x
     if not dirs:
         return None
     f = np.sum(list(dirs.values()), axis=0)
     if np.linalg.norm(f) < 1e-6:
-        return None
-    f /= np.linalg.norm(f)
+        f = np.zeros(3)
+    else:
+        f /= np.linalg.norm(f)
     off = {j: float(np.degrees(np.arccos(np.clip(d @ f, -1.0, 1.0)))) for j, d in dirs.items()}
-    if max(off.values()) > FACING_SPREAD_DEG / 2:
+    if not np.any(f) or max(off.values()) > FACING_SPREAD_DEG / 2:
         warnings.warn(
             "facing: the flexion axes of "
-            + ", ".join(
-                f"{j} ({np.degrees(np.arctan2(d[0], d[1])):.0f} deg from north)"
-                for j, d in dirs.items()
-            )  # fmt: skip
+            + ", ".join(f"{j} ({_deg_from_north(d):.0f} deg from north)" for j, d in dirs.items())
             + f" imply facings more than {FACING_SPREAD_DEG:g} deg apart; the facing is not "
-            "estimated (declare it: [calibration] facing)",
+            "estimated (declare it: [calibration] facing)" + opposite_hinges_advice(dirs),
             NumericalWarning,
             stacklevel=2,
         )
         return None
-    return f, {j: float(np.degrees(np.arctan2(d[0], d[1]))) for j, d in dirs.items()}
+    return f, {j: _deg_from_north(d) for j, d in dirs.items()}
+
+
+#: Two hinges whose implied facings are at least this far apart, deg, are taken as opposite:
+#: what a hinge whose two sensors are swapped gives (its fitted axis, signed by anatomy,
+#: points backwards), or sensors whose headings are not shared.
+OPPOSITE_DEG = 135.0
+
+
+def _deg_from_north(d: np.ndarray) -> float:
+    return float(np.degrees(np.arctan2(d[0], d[1])))
+
+
+def opposite_hinges_advice(dirs: Mapping[str, np.ndarray]) -> str:
+    """Advice when hinges imply opposite facings (at least :data:`OPPOSITE_DEG` apart): the
+    sensors of the odd one out (of each, with two hinges) may be swapped; empty otherwise.
+
+    ``dirs``: per hinge, its horizontal anterior direction in the pose (:func:`pose_anterior`).
+    """
+    names = list(dirs)
+    gap = {
+        j: [np.degrees(np.arccos(np.clip(dirs[j] @ dirs[k], -1.0, 1.0))) for k in names if k != j]
+        for j in names
+    }
+    if not any(max(g, default=0.0) >= OPPOSITE_DEG for g in gap.values()):
+        return ""
+    odd = [j for j in names if gap[j] and np.median(gap[j]) >= OPPOSITE_DEG]
+    odd = odd or [j for j in names if max(gap[j], default=0.0) >= OPPOSITE_DEG]
+    pairs = " or ".join(f"{JOINTS[j][0]} and {JOINTS[j][1]} ({j})" for j in odd)
+    return (
+        f". {' and '.join(odd)} points the subject's front backwards: are the sensors of "
+        f"{pairs} swapped in [imu.segments]? A swapped pair reverses the fitted flexion axis. "
+        "Otherwise the sensors' headings are not shared (a disturbed magnetometer): "
+        'heading = "static" turns each limb to its own flexion axis'
+    )
+
+
+def pose_anterior(recording: Recording, calibration: Calibration, j: str) -> np.ndarray | None:
+    """The horizontal unit direction (world, heading corrections applied) of the anterior axis
+    ``X`` of hinge ``j``'s proximal segment frame, mean over the calibration window; None if
+    the window holds no sample or ``X`` is vertical there."""
+    prox = JOINTS[j][0]
+    RA, _, tk = _hinge_orientations(recording, calibration, j, None, None)
+    w0 = (tk >= calibration.window_s[0]) & (tk <= calibration.window_s[1])
+    if not np.any(w0):
+        return None
+    x = np.einsum("kij,j->i", RA[w0], calibration.frames[prox][:, 0])
+    x[2] = 0.0
+    n = np.linalg.norm(x)
+    return x / n if n > 1e-6 else None
+
+
+def limb_segments(j: str) -> tuple[str, str, str]:
+    """The segments of hinge ``j``'s limb, proximal first: upper arm, forearm, hand (elbows);
+    thigh, shank, foot (knees)."""
+    prox, dist, _ = JOINTS[j]
+    return prox, dist, ("hand_" if j.startswith("elbow") else "foot_") + j[-1]
+
+
+def limb_headings(
+    recording: Recording, calibration: Calibration, facing, joints: Sequence[str] | None = None
+) -> Calibration:
+    """6-D orientations: turn each fitted hinge's limb so that its flexion axis is the body's
+    medio-lateral axis in the pose.
+
+    With arbitrary sensor headings, :func:`hinge_frames` relates a hinge's two sensors to each
+    other but not its limb to the trunk: the heading a static pose gives each sensor assumes
+    every sensor sits on the body with the same heading, which sensors on the side or the back
+    of a limb do not, and the shoulder or hip then reads that difference as internal rotation
+    in the pose. This turns every sensor of the limb (:func:`limb_segments`, those
+    calibrated) about the vertical by the angle from the proximal frame's anterior axis in the
+    pose (:func:`pose_anterior`) to ``facing``, the direction every other pose frame faces:
+    the limb's relations within itself are kept, and the shoulder or hip reads zero in the pose
+    as it does by construction elsewhere (ISB: the neutral pose).
+
+    Parameters
+    ----------
+    recording : Recording
+        The orientations :func:`hinge_frames` was fitted to.
+    calibration : Calibration
+        After :func:`hinge_frames` (its ``hinge_residual_rad_s`` names the fitted hinges).
+    facing : array_like, shape (3,)
+        The horizontal facing of the pose frames (world, heading corrections applied).
+    joints : sequence of str, optional
+        Only these fitted hinges (default all).
+
+    Returns
+    -------
+    Calibration
+        ``world_heading_deg`` of the limbs' sensors changed; ``limb_heading_deg``: the turn
+        applied per hinge, deg.
+    """
+    f = np.asarray(facing, dtype=float).copy()
+    f[2] = 0.0
+    f /= np.linalg.norm(f)
+    heading = dict(calibration.world_heading_deg)
+    turns = dict(calibration.limb_heading_deg)
+    for j in sorted(calibration.hinge_residual_rad_s):
+        if joints is not None and j not in joints:
+            continue
+        x = pose_anterior(recording, calibration, j)
+        if x is None:
+            continue
+        psi = float(np.degrees(np.arctan2(x[0] * f[1] - x[1] * f[0], x @ f)))
+        for s in limb_segments(j):
+            if s in calibration.axes:
+                heading[s] = float((heading.get(s, 0.0) + psi + 180.0) % 360.0 - 180.0)
+        turns[j] = psi
+    return replace(calibration, world_heading_deg=heading, limb_heading_deg=turns)
 
 
 def _hinge_orientations(recording, calibration, j: str, start_s, window_s):
@@ -311,6 +423,35 @@ def _hinge_orientations(recording, calibration, j: str, start_s, window_s):
     )
     ok = np.all(np.isfinite(RA), axis=(1, 2)) & np.all(np.isfinite(RB0), axis=(1, 2))
     return RA[ok], RB0[ok], t[ok]
+
+
+#: Largest angle, deg, between a flexion axis fitted to the movement and the plane
+#: perpendicular to its proximal segment's long axis from the pose: an elbow's or knee's axis is
+#: close to perpendicular to the upper arm or thigh (within the carrying or valgus angle, and
+#: how upright the pose was held); beyond it the fit contradicts the pose and is not used.
+MAX_AXIS_TILT_DEG = 30.0
+
+
+def _perpendicular(jA, axis, j: str, prox: str, dist: str, rms: float) -> bool:
+    """Whether the fitted flexion axis ``jA`` is within :data:`MAX_AXIS_TILT_DEG` of the plane
+    perpendicular to the proximal long ``axis`` (both in the proximal sensor frame); else a
+    NumericalWarning naming the joint, its tilt and what to do."""
+    a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
+    tilt = float(np.degrees(np.arcsin(min(1.0, abs(float(jA @ a)) / np.linalg.norm(jA)))))
+    if tilt <= MAX_AXIS_TILT_DEG:
+        return True
+    warnings.warn(
+        f"hinge frames: the flexion axis of {j} fitted to the movement is {tilt:.0f} deg from "
+        f"perpendicular to {prox}'s long axis in the pose (limit {MAX_AXIS_TILT_DEG:g} deg; RMS "
+        f"residual {rms:.2f} rad/s): the movement and the pose contradict each other, so the "
+        f"frames of {prox!r} and {dist!r} are kept as the pose gave them (their flexion axis "
+        "from the facing and the sensors' headings in the pose). Check that both sensors were "
+        "strapped firmly and that the still window is the N-pose; the angles of this limb are "
+        'unreliable. With 9-D sensors, declare [calibration] facing with flexion_axes = "pose"',
+        NumericalWarning,
+        stacklevel=3,
+    )
+    return False
 
 
 def _moved(fl: np.ndarray, tk: np.ndarray, j: str, prox: str, dist: str) -> bool:

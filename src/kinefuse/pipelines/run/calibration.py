@@ -22,6 +22,7 @@ from kinefuse.kinematics import (
 )
 from kinefuse.kinematics.angles import JOINTS, angle_words
 from kinefuse.kinematics.functional import align_headings
+from kinefuse.kinematics.hinge import OPPOSITE_DEG
 from kinefuse.orientation.resample import slerp_resample
 from kinefuse.session_file.from_recording import (
     NO_HEIGHT_RATIO,
@@ -202,6 +203,9 @@ def _static_notes(cal, six_d, cal_segs, notes: list[str], provenance: dict):
             "[calibration] facing)"
         ),
     }.get(cal.facing_from, "as declared")
+    turned = dict(getattr(cal, "limb_heading_deg", {}) or {})
+    if turned and cal.facing_from == "default":
+        how = f"the common 6-D heading of {cal_segs[0]}'s sensor (any facing serves: 6-D)"
     deg = float(np.degrees(np.arctan2(f[0], f[1])))
     notes.append(f"facing: {f} (world frame, {deg:.0f} deg from north towards east), {how}")
     provenance["facing"] = f
@@ -219,6 +223,15 @@ def _static_notes(cal, six_d, cal_segs, notes: list[str], provenance: dict):
             + ", ".join(f"{s} {v:.1f}" for s, v in cal.world_heading_deg.items())
         )
         provenance["heading"] = "static pose"
+        if turned:
+            notes.append(
+                "heading: the limbs of "
+                + ", ".join(f"{j} ({v:.1f} deg)" for j, v in turned.items())
+                + " turned (included above) so that each flexion axis fitted to the movement is "
+                "the body's medio-lateral axis in the pose, as the trunk's: their sensors need not "
+                "face the same way on the body, and the shoulders and hips read zero in the pose"
+            )
+            provenance["limb_heading_deg"] = {j: round(v, 2) for j, v in turned.items()}
     else:
         notes.append(
             "heading: orientations kept as estimated (shared, magnetometer-referenced north)"
@@ -304,7 +317,7 @@ def _pose_angle_check(angles: Mapping[str, np.ndarray], t: np.ndarray, cal) -> l
         bad = [f"{c} {v:.0f}" for c, v, d in zip(names, mean, off, strict=True)
                if abs(d) > POSE_ANGLE_WARN_DEG]  # fmt: skip
         if bad:
-            fix = (  # heading = "static" is advice only where it was not applied already
+            fix = _hinge_advice(cal, j, off[2]) or (  # heading = "static": where not applied
                 "declare [calibration] facing, or check that each sensor sits on the segment "
                 "it is mapped to (the headings were already aligned in the pose)"
                 if cal.world_heading_deg
@@ -320,3 +333,28 @@ def _pose_angle_check(angles: Mapping[str, np.ndarray], t: np.ndarray, cal) -> l
                 f"calibration notes; {fix})"
             )
     return out
+
+
+def _hinge_advice(cal, joint: str, rotation_deg: float) -> str:
+    """What to do when a shoulder or hip reads a rotation in the pose because its distal
+    segment's frame comes from a hinge fitted to the movement (elbow, knee) whose front
+    disagrees with the trunk's; empty for other joints."""
+    limb = JOINTS[joint][1]
+    hinge = next((h for h in cal.hinge_residual_rad_s if JOINTS[h][0] == limb), None)
+    if hinge is None or abs(rotation_deg) <= POSE_ANGLE_WARN_DEG:
+        return ""
+    dist = JOINTS[hinge][1]
+    why = (
+        f"{limb}'s frame comes from the flexion axis of {hinge} fitted to the movement, which "
+        f"puts its front {abs(rotation_deg):.0f} deg from {JOINTS[joint][0]}'s"
+    )
+    if abs(rotation_deg) >= OPPOSITE_DEG:
+        return (
+            f"{why}, nearly backwards: are the sensors of {limb} and {dist} swapped in "
+            "[imu.segments]? (a swapped pair reverses the fitted axis); otherwise the sensors' "
+            'headings are not shared: heading = "static" turns each limb to its flexion axis'
+        )
+    return (
+        f'{why}: the sensors\' headings are not shared (heading = "static" turns each limb to '
+        f"its flexion axis), or a sensor is not on the segment it is mapped to"
+    )

@@ -1,0 +1,135 @@
+"""Static calibration with flexion axes from the movement: the limbs' headings (6-D), a fitted
+axis that contradicts the pose, and a swapped pair of sensors (closed-form synthetic data)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from kinefuse.exceptions import NumericalWarning
+from kinefuse.io import ImuStream, Recording
+from kinefuse.kinematics import (
+    calibrate,
+    joint_angles,
+    lower_body,
+    segment_orientations,
+    upper_limb,
+)
+from kinefuse.pipelines.run.calibration import _joint_angles
+
+FS = 100.0
+LEGS = ("pelvis", "thigh_l", "shank_l", "thigh_r", "shank_r")
+#: R_segment_from_sensor: every sensor sits on its segment with its own heading (on the side, at
+#: the front, at the back...), unlike the assumption of a common sensor heading on the body
+MOUNTS = {
+    "pelvis": Rotation.from_euler("xyz", [5, 10, 0], degrees=True),
+    "thigh_l": Rotation.from_euler("xyz", [-20, 100, 15], degrees=True),
+    "shank_l": Rotation.from_euler("xyz", [30, -60, 160], degrees=True),
+    "thigh_r": Rotation.from_euler("xyz", [10, -120, -25], degrees=True),
+    "shank_r": Rotation.from_euler("xyz", [-15, 45, 70], degrees=True),
+    "upper_arm_r": Rotation.from_euler("xyz", [10, 80, -30], degrees=True),
+    "forearm_r": Rotation.from_euler("xyz", [-40, 20, 65], degrees=True),
+}
+
+
+def _legs(headings_deg, T=1200, swap_left=False):
+    """Still N-pose for 1 s, then hips and knees flex (about the body's right axis, world east
+    for a subject facing north); each sensor's world frame is turned by its heading (6-D)."""
+    t = np.arange(T) / FS
+    m = np.clip(t - 1.0, 0.0, None)
+    ang = {}
+    for side, w in (("l", 1.1), ("r", 1.7)):
+        hip = 30.0 * (1.0 - np.cos(w * m)) + 5.0 * np.sin(2.3 * w * m)  # 0..65 deg
+        knee = 45.0 * (1.0 - np.cos(1.3 * w * m))  # 0..90 deg
+        # about north (ISB X): adduction of the right leg, abduction of the left; it also
+        # leaves the hinge nothing to mistake a heading turned half a turn for (planar motion)
+        abd = 12.0 * np.sin(0.9 * w * m)
+        ang[side] = (hip, knee, abd)
+    seg = {"pelvis": Rotation.identity(T)}
+    for side, (hip, knee, abd) in ang.items():
+        seg[f"thigh_{side}"] = Rotation.from_euler(
+            "XY", np.stack([hip, abd], axis=1), degrees=True
+        )  # Grood & Suntay order: flexion, then the floating axis
+        seg[f"shank_{side}"] = seg[f"thigh_{side}"] * Rotation.from_euler(
+            "x", -knee[:, None], degrees=True
+        )
+    if swap_left:  # the sensors of the left thigh and shank mapped to each other's segment
+        seg["thigh_l"], seg["shank_l"] = seg["shank_l"], seg["thigh_l"]
+    imu = {}
+    for s in LEGS:
+        mount = MOUNTS[{"thigh_l": "shank_l", "shank_l": "thigh_l"}.get(s, s) if swap_left else s]
+        R = Rotation.from_euler("z", headings_deg[s], degrees=True) * seg[s] * mount
+        imu[s] = ImuStream(t_s=t, q_world_from_sensor=R.as_quat(scalar_first=True), name=s)
+    return Recording(imu=imu), t, ang
+
+
+def _legs_skeleton():
+    from dataclasses import replace
+
+    return replace(lower_body(height_m=1.75), root_segment="pelvis")
+
+
+def test_6d_limbs_face_as_the_trunk_in_the_pose():
+    """6-D sensors mounted with different headings on the body: the hips read zero in the
+    pose and the exact hip and knee angles after, although the sensors' headings disagree
+    (before: the hips read the mounting differences as internal rotation)."""
+    headings = {"pelvis": 0.0, "thigh_l": 35.0, "shank_l": -70.0, "thigh_r": 120.0, "shank_r": 10.0}
+    rec, t, ang = _legs(headings)
+    cal = calibrate(rec, _legs_skeleton(), "static", window_s=0.5, heading="static",
+                    facing="auto", segments=list(LEGS))  # fmt: skip
+    assert set(cal.limb_heading_deg) == {"knee_l", "knee_r"}
+    assert cal.world_heading_deg["pelvis"] == 0.0  # the first segment keeps its heading
+    out = joint_angles(segment_orientations(rec, cal, t))
+    for side, (hip, knee, abd) in ang.items():
+        np.testing.assert_allclose(out[f"hip_{side}"][:, 0], hip, atol=0.5)
+        np.testing.assert_allclose(
+            out[f"hip_{side}"][:, 1], abd * (1 if side == "r" else -1), atol=0.5
+        )
+        np.testing.assert_allclose(out[f"hip_{side}"][:, 2], 0.0, atol=0.5)
+        np.testing.assert_allclose(out[f"knee_{side}"][:, 0], knee, atol=0.5)
+        np.testing.assert_allclose(out[f"knee_{side}"][:, 1:], 0.0, atol=0.5)
+    notes, warns = [], []
+    _joint_angles(rec, cal, t, notes, warns)
+    assert not any("by construction" in w for w in warns), warns
+
+
+def test_fitted_axis_that_contradicts_the_pose_is_not_used():
+    """The 'pose' holds the upper arm abducted 45 deg: the elbow's flexion axis fitted to the
+    movement is 45 deg from perpendicular to the pose's long axis: warned, pose frames kept."""
+    T = 600
+    t = np.arange(T) / FS
+    m = np.clip(t - 1.0, 0.0, None)
+    flex = 60.0 * (1.0 - np.cos(1.3 * m))
+    arm = Rotation.from_euler("y", np.full((T, 1), -45.0), degrees=True)  # about north: abduction
+    seg = {
+        "upper_arm_r": arm,
+        "forearm_r": arm * Rotation.from_euler("x", flex[:, None], degrees=True),
+    }
+    imu = {
+        s: ImuStream(t_s=t, q_world_from_sensor=(R * MOUNTS[s]).as_quat(scalar_first=True), name=s)
+        for s, R in seg.items()
+    }
+    rec = Recording(imu=imu)
+    with pytest.warns(
+        NumericalWarning, match=r"flexion axis of elbow_r .* 45 deg from perpendicular"
+    ):
+        cal = calibrate(rec, upper_limb("r", height_m=1.7), "static", window_s=0.5, facing="auto")
+    assert "elbow_r" not in cal.hinge_residual_rad_s
+
+
+def test_swapped_sensors_are_named():
+    """9-D (shared headings): the left thigh and shank sensors swapped reverse knee_l's fitted
+    axis; the facing warning and the hip's pose-angle warning name the pair to check."""
+    rec, t, _ = _legs(dict.fromkeys(LEGS, 0.0), swap_left=True)
+    with pytest.warns(NumericalWarning, match=r"thigh_l and shank_l \(knee_l\).*swapped"):
+        cal = calibrate(rec, _legs_skeleton(), "static", window_s=0.5, facing="auto",
+                        segments=list(LEGS))  # fmt: skip
+    notes, warns = [], []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NumericalWarning)
+        _joint_angles(rec, cal, t, notes, warns)
+    hip = [w for w in warns if w.startswith("hip_l reads")]
+    assert hip and "sensors of thigh_l and shank_l swapped" in hip[0], warns
