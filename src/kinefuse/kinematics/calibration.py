@@ -237,8 +237,9 @@ def calibrate(
     if flexion_axes == "movement":
         cal = hinge_frames(recording, cal, refine_heading=heading == "static")
     source = "default" if auto_facing else "declared"
-    if auto_facing and flexion_axes == "movement":
+    if flexion_axes == "movement":  # the hinges whose two segments the facing leaves free
         free = facing_free_segments(skeleton, segs, pose, directions)
+    if auto_facing and flexion_axes == "movement":
         kept = [j for j in cal.hinge_residual_rad_s if set(JOINTS[j][:2]) <= free]
         with warnings.catch_warnings():  # 6-D: limbs that disagree are turned below
             if heading == "static":
@@ -250,7 +251,6 @@ def calibrate(
                 warnings.simplefilter("ignore", NumericalWarning)
                 cal = _in_facing(recording, skeleton, segs, imus, cal, f0, kept, kw)
     if heading == "static" and flexion_axes == "movement":
-        free = facing_free_segments(skeleton, segs, pose, directions)
         turn = [j for j in cal.hinge_residual_rad_s if set(JOINTS[j][:2]) <= free]
         cal = limb_headings(recording, cal, f0, turn)  # the limbs face as the trunk does
         cal, f0 = _keep_reference_heading(cal, segs[0], f0)
