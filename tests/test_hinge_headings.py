@@ -133,3 +133,25 @@ def test_swapped_sensors_are_named():
         _joint_angles(rec, cal, t, notes, warns)
     hip = [w for w in warns if w.startswith("hip_l reads")]
     assert hip and "sensors of thigh_l and shank_l swapped" in hip[0], warns
+
+
+@pytest.mark.parametrize("refine_heading", [True, False])
+def test_rate_constraint_jacobian_equals_finite_differences(refine_heading):
+    """The hinge fit's analytic Jacobian (azimuth, elevation, heading) against scipy's central
+    differences of the same residual, at random points on random rotations and rates; the
+    tolerance is the differences' truncation error (step ~6e-6 rad, curvature ~1e2)."""
+    from scipy.optimize._numdiff import approx_derivative
+
+    from kinefuse.kinematics.hinge import _rate_constraint
+
+    rng = np.random.default_rng(7)
+    K = 400
+    R = Rotation.random(K, random_state=8).as_matrix()
+    b, wA, wB = rng.normal(size=(3, K, 3))
+    res, jac = _rate_constraint(R[:, :, 0], R[:, :, 1], R[:, :, 2], b, wA, wB, 0.3, refine_heading)
+    for x in rng.uniform(-np.pi, np.pi, size=(6, 3)):
+        J = jac(x)
+        assert J.shape == (K + 1, 3)
+        np.testing.assert_allclose(J, approx_derivative(res, x, method="3-point"), atol=1e-4)
+        if not refine_heading:  # the heading turns nothing: only its prior depends on it
+            assert np.all(J[:K, 2] == 0.0)

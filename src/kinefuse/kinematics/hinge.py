@@ -122,6 +122,68 @@ def _world_rate(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return w
 
 
+def _cross(a, b):
+    """Row-wise cross product of ``(3, K)`` arrays (``np.cross`` costs more than it computes)."""
+    return np.stack(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+def _rate_constraint(u1, u2, u3, b_world, wA, wB, w_prior: float, refine_heading: bool):
+    """Residual and analytic Jacobian of :func:`_fit_flexion_axis`'s rate constraint.
+
+    ``x = (azimuth, elevation, ψ)``; ``u1, u2, u3`` (K, 3): A's frame vectors ``e1, e2, a1`` in
+    the world, so the axis in the world is ``cos x1 (cos x0 u1 + sin x0 u2) + sin x1 u3``;
+    ``b_world``, ``wB`` (K, 3) are turned by ``ψ`` about z. Rows: ``(wB(ψ) − wA) · n̂`` with
+    ``n = u × b(ψ)``, then the heading prior ``w_prior ψ``. The Jacobian is exact (tested
+    against finite differences); it replaces scipy's finite differences, about 4x fewer
+    residual evaluations.
+    """
+    u1, u2, u3, b_world, wA, wB = (np.ascontiguousarray(v.T) for v in (u1, u2, u3, b_world, wA, wB))
+    K = u1.shape[1]
+    last = {}
+
+    def parts(x):  # the Jacobian is asked at the point just evaluated: computed once
+        if last.get("x") is not None and np.array_equal(last["x"], x):
+            return last["parts"]
+        c0, s0, c1, s1 = np.cos(x[0]), np.sin(x[0]), np.cos(x[1]), np.sin(x[1])
+        psi = x[2] if refine_heading else 0.0
+        c, s = np.cos(psi), np.sin(psi)
+        b = np.stack([c * b_world[0] - s * b_world[1], s * b_world[0] + c * b_world[1], b_world[2]])
+        w = np.stack([c * wB[0] - s * wB[1], s * wB[0] + c * wB[1], wB[2]])
+        u = c1 * (c0 * u1 + s0 * u2) + s1 * u3
+        n = _cross(u, b)
+        norm = np.sqrt(np.einsum("ik,ik->k", n, n))
+        clamped = norm < 1e-9
+        norm = np.maximum(norm, 1e-9)
+        out = (c0, s0, c1, s1), u, b, w, w - wA, n / norm, norm, clamped
+        last["x"], last["parts"] = np.array(x, dtype=float), out
+        return out
+
+    def res(x):
+        _, _, _, _, d, nh, _, _ = parts(x)
+        return np.append(np.einsum("ik,ik->k", d, nh), w_prior * x[2])
+
+    def jac(x):
+        (c0, s0, c1, s1), u, b, w, d, nh, norm, clamped = parts(x)
+
+        def d_rate(dn):  # d · (derivative of n / |n|; of n / 1e-9 where the norm is clamped)
+            along = np.where(clamped, 0.0, np.einsum("ik,ik->k", nh, dn))
+            return (np.einsum("ik,ik->k", d, dn) - np.einsum("ik,ik->k", d, nh) * along) / norm
+
+        J = np.zeros((K + 1, 3))
+        J[:K, 0] = d_rate(_cross(c1 * (-s0 * u1 + c0 * u2), b))
+        J[:K, 1] = d_rate(_cross(-s1 * (c0 * u1 + s0 * u2) + c1 * u3, b))
+        if refine_heading:  # d/dψ of R_z(ψ) v is e_z × R_z(ψ) v
+            zero = np.zeros(K)
+            db, dw = np.stack([-b[1], b[0], zero]), np.stack([-w[1], w[0], zero])
+            J[:K, 2] = np.einsum("ik,ik->k", dw, nh) + d_rate(_cross(u, db))
+        J[K, 2] = w_prior
+        return J
+
+    return res, jac
+
+
 def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool):
     """Flexion axis in A's frame and the distal heading change, from the 2-DoF elbow model.
 
@@ -144,22 +206,14 @@ def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool):
     # weak prior keeping the heading at the pose's where the motion leaves it free (a hinge
     # moved about its axis only): 1 rad costs a 1 % RMS relative-rate misfit per sample
     w_prior = HEADING_PRIOR * np.sqrt(RA.shape[0]) * float(np.sqrt(np.mean((wB - wA) ** 2)))
-
-    b_world = RB @ a2  # B's long axis in B's world frame (K, 3); ψ turns it about z
-
-    def res(x):
-        H = rotation_z(x[2] if refine_heading else 0.0)
-        n = np.cross(RA @ j1_of(x), b_world @ H.T)
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
-        r = np.einsum("ki,ki->k", wB @ H.T - wA, n)
-        return np.append(r, w_prior * x[2])
+    res, jac = _rate_constraint(RA @ e1, RA @ e2, RA @ a1, RB @ a2, wA, wB, w_prior, refine_heading)
 
     best = None
     # the heading is multimodal where the sensors' headings are unrelated (6-D): four starts
     psi0 = np.radians([0.0, 90.0, 180.0, -90.0]) if refine_heading else [0.0]
     for th0 in np.radians([0.0, 45.0, 90.0, 135.0]):
         for p0 in psi0:
-            sol = least_squares(res, [th0, 0.0, p0], x_scale=[1.0, 1.0, 0.1])
+            sol = least_squares(res, [th0, 0.0, p0], jac=jac, x_scale=[1.0, 1.0, 0.1])
             if best is None or sol.cost < best.cost:
                 best = sol
     dpsi = float(best.x[2]) if refine_heading else 0.0
