@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from kinefuse.exceptions import NumericalWarning
 from kinefuse.kinematics import (
     calibrate,
     find_still_window,
@@ -122,11 +123,15 @@ def calibrate_session(
     notes: list[str],
     provenance: dict,
     proximal: Mapping[str, str] | None = None,
+    run_warnings: list[str] | None = None,
 ):
     """Calibrate the chain as ``calib`` says; notes and provenance are appended to in place.
 
     ``proximal``: the IMU proximal to each root joint the functional calibration locates, where
     it is not the skeleton's ``root_segment`` (e.g. the chest for the shoulders).
+    ``run_warnings``: the calibration's own warnings (a segment far from the pose, a window that
+    is not still, a hinge axis that contradicts the pose...) are appended to it too, so that the
+    user sees them where the run's warnings are shown, not only in the report's notes.
 
     Returns
     -------
@@ -143,6 +148,8 @@ def calibrate_session(
         warnings.simplefilter("always")
         cal = calibrate(recording, skeleton, calib, **kw)
     notes += [f"calibration: {w.message}" for w in caught]
+    if run_warnings is not None:
+        run_warnings += [str(w.message) for w in caught if issubclass(w.category, NumericalWarning)]
     if calib == "functional" and cal.declared:
         notes.append(
             "calibration: no sensor beyond the distal joint of "
@@ -277,8 +284,9 @@ def _joint_angles(
             msg = (
                 f"{j} flexion spans {f.min():.0f} to {f.max():.0f} deg, beyond the "
                 f"anatomical {lo:.0f} to {hi:.0f} deg: the facing direction or the pose is "
-                "probably wrong (the facing, the pose, or too little flexion to fit its axis: "
-                "see the calibration notes; [calibration] flexion_axes, facing)"
+                "probably wrong (the facing, the pose, or too little flexion to fit its axis: see "
+                "the calibration warnings and the report's notes; [calibration] flexion_axes, "
+                "facing)"
             )
             notes.append(f"warning: {msg}")
             if warnings is not None:
@@ -330,7 +338,7 @@ def _pose_angle_check(angles: Mapping[str, np.ndarray], t: np.ndarray, cal) -> l
                 f"{j} reads {', '.join(bad)} deg in the calibration pose ({cal.window_s[0]:.2f}-"
                 f"{cal.window_s[1]:.2f} s), where it reads {pose} by construction: its "
                 "segment frames disagree (the facing, or sensor headings that differ: see the "
-                f"calibration notes; {fix})"
+                f"calibration warnings and the report's notes; {fix})"
             )
     return out
 

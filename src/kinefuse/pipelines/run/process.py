@@ -234,9 +234,8 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     # a functional calibration locates the shoulders from the chest IMU, whatever the root
     shoulders = [j for j in roots if j.startswith("shoulder_")]
     proximal = {j: "chest" for j in shoulders} if "chest" in recording.imu else None
-    recording, cal = calibrate_session(
-        recording, sk, params, calib, six_d, axes_decl, cal_segs, notes, provenance, proximal
-    )
+    recording, cal = calibrate_session(recording, sk, params, calib, six_d, axes_decl, cal_segs,
+                                       notes, provenance, proximal, run_warnings)  # fmt: skip
     if (root_kind in ("fixed", "pelvis") and "chest" in recording.imu and "chest" not in cal_segs
             and trunk != "chest" and not (calib == "functional" and proximal)):  # fmt: skip
         notes.append(
