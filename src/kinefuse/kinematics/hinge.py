@@ -31,7 +31,11 @@ Assumptions and failure modes: the pose has both segments along the vertical wit
 knee extended (its flexion becomes the zero; an N-pose held with the elbow bent 10° reads full
 extension as −10°); the joint flexes enough during the recording (RMS flexion rate at least
 :data:`MIN_HINGE_RATE_RAD_S`, else a warning and the pose frames); a slowly drifting relative
-heading (6-D fusion over minutes) is taken as constant.
+heading (6-D fusion over minutes) is taken as constant. A fitted axis tilted more than
+:data:`MAX_AXIS_TILT_DEG` from perpendicular to the proximal long axis is fitted again held
+perpendicular (the anatomy of elbows and knees), and that refit is used unless it fits the
+movement much worse (:data:`PERPENDICULAR_REFIT_MAX_RATIO`: then the pose is wrong, and the
+pose frames are kept); a warning either way.
 
 References
 ----------
@@ -68,6 +72,7 @@ __all__ = [
     "MAX_AXIS_TILT_DEG",
     "MIN_HINGE_RATE_RAD_S",
     "OPPOSITE_DEG",
+    "PERPENDICULAR_REFIT_MAX_RATIO",
     "hinge_facing",
     "hinge_frames",
     "limb_headings",
@@ -184,7 +189,7 @@ def _rate_constraint(u1, u2, u3, b_world, wA, wB, w_prior: float, refine_heading
     return res, jac
 
 
-def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool):
+def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool, perpendicular=False):
     """Flexion axis in A's frame and the distal heading change, from the 2-DoF elbow model.
 
     The relative angular velocity of a flexion (axis ``j1`` fixed in A) / pronation (axis
@@ -192,7 +197,8 @@ def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool):
     unit normal vanishes (Laidig, Müller & Seel 2017; for a pure hinge too). Least squares over
     ``j1`` (azimuth and elevation about A's long axis) and, if ``refine_heading``, the heading
     ``ψ`` applied to B's world frame; the best of four starting azimuths. Returns ``(j1, ψ,
-    RMS residual rad/s)``.
+    RMS residual rad/s)``. ``perpendicular``: ``j1`` held perpendicular to A's long axis (the
+    elevation fixed at zero; the anatomical prior of :func:`hinge_frames`'s refit).
     """
     a1 = -axis_a / np.linalg.norm(axis_a)
     a2 = -axis_b / np.linalg.norm(axis_b)
@@ -207,17 +213,29 @@ def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool):
     # moved about its axis only): 1 rad costs a 1 % RMS relative-rate misfit per sample
     w_prior = HEADING_PRIOR * np.sqrt(RA.shape[0]) * float(np.sqrt(np.mean((wB - wA) ** 2)))
     res, jac = _rate_constraint(RA @ e1, RA @ e2, RA @ a1, RB @ a2, wA, wB, w_prior, refine_heading)
+    if perpendicular:  # the same problem in (azimuth, heading) with the elevation zero
+        free_res, free_jac = res, jac
+
+        def res(x):
+            return free_res([x[0], 0.0, x[-1]])
+
+        def jac(x):
+            return free_jac([x[0], 0.0, x[-1]])[:, [0, 2]]
 
     best = None
     # the heading is multimodal where the sensors' headings are unrelated (6-D): four starts
     psi0 = np.radians([0.0, 90.0, 180.0, -90.0]) if refine_heading else [0.0]
     for th0 in np.radians([0.0, 45.0, 90.0, 135.0]):
         for p0 in psi0:
-            sol = least_squares(res, [th0, 0.0, p0], jac=jac, x_scale=[1.0, 1.0, 0.1])
+            x0, scale = (
+                ([th0, p0], [1.0, 0.1]) if perpendicular else ([th0, 0.0, p0], [1.0, 1.0, 0.1])
+            )
+            sol = least_squares(res, x0, jac=jac, x_scale=scale)
             if best is None or sol.cost < best.cost:
                 best = sol
-    dpsi = float(best.x[2]) if refine_heading else 0.0
-    return j1_of(best.x), dpsi, float(np.sqrt(np.mean(best.fun[:-1] ** 2)))
+    x = [best.x[0], 0.0, best.x[1]] if perpendicular else best.x
+    dpsi = float(x[2]) if refine_heading else 0.0
+    return j1_of(x), dpsi, float(np.sqrt(np.mean(best.fun[:-1] ** 2)))
 
 
 def hinge_frames(
@@ -257,7 +275,9 @@ def hinge_frames(
     -----
     NumericalWarning
         A hinge that hardly moved (RMS relative rate about the axis below
-        :data:`MIN_HINGE_RATE_RAD_S`): its segments keep the frames they had.
+        :data:`MIN_HINGE_RATE_RAD_S`): its segments keep the frames they had. A fitted axis
+        tilted beyond :data:`MAX_AXIS_TILT_DEG`: whether its perpendicular refit is used (else
+        the segments keep their frames).
     """
     axes = calibration.axes
     if joints is None:
@@ -271,9 +291,14 @@ def hinge_frames(
         psi0 = np.radians(heading.get(dist, 0.0))
         # relative angular velocity from the orientations (finite differences), world frame
         wA, wB0 = _world_rate(RA, tk), _world_rate(RB0, tk)
-        jA, dpsi, rms = _fit_flexion_axis(RA, RB0, wA, wB0, axes[prox], axes[dist], refine_heading)
-        if not _perpendicular(jA, axes[prox], j, prox, dist, rms):
-            continue
+        fit = (RA, RB0, wA, wB0, axes[prox], axes[dist], refine_heading)
+        jA, dpsi, rms = _fit_flexion_axis(*fit)
+        tilt = _tilt_deg(jA, axes[prox])
+        if tilt > MAX_AXIS_TILT_DEG:
+            jA, dpsi, rms_perp = _fit_flexion_axis(*fit, perpendicular=True)
+            if not _refit_holds(j, prox, dist, tilt, rms, rms_perp):
+                continue
+            rms = rms_perp
         psi = psi0 + dpsi
         RB = rotation_z(psi - psi0) @ RB0
         # the distal frame's Z: the flexion axis carried into the distal sensor in the pose
@@ -482,30 +507,51 @@ def _hinge_orientations(recording, calibration, j: str, start_s, window_s):
 #: Largest angle, deg, between a flexion axis fitted to the movement and the plane
 #: perpendicular to its proximal segment's long axis from the pose: an elbow's or knee's axis is
 #: close to perpendicular to the upper arm or thigh (within the carrying or valgus angle, and
-#: how upright the pose was held); beyond it the fit contradicts the pose and is not used.
+#: how upright the pose was held); beyond it the axis is fitted again held perpendicular
+#: (:data:`PERPENDICULAR_REFIT_MAX_RATIO` decides whether that refit is used).
 MAX_AXIS_TILT_DEG = 30.0
 
 
-def _perpendicular(jA, axis, j: str, prox: str, dist: str, rms: float) -> bool:
-    """Whether the fitted flexion axis ``jA`` is within :data:`MAX_AXIS_TILT_DEG` of the plane
-    perpendicular to the proximal long ``axis`` (both in the proximal sensor frame); else a
-    NumericalWarning naming the joint, its tilt and what to do."""
+#: A refit with the flexion axis held perpendicular to the proximal long axis is used when its
+#: RMS residual is at most this factor times the free fit's: the movement then hardly
+#: determines the tilt (a 6-D relative heading that drifts over minutes, soft tissue), and the
+#: anatomy does. A larger increase means the movement demands the tilt: the pose's long axis
+#: is wrong (the subject was not in the pose) and neither fit is used.
+PERPENDICULAR_REFIT_MAX_RATIO = 1.25
+
+
+def _tilt_deg(jA, axis) -> float:
+    """Angle of the flexion axis ``jA`` from the plane perpendicular to the long ``axis``, deg."""
     a = np.asarray(axis, dtype=float) / np.linalg.norm(axis)
-    tilt = float(np.degrees(np.arcsin(min(1.0, abs(float(jA @ a)) / np.linalg.norm(jA)))))
-    if tilt <= MAX_AXIS_TILT_DEG:
-        return True
-    warnings.warn(
+    return float(np.degrees(np.arcsin(min(1.0, abs(float(jA @ a)) / np.linalg.norm(jA)))))
+
+
+def _refit_holds(j: str, prox: str, dist: str, tilt: float, rms: float, rms_perp: float) -> bool:
+    """Whether the perpendicular refit of a tilted hinge fit is used; a NumericalWarning either
+    way, naming the joint, the tilt, both residuals and what to check."""
+    used = rms_perp <= PERPENDICULAR_REFIT_MAX_RATIO * rms
+    head = (
         f"hinge frames: the flexion axis of {j} fitted to the movement is {tilt:.0f} deg from "
         f"perpendicular to {prox}'s long axis in the pose (limit {MAX_AXIS_TILT_DEG:g} deg; RMS "
-        f"residual {rms:.2f} rad/s): the movement and the pose contradict each other, so the "
-        f"frames of {prox!r} and {dist!r} are kept as the pose gave them (their flexion axis "
-        "from the facing and the sensors' headings in the pose). Check that both sensors were "
-        "strapped firmly and that the still window is the N-pose; the angles of this limb are "
-        'unreliable. With 9-D sensors, declare [calibration] facing with flexion_axes = "pose"',
-        NumericalWarning,
-        stacklevel=3,
+        f"residual {rms:.2f} rad/s; held perpendicular: {rms_perp:.2f} rad/s)"
     )
-    return False
+    if used:
+        tail = (
+            ": the movement hardly determines the tilt, so the axis held perpendicular to the "
+            f"{prox} (the anatomy of an elbow or knee) is used. Check that both sensors were "
+            "strapped firmly; with 6-D sensors over minutes, a relative heading that drifts "
+            "blurs the fit"
+        )
+    else:
+        tail = (
+            ": the movement and the pose contradict each other, so the frames of "
+            f"{prox!r} and {dist!r} are kept as the pose gave them (their flexion axis from the "
+            "facing and the sensors' headings in the pose). Check that both sensors were "
+            "strapped firmly and that the still window is the N-pose; the angles of this limb "
+            'are unreliable. With 9-D sensors, declare [calibration] facing with flexion_axes = "pose"'
+        )
+    warnings.warn(head + tail, NumericalWarning, stacklevel=3)
+    return used
 
 
 def _moved(fl: np.ndarray, tk: np.ndarray, j: str, prox: str, dist: str) -> bool:
