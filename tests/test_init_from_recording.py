@@ -333,3 +333,7 @@ def test_6d_limbs_read_zero_in_the_pose(shared_data, tmp_path):
     assert not [w for w in summary.warnings if w.startswith(("knee_r", "ankle_r", "hip_r"))]
     prov = json.loads((tmp_path / "out" / "provenance.json").read_text(encoding="utf-8"))
     assert set(prov["limb_heading_deg"]) == {"elbow_l", "elbow_r", "knee_l", "knee_r"}
+    page = (tmp_path / "out" / "report.html").read_text(encoding="utf-8")
+    box, notes = page.split("<h2>Notes</h2>")
+    assert 'class="warnings"' in box and "flexion axis of knee_r" in box
+    assert "flexion axis of knee_r" not in notes  # said once, in the warnings box

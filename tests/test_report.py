@@ -308,3 +308,25 @@ def test_report_without_webgl_says_so_and_keeps_the_figures(report):
         loaded = page.evaluate("Array.from(document.images).filter(i => i.naturalWidth > 0).length")
     assert loaded == 10
     assert not [e for e in log["errors"] if e.startswith("page error")]  # no uncaught error
+
+
+def test_warnings_box_above_the_notes_without_repeating_them():
+    """Warnings get their own highlighted section before the notes, once each and escaped; a
+    note that only repeats one (``warning: ``, ``WARNING: ``, ``calibration: ``) is left out."""
+    from kinefuse.evaluation.report import notes_html
+
+    warns = ["knee_r <axis> tilted", "no orientation for thigh_l", "knee_r <axis> tilted"]
+    notes = [
+        "segment lengths (m): thigh_l 0.43",
+        "calibration: knee_r <axis> tilted",
+        "WARNING: no orientation for thigh_l",
+        "warning: something else",
+    ]
+    page = notes_html(notes, warns)
+    box, rest = page.split("<section><h2>Notes</h2>")
+    assert 'class="warnings"' in box and "Warnings (2)" in box
+    assert box.count("<li>") == 2 and "knee_r &lt;axis&gt; tilted" in box
+    assert "segment lengths" in rest and "warning: something else" in rest
+    assert "tilted" not in rest and "no orientation" not in rest
+    assert notes_html(notes[:1], ()).startswith("<section><h2>Notes</h2>")
+    assert notes_html((), ()) == ""

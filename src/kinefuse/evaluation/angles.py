@@ -21,7 +21,7 @@ import numpy as np
 
 from kinefuse import __version__
 from kinefuse.evaluation import plots, tables
-from kinefuse.evaluation.report import REPORT_CSS, REPORT_NAME
+from kinefuse.evaluation.report import REPORT_CSS, REPORT_NAME, notes_html
 from kinefuse.exceptions import InputError
 from kinefuse.kinematics.angles import angle_words
 
@@ -170,11 +170,13 @@ def write_angle_report(
     *,
     title: str = "kinefuse report",
     notes: Sequence[str] = (),
+    warnings: Sequence[str] = (),
     provenance: Mapping | None = None,
     force: bool = False,
     unscored: str = "no reference",
 ) -> Path:
-    """A self-contained ``report.html`` without scores (no reference): notes and joint angles.
+    """A self-contained ``report.html`` without scores (no reference): warnings (highlighted),
+    notes and joint angles.
 
     Also writes ``figures/joint_angles.png`` and ``provenance.json`` (which data calibrated
     what). Refuses to overwrite ``report.html`` unless ``force`` (FileExistsError).
@@ -197,10 +199,7 @@ def write_angle_report(
         f"<title>{e(title)}</title><style>{REPORT_CSS}</style></head><body>",
         f'<header><h1>{e(title)}</h1><div class="meta">{meta}</div></header><main>',
     ]
-    if notes:
-        parts.append(
-            f'<section><h2>Notes</h2><div class="notes">{e(chr(10).join(notes))}</div></section>'
-        )
+    parts.append(notes_html(notes, warnings))
     parts.append(angle_section(t, angles, out / "figures"))
     parts.append("</main></body></html>")
     tmp = path.with_name(REPORT_NAME + ".part")

@@ -59,7 +59,43 @@ table.results tr.paper td { color: var(--paper); font-style: italic; }
 .tables { display: flex; flex-wrap: wrap; gap: 28px; }
 p.note { color: var(--muted); font-size: 12.5px; margin: 2px 0 8px; }
 .notes { white-space: pre-wrap; }
+section.warnings { background: #fff8e6; border-color: #e8b64c; border-left: 5px solid #d98e04; }
+section.warnings ul { margin: 0; padding-left: 20px; }
+section.warnings li { margin: 3px 0; }
 """
+
+
+def notes_html(notes: str | Sequence[str] | None, warnings: Sequence[str] = ()) -> str:
+    """The report's warnings box (each warning once, highlighted) and its notes section.
+
+    A note that only repeats a warning (``"warning: …"``, ``"WARNING: …"`` or
+    ``"calibration: …"`` followed by the warning's text) is left out of the notes: the box
+    shows it.
+    """
+    e = html.escape
+    lines = notes.splitlines() if isinstance(notes, str) else list(notes or ())
+    said = set(warnings)
+    kept = [
+        n
+        for n in lines
+        if n not in said
+        and not any(n.startswith(p) and n[len(p) :] in said for p in _WARNING_PREFIXES)
+    ]
+    parts = []
+    if warnings:
+        items = "".join(f"<li>{e(w)}</li>" for w in dict.fromkeys(warnings))
+        parts.append(
+            f'<section class="warnings" id="warnings"><h2>Warnings ({len(said)})</h2>'
+            f"<ul>{items}</ul></section>"
+        )
+    if kept:
+        parts.append(
+            f'<section><h2>Notes</h2><div class="notes">{e(chr(10).join(kept))}</div></section>'
+        )
+    return "".join(parts)
+
+
+_WARNING_PREFIXES = ("warning: ", "WARNING: ", "calibration: ")
 
 
 def _slug(name: str) -> str:
@@ -112,6 +148,8 @@ class ReportOptions:
         The page's title.
     notes : str or sequence of str, optional
         Free text shown under the title (settings, data source, caveats).
+    warnings : sequence of str
+        Shown above the notes, highlighted (:func:`notes_html`).
     axis_labels : sequence of 3 str
         Axis names in tables and figures (paper B: ``("X", "Y", "Z")``).
     dotted : sequence of str
@@ -143,6 +181,7 @@ class ReportOptions:
 
     title: str = "kinefuse report"
     notes: str | Sequence[str] | None = None
+    warnings: Sequence[str] = ()
     axis_labels: Sequence[str] = ("East", "North", "Up")
     dotted: Sequence[str] = ()
     paper: Mapping[str, Mapping[str, Sequence[float]]] | None = None
@@ -246,6 +285,7 @@ def write_report(
         figures,
         title=opts.title,
         notes=opts.notes,
+        warnings=opts.warnings,
         t=d.t,
         axis_labels=opts.axis_labels,
         paper=opts.paper,
@@ -464,8 +504,9 @@ def _img(figures: Mapping[str, str], key: str, alt: str, caption: str) -> str:
 
 
 def _html(
-    ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper, viewer_html=None
-) -> str:
+    ev: EvaluationResult, figures, *, title, notes, t, axis_labels, paper, viewer_html=None,
+    warnings=(),
+) -> str:  # fmt: skip
     e = html.escape
     duration = float(t[-1] - t[0]) if t.size > 1 else 0.0
     meta = (
@@ -494,9 +535,7 @@ def _html(
     if "skeleton" in figures:
         nav.append('<a href="#skeleton">Skeleton</a>')
     parts.append("<nav>" + "".join(nav) + "</nav><main>")
-    if notes:
-        text = notes if isinstance(notes, str) else "\n".join(notes)
-        parts.append(f'<section><h2>Notes</h2><div class="notes">{e(text)}</div></section>')
+    parts.append(notes_html(notes, warnings))
 
     summary = tables.joint_method_table(
         ev,

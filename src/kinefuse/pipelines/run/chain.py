@@ -74,6 +74,7 @@ def _ensure_orientations(
             "gyr with VQF, or fix the file"
         )
     six_d: set[str] = set()
+    how: dict[str, list[str]] = {}  # the orientation notes, one line per kind
     for seg, st in list(recording.imu.items()):
         if st.q_world_from_sensor is not None:
             continue
@@ -93,12 +94,15 @@ def _ensure_orientations(
             raise InputError(f"IMU {seg!r}: orientation estimation failed: {exc}") from None
         q[~ok] = np.nan
         recording.imu[seg] = replace(st, q_world_from_sensor=q)
-        notes.append(
-            f"{seg}: orientation estimated from raw data with VQF "
-            f"({'9D, magnetometer' if mag is not None else '6D, arbitrary heading'})"
-        )
+        how.setdefault(
+            "9D, magnetometer" if mag is not None else "6D, arbitrary heading", []
+        ).append(seg)
         if mag is None:
             six_d.add(seg)
+    notes += [
+        f"{', '.join(segs)}: orientation estimated from raw data with VQF ({kind})"
+        for kind, segs in how.items()
+    ]
     if lacking:
         msg = (
             f"the IMU file has no orientation for {', '.join(lacking)}: estimated from acc + "

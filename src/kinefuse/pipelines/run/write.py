@@ -330,6 +330,7 @@ def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> N
             options=ReportOptions(
                 title=title,
                 notes=out.notes,
+                warnings=result.warnings,
                 # east/north/up only in an ENU frame (e.g. not a Vicon frame's x, y, z)
                 axis_labels=("East", "North", "Up")
                 if out.frame.startswith("ENU")
@@ -346,6 +347,7 @@ def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> N
             out.angles,
             title=title,
             notes=out.notes,
+            warnings=result.warnings,
             provenance=out.provenance,
             unscored=(
                 "reference given, not scored (see the notes)"
