@@ -164,6 +164,34 @@ def test_perpendicular_fit_recovers_a_perpendicular_axis_exactly():
             assert abs(j1 @ axis_a) < 1e-12
 
 
+@pytest.mark.parametrize("seed", [5, 6, 7])
+def test_hinge_fit_is_robust_to_knocks(seed):
+    """An elbow (6-D, headings 40 deg apart) whose forearm rates carry 0.05 rad/s noise and, on
+    5 % of the samples, knocks of 2 rad/s: the robust (Cauchy) refinement finds the flexion axis
+    within 1.5 deg and the heading within 1.5 deg. Least squares alone, measured on the same
+    data: 1.3, 36 and 10.5 deg off for seeds 5, 6, 7."""
+    from kinefuse.kinematics.hinge import _fit_flexion_axis, _world_rate
+
+    T = 1200
+    t = np.arange(T) / FS
+    m = np.clip(t - 1.0, 0.0, None)
+    flex = 60.0 * (1.0 - np.cos(1.3 * m))
+    arm = Rotation.from_euler("zx", np.stack([20.0 * np.sin(0.7 * m), 15.0 * np.sin(m)], 1), True)
+    R_A = (arm * MOUNTS["upper_arm_r"]).as_matrix()
+    fore = arm * Rotation.from_euler("x", flex[:, None], degrees=True) * MOUNTS["forearm_r"]
+    R_B = (Rotation.from_euler("z", 40.0, degrees=True) * fore).as_matrix()
+    rng = np.random.default_rng(seed)
+    wB = _world_rate(R_B, t) + rng.normal(0.0, 0.05, (T, 3))
+    knocked = rng.choice(T, T // 20, replace=False)
+    wB[knocked] += rng.normal(0.0, 2.0, (knocked.size, 3))
+    axis_a = MOUNTS["upper_arm_r"].inv().apply([0.0, 0.0, -1.0])
+    axis_b = MOUNTS["forearm_r"].inv().apply([0.0, 0.0, -1.0])
+    truth = MOUNTS["upper_arm_r"].inv().apply([1.0, 0.0, 0.0])
+    j1, dpsi, _ = _fit_flexion_axis(R_A, R_B, _world_rate(R_A, t), wB, axis_a, axis_b, True)
+    assert np.degrees(np.arccos(min(1.0, abs(float(j1 @ truth))))) < 1.5
+    assert np.degrees(dpsi) == pytest.approx(-40.0, abs=1.5)
+
+
 @pytest.mark.parametrize("refine_heading", [True, False])
 def test_rate_constraint_jacobian_equals_finite_differences(refine_heading):
     """The hinge fit's analytic Jacobian (azimuth, elevation, heading) against scipy's central

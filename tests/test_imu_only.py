@@ -434,7 +434,7 @@ def test_qmt_right_arm_paper_a_setting(shared_data, tmp_path):
     flex = ang["elbow_r_flexion_deg"]
     assert np.all(np.isfinite(flex))
     # 6-D data: the flexion axis comes from the movement, not from the unknown facing (the pose
-    # frames gave -124..24 deg); the range is flexion. Measured 1st-99th percentile -12.9..133.6
+    # frames gave -124..24 deg); the range is flexion. Measured 1st-99th percentile -13.6..130.3
     # deg: the N-pose was held with the elbow a few degrees flexed (zero = the pose), so full
     # extension reads slightly negative and the report warns about the -10 deg bound
     html = (out / "report.html").read_text()

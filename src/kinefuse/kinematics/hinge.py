@@ -73,6 +73,7 @@ __all__ = [
     "MIN_HINGE_RATE_RAD_S",
     "OPPOSITE_DEG",
     "PERPENDICULAR_REFIT_MAX_RATIO",
+    "ROBUST_SCALE_FLOOR",
     "hinge_facing",
     "hinge_frames",
     "limb_headings",
@@ -91,6 +92,10 @@ MIN_HINGE_RATE_RAD_S = 0.2
 
 #: Weight of the prior holding the distal heading at the pose's (see :func:`hinge_frames`).
 HEADING_PRIOR = 0.01
+
+#: Least scale of the hinge fit's robust (Cauchy) refinement, rad/s (its scale is the
+#: least-squares residuals' 1.4826 MAD; the floor keeps noise-free data well posed).
+ROBUST_SCALE_FLOOR = 0.01
 
 
 def segment_frame(axis, hinge) -> np.ndarray:
@@ -196,8 +201,10 @@ def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool, perp
     ``j2`` = B's long axis) joint lies in ``span(R_A j1, R_B j2)``, so its component along their
     unit normal vanishes (Laidig, Müller & Seel 2017; for a pure hinge too). Least squares over
     ``j1`` (azimuth and elevation about A's long axis) and, if ``refine_heading``, the heading
-    ``ψ`` applied to B's world frame; the best of four starting azimuths. Returns ``(j1, ψ,
-    RMS residual rad/s)``. ``perpendicular``: ``j1`` held perpendicular to A's long axis (the
+    ``ψ`` applied to B's world frame; the best of four starting azimuths (times four headings),
+    each refined with a Cauchy loss on the least-squares residuals' scale (1.4826 MAD, at
+    least :data:`ROBUST_SCALE_FLOOR`): outliers such as foot strikes weigh less. Returns
+    ``(j1, ψ, RMS residual rad/s)``. ``perpendicular``: ``j1`` held perpendicular to A's long axis (the
     elevation fixed at zero; the anatomical prior of :func:`hinge_frames`'s refit).
     """
     a1 = -axis_a / np.linalg.norm(axis_a)
@@ -222,17 +229,26 @@ def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool, perp
         def jac(x):
             return free_jac([x[0], 0.0, x[-1]])[:, [0, 2]]
 
-    best = None
     # the heading is multimodal where the sensors' headings are unrelated (6-D): four starts
     psi0 = np.radians([0.0, 90.0, 180.0, -90.0]) if refine_heading else [0.0]
-    for th0 in np.radians([0.0, 45.0, 90.0, 135.0]):
-        for p0 in psi0:
-            x0, scale = (
-                ([th0, p0], [1.0, 0.1]) if perpendicular else ([th0, 0.0, p0], [1.0, 1.0, 0.1])
-            )
-            sol = least_squares(res, x0, jac=jac, x_scale=scale)
-            if best is None or sol.cost < best.cost:
-                best = sol
+    scale = [1.0, 0.1] if perpendicular else [1.0, 1.0, 0.1]
+    starts = [
+        [th0, p0] if perpendicular else [th0, 0.0, p0]
+        for th0 in np.radians([0.0, 45.0, 90.0, 135.0])
+        for p0 in psi0
+    ]
+
+    fits = [least_squares(res, x0, jac=jac, x_scale=scale) for x0 in starts]
+    best = min(fits, key=lambda sol: sol.cost)
+    # robust: residuals far beyond the typical one (foot strikes, soft tissue, a knocked
+    # sensor) weigh less; Cauchy loss on the least-squares residuals' own scale (1.4826 MAD),
+    # refined from every least-squares optimum (the basins stay those of the starts)
+    f_scale = max(ROBUST_SCALE_FLOOR, 1.4826 * float(np.median(np.abs(best.fun[:-1]))))
+    robust = [
+        least_squares(res, sol.x, jac=jac, x_scale=scale, loss="cauchy", f_scale=f_scale)
+        for sol in fits
+    ]
+    best = min(robust, key=lambda sol: sol.cost)
     x = [best.x[0], 0.0, best.x[1]] if perpendicular else best.x
     dpsi = float(x[2]) if refine_heading else 0.0
     return j1_of(x), dpsi, float(np.sqrt(np.mean(best.fun[:-1] ** 2)))
