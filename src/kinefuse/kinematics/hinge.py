@@ -204,8 +204,8 @@ def _fit_flexion_axis(RA, RB, wA, wB, axis_a, axis_b, refine_heading: bool, perp
     ``ψ`` applied to B's world frame; the best of four starting azimuths (times four headings),
     each refined with a Cauchy loss on the least-squares residuals' scale (1.4826 MAD, at
     least :data:`ROBUST_SCALE_FLOOR`): outliers such as foot strikes weigh less. Returns
-    ``(j1, ψ, RMS residual rad/s)``. ``perpendicular``: ``j1`` held perpendicular to A's long axis (the
-    elevation fixed at zero; the anatomical prior of :func:`hinge_frames`'s refit).
+    ``(j1, ψ, RMS residual rad/s)``. ``perpendicular``: ``j1`` held perpendicular to A's long
+    axis (the elevation fixed at zero; the anatomical prior of :func:`hinge_frames`'s refit).
     """
     a1 = -axis_a / np.linalg.norm(axis_a)
     a2 = -axis_b / np.linalg.norm(axis_b)
@@ -564,7 +564,8 @@ def _refit_holds(j: str, prox: str, dist: str, tilt: float, rms: float, rms_perp
             f"{prox!r} and {dist!r} are kept as the pose gave them (their flexion axis from the "
             "facing and the sensors' headings in the pose). Check that both sensors were "
             "strapped firmly and that the still window is the N-pose; the angles of this limb "
-            'are unreliable. With 9-D sensors, declare [calibration] facing with flexion_axes = "pose"'
+            "are unreliable. With 9-D sensors, declare [calibration] facing with "
+            'flexion_axes = "pose"'
         )
     warnings.warn(head + tail, NumericalWarning, stacklevel=3)
     return used
