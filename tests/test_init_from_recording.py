@@ -338,3 +338,6 @@ def test_6d_limbs_read_zero_in_the_pose(shared_data, tmp_path):
     box, notes = page.split("<h2>Notes</h2>")
     assert summary.warnings and 'class="warnings"' in box
     assert all(html.escape(w) in box and html.escape(w) not in notes for w in summary.warnings)
+    # the coverage per joint: a table in the report, not eight notes
+    assert "<h2>Coverage</h2>" in notes and "coverage knee_l:" not in notes
+    assert any(n.startswith("coverage knee_l:") for n in summary.notes)  # still in the result

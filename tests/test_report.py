@@ -330,3 +330,15 @@ def test_warnings_box_above_the_notes_without_repeating_them():
     assert "tilted" not in rest and "no orientation" not in rest
     assert notes_html(notes[:1], ()).startswith("<section><h2>Notes</h2>")
     assert notes_html((), ()) == ""
+
+
+def test_best_marks_only_where_smaller_is_better():
+    """An error table marks each joint's smallest value; a table of angles or counts does not
+    (the green "best" of an angle range or a sample count would mean nothing)."""
+    from kinefuse.evaluation.tables import ResultTable, TableRow, to_html
+
+    rows = (TableRow(("knee", "a"), (1.0, 5.0)), TableRow(("knee", "b"), (2.0, 4.0)))
+    errors = ResultTable("RMSE", ("Joint", "Method"), ("x", "y"), rows)
+    assert to_html(errors).count("num best") == 2
+    angles = ResultTable("Angles", ("Joint", "Angle"), ("min", "max"), rows, best=False)
+    assert "best" not in to_html(angles)

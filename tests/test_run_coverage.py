@@ -104,7 +104,10 @@ def test_imu_ending_early_is_predicted_not_available(synthetic_files, tmp_path):
     assert summary["coverage"]["elbow_r"]["available"] == st.t_s.size  # upper arm IMU is whole
     (w,) = [w for w in summary["warnings"] if w.startswith("wrist_r: only")]
     assert "forearm_r IMU" in w and f"{counts['predicted']} predicted" in w
-    assert "coverage wrist_r" in (tmp_path / "out" / "report.html").read_text()
+    page = (tmp_path / "out" / "report.html").read_text()
+    table = page.split("<h2>Coverage</h2>")[1].split("</section>")[0]  # the report's table
+    row = table.split("<td>wrist_r</td>")[1].split("</tr>")[0]
+    assert f">{counts['predicted']}</td>" in row
     # the metrics score what is output as available, never the predictions
     assert any("predicted joint samples" in n and "excluded" in n for n in summary["notes"])
     ev = summary["evaluation"]

@@ -16,8 +16,11 @@ from kinefuse.pipelines.run import SessionOutput, process_recording
 __all__ = ["finite_or_none", "imu_only_output", "labelled_runs", "result_table", "timed_quietly"]
 
 
-def result_table(title, label_headers, value_headers, rows, notes=(), digits=3) -> ResultTable:
-    """A :class:`~kinefuse.evaluation.tables.ResultTable` from ``(labels, values, paper)`` rows."""
+def result_table(
+    title, label_headers, value_headers, rows, notes=(), digits=3, best=True
+) -> ResultTable:
+    """A :class:`~kinefuse.evaluation.tables.ResultTable` from ``(labels, values, paper)`` rows
+    (``best``: mark each column's smallest value, for error tables)."""
     return ResultTable(
         title=title,
         label_headers=tuple(label_headers),
@@ -28,6 +31,7 @@ def result_table(title, label_headers, value_headers, rows, notes=(), digits=3) 
         ),
         digits=digits,
         notes=tuple(notes),
+        best=best,
     )
 
 

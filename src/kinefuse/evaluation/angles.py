@@ -72,6 +72,7 @@ def range_of_motion_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTabl
         value_headers=("min", "max", "range", "mean"),
         rows=tuple(rows),
         digits=1,
+        best=False,  # angles: smaller is not better
         notes=(
             "ISB joint coordinate systems (Wu et al. 2002/2005; Grood & Suntay 1983): flexion "
             "about the proximal segment's medio-lateral axis, adduction about the floating axis "
@@ -111,6 +112,7 @@ def angle_extremes_table(angles: Mapping[str, np.ndarray]) -> tables.ResultTable
         ),
         rows=tuple(rows),
         digits=1,
+        best=False,  # angles: smaller is not better
         notes=(
             "ISB (Wu et al. 2002/2005), zero in the calibration pose"
             + (
@@ -171,12 +173,13 @@ def write_angle_report(
     title: str = "kinefuse report",
     notes: Sequence[str] = (),
     warnings: Sequence[str] = (),
+    sections: Sequence[str] = (),
     provenance: Mapping | None = None,
     force: bool = False,
     unscored: str = "no reference",
 ) -> Path:
     """A self-contained ``report.html`` without scores (no reference): warnings (highlighted),
-    notes and joint angles.
+    notes, ``sections`` (HTML fragments, e.g. a coverage table) and joint angles.
 
     Also writes ``figures/joint_angles.png`` and ``provenance.json`` (which data calibrated
     what). Refuses to overwrite ``report.html`` unless ``force`` (FileExistsError).
@@ -200,6 +203,7 @@ def write_angle_report(
         f'<header><h1>{e(title)}</h1><div class="meta">{meta}</div></header><main>',
     ]
     parts.append(notes_html(notes, warnings))
+    parts += sections
     parts.append(angle_section(t, angles, out / "figures"))
     parts.append("</main></body></html>")
     tmp = path.with_name(REPORT_NAME + ".part")

@@ -107,6 +107,9 @@ class ResultTable:
         Decimals shown (3 like paper A, 4 like paper B).
     notes : tuple of str
         Footnotes (definitions, sample counts).
+    best : bool
+        Mark the smallest value of each column among a joint's rows (error and time tables);
+        False where smaller is not better (angle ranges, counts, real-vs-virtual figures).
     """
 
     title: str
@@ -115,6 +118,7 @@ class ResultTable:
     rows: tuple[TableRow, ...]
     digits: int = 4
     notes: tuple[str, ...] = ()
+    best: bool = True
 
     def cell(self, value) -> str:
         """Format one value."""
@@ -434,6 +438,8 @@ def timing_table(
 def _best_per_column(table: ResultTable) -> dict[tuple[int, int], bool]:
     """Mark the smallest value of each numeric column among our rows (per joint group)."""
     best = {}
+    if not table.best:
+        return best
     groups: dict[tuple, list[int]] = {}
     for i, row in enumerate(table.rows):
         if not row.paper:

@@ -20,6 +20,7 @@ from kinefuse.orientation.resample import MAX_GAP_S, default_max_gap_s
 from kinefuse.pipelines.run.output import SessionOutput
 
 __all__ = [
+    "COVERAGE_NOTE",
     "COVERAGE_WARN_FRACTION",
     "IMU_MAX_GAP_S",
     "ROOT_MAX_GAP_S",
@@ -30,6 +31,10 @@ __all__ = [
 ]
 
 _CAMERA_METHODS = methods.names(needs="camera")
+
+
+#: How the per-joint coverage notes begin (the report shows them as a table instead).
+COVERAGE_NOTE = "coverage "
 
 
 def _timeline(t_src: np.ndarray, rate_hz: float | None) -> np.ndarray:
@@ -255,7 +260,7 @@ def apply_coverage(
         kinds = ", ".join(f"{row[k]} {k}" for k in ("measured", "fused", "bridged", "predicted"))
         streams = ", ".join(f"{k[:-8]} {v}" for k, v in row.items() if k.endswith(" covered"))
         out.notes.append(
-            f"coverage {joint}: {row['available']} of {row['samples']} samples available "
+            f"{COVERAGE_NOTE}{joint}: {row['available']} of {row['samples']} samples available "
             f"({kinds}); covered by {streams}"
         )
     if out.reference is not None and T:
@@ -301,6 +306,7 @@ def coverage_table(out: SessionOutput):
             for joint, row in counts.items()
         ),
         digits=0,
+        best=False,  # counts: smaller is not better
         notes=(
             "available = backed by the inputs the method needs; measured = one stream (IMU "
             "chain or camera), fused = camera-fused, bridged = outage bridged by the learned "

@@ -20,6 +20,7 @@ from kinefuse.conventions import MODE_NAMES, SOURCE_KINDS, SOURCE_NAMES
 from kinefuse.evaluation import ReportOptions, write_report
 from kinefuse.evaluation.angles import angle_extremes_table, angle_section, write_angle_report
 from kinefuse.evaluation.report import REPORT_NAME
+from kinefuse.evaluation.tables import to_html
 from kinefuse.exceptions import ConfigError
 from kinefuse.io import ImuStream, JointStream, write_joint_csv, write_trc
 from kinefuse.io._write import printf_rows, write_text_safely
@@ -31,7 +32,7 @@ from kinefuse.pipelines.run.chain_file import CHAIN_FILE
 from kinefuse.pipelines.run.output import SessionOutput
 from kinefuse.pipelines.run.process import process_recording
 from kinefuse.pipelines.run.streams import load_streams
-from kinefuse.pipelines.run.timeline import coverage_counts, coverage_table
+from kinefuse.pipelines.run.timeline import COVERAGE_NOTE, coverage_counts, coverage_table
 from kinefuse.session_file import SessionConfig, load_session
 
 __all__ = ["RunResult", "output_paths", "run_session"]
@@ -314,8 +315,11 @@ def _write_orientations(out: SessionOutput, targets: Mapping[str, Path]) -> Path
 
 
 def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> None:
-    """The HTML report: scores and figures with a reference, else the joint angles."""
+    """The HTML report: scores and figures with a reference, else the joint angles; the
+    warnings above the notes, the coverage per joint as a table (not as notes)."""
     title = f"kinefuse: {cfg.name} ({cfg.method.name})"
+    notes = [n for n in out.notes if not n.startswith(COVERAGE_NOTE)]
+    coverage = f"<section><h2>Coverage</h2>{to_html(coverage_table(out))}</section>"
     ev = out.evaluation()
     if ev is not None:
         result.evaluation = ev
@@ -329,14 +333,14 @@ def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> N
             sources={ev.methods[0]: out.source},
             options=ReportOptions(
                 title=title,
-                notes=out.notes,
+                notes=notes,
                 warnings=result.warnings,
                 # east/north/up only in an ENU frame (e.g. not a Vicon frame's x, y, z)
                 axis_labels=("East", "North", "Up")
                 if out.frame.startswith("ENU")
                 else ("X", "Y", "Z"),
                 skeleton_edges=out.edges or None,
-                sections=[angle_section(out.t_s, out.angles, folder / "figures")],
+                sections=[coverage, angle_section(out.t_s, out.angles, folder / "figures")],
                 extra_metrics={"provenance": out.provenance},
             ),
         )
@@ -346,8 +350,9 @@ def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> N
             out.t_s,
             out.angles,
             title=title,
-            notes=out.notes,
+            notes=notes,
             warnings=result.warnings,
+            sections=[coverage],
             provenance=out.provenance,
             unscored=(
                 "reference given, not scored (see the notes)"
