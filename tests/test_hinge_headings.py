@@ -135,29 +135,39 @@ def test_swapped_sensors_are_named():
     assert hip and "sensors of thigh_l and shank_l swapped" in hip[0], warns
 
 
-def test_perpendicular_fit_recovers_a_perpendicular_axis_exactly():
-    """The refit with the flexion axis held perpendicular to the proximal long axis: on an elbow
-    whose axis is perpendicular (closed-form motion, 6-D headings 40 deg apart), it finds that
-    axis and the heading as the free fit does, with a residual near zero."""
-    from kinefuse.kinematics.hinge import _fit_flexion_axis, _world_rate
-
-    T = 600
+def _elbow(T: int):
+    """An elbow flexing 0..120 deg while the upper arm sways, 6-D: the forearm sensor's world
+    turned 40 deg. Returns ``t``, ``R_A``, ``R_B`` (T, 3, 3), both sensor-frame long axes
+    (proximal -> distal) and the true flexion axis in the upper-arm sensor (world x)."""
     t = np.arange(T) / FS
     m = np.clip(t - 1.0, 0.0, None)
     flex = 60.0 * (1.0 - np.cos(1.3 * m))
     arm = Rotation.from_euler("zx", np.stack([20.0 * np.sin(0.7 * m), 15.0 * np.sin(m)], 1), True)
     R_A = (arm * MOUNTS["upper_arm_r"]).as_matrix()
     fore = arm * Rotation.from_euler("x", flex[:, None], degrees=True) * MOUNTS["forearm_r"]
-    R_B = (Rotation.from_euler("z", 40.0, degrees=True) * fore).as_matrix()  # 6-D: turned 40 deg
-    axis_a = MOUNTS["upper_arm_r"].inv().apply([0.0, 0.0, -1.0])  # proximal -> distal, sensor frame
+    R_B = (Rotation.from_euler("z", 40.0, degrees=True) * fore).as_matrix()
+    axis_a = MOUNTS["upper_arm_r"].inv().apply([0.0, 0.0, -1.0])
     axis_b = MOUNTS["forearm_r"].inv().apply([0.0, 0.0, -1.0])
-    truth = MOUNTS["upper_arm_r"].inv().apply([1.0, 0.0, 0.0])  # the flexion axis (world x)
+    return t, R_A, R_B, axis_a, axis_b, MOUNTS["upper_arm_r"].inv().apply([1.0, 0.0, 0.0])
+
+
+def _off_deg(j1, truth) -> float:
+    return float(np.degrees(np.arccos(min(1.0, abs(float(j1 @ truth))))))
+
+
+def test_perpendicular_fit_recovers_a_perpendicular_axis_exactly():
+    """The refit with the flexion axis held perpendicular to the proximal long axis: on an elbow
+    whose axis is perpendicular (closed-form motion, 6-D headings 40 deg apart), it finds that
+    axis and the heading as the free fit does, with a residual near zero."""
+    from kinefuse.kinematics.hinge import _fit_flexion_axis, _world_rate
+
+    t, R_A, R_B, axis_a, axis_b, truth = _elbow(600)
     args = (R_A, R_B, _world_rate(R_A, t), _world_rate(R_B, t), axis_a, axis_b, True)
     for perpendicular in (False, True):
         j1, dpsi, rms = _fit_flexion_axis(*args, perpendicular=perpendicular)
         # rates from finite differences of the orientations (half a sample late) and the weak
         # heading prior: a fraction of a degree, not zero
-        off = np.degrees(np.arccos(min(1.0, abs(float(j1 @ truth)))))
+        off = _off_deg(j1, truth)
         assert off < 0.5 and rms < 0.01, (perpendicular, off, rms)
         assert np.degrees(dpsi) == pytest.approx(-40.0, abs=0.5)
         if perpendicular:
@@ -173,22 +183,13 @@ def test_hinge_fit_is_robust_to_knocks(seed):
     from kinefuse.kinematics.hinge import _fit_flexion_axis, _world_rate
 
     T = 1200
-    t = np.arange(T) / FS
-    m = np.clip(t - 1.0, 0.0, None)
-    flex = 60.0 * (1.0 - np.cos(1.3 * m))
-    arm = Rotation.from_euler("zx", np.stack([20.0 * np.sin(0.7 * m), 15.0 * np.sin(m)], 1), True)
-    R_A = (arm * MOUNTS["upper_arm_r"]).as_matrix()
-    fore = arm * Rotation.from_euler("x", flex[:, None], degrees=True) * MOUNTS["forearm_r"]
-    R_B = (Rotation.from_euler("z", 40.0, degrees=True) * fore).as_matrix()
+    t, R_A, R_B, axis_a, axis_b, truth = _elbow(T)
     rng = np.random.default_rng(seed)
     wB = _world_rate(R_B, t) + rng.normal(0.0, 0.05, (T, 3))
     knocked = rng.choice(T, T // 20, replace=False)
     wB[knocked] += rng.normal(0.0, 2.0, (knocked.size, 3))
-    axis_a = MOUNTS["upper_arm_r"].inv().apply([0.0, 0.0, -1.0])
-    axis_b = MOUNTS["forearm_r"].inv().apply([0.0, 0.0, -1.0])
-    truth = MOUNTS["upper_arm_r"].inv().apply([1.0, 0.0, 0.0])
     j1, dpsi, _ = _fit_flexion_axis(R_A, R_B, _world_rate(R_A, t), wB, axis_a, axis_b, True)
-    assert np.degrees(np.arccos(min(1.0, abs(float(j1 @ truth))))) < 1.5
+    assert _off_deg(j1, truth) < 1.5
     assert np.degrees(dpsi) == pytest.approx(-40.0, abs=1.5)
 
 
