@@ -420,6 +420,25 @@ def test_ximu3_lower_body_imu_only_session(shared_data, tmp_path):
     assert any(ln.startswith("root=pelvis") for ln in mot[: mot.index("endheader")])
 
 
+def test_a_pose_declared_wrong_is_said_with_what_to_check(shared_data, tmp_path):
+    """The qmt right arm held in an N-pose but declared a T-pose: the run says which segments
+    are far from the T-pose direction (the calibration's own warnings) and, for the elbow that
+    then reads flexed in the pose, that the pose held may not be the declared one."""
+    text = (SESSIONS / "qmt_right_arm.toml").read_text(encoding="utf-8")
+    data = shared_data / "qmt_full_body_example" / "full_body_example_data.mat"
+    lines = [
+        f'path = "{data.as_posix()}"' if ln.startswith("path = ") else ln
+        for ln in text.replace('pose = "n"', 'pose = "t"').splitlines()
+    ]
+    session = tmp_path / "t.toml"
+    session.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    summary = run_session(session, tmp_path / "out")
+    far = [w for w in summary.warnings if "from the assumed T-pose direction" in w]
+    assert {w.split("'")[1] for w in far} == {"upper_arm_r", "forearm_r"}, summary.warnings
+    (elbow,) = [w for w in summary.warnings if w.startswith("elbow_r reads flexion")]
+    assert "the pose held was not the declared [calibration] pose" in elbow
+
+
 def test_qmt_right_arm_paper_a_setting(shared_data, tmp_path):
     out = tmp_path / "qa"
     res = runner.invoke(cli.app, ["run", str(SESSIONS / "qmt_right_arm.toml"), "--out", str(out)])

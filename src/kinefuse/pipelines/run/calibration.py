@@ -331,6 +331,11 @@ def _pose_angle_check(angles: Mapping[str, np.ndarray], t: np.ndarray, cal) -> l
                 if cal.world_heading_deg
                 else 'declare [calibration] facing, or heading = "static" for 6-D sensors'
             )
+            if j.startswith(("elbow", "knee")) and abs(off[0]) > POSE_ANGLE_WARN_DEG:
+                fix += (  # a bent hinge in the window, or an N-pose declared as a T-pose
+                    "; or the limb was bent in the window, or the pose held was not the declared "
+                    '[calibration] pose ("n": arms hanging, "t": arms out)'
+                )
             pose = "zero"
             if np.any(np.abs(want) > 0.5):
                 pose = ", ".join(f"{c} {v:.0f}" for c, v in zip(names, want, strict=True))
