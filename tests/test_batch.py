@@ -75,6 +75,12 @@ def _numba_threads() -> int:
     return numba.config.NUMBA_NUM_THREADS
 
 
+def _malloc_env() -> tuple:
+    import os
+
+    return os.environ.get("MALLOC_TRIM_THRESHOLD_"), os.environ.get("OPENBLAS_NUM_THREADS")
+
+
 @pytest.fixture(scope="module")
 def client():
     from distributed import Client
@@ -85,6 +91,10 @@ def client():
     c = Client(cluster)
     assert all(a.startswith("tcp://127.0.0.1:") for a in (cluster.scheduler_address, *c.nthreads()))
     assert set(c.run(_numba_threads).values()) == {1}  # numba single-threaded in each worker
+    # glibc's adaptive malloc kept (Dask's MALLOC_TRIM_THRESHOLD_ made IMU-only runs 3x slower),
+    # Dask's one BLAS thread per worker kept; unless this process itself sets the variable
+    trim = os.environ.get("MALLOC_TRIM_THRESHOLD_")
+    assert set(c.run(_malloc_env).values()) == {(trim, "1")}
     yield c
     c.close()
     cluster.close()
