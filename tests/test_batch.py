@@ -195,6 +195,24 @@ def test_study_matches_single_session_runs_despite_a_killed_worker(first_run, se
     assert not (rec_root / "broken" / "imu-only").exists()
 
 
+def test_run_warnings_are_kept_per_task_and_summarised(first_run):
+    """Every finished task keeps its run's warnings (as `kinefuse run` prints them); the
+    printed summary names the tasks that have some and the study report lists them."""
+    from kinefuse.batch.report import _warnings_section
+    from kinefuse.batch.runner import summary_tables
+
+    _, summary, _ = first_run
+    done = [r for r in summary["results"] if r["status"] != "failed"]
+    assert done and all(isinstance(r["warnings"], list) for r in done)
+    one = dict(done[0], warnings=["knee_r <axis> tilted"])
+    fake = dict(summary, results=[one, *({**r, "warnings": []} for r in done[1:])])
+    (line,) = [r.labels[1] for r in summary_tables(fake)[0].rows if r.labels[0] == "warnings"]
+    assert line.startswith(f"1 of {len(done)} tasks: {one['recording']}/{one['method']} (1)")
+    page = _warnings_section(fake["results"])
+    assert 'class="warnings"' in page and "knee_r &lt;axis&gt; tilted" in page
+    assert _warnings_section([{**r, "warnings": []} for r in done]) == ""
+
+
 def test_rerun_skips_finished_and_force_redoes_despite_a_restart(first_run, serial, client):
     from kinefuse.batch.table import read_table
 

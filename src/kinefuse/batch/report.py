@@ -192,7 +192,7 @@ def write_study_report(out_dir: str | Path, study, results: Sequence[Mapping]) -
         f"<title>kinefuse study: {e(study.name)}</title><style>{REPORT_CSS}</style></head><body>",
         f'<header><h1>kinefuse study: {e(study.name)}</h1><div class="meta">{meta}</div></header>',
         '<nav><a href="#summary">Summary</a><a href="#distributions">Distributions</a>'
-        '<a href="#failed">Failed</a></nav><main>',
+        '<a href="#warnings">Warnings</a><a href="#failed">Failed</a></nav><main>',
         '<section id="summary"><h2>Summary</h2>',
         f'<p class="note">Calibrated on: {e(", ".join(calibrated) or "n/a")}. Errors against '
         "each session's [reference]; the IMU chain and camera rows are the baselines each "
@@ -209,6 +209,7 @@ def write_study_report(out_dir: str | Path, study, results: Sequence[Mapping]) -
     parts.append('<section id="distributions"><h2>Distributions over recordings</h2>')
     parts += figures
     parts.append("</section>")
+    parts.append(_warnings_section(ok))
     parts.append(_failed_section(failed) + "</main></body></html>")
     path = out / STUDY_REPORT_NAME
     tmp = path.with_name(STUDY_REPORT_NAME + ".part")
@@ -246,6 +247,24 @@ def _distribution_figures(fig_dir: Path, results, has_outage: bool) -> list[str]
                 "recording.",
             )
     return figures
+
+
+def _warnings_section(ok) -> str:
+    """The finished tasks' run warnings (highlighted, per recording and method); empty if none."""
+    e = html.escape
+    warned = [r for r in ok if r.get("warnings")]
+    if not warned:
+        return ""
+    items = "".join(
+        f"<li><b>{e(r['recording'])} / {e(r['method'])}</b><ul>"
+        + "".join(f"<li>{e(w)}</li>" for w in r["warnings"])
+        + "</ul></li>"
+        for r in warned
+    )
+    return (
+        f'<section class="warnings" id="warnings"><h2>Warnings ({len(warned)} of {len(ok)} '
+        f"tasks)</h2><ul>{items}</ul></section>"
+    )
 
 
 def _failed_section(failed) -> str:

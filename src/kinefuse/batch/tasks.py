@@ -143,7 +143,8 @@ def run_task(task: Task, out_dir: str, force: bool = False, study: str = "") -> 
     dict
         ``recording``, ``method``, ``status`` (``"done"``, ``"skipped"``, ``"failed"``),
         ``error`` (one line or None), ``calibrated_on``, ``wall_s``, ``rows`` (tidy rows
-        without the recording/method columns), ``outputs`` (file names), ``worker`` (pid).
+        without the recording/method columns), ``outputs`` (file names), ``warnings`` (the
+        run's, as ``kinefuse run`` prints them), ``worker`` (pid).
         Never raises for a problem of the recording itself.
     """
     final = task_dir(out_dir, task)
@@ -166,6 +167,7 @@ def run_task(task: Task, out_dir: str, force: bool = False, study: str = "") -> 
             "wall_s": wall,
             "rows": _rows(summary.get("evaluation"), wall),
             "outputs": sorted(p.name for p in tmp.iterdir()),
+            "warnings": list(summary.get("warnings") or ()),
             "worker": os.getpid(),
         }
         (tmp / RESULT_NAME).write_text(json.dumps(result, indent=1), encoding="utf-8")
