@@ -199,7 +199,7 @@ def test_run_warnings_are_kept_per_task_and_summarised(first_run):
     """Every finished task keeps its run's warnings (as `kinefuse run` prints them); the
     printed summary names the tasks that have some and the study report lists them."""
     from kinefuse.batch.report import _warnings_section
-    from kinefuse.batch.runner import summary_tables
+    from kinefuse.batch.runner import _warned_line, summary_tables
 
     _, summary, _ = first_run
     done = [r for r in summary["results"] if r["status"] != "failed"]
@@ -211,6 +211,11 @@ def test_run_warnings_are_kept_per_task_and_summarised(first_run):
     page = _warnings_section(fake["results"])
     assert 'class="warnings"' in page and "knee_r &lt;axis&gt; tilted" in page
     assert _warnings_section([{**r, "warnings": []} for r in done]) == ""
+    many = [{"recording": f"r{i}", "method": "imu-only", "warnings": ["w"]} for i in range(7)]
+    assert _warned_line(many, 9) == (
+        "7 of 9 tasks: r0/imu-only (1), r1/imu-only (1), r2/imu-only (1), r3/imu-only (1), "
+        "r4/imu-only (1) and 2 more; the study report lists them"
+    )
 
 
 def test_rerun_skips_finished_and_force_redoes_despite_a_restart(first_run, serial, client):

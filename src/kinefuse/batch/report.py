@@ -192,7 +192,8 @@ def write_study_report(out_dir: str | Path, study, results: Sequence[Mapping]) -
         f"<title>kinefuse study: {e(study.name)}</title><style>{REPORT_CSS}</style></head><body>",
         f'<header><h1>kinefuse study: {e(study.name)}</h1><div class="meta">{meta}</div></header>',
         '<nav><a href="#summary">Summary</a><a href="#distributions">Distributions</a>'
-        '<a href="#warnings">Warnings</a><a href="#failed">Failed</a></nav><main>',
+        + ('<a href="#warnings">Warnings</a>' if any(r.get("warnings") for r in ok) else "")
+        + '<a href="#failed">Failed</a></nav><main>',
         '<section id="summary"><h2>Summary</h2>',
         f'<p class="note">Calibrated on: {e(", ".join(calibrated) or "n/a")}. Errors against '
         "each session's [reference]; the IMU chain and camera rows are the baselines each "

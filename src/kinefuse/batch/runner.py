@@ -517,7 +517,7 @@ def summary_tables(summary: Mapping) -> list:
     ok = [r for r in summary["results"] if r["status"] != "failed"]
     warned = [r for r in ok if r.get("warnings")]
     if warned:
-        items.append(("warnings", warned_line(warned, len(ok))))
+        items.append(("warnings", _warned_line(warned, len(ok))))
     scores = summary_table(ok, "all", "Over recordings, all samples (m)") if ok else None
     if ok and not scores.rows:
         items.append(("scores", NO_SCORES))
@@ -536,10 +536,14 @@ def summary_tables(summary: Mapping) -> list:
     return out
 
 
-def warned_line(warned: Sequence[Mapping], n_ok: int) -> str:
-    """``"2 of 5 tasks: walk01/imu-only (3), ...; the study report lists them"``."""
-    names = ", ".join(f"{r['recording']}/{r['method']} ({len(r['warnings'])})" for r in warned)
-    return f"{len(warned)} of {n_ok} tasks: {names}; the study report lists them"
+def _warned_line(warned: Sequence[Mapping], n_ok: int, most: int = 5) -> str:
+    """``"2 of 5 tasks: walk01/imu-only (3), ...; the study report lists them"`` (the first
+    ``most`` tasks named)."""
+    names = ", ".join(
+        f"{r['recording']}/{r['method']} ({len(r['warnings'])})" for r in warned[:most]
+    )
+    more = f" and {len(warned) - most} more" if len(warned) > most else ""
+    return f"{len(warned)} of {n_ok} tasks: {names}{more}; the study report lists them"
 
 
 def failed_table(failed: Sequence[tuple[str, str]], where: str = "") -> ResultTable:
