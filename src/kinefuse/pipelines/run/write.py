@@ -216,13 +216,14 @@ def _run_and_write(cfg, folder: Path, stage, out_dir: Path) -> RunResult:
     out.notes[:0] = notes
     out.warnings[:0] = [n.removeprefix("WARNING: ") for n in notes if n.startswith("WARNING: ")]
     stage("writing the joints, angles and orientations")
+    cov_table = coverage_table(out)  # printed, and in the report
     result = RunResult(
         outputs=_write_positions(out, cfg, targets),
         notes=out.notes,
         provenance=out.provenance,
         coverage=coverage_counts(out),
         warnings=list(out.warnings),
-        tables=[coverage_table(out)],
+        tables=[cov_table],
     )
     if out.sensor_orientations:
         result.outputs.append(_write_orientations(out, targets))
@@ -244,7 +245,7 @@ def _run_and_write(cfg, folder: Path, stage, out_dir: Path) -> RunResult:
             for j, a in out.angles.items()
         }
     stage("writing the report")
-    _write_report(out, cfg, folder, result)
+    _write_report(out, cfg, folder, result, cov_table)
     return result
 
 
@@ -314,12 +315,12 @@ def _write_orientations(out: SessionOutput, targets: Mapping[str, Path]) -> Path
     return sto
 
 
-def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult) -> None:
+def _write_report(out: SessionOutput, cfg, folder: Path, result: RunResult, cov_table) -> None:
     """The HTML report: scores and figures with a reference, else the joint angles; the
     warnings above the notes, the coverage per joint as a table (not as notes)."""
     title = f"kinefuse: {cfg.name} ({cfg.method.name})"
     notes = [n for n in out.notes if not n.startswith(COVERAGE_NOTE)]
-    coverage = f"<section><h2>Coverage</h2>{to_html(coverage_table(out))}</section>"
+    coverage = f"<section><h2>Coverage</h2>{to_html(cov_table)}</section>"
     ev = out.evaluation()
     if ev is not None:
         result.evaluation = ev
