@@ -254,14 +254,16 @@ def test_functional_lengths_are_checked_against_the_body_height_lengths(shared_d
     [
         (["--format", "ximu3"], ["--format is for --from RECORDING"]),
         (["--from", "nowhere.csv"], ["--from nowhere.csv: file or folder not found"]),
-        (["--from", "{kinect}"], ["no IMU stream in this kinect_v2 recording"]),
+        (["--from", "{kinect}"], ["no IMU stream in this kinect_v2 recording", "[camera] path"]),
+        (["--from", "{trc}"], ["no IMU stream in this trc recording", "[reference] path"]),
         (["--from", "{kinect}", "--format", "nope"], ["--format: unknown reader 'nope'"]),
     ],
 )
 def test_bad_input_is_one_line(args, needles, shared_data, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     kinect = shared_data / "third_party" / "kinect_v2" / "lslkinect_MoCap.csv"
-    args = [a.replace("{kinect}", str(kinect)) for a in args]
+    trc = shared_data / "third_party" / "trc" / "opensim_subject01_walk1.trc"
+    args = [a.replace("{kinect}", str(kinect)).replace("{trc}", str(trc)) for a in args]
     res = runner.invoke(cli.app, ["init-session", "s.toml", *args])
     assert res.exit_code == 2, (res.output, cli_stderr(res))
     err = cli_stderr(res).strip()

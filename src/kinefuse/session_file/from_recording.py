@@ -97,7 +97,7 @@ def sketch_recording(
         warnings.simplefilter("ignore")  # the reader's notes reach the user at `kinefuse run`
         rec = load(p, format=fmt)
     if not rec.imu:
-        raise InputError(f"--from {recording}: no IMU stream in this {fmt} recording")
+        raise InputError(_no_imu_message(recording, fmt, rec))
     segments, unmapped = {}, []
     for key, st in rec.imu.items():
         name = st.name or key
@@ -119,6 +119,21 @@ def sketch_recording(
                            still(mapped) if still and mapped and rec.vision is None else "",
                            _session_path(Path(files["skeleton"]), session_dir) if pair else "",
                            whole)  # fmt: skip
+
+
+def _no_imu_message(recording, fmt: str, rec) -> str:
+    """Why ``--from`` refuses a recording without IMUs, and where its positions can go instead."""
+    msg = f"--from {recording}: no IMU stream in this {fmt} recording"
+    if rec.vision is not None:
+        use = "[camera] path (a camera input to fuse with the IMUs)"
+    elif rec.reference is not None:
+        use = "[reference] path (a reference to evaluate against)"
+    else:
+        return msg
+    return (
+        f"{msg}; its joint or marker positions can be a session's {use}: run init-session "
+        f"--from the IMU recording, then add this file there"
+    )
 
 
 def _whole_folder(p: Path, fmt: str) -> str:
