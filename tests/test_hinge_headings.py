@@ -30,6 +30,8 @@ MOUNTS = {
     "shank_l": Rotation.from_euler("xyz", [30, -60, 160], degrees=True),
     "thigh_r": Rotation.from_euler("xyz", [10, -120, -25], degrees=True),
     "shank_r": Rotation.from_euler("xyz", [-15, 45, 70], degrees=True),
+    "foot_l": Rotation.from_euler("xyz", [5, -10, 75], degrees=True),  # on the top of the foot
+    "foot_r": Rotation.from_euler("xyz", [-8, 6, -110], degrees=True),
     "upper_arm_r": Rotation.from_euler("xyz", [10, 80, -30], degrees=True),
     "forearm_r": Rotation.from_euler("xyz", [-40, 20, 65], degrees=True),
 }
@@ -49,17 +51,25 @@ def _legs(headings_deg, T=1200, swap_left=False):
         abd = 12.0 * np.sin(0.9 * w * m)
         ang[side] = (hip, knee, abd)
     seg = {"pelvis": Rotation.identity(T)}
-    for side, (hip, knee, abd) in ang.items():
+    for side in "lr":
+        hip, knee, abd = ang[side]
         seg[f"thigh_{side}"] = Rotation.from_euler(
             "XY", np.stack([hip, abd], axis=1), degrees=True
         )  # Grood & Suntay order: flexion, then the floating axis
         seg[f"shank_{side}"] = seg[f"thigh_{side}"] * Rotation.from_euler(
             "x", -knee[:, None], degrees=True
         )
+    for side, w in (("l", 1.1), ("r", 1.7)):  # dorsiflexion, then the foot's axial rotation
+        dorsi = 15.0 * np.sin(2.1 * w * m) - 5.0 * (1.0 - np.cos(0.6 * w * m))
+        axial = 8.0 * np.sin(1.4 * w * m)
+        seg[f"foot_{side}"] = seg[f"shank_{side}"] * Rotation.from_euler(
+            "XZ", np.stack([dorsi, axial], axis=1), degrees=True
+        )
+        ang[f"ankle_{side}"] = (dorsi, axial)
     if swap_left:  # the sensors of the left thigh and shank mapped to each other's segment
         seg["thigh_l"], seg["shank_l"] = seg["shank_l"], seg["thigh_l"]
     imu = {}
-    for s in LEGS:
+    for s in (*LEGS, "foot_l", "foot_r") if "foot_l" in headings_deg else LEGS:
         mount = MOUNTS[{"thigh_l": "shank_l", "shank_l": "thigh_l"}.get(s, s) if swap_left else s]
         R = Rotation.from_euler("z", headings_deg[s], degrees=True) * seg[s] * mount
         imu[s] = ImuStream(t_s=t, q_world_from_sensor=R.as_quat(scalar_first=True), name=s)
@@ -83,7 +93,8 @@ def test_6d_limbs_face_as_the_trunk_in_the_pose():
     assert set(cal.limb_heading_deg) == {"knee_l", "knee_r"}
     assert cal.world_heading_deg["pelvis"] == 0.0  # the first segment keeps its heading
     out = joint_angles(segment_orientations(rec, cal, t))
-    for side, (hip, knee, abd) in ang.items():
+    for side in "lr":
+        hip, knee, abd = ang[side]
         np.testing.assert_allclose(out[f"hip_{side}"][:, 0], hip, atol=0.5)
         np.testing.assert_allclose(
             out[f"hip_{side}"][:, 1], abd * (1 if side == "r" else -1), atol=0.5
@@ -213,3 +224,30 @@ def test_rate_constraint_jacobian_equals_finite_differences(refine_heading):
         np.testing.assert_allclose(J, approx_derivative(res, x, method="3-point"), atol=1e-4)
         if not refine_heading:  # the heading turns nothing: only its prior depends on it
             assert np.all(J[:K, 2] == 0.0)
+
+
+def test_6d_foot_sensors_get_their_heading_from_the_ankle():
+    """6-D foot sensors on the top of the feet, turned 75 and -110 deg about the vertical from
+    the shank sensors' common-heading assumption: the exact ankle angles (dorsiflexion, no
+    adduction, the foot's axial rotation) once each foot's heading is fitted to its ankle;
+    the common-heading assumption alone was up to 31 (left) and 85 deg (right) off in adduction
+    here."""
+    headings = {"pelvis": 0.0, "thigh_l": 35.0, "shank_l": -70.0, "thigh_r": 120.0,
+                "shank_r": 10.0, "foot_l": -150.0, "foot_r": 60.0}  # fmt: skip
+    rec, t, ang = _legs(headings)
+    from kinefuse.pipelines.run.chain import build_chain
+
+    limbs = [*LEGS[1:], "foot_l", "foot_r"]
+    skeleton, _ = build_chain(limbs, dict.fromkeys(limbs, 0.4))
+    cal = calibrate(rec, skeleton, "static", window_s=0.5, heading="static", facing="auto",
+                    segments=["pelvis", *limbs])  # fmt: skip
+    assert set(cal.foot_heading_deg) == {"ankle_l", "ankle_r"}
+    out = joint_angles(segment_orientations(rec, cal, t))
+    for side in "lr":
+        dorsi, axial = ang[f"ankle_{side}"]
+        a = out[f"ankle_{side}"]
+        # the rates are finite differences of the orientations: a fraction of a degree
+        np.testing.assert_allclose(a[:, 0], dorsi, atol=0.5)
+        np.testing.assert_allclose(a[:, 1], 0.0, atol=0.5)
+        np.testing.assert_allclose(np.abs(a[:, 2]), np.abs(axial), atol=0.5)
+        np.testing.assert_allclose(out[f"knee_{side}"][:, 0], ang[side][1], atol=0.5)

@@ -58,7 +58,13 @@ from kinefuse.kinematics.calibration_result import Calibration, joint_stream, or
 from kinefuse.kinematics.chain import chain_positions, segment_orientations
 from kinefuse.kinematics.forward import as_rotation_matrices, rotation_z
 from kinefuse.kinematics.functional import functional_calibration
-from kinefuse.kinematics.hinge import HINGES, hinge_facing, hinge_frames, limb_headings
+from kinefuse.kinematics.hinge import (
+    HINGES,
+    foot_headings,
+    hinge_facing,
+    hinge_frames,
+    limb_headings,
+)
 from kinefuse.kinematics.skeleton import Skeleton, lengths_from_joints, window_mask
 from kinefuse.kinematics.static import (
     POSE_WARN_DEG,
@@ -165,7 +171,9 @@ def calibrate(
         flexion axes from the movement, each fitted elbow's or knee's limb is then turned so
         that its flexion axis is the body's medio-lateral axis in the pose
         (:func:`kinefuse.kinematics.hinge.limb_headings`; ``Calibration.limb_heading_deg``):
-        its sensors need not face as the others do.
+        its sensors need not face as the others do; and each foot sensor's heading is fitted
+        to its ankle's movement relative to the shank
+        (:func:`kinefuse.kinematics.hinge.foot_headings`; ``Calibration.foot_heading_deg``).
     mounting : mapping, optional
         The sensor axis declared to run along each segment (proximal -> distal), e.g.
         ``{"thigh_l": "+e1"}``. Static: its angle to the assumed pose direction is reported as
@@ -253,6 +261,7 @@ def calibrate(
     if heading == "static" and flexion_axes == "movement":
         turn = [j for j in cal.hinge_residual_rad_s if set(JOINTS[j][:2]) <= free]
         cal = limb_headings(recording, cal, f0, turn)  # the limbs face as the trunk does
+        cal = foot_headings(recording, cal)  # each foot sensor to its shank's heading
         cal, f0 = _keep_reference_heading(cal, segs[0], f0)
     cal = _feet_on_shanks(imus, cal)
     return replace(cal, facing=np.asarray(f0, dtype=float), facing_from=source)

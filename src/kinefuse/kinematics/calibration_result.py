@@ -80,6 +80,11 @@ class Calibration:
         about the vertical applied to its limb's sensors (included in ``world_heading_deg``) so
         that its flexion axis is the body's medio-lateral axis in the pose, deg
         (:func:`kinefuse.kinematics.hinge.limb_headings`).
+    foot_heading_deg : dict of str -> float
+        Static with ``heading="static"`` and flexion axes from the movement: per ankle, the turn
+        about the vertical applied to its foot sensor (included in ``world_heading_deg``),
+        fitted to the ankle's movement relative to the shank, deg
+        (:func:`kinefuse.kinematics.hinge.foot_headings`).
     """
 
     axes: Mapping[str, np.ndarray]
@@ -98,6 +103,7 @@ class Calibration:
     facing_from: str = ""
     pose_angles_deg: Mapping[str, np.ndarray] = field(default_factory=dict)
     limb_heading_deg: Mapping[str, float] = field(default_factory=dict)
+    foot_heading_deg: Mapping[str, float] = field(default_factory=dict)
 
     def heading_matrix(self, segment: str) -> np.ndarray:
         """``R_z(ψ)`` applied to ``segment``'s sensor world frame (identity if none), (3, 3)."""

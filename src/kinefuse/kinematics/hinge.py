@@ -74,6 +74,7 @@ __all__ = [
     "OPPOSITE_DEG",
     "PERPENDICULAR_REFIT_MAX_RATIO",
     "ROBUST_SCALE_FLOOR",
+    "foot_headings",
     "hinge_facing",
     "hinge_frames",
     "limb_headings",
@@ -502,6 +503,70 @@ def limb_headings(
                 heading[s] = float((heading.get(s, 0.0) + psi + 180.0) % 360.0 - 180.0)
         turns[j] = psi
     return replace(calibration, world_heading_deg=heading, limb_heading_deg=turns)
+
+
+def foot_headings(recording: Recording, calibration: Calibration) -> Calibration:
+    """6-D orientations: each foot sensor's heading relative to its shank's, from the ankle.
+
+    The static pose gives a foot sensor the heading of the common-heading assumption (every
+    sensor faces the same way on the body), which a sensor on the top or the side of the foot
+    does not. A foot sensor turned by ``δ`` on the body turns every ankle movement since the
+    pose by ``δ`` about the vertical: dorsiflexion then reads as inversion and axial rotation
+    (on the qmt 6-D example, ankle adduction up to 56 deg and rotation up to 82 deg). The ankle
+    is fitted as :func:`hinge_frames` fits an elbow (Laidig, Müller & Seel 2017), with the
+    foot's heading as the unknown: its relative angular velocity lies in ``span(R_A j1, R_B
+    j2)``, ``j1`` the talocrural (flexion) axis fixed in the shank and held perpendicular to
+    its long axis (anatomy; its azimuth free), ``j2`` the foot's vertical in the pose (its
+    axial rotation; heading-free, unlike the foot's long axis). The subtalar joint's inversion
+    and eversion, about an oblique axis, is what the model leaves out: it is the residual,
+    weighed down by the fit's robust loss (with foot strikes).
+
+    Parameters
+    ----------
+    recording : Recording
+        IMU orientations of the shanks and feet.
+    calibration : Calibration
+        Static (a still window), with the axes of both segments of an ankle and its headings
+        (``world_heading_deg``) so far.
+
+    Returns
+    -------
+    Calibration
+        ``world_heading_deg`` of each fitted foot changed by the fitted turn, and
+        ``foot_heading_deg``: that turn per ankle, deg. Only the ankles whose two segments are
+        calibrated and that moved enough (RMS relative rate of at least
+        :data:`MIN_HINGE_RATE_RAD_S`, else a NumericalWarning and the heading kept).
+    """
+    if calibration.still is None:
+        return calibration
+    heading = dict(calibration.world_heading_deg)
+    turns = dict(calibration.foot_heading_deg)
+    for side in "lr":
+        j = f"ankle_{side}"
+        shank, foot, _ = JOINTS[j]
+        if shank not in calibration.axes or foot not in calibration.axes:
+            continue
+        RA, RB, tk = _hinge_orientations(recording, calibration, j, None, None)
+        w0 = (tk >= calibration.window_s[0]) & (tk <= calibration.window_s[1])
+        if RA.shape[0] < 3 or not np.any(w0):
+            continue
+        wA, wB = _world_rate(RA, tk), _world_rate(RB, tk)
+        rate = float(np.sqrt(np.mean(np.sum((wB - wA) ** 2, axis=1))))
+        if rate < MIN_HINGE_RATE_RAD_S:
+            warnings.warn(
+                f"foot heading: {j} hardly moved (RMS relative rate {rate:.2f} rad/s < "
+                f"{MIN_HINGE_RATE_RAD_S:g}); {foot}'s heading is kept as the pose gave it",
+                NumericalWarning,
+                stacklevel=2,
+            )
+            continue
+        up = np.einsum("kji,j->i", RB[w0], [0.0, 0.0, 1.0])  # the foot's vertical, sensor frame
+        _, dpsi, _ = _fit_flexion_axis(
+            RA, RB, wA, wB, calibration.axes[shank], -up, True, perpendicular=True
+        )
+        turns[j] = float((np.degrees(dpsi) + 180.0) % 360.0 - 180.0)
+        heading[foot] = float((heading.get(foot, 0.0) + turns[j] + 180.0) % 360.0 - 180.0)
+    return replace(calibration, world_heading_deg=heading, foot_heading_deg=turns)
 
 
 def _hinge_orientations(recording, calibration, j: str, start_s, window_s):

@@ -239,6 +239,16 @@ def _static_notes(cal, six_d, cal_segs, notes: list[str], provenance: dict):
                 "face the same way on the body, and the shoulders and hips read zero in the pose"
             )
             provenance["limb_heading_deg"] = {j: round(v, 2) for j, v in turned.items()}
+        feet = dict(getattr(cal, "foot_heading_deg", {}) or {})
+        if feet:
+            notes.append(
+                "heading: the foot sensors turned relative to their shanks (included above) by "
+                + ", ".join(f"{j} {v:.1f} deg" for j, v in feet.items())
+                + ", fitted to each ankle's movement (flexion axis in the shank, axial rotation "
+                "of the foot; Laidig et al. 2017's model): a foot sensor need not face as the "
+                "shank's does"
+            )
+            provenance["foot_heading_deg"] = {j: round(v, 2) for j, v in feet.items()}
     else:
         notes.append(
             "heading: orientations kept as estimated (shared, magnetometer-referenced north)"
