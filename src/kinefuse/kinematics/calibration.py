@@ -65,7 +65,7 @@ from kinefuse.kinematics.hinge import (
     hinge_frames,
     limb_headings,
 )
-from kinefuse.kinematics.pelvis_heading import pelvis_heading_offset
+from kinefuse.kinematics.pelvis_heading import pelvis_heading
 from kinefuse.kinematics.skeleton import Skeleton, lengths_from_joints, window_mask
 from kinefuse.kinematics.static import (
     POSE_WARN_DEG,
@@ -263,7 +263,7 @@ def calibrate(
         turn = [j for j in cal.hinge_residual_rad_s if set(JOINTS[j][:2]) <= free]
         cal = limb_headings(recording, cal, f0, turn)  # the limbs face as the trunk does
         cal = foot_headings(recording, cal)  # each foot sensor to its shank's heading
-        pelvis_heading_offset(recording, cal)  # warns when the pelvis sensor faces otherwise
+        cal = pelvis_heading(recording, cal)  # the pelvis sensor turned as its hips say
         cal, f0 = _keep_reference_heading(cal, segs[0], f0)
     cal = _feet_on_shanks(imus, cal)
     return replace(cal, facing=np.asarray(f0, dtype=float), facing_from=source)

@@ -85,6 +85,12 @@ class Calibration:
         about the vertical applied to its foot sensor (included in ``world_heading_deg``),
         fitted to the ankle's movement relative to the shank, deg
         (:func:`kinefuse.kinematics.hinge.foot_headings`).
+    pelvis_heading_deg : dict
+        Static with ``heading="static"`` and flexion axes from the movement, where the hips
+        moved: ``turn``, the turn about the vertical applied to the pelvis sensor (included in
+        ``world_heading_deg``, its frame turned with it), deg, and the hips' estimates it came
+        from (``rates``, ``accelerations``: per hip, deg)
+        (:func:`kinefuse.kinematics.pelvis_heading.pelvis_heading`).
     """
 
     axes: Mapping[str, np.ndarray]
@@ -104,6 +110,7 @@ class Calibration:
     pose_angles_deg: Mapping[str, np.ndarray] = field(default_factory=dict)
     limb_heading_deg: Mapping[str, float] = field(default_factory=dict)
     foot_heading_deg: Mapping[str, float] = field(default_factory=dict)
+    pelvis_heading_deg: Mapping[str, object] = field(default_factory=dict)
 
     def heading_matrix(self, segment: str) -> np.ndarray:
         """``R_z(ψ)`` applied to ``segment``'s sensor world frame (identity if none), (3, 3)."""

@@ -249,6 +249,17 @@ def _static_notes(cal, six_d, cal_segs, notes: list[str], provenance: dict):
                 "shank's does"
             )
             provenance["foot_heading_deg"] = {j: round(v, 2) for j, v in feet.items()}
+        pelvis = dict(getattr(cal, "pelvis_heading_deg", {}) or {})
+        if pelvis:
+            rates = ", ".join(f"{j} {v:.1f}" for j, v in pelvis["rates"].items())
+            acc = ", ".join(f"{j} {v:.1f}" for j, v in pelvis["accelerations"].items())
+            notes.append(
+                f"heading: the pelvis sensor turned by {pelvis['turn']:.1f} deg (included above), "
+                "as its hips' movement says: their angular rates (modulo 180 deg: "
+                f"{rates}), their centres' accelerations choosing the half ({acc}); its frame "
+                "turned with it, so the pose reads as before"
+            )
+            provenance["pelvis_heading_deg"] = round(float(pelvis["turn"]), 2)
     else:
         notes.append(
             "heading: orientations kept as estimated (shared, magnetometer-referenced north)"
