@@ -230,36 +230,7 @@ def _static_notes(cal, six_d, cal_segs, notes: list[str], provenance: dict):
             + ", ".join(f"{s} {v:.1f}" for s, v in cal.world_heading_deg.items())
         )
         provenance["heading"] = "static pose"
-        if turned:
-            notes.append(
-                "heading: the limbs of "
-                + ", ".join(f"{j} ({v:.1f} deg)" for j, v in turned.items())
-                + " turned (included above) so that each flexion axis fitted to the movement is "
-                "the body's medio-lateral axis in the pose, as the trunk's: their sensors need not "
-                "face the same way on the body, and the shoulders and hips read zero in the pose"
-            )
-            provenance["limb_heading_deg"] = {j: round(v, 2) for j, v in turned.items()}
-        feet = dict(getattr(cal, "foot_heading_deg", {}) or {})
-        if feet:
-            notes.append(
-                "heading: the foot sensors turned relative to their shanks (included above) by "
-                + ", ".join(f"{j} {v:.1f} deg" for j, v in feet.items())
-                + ", fitted to each ankle's movement (flexion axis in the shank, axial rotation "
-                "of the foot; Laidig et al. 2017's model): a foot sensor need not face as the "
-                "shank's does"
-            )
-            provenance["foot_heading_deg"] = {j: round(v, 2) for j, v in feet.items()}
-        pelvis = dict(getattr(cal, "pelvis_heading_deg", {}) or {})
-        if pelvis:
-            rates = ", ".join(f"{j} {v:.1f}" for j, v in pelvis["rates"].items())
-            acc = ", ".join(f"{j} {v:.1f}" for j, v in pelvis["accelerations"].items())
-            notes.append(
-                f"heading: the pelvis sensor turned by {pelvis['turn']:.1f} deg (included above), "
-                "as its hips' movement says: their angular rates (modulo 180 deg: "
-                f"{rates}), their centres' accelerations choosing the half ({acc}); its frame "
-                "turned with it, so the pose reads as before"
-            )
-            provenance["pelvis_heading_deg"] = round(float(pelvis["turn"]), 2)
+        _turn_notes(cal, notes, provenance)
     else:
         notes.append(
             "heading: orientations kept as estimated (shared, magnetometer-referenced north)"
@@ -267,6 +238,41 @@ def _static_notes(cal, six_d, cal_segs, notes: list[str], provenance: dict):
             else "heading: not aligned (heading = 'none')"
         )
         provenance["heading"] = "none"
+
+
+def _each(d: Mapping) -> str:
+    return ", ".join(f"{j} {v:.1f}" for j, v in d.items())
+
+
+def _turn_notes(cal, notes: list[str], provenance: dict) -> None:
+    """Notes and provenance of the sensors turned about the vertical by the movement (6-D):
+    limbs by their hinges, feet by their ankles, the pelvis by its hips."""
+    limbs = dict(getattr(cal, "limb_heading_deg", {}) or {})
+    feet = dict(getattr(cal, "foot_heading_deg", {}) or {})
+    pelvis = dict(getattr(cal, "pelvis_heading_deg", {}) or {})
+    found = []
+    if limbs:
+        found.append(("limb_heading_deg", {j: round(v, 2) for j, v in limbs.items()},
+            f"heading: the limbs of {_each(limbs)} deg turned (included above) so that each "
+            "flexion axis fitted to the movement is the body's medio-lateral axis in the pose, "
+            "as the trunk's: their sensors need not face the same way on the body, and the "
+            "shoulders and hips read zero in the pose"))  # fmt: skip
+    if feet:
+        found.append(("foot_heading_deg", {j: round(v, 2) for j, v in feet.items()},
+            f"heading: the foot sensors turned relative to their shanks (included above) by "
+            f"{_each(feet)} deg, fitted to each ankle's movement (flexion axis in the shank, "
+            "axial rotation of the foot; Laidig et al. 2017's model): a foot sensor need not "
+            "face as the shank's does"))  # fmt: skip
+    if pelvis:
+        found.append(("pelvis_heading_deg", round(float(pelvis["turn"]), 2),
+            f"heading: the pelvis sensor turned by {pelvis['turn']:.1f} deg (included above), as "
+            f"its hips' movement says: their angular rates (modulo 180 deg: "
+            f"{_each(pelvis['rates'])}), their centres' accelerations choosing the half "
+            f"({_each(pelvis['accelerations'])}); its frame turned with it, so the pose reads as "
+            "before"))  # fmt: skip
+    for key, value, text in found:
+        notes.append(text)
+        provenance[key] = value
 
 
 def _sensor_orientations(recording, cal, t: np.ndarray) -> dict[str, np.ndarray]:
