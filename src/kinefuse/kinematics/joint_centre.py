@@ -99,6 +99,20 @@ def _fill(x: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(i, i[ok], x[ok, k]) for k in range(x.shape[1])], -1)
 
 
+def _fill_rotations(q: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """World-from-sensor (K, 3, 3) with rows missing in ``q (K, 4)`` slerped between their
+    valid neighbours (held at the ends), for the low-pass only: those samples are not fitted,
+    but an arbitrary rotation there (e.g. the identity) would be smeared by the filter into the
+    valid samples around them (and turn the heading of a joint fit)."""
+    ok = np.all(np.isfinite(q), axis=1)
+    if np.all(ok) or not np.any(ok):
+        return np.where(ok[:, None, None], as_rotation_matrices(q, "orientation"), np.eye(3))
+    filled = slerp_resample(t[ok], q[ok], t, max_gap_s=np.inf) if ok.sum() > 1 else q.copy()
+    idx = np.flatnonzero(ok)
+    filled[: idx[0]], filled[idx[-1] + 1 :] = q[idx[0]], q[idx[-1]]
+    return as_rotation_matrices(filled, "orientation")
+
+
 #: Gravity used by the one-sensor (fixed-centre) model, m/s².
 GRAVITY_M_S2 = 9.81
 
@@ -140,7 +154,7 @@ def joint_signals(st: ImuStream, segment: str, t: np.ndarray, cutoff_hz: float) 
             f"IMU {segment!r}: expected at least 10 samples with orientation, acc and gyro in the "
             f"calibration window, got {int(np.count_nonzero(ok))}"
         )
-    R = np.where(ok[:, None, None], R, np.eye(3))
+    R = _fill_rotations(q, t)
     acc, gyr = _fill(acc), _fill(gyr)
     fs = 1.0 / float(np.median(np.diff(t)))
     if cutoff_hz is not None and cutoff_hz < 0.45 * fs and t.size > 15:

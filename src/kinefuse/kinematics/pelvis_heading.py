@@ -98,19 +98,22 @@ def _rate_headings(recording, calibration) -> dict[str, float]:
 def _acc_headings(recording, calibration, hips) -> dict[str, float]:
     """Per hip in ``hips``: the pelvis turn the hip centre's accelerations imply, deg."""
 
-    def turned(s):
+    def turned(s):  # the sensor's orientations with its heading applied (missing rows kept)
         st = oriented_imu(recording, s, "pelvis heading")
         H = Rotation.from_rotvec([0.0, 0.0, np.radians(calibration.world_heading_deg.get(s, 0.0))])
-        q = (H * Rotation.from_quat(st.q_world_from_sensor, scalar_first=True)).as_quat(
-            scalar_first=True
-        )
+        q = np.array(st.q_world_from_sensor, dtype=float)
+        ok = np.all(np.isfinite(q), axis=1)
+        q[ok] = (H * Rotation.from_quat(q[ok], scalar_first=True)).as_quat(scalar_first=True)
         return replace(st, q_world_from_sensor=q)
 
     pelvis = turned("pelvis")
     if pelvis.acc_m_s2 is None or pelvis.gyr_rad_s is None:
         return {}
     t = pelvis.t_s
-    A = joint_signals(pelvis, "pelvis", t, _CUTOFF_HZ)
+    try:
+        A = joint_signals(pelvis, "pelvis", t, _CUTOFF_HZ)
+    except InputError:  # too few valid samples: the accelerations do not tell
+        return {}
     n_eff = min(1.0, 2.0 * _CUTOFF_HZ * float(np.median(np.diff(t))))
     out = {}
     for j in hips:
@@ -118,8 +121,8 @@ def _acc_headings(recording, calibration, hips) -> dict[str, float]:
         st = turned(thigh)
         if st.acc_m_s2 is None or st.gyr_rad_s is None:
             continue
-        B = joint_signals(st, thigh, t, _CUTOFF_HZ)
         try:
+            B = joint_signals(st, thigh, t, _CUTOFF_HZ)
             fit, _ = fit_joint(j, "pelvis", thigh, A, B, _MIN_EXCITATION_S2, n_eff, "vector")
         except InputError:  # too little movement: this hip does not tell
             continue
