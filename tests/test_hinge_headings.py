@@ -319,3 +319,21 @@ def test_6d_pelvis_sensor_turned_on_the_body_is_turned_back(yaw, dropped):
         seen = np.all(np.isfinite(out[f"hip_{side}"]), axis=1)
         assert seen.all() or (dropped and seen.mean() > 0.85)
         np.testing.assert_allclose(out[f"hip_{side}"][seen], expected[seen], atol=1.5)
+
+
+def test_6d_pelvis_turn_that_the_accelerations_cannot_place_is_warned_not_applied():
+    """The same pelvis sensor turned 70 deg on the body, its accelerometer and gyroscope
+    missing (orientations only): the rates give 70 deg only modulo a half turn, nothing can
+    choose the half, so nothing is applied and a warning names both halves and says which
+    angles are unreliable."""
+    headings = {"pelvis": 0.0, "thigh_l": 35.0, "shank_l": -70.0, "thigh_r": 120.0, "shank_r": 10.0}
+    front = {s: Rotation.from_euler("x", 10.0 * k, degrees=True) for k, s in enumerate(LEGS)}
+    rec, t, _ = _legs(headings, pelvis_tilt=25.0, pelvis_yaw=70.0, mounts=front)
+    st = rec.imu["pelvis"]
+    rec.imu["pelvis"] = ImuStream(t_s=t, q_world_from_sensor=st.q_world_from_sensor, name="pelvis")
+    with pytest.warns(NumericalWarning, match=r"pelvis heading: .* by (-?\d+) or (-?\d+) deg") as w:
+        cal = calibrate(rec, _legs_skeleton(), "static", window_s=0.5, heading="static",
+                        facing="auto", segments=[*LEGS[1:], "pelvis"])  # fmt: skip
+    msg = next(str(x.message) for x in w if "pelvis heading" in str(x.message))
+    assert "cannot tell which" in msg and "hip and trunk angles" in msg, msg
+    assert not cal.pelvis_heading_deg

@@ -57,12 +57,16 @@ from kinefuse.kinematics.hinge import (
 from kinefuse.kinematics.joint_centre import fit_joint, joint_signals
 from kinefuse.kinematics.static import window_orientations
 
-__all__ = ["PELVIS_AGREE_DEG", "pelvis_heading"]
+__all__ = ["PELVIS_AGREE_DEG", "PELVIS_WARN_DEG", "pelvis_heading"]
 
 #: Largest angle, deg, between the acceleration heading and the rate heading's nearer half for
 #: the pelvis to be turned (the two halves are 180° apart: 45° leaves the acceleration model
 #: room for its soft-tissue error, and none for a coin toss).
 PELVIS_AGREE_DEG = 45.0
+
+#: The hips' rate heading (modulo 180°), deg, beyond which a turn that cannot be applied is
+#: warned about (the hip and trunk angles are then unreliable).
+PELVIS_WARN_DEG = 30.0
 
 #: Low-pass of the acceleration model's signals, Hz (the functional calibration's, Winter 2009).
 _CUTOFF_HZ = 6.0
@@ -156,9 +160,9 @@ def pelvis_heading(recording: Recording, calibration: Calibration) -> Calibratio
     Warns
     -----
     NumericalWarning
-        The hips' rate heading is beyond 30° (modulo 180°) and the acceleration heading does
-        not choose its half (:data:`PELVIS_AGREE_DEG`): nothing applied, the hip and trunk
-        angles unreliable.
+        The hips' rate heading is beyond :data:`PELVIS_WARN_DEG` (modulo 180°) and the
+        acceleration heading does not choose its half (:data:`PELVIS_AGREE_DEG`): nothing
+        applied, the hip and trunk angles unreliable.
     """
     if calibration.still is None or "pelvis" not in calibration.axes:
         return calibration
@@ -178,7 +182,7 @@ def pelvis_heading(recording: Recording, calibration: Calibration) -> Calibratio
         if abs(_wrap(pick - a)) > PELVIS_AGREE_DEG:
             pick = None
     if pick is None:
-        if abs(m) > 30.0:
+        if abs(m) > PELVIS_WARN_DEG:
             each = ", ".join(f"{j} {v:.0f}" for j, v in rates.items())
             warnings.warn(
                 f"pelvis heading: the hips' movement turns the pelvis sensor's heading by {m:.0f} "
