@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -20,7 +20,7 @@ from kinefuse.kinematics.forward import rotation_z
 from kinefuse.kinematics.skeleton import Skeleton, unit_axis
 from kinefuse.kinematics.still import StillWindow
 
-__all__ = ["Calibration", "joint_stream", "oriented_imu"]
+__all__ = ["Calibration", "joint_stream", "oriented_imu", "turned_heading"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -153,6 +153,18 @@ def oriented_imu(recording: Recording, segment: str, purpose: str) -> ImuStream:
             "kinefuse.orientation.estimate(acc, gyr, mag, rate_hz=...)"
         )
     return s
+
+
+def turned_heading(stream: ImuStream, psi_deg: float) -> ImuStream:
+    """``stream`` with its orientations turned about the vertical of their world frame:
+    ``q_world_from_sensor <- Rz(ψ) q_world_from_sensor``, ``ψ = psi_deg``; missing rows stay
+    missing (NaN)."""
+    q = np.array(stream.q_world_from_sensor, dtype=float)
+    ok = np.all(np.isfinite(q), axis=1)
+    rot = Rotation.from_rotvec([0.0, 0.0, np.radians(psi_deg)])
+    q[ok] = (rot * Rotation.from_quat(q[ok], scalar_first=True)).as_quat(scalar_first=True)
+    q[~ok] = np.nan
+    return replace(stream, q_world_from_sensor=q)
 
 
 def joint_stream(recording: Recording, source: str) -> JointStream:

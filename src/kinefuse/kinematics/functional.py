@@ -87,11 +87,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.io.recording import Recording
-from kinefuse.kinematics.calibration_result import Calibration, oriented_imu
+from kinefuse.kinematics.calibration_result import Calibration, oriented_imu, turned_heading
 from kinefuse.kinematics.hinge import hinge_frames
 from kinefuse.kinematics.joint_centre import GRAVITY_M_S2, JointFit, fit_joint, joint_signals
 from kinefuse.kinematics.skeleton import Skeleton, unit_axis, window_mask
@@ -474,10 +473,5 @@ def align_headings(recording: Recording, calibration: FunctionalCalibration) -> 
         st = imu.get(s)
         if st is None or st.q_world_from_sensor is None or psi == 0.0:
             continue
-        q = st.q_world_from_sensor
-        ok = np.all(np.isfinite(q), axis=1)
-        out = np.full_like(q, np.nan)
-        rot = Rotation.from_rotvec([0.0, 0.0, -np.radians(psi)])
-        out[ok] = (rot * Rotation.from_quat(q[ok], scalar_first=True)).as_quat(scalar_first=True)
-        imu[s] = replace(st, q_world_from_sensor=out)
+        imu[s] = turned_heading(st, -psi)
     return replace(recording, imu=imu)

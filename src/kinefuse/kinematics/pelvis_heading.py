@@ -42,11 +42,10 @@ import warnings
 from dataclasses import replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.io.recording import Recording
-from kinefuse.kinematics.calibration_result import Calibration, oriented_imu
+from kinefuse.kinematics.calibration_result import Calibration, oriented_imu, turned_heading
 from kinefuse.kinematics.forward import rotation_z
 from kinefuse.kinematics.hinge import (
     MIN_HINGE_RATE_RAD_S,
@@ -102,13 +101,9 @@ def _rate_headings(recording, calibration) -> dict[str, float]:
 def _acc_headings(recording, calibration, hips) -> dict[str, float]:
     """Per hip in ``hips``: the pelvis turn the hip centre's accelerations imply, deg."""
 
-    def turned(s):  # the sensor's orientations with its heading applied (missing rows kept)
-        st = oriented_imu(recording, s, "pelvis heading")
-        H = Rotation.from_rotvec([0.0, 0.0, np.radians(calibration.world_heading_deg.get(s, 0.0))])
-        q = np.array(st.q_world_from_sensor, dtype=float)
-        ok = np.all(np.isfinite(q), axis=1)
-        q[ok] = (H * Rotation.from_quat(q[ok], scalar_first=True)).as_quat(scalar_first=True)
-        return replace(st, q_world_from_sensor=q)
+    def turned(s):  # the sensor's orientations with its calibrated heading applied
+        psi = calibration.world_heading_deg.get(s, 0.0)
+        return turned_heading(oriented_imu(recording, s, "pelvis heading"), psi)
 
     pelvis = turned("pelvis")
     if pelvis.acc_m_s2 is None or pelvis.gyr_rad_s is None:
