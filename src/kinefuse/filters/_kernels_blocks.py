@@ -26,7 +26,8 @@ The common case, three axes sharing one covariance block (3-D positions), has it
 (:func:`_kf_pass3`): element by element, the state in local variables, which the compiler keeps
 in registers (the general pass keeps it in arrays that any output store could alias); the same
 arithmetic through the same helpers, about 2.5x faster, byte-identical (tested); the RTS has
-the same (:func:`_rts_pass3`; about 10 % faster: its divisions dominate).
+the same (:func:`_rts_pass3`, which also loads each sample once and branches once per
+sample: about 2.7x faster than the general pass).
 
 The 2x2 block arithmetic (:func:`_cov_step` forward, :func:`rts2_step` backward) is written
 once here and shared with :mod:`._kernels_axis` (the full-matrix layout, which the tests compare
@@ -132,17 +133,16 @@ def rts2_step(p00, p01, p11, s00, s01, s11, cv, f00, f01, f10, f11, q00, q01, q1
         pp00, pp01, pp11, fp00, fp01, fp10, fp11 = cov2_predict(
             p00, p01, p11, f00, f01, f10, f11, q00, q01, q11
         )
-    # C_t = P̂_t Fᵀ (P⁻)⁻¹: solve Cᵀ = (P⁻)⁻¹ M by LDLᵀ of P⁻ (no sqrt)
-    l10 = pp01 / pp00
-    d1 = pp11 - l10 * pp01
-    if not (pp00 > 0.0 and d1 > 0.0):
+    # C_t = P̂_t Fᵀ (P⁻)⁻¹ = Mᵀ adj(P⁻) / det(P⁻): one division (the 2x2 inverse in closed
+    # form; det = pp00 d1 of the LDLᵀ factors, so P⁻ is positive definite iff pp00, det > 0)
+    det = pp00 * pp11 - pp01 * pp01
+    if not (pp00 > 0.0 and det > 0.0):
         return False, 0.0, 0.0, 0.0, 0.0, p00, p01, p11
-    id0 = 1.0 / pp00
-    id1 = 1.0 / d1
-    c01 = (fp10 - l10 * fp00) * id1
-    c00 = fp00 * id0 - l10 * c01
-    c11 = (fp11 - l10 * fp01) * id1
-    c10 = fp01 * id0 - l10 * c11
+    idt = 1.0 / det
+    c00 = (fp00 * pp11 - fp10 * pp01) * idt
+    c01 = (fp10 * pp00 - fp00 * pp01) * idt
+    c10 = (fp01 * pp11 - fp11 * pp01) * idt
+    c11 = (fp11 * pp00 - fp01 * pp01) * idt
     # P̃_t = P̂_t + C (P̃_{t+1} − P⁻_{t+1}) Cᵀ
     d00 = s00 - pp00
     d01 = s01 - pp01
@@ -163,6 +163,12 @@ def _rts_axis(s0, s1, m0, m1, ok, c00, c01, c10, c11, cv, f00, f01, f10, f11):
     ``x̂_t``; ``ok`` False restarts at ``x̂_t``. Returns ``x̃_t``."""
     if not ok:
         return m0, m1
+    return _rts_axis_gain(s0, s1, m0, m1, c00, c01, c10, c11, cv, f00, f01, f10, f11)
+
+
+@njit_inline
+def _rts_axis_gain(s0, s1, m0, m1, c00, c01, c10, c11, cv, f00, f01, f10, f11):
+    """:func:`_rts_axis` of a step that has a gain (no restart)."""
     if cv:
         e0 = s0 - (m0 + f01 * m1)
         e1 = s1 - m1
@@ -509,48 +515,54 @@ def rts_blocks(mean, covb, mask, par, sm_mean, sm_covb, sm_pos):
 def _rts_pass3(mean, covb, mask, par, sm_mean, sm_covb, sm_pos):
     """:func:`rts_blocks` for three axes sharing one covariance block (3-D positions), with the
     smoothed state in local variables (as :func:`_kf_pass3`): the same arithmetic through the
-    same helpers, byte-identical (tested)."""
+    same helpers, byte-identical (tested).
+
+    Each sample's inputs are loaded once, up front, and one branch decides between a step and
+    a (re)start from the filtered estimate: about 1.7x faster than branching per axis.
+    """
     B, T, n_x = mean.shape
     w_pos = sm_pos.shape[0] > 0
     f00, f01, f10, f11, q00, q01, q11 = par[0, 0], par[0, 1], par[0, 2], par[0, 3], par[0, 4], par[0, 5], par[0, 6]  # fmt: skip
+    h0, h1 = par[0, 7], par[0, 8]
     cv = f00 == 1.0 and f10 == 0.0 and f11 == 1.0
     for b in range(B):
         nxt_ok = False  # is t + 1 in the same run as t (and usable)?
         xa0 = xa1 = xb0 = xb1 = xc0 = xc1 = s00 = s01 = s11 = 0.0
         for t in range(T - 1, -1, -1):
-            m = mean[b, t]
-            usable = mask[b, t] and np.isfinite(m[0])
-            if not usable:
-                sm_mean[b, t, :] = m
-                sm_covb[b, t, 0, :] = covb[b, t, 0, :]
-                nxt_ok = False
-            else:
-                if not nxt_ok:  # x̃_end = x̂_end, P̃_end = P̂_end
-                    xa0, xa1, xb0, xb1, xc0, xc1 = m[0], m[1], m[2], m[3], m[4], m[5]
-                    s00, s01, s11 = covb[b, t, 0, 0], covb[b, t, 0, 1], covb[b, t, 0, 2]
-                    nxt_ok = True
-                else:
-                    ok, c00, c01, c10, c11, s00, s01, s11 = rts2_step(
-                        covb[b, t, 0, 0], covb[b, t, 0, 1], covb[b, t, 0, 2], s00, s01, s11,
+            m0, m1, m2 = mean[b, t, 0], mean[b, t, 1], mean[b, t, 2]
+            m3, m4, m5 = mean[b, t, 3], mean[b, t, 4], mean[b, t, 5]
+            p00, p01, p11 = covb[b, t, 0, 0], covb[b, t, 0, 1], covb[b, t, 0, 2]
+            ok = False
+            if mask[b, t] and np.isfinite(m0):
+                if nxt_ok:
+                    ok, c00, c01, c10, c11, n00, n01, n11 = rts2_step(
+                        p00, p01, p11, s00, s01, s11,
                         cv, f00, f01, f10, f11, q00, q01, q11,
                     )  # fmt: skip
-                    xa0, xa1 = _rts_axis(
-                        xa0, xa1, m[0], m[1], ok, c00, c01, c10, c11, cv, f00, f01, f10, f11
-                    )
-                    xb0, xb1 = _rts_axis(
-                        xb0, xb1, m[2], m[3], ok, c00, c01, c10, c11, cv, f00, f01, f10, f11
-                    )
-                    xc0, xc1 = _rts_axis(
-                        xc0, xc1, m[4], m[5], ok, c00, c01, c10, c11, cv, f00, f01, f10, f11
-                    )
-                sm_mean[b, t, 0], sm_mean[b, t, 1], sm_mean[b, t, 2] = xa0, xa1, xb0
-                sm_mean[b, t, 3], sm_mean[b, t, 4], sm_mean[b, t, 5] = xb1, xc0, xc1
-                sm_covb[b, t, 0, 0], sm_covb[b, t, 0, 1], sm_covb[b, t, 0, 2] = s00, s01, s11
+                nxt_ok = True
+            else:
+                nxt_ok = False
+            if ok:
+                s00, s01, s11 = n00, n01, n11
+                xa0, xa1 = _rts_axis_gain(
+                    xa0, xa1, m0, m1, c00, c01, c10, c11, cv, f00, f01, f10, f11
+                )
+                xb0, xb1 = _rts_axis_gain(
+                    xb0, xb1, m2, m3, c00, c01, c10, c11, cv, f00, f01, f10, f11
+                )
+                xc0, xc1 = _rts_axis_gain(
+                    xc0, xc1, m4, m5, c00, c01, c10, c11, cv, f00, f01, f10, f11
+                )
+            else:  # not usable (copied), the end of a run, or P⁻ not PD: the filtered estimate
+                xa0, xa1, xb0, xb1, xc0, xc1 = m0, m1, m2, m3, m4, m5
+                s00, s01, s11 = p00, p01, p11
+            sm_mean[b, t, 0], sm_mean[b, t, 1], sm_mean[b, t, 2] = xa0, xa1, xb0
+            sm_mean[b, t, 3], sm_mean[b, t, 4], sm_mean[b, t, 5] = xb1, xc0, xc1
+            sm_covb[b, t, 0, 0], sm_covb[b, t, 0, 1], sm_covb[b, t, 0, 2] = s00, s01, s11
             if w_pos:
-                for a in range(3):
-                    sm_pos[b, t, a] = (
-                        par[a, 7] * sm_mean[b, t, 2 * a] + par[a, 8] * sm_mean[b, t, 2 * a + 1]
-                    )
+                sm_pos[b, t, 0] = h0 * xa0 + h1 * xa1
+                sm_pos[b, t, 1] = h0 * xb0 + h1 * xb1
+                sm_pos[b, t, 2] = h0 * xc0 + h1 * xc1
 
 
 @njit
