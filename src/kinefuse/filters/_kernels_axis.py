@@ -461,14 +461,14 @@ def rts_axis(mean, cov, mask, Fb, Qb, lag, sm_mean, sm_cov):
 
 
 @njit_inline
-def _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w, want_cov, n):
+def _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, FP, Pp, L, D, d, want_cov, n):
     """One backward RTS step (SPEC §9), dense, in place on ``s, Ps`` (``x̃_{t+1}, P̃_{t+1}`` in,
-    ``x̃_t, P̃_t`` out) from the filtered ``mean[b, t], cov[b, t]``; no allocation (``w``: the
-    scratch of :func:`_dense_scratch`). Returns the ``CHOL_*`` status of ``P⁻``; on
-    ``CHOL_FAILED`` the step returns the filtered estimate. Without ``want_cov`` only the mean
-    is advanced (its recursion reads the filtered covariances, never ``P̃``). ``n``: the state
-    size (a compile-time constant in :func:`rts_dense6`)."""
-    FP, Pp, L, D, d = w[0], w[1], w[2], w[3], w[4, 0]
+    ``x̃_t, P̃_t`` out) from the filtered ``mean[b, t], cov[b, t]``; no allocation and no array
+    view (``FP, Pp, L, D (n, n)``, ``d (n,)``: scratch; a view made per step costs numba
+    reference-count calls). Returns the ``CHOL_*`` status of ``P⁻``; on ``CHOL_FAILED`` the
+    step returns the filtered estimate. Without ``want_cov`` only the mean is advanced (its
+    recursion reads the filtered covariances, never ``P̃``). ``n``: the state size (a
+    compile-time constant in :func:`rts_dense6`)."""
     for i in range(n):  # F P̂_t
         for j in range(n):
             acc = 0.0
@@ -529,9 +529,23 @@ def _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w, want_cov, n):
 
 
 @njit_inline
-def _dense_scratch(n):
-    """Scratch of :func:`_rts_dense_step`: ``(5, n, n)``."""
-    return np.zeros((5, n, n))
+def _start_run(mean, cov, b, t, s, Ps, n):
+    """``x̃_{t_end} = x̂_{t_end}``, ``P̃_{t_end} = P̂_{t_end}`` (element loops, no view)."""
+    for i in range(n):
+        s[i] = mean[b, t, i]
+        for j in range(n):
+            Ps[i, j] = cov[b, t, i, j]
+
+
+@njit_inline
+def _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n):
+    """Store ``x̃_t`` (and ``P̃_t``) at ``(b, t)`` (element loops, no view)."""
+    for i in range(n):
+        sm_mean[b, t, i] = s[i]
+    if want_cov:
+        for i in range(n):
+            for j in range(n):
+                sm_cov[b, t, i, j] = Ps[i, j]
 
 
 @njit_inline
@@ -542,7 +556,8 @@ def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x):
     n_reg = 0
     s = np.empty(n_x)
     Ps = np.empty((n_x, n_x))
-    w = _dense_scratch(n_x)
+    FP, Pp = np.zeros((n_x, n_x)), np.zeros((n_x, n_x))
+    L, D, d = np.zeros((n_x, n_x)), np.zeros((n_x, n_x)), np.zeros(n_x)
     for b in range(B):
         end = _segment_ends(mean, mask, b)
         if lag < 0:
@@ -551,28 +566,26 @@ def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x):
                     _copy_filtered(mean, cov, sm_mean, sm_cov, b, t, want_cov)
                     continue
                 if t == end[t]:
-                    s[:] = mean[b, t]  # x̃_{t_end} = x̂_{t_end}
-                    Ps[:, :] = cov[b, t]
+                    _start_run(mean, cov, b, t, s, Ps, n_x)
                 else:
-                    st = _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, w, want_cov, n_x)
+                    st = _rts_dense_step(
+                        F, Q, mean, cov, b, t, s, Ps, FP, Pp, L, D, d, want_cov, n_x
+                    )
                     n_reg += st == CHOL_REGULARISED
-                sm_mean[b, t, :] = s
-                if want_cov:
-                    sm_cov[b, t, :, :] = Ps
+                _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n_x)
         else:
             for t in range(T):
                 if end[t] < 0:
                     _copy_filtered(mean, cov, sm_mean, sm_cov, b, t, want_cov)
                     continue
                 e = min(end[t], t + lag)
-                s[:] = mean[b, e]
-                Ps[:, :] = cov[b, e]
+                _start_run(mean, cov, b, e, s, Ps, n_x)
                 for u in range(e - 1, t - 1, -1):
-                    st = _rts_dense_step(F, Q, mean, cov, b, u, s, Ps, w, want_cov, n_x)
+                    st = _rts_dense_step(
+                        F, Q, mean, cov, b, u, s, Ps, FP, Pp, L, D, d, want_cov, n_x
+                    )
                     n_reg += st == CHOL_REGULARISED
-                sm_mean[b, t, :] = s
-                if want_cov:
-                    sm_cov[b, t, :, :] = Ps
+                _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n_x)
     return n_reg
 
 
