@@ -103,9 +103,14 @@ class RidgeCorrection:
         blk = t // self.block
         fold = blk if self.n_folds is None else blk % int(self.n_folds)
         self.blocks_seen_.update(int(b) for b in np.unique(blk))
-        for f in np.unique(fold):
-            m = fold == f
-            new = [Xa[m].T @ Xa[m], Xa[m].T @ Y[m], float(np.sum(Y[m] ** 2))]
+        # rows grouped by fold in one stable sort (each fold's rows in their order: the same
+        # sums as selecting them with a mask, without a pass over all rows per fold)
+        order = np.argsort(fold, kind="stable")
+        folds, starts = np.unique(fold[order], return_index=True)
+        ends = np.append(starts[1:], order.size)
+        for f, a, b in zip(folds, starts, ends, strict=True):
+            Xf, Yf = Xa[order[a:b]], Y[order[a:b]]
+            new = [Xf.T @ Xf, Xf.T @ Yf, float(np.sum(Yf**2))]
             old = self.folds_.get(int(f))
             self.folds_[int(f)] = (
                 new if old is None else [a + b for a, b in zip(old, new, strict=True)]
