@@ -247,9 +247,7 @@ def _each(d: Mapping) -> str:
 def _turn_notes(cal, notes: list[str], provenance: dict) -> None:
     """Notes and provenance of the sensors turned about the vertical by the movement (6-D):
     limbs by their hinges, feet by their ankles, the pelvis by its hips."""
-    limbs = dict(getattr(cal, "limb_heading_deg", {}) or {})
-    feet = dict(getattr(cal, "foot_heading_deg", {}) or {})
-    pelvis = dict(getattr(cal, "pelvis_heading_deg", {}) or {})
+    limbs, feet, pelvis = cal.limb_heading_deg, cal.foot_heading_deg, cal.pelvis_heading_deg
     found = []
     if limbs:
         found.append(("limb_heading_deg", {j: round(v, 2) for j, v in limbs.items()},
