@@ -66,3 +66,62 @@ def test_causal_and_needs_history():
     # too little history before the first onset: nothing bridged
     p3, _, ch = prequential_bridge(chain, cam, seen, min_history=250)
     assert np.all(np.isnan(p3[200:245])) and [c[0] for c in ch] == [420, 650]
+
+
+def test_scores_equal_the_pairwise_sum():
+    # oracle: the score's definition, pair by pair (the bridge sums it in O(T) recursions)
+    from kinefuse.pipelines.offset_bridge import (
+        BRIDGE_SMOOTH_SAMPLES,
+        _cumulative_scores,
+        _ewma,
+        _weights,
+    )
+
+    truth, seen, rng = _motion(T=160, seed=4)
+    seen[rng.random(seen.size) < 0.1] = False
+    e = np.where(seen[:, None], rng.normal(0.0, 0.02, truth.shape) + 0.03, np.nan)
+    smooth = {ts: _ewma(e, seen, ts) for ts in BRIDGE_SMOOTH_SAMPLES}
+    H, at = 12, np.array([5, 40, 99, 159])
+    cands, sse, n = _cumulative_scores([e], [smooth], seen, H, at)
+    for c, (_, ts, td) in enumerate(cands):
+        eb = smooth[ts]
+        want_sse, want_n = np.zeros(at.size), np.zeros(at.size)
+        for s in range(160):
+            for h in range(1, H + 1):
+                t = s + h
+                if t >= 160 or not seen[t] or not np.all(np.isfinite(eb[s])):
+                    continue
+                term = np.sum((e[t] - _weights(td, np.array([h]))[0] * eb[s]) ** 2)
+                want_sse[t <= at] += term
+                want_n[t <= at] += 1
+        np.testing.assert_allclose(n[c], want_n)
+        np.testing.assert_allclose(sse[c], want_sse, rtol=1e-9, atol=1e-15)
+
+
+def test_horizon_errors_equal_their_definition():
+    # oracle: per horizon, the mean of r² over the complete pairs of the window, in numpy
+    from kinefuse.pipelines.offset_bridge import BRIDGE_VAR_WINDOW, _horizon_mse
+
+    rng = np.random.default_rng(5)
+    T, H = 3300, 20
+    e = rng.normal(0.0, 0.01, (T, 3))
+    eb = rng.normal(0.0, 0.01, (T, 3))
+    e[rng.random(T) < 0.05, 1] = np.nan
+    eb[:40] = np.nan
+    for td, a in ((np.inf, 3200), (10.0, 25), (0.0, 60)):
+        got = _horizon_mse(e, eb, td, a, H)
+        lo = max(a - BRIDGE_VAR_WINDOW, 0)
+        want = np.full((H, 3), np.nan)
+        for h in range(1, min(H, a - lo - 1) + 1):
+            w = 0.0 if td == 0 else np.exp(-h / td)
+            r = e[lo + h : a] - w * eb[lo : a - h]
+            ok = np.all(np.isfinite(r), axis=-1)
+            if ok.any():
+                want[h - 1] = np.mean(r[ok] ** 2, axis=0)
+        # horizons without a pair take the last scored one (the first, before any)
+        scored = np.flatnonzero(np.isfinite(want[:, 0]))
+        for k in range(H):
+            if scored.size and not np.isfinite(want[k, 0]):
+                before = scored[scored < k]
+                want[k] = want[before[-1] if before.size else scored[0]]
+        np.testing.assert_allclose(got, want, rtol=1e-12)

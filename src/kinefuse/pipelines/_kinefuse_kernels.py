@@ -1,8 +1,9 @@
 """Compiled kernels of the ``"kinefuse"`` fusion (:mod:`kinefuse.pipelines.kinefuse_fusion`).
 
 The per-axis state-space model's forward Kalman filter (sequential scalar updates, NaN = not
-measured, Joseph form), its RTS smoother (fixed-interval or fixed-lag, time-varying F, Q) and
-the lag-k moment sums of the noise fit (:mod:`kinefuse.pipelines.kinefuse_noise`). Tested
+measured, Joseph form), its RTS smoother (fixed-interval or fixed-lag, time-varying F, Q),
+the lag-k moment sums of the noise fit (:mod:`kinefuse.pipelines.kinefuse_noise`) and the outage
+bridge's prediction errors per horizon (:mod:`kinefuse.pipelines.offset_bridge`). Tested
 against filterpy's ``KalmanFilter`` / ``rts_smoother`` and the closed-form joint Gaussian
 (``tests/test_kinefuse_fusion_kf.py``).
 
@@ -17,7 +18,14 @@ import numpy as np
 
 from kinefuse._compile import njit
 
-__all__ = ["accumulate_moments", "kf_segment", "rts_smooth"]
+__all__ = [
+    "accumulate_moments",
+    "bridge_scores",
+    "ewma_hold",
+    "horizon_sse",
+    "kf_segment",
+    "rts_smooth",
+]
 
 
 @njit
@@ -143,12 +151,11 @@ def _solve_into(A, B, X):
 
 
 @njit
-def _rts_step(xf, Pf, F, Q, b, t, xs, Ps, FP, Pp, A, CT, d):
+def _rts_step(xf, Pf, F, Q, b, t, u, xs, Ps, FP, Pp, A, CT, d):
     """One RTS step back, in place on ``xs, Ps``: filtered ``(xf[b, t], Pf[b, t])``, smoothed
-    ``(xs, Ps)`` at t+1 in, at t out; ``F[b, t + 1], Q[b, t + 1]``: t -> t+1. ``FP, Pp, A, CT
-    (n, n)``, ``d (n,)`` scratch (no allocation, no view)."""
+    ``(xs, Ps)`` at t+1 in, at t out; ``F[b, u], Q[b, u]``: t -> t+1 (u = t + 1, or 0 for a
+    constant model). ``FP, Pp, A, CT (n, n)``, ``d (n,)`` scratch (no allocation, no view)."""
     n = xs.shape[0]
-    u = t + 1
     for i in range(n):
         for j in range(n):
             acc = 0.0
@@ -213,10 +220,12 @@ def rts_smooth(xf, Pf, F, Q, lag, x_out, P_out):
     """RTS over a batch (B, T): fixed-interval (``lag < 0``) or fixed-lag with ``lag`` samples.
 
     ``F[b, t], Q[b, t]`` are the transition into sample t (from t − 1); time-varying, so the
-    causal mode's piecewise-constant parameters are smoothed with the model that was filtered.
-    No allocation and no array view per sample.
+    causal mode's piecewise-constant parameters are smoothed with the model that was filtered;
+    ``F, Q`` of shape ``(B, 1, n, n)``: the same model at every t. No allocation and no array
+    view per sample.
     """
     B, T, n = xf.shape
+    step = 1 if F.shape[1] > 1 else 0
     xs = np.empty(n)
     Ps = np.empty((n, n))
     FP, Pp, A, CT = np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
@@ -226,14 +235,14 @@ def rts_smooth(xf, Pf, F, Q, lag, x_out, P_out):
             _load(xf, Pf, b, T - 1, xs, Ps)
             _store(x_out, P_out, b, T - 1, xs, Ps)
             for t in range(T - 2, -1, -1):
-                _rts_step(xf, Pf, F, Q, b, t, xs, Ps, FP, Pp, A, CT, d)
+                _rts_step(xf, Pf, F, Q, b, t, (t + 1) * step, xs, Ps, FP, Pp, A, CT, d)
                 _store(x_out, P_out, b, t, xs, Ps)
         else:
             for t in range(T):
                 e = min(t + lag, T - 1)
                 _load(xf, Pf, b, e, xs, Ps)
                 for s in range(e - 1, t - 1, -1):
-                    _rts_step(xf, Pf, F, Q, b, s, xs, Ps, FP, Pp, A, CT, d)
+                    _rts_step(xf, Pf, F, Q, b, s, (s + 1) * step, xs, Ps, FP, Pp, A, CT, d)
                 _store(x_out, P_out, b, t, xs, Ps)
 
 
@@ -267,3 +276,112 @@ def accumulate_moments(zc, zi, ok, t0, t1, S, D):
                 D[0, a] += 1.0
                 D[1, a] += d2c * d2i
                 D[2, a] += d2i * d2i
+
+
+@njit
+def horizon_sse(e, eb, w, lo, a, sse, n):
+    """Squared prediction errors of an outage bridge per horizon (in place).
+
+    For h = 1..H (``H = sse.shape[0]``) and the pairs ``(s, s + h)``, ``lo <= s``,
+    ``s + h < a``: ``r = e[s + h] − w[h − 1] ē[s]``; pairs with a non-finite component of r
+    are skipped. ``sse (H, 3)``: per axis Σ r²; ``n (H,)``: the pairs counted. ``e, eb (T, 3)``.
+    """
+    H = sse.shape[0]
+    for k in range(H):
+        h = k + 1
+        wk = w[k]
+        s0 = s1 = s2 = 0.0
+        c = 0
+        for s in range(lo, a - h):
+            r0 = e[s + h, 0] - wk * eb[s, 0]
+            r1 = e[s + h, 1] - wk * eb[s, 1]
+            r2 = e[s + h, 2] - wk * eb[s, 2]
+            if np.isfinite(r0) and np.isfinite(r1) and np.isfinite(r2):
+                s0 += r0 * r0
+                s1 += r1 * r1
+                s2 += r2 * r2
+                c += 1
+        sse[k, 0], sse[k, 1], sse[k, 2] = s0, s1, s2
+        n[k] = c
+
+
+@njit
+def bridge_scores(e0, eb0, okb, seen, H, phis, at, sse, n):
+    """Cumulative scores of the bridge candidates of one smoothed offset (in place).
+
+    ``e0, eb0 (T, 3)``: the camera-chain offset and its smoothed value, 0 where missing;
+    ``okb (T,)`` where the smoothed value exists; ``seen (T,)`` camera-seen; ``phis (D,)`` the
+    decay factors per sample. A pair ``(s, s + h)``, ``1 <= h <= H``, counts at ``t = s + h``
+    when ``seen[t]`` and ``okb[s]``; its error is ``|e_t − φ^h ē_s|²``. At the times ``at (m,)``
+    (increasing): ``sse (D + 1, m)`` the cumulative errors of the chain alone (row 0: the
+    offset dropped) and of each decay, ``n (m,)`` the cumulative pair count.
+
+    The lagged sums ``S_t = Σ_{h=1..H} φ^h x_{t−h}`` are updated in O(1) per sample,
+    ``S_t = φ S_{t−1} + φ x_{t−1} − φ^{H+1} x_{t−1−H}``.
+    """
+    T = e0.shape[0]
+    D = phis.shape[0]
+    Sb = np.zeros((D, 3))
+    Sc = np.zeros(D)
+    tail = np.empty(D)
+    tail2 = np.empty(D)
+    for d in range(D):
+        tail[d] = phis[d] ** (H + 1)
+        tail2[d] = tail[d] * tail[d]
+    acc = np.zeros(D + 1)
+    cnt = 0.0
+    n_acc = 0.0
+    k = 0
+    m = at.shape[0]
+    for t in range(T):
+        if t >= 1:
+            x0, x1, x2 = eb0[t - 1, 0], eb0[t - 1, 1], eb0[t - 1, 2]
+            xc = x0 * x0 + x1 * x1 + x2 * x2
+            cnt += 1.0 if okb[t - 1] else 0.0
+            o0 = o1 = o2 = oc = 0.0
+            if t - 1 - H >= 0:
+                o0, o1, o2 = eb0[t - 1 - H, 0], eb0[t - 1 - H, 1], eb0[t - 1 - H, 2]
+                oc = o0 * o0 + o1 * o1 + o2 * o2
+                cnt -= 1.0 if okb[t - 1 - H] else 0.0
+            for d in range(D):
+                p = phis[d]
+                Sb[d, 0] = p * (Sb[d, 0] + x0) - tail[d] * o0
+                Sb[d, 1] = p * (Sb[d, 1] + x1) - tail[d] * o1
+                Sb[d, 2] = p * (Sb[d, 2] + x2) - tail[d] * o2
+                Sc[d] = p * p * (Sc[d] + xc) - tail2[d] * oc
+        e_0, e_1, e_2 = e0[t, 0], e0[t, 1], e0[t, 2]
+        a_t = (e_0 * e_0 + e_1 * e_1 + e_2 * e_2) * cnt
+        s_t = 1.0 if seen[t] else 0.0
+        n_acc += s_t * cnt
+        acc[0] += a_t
+        for d in range(D):
+            b = e_0 * Sb[d, 0] + e_1 * Sb[d, 1] + e_2 * Sb[d, 2]
+            acc[d + 1] += a_t - 2.0 * b + s_t * Sc[d]
+        while k < m and at[k] == t:
+            for d in range(D + 1):
+                sse[d, k] = acc[d]
+            n[k] = n_acc
+            k += 1
+
+
+@njit
+def ewma_hold(e, seen, a, out):
+    """Causal EWMA over the ``seen`` rows of ``e (T, 3)``, held through the others (in place).
+
+    ``m ← a x + (1 − a) m`` at each seen row x, ``m = x`` at the first; ``out (T, 3)`` keeps
+    its values (NaN) before the first seen row.
+    """
+    T = e.shape[0]
+    started = False
+    m0 = m1 = m2 = 0.0
+    for t in range(T):
+        if seen[t]:
+            if started:
+                m0 = a * e[t, 0] + (1.0 - a) * m0
+                m1 = a * e[t, 1] + (1.0 - a) * m1
+                m2 = a * e[t, 2] + (1.0 - a) * m2
+            else:
+                m0, m1, m2 = e[t, 0], e[t, 1], e[t, 2]
+                started = True
+        if started:
+            out[t, 0], out[t, 1], out[t, 2] = m0, m1, m2

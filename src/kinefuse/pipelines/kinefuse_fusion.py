@@ -187,8 +187,8 @@ def _run(zc, zi, p: NoiseParameters, dt: float):
     zc_b, zi_b = np.ascontiguousarray(zc.T), np.ascontiguousarray(zi.T)
     kf_segment(zc_b, zi_b, F, Q, p.r_cam, p.r_imu, x, P, False, _H_CAM, _H_IMU, xf, Pf)
     xs, Ps = np.empty_like(xf), np.empty_like(Pf)
-    tile = lambda A: np.ascontiguousarray(np.broadcast_to(A[:, None], (3, T, _N_X, _N_X)))  # noqa: E731
-    rts_smooth(xf, Pf, tile(F), tile(Q), -1, xs, Ps)
+    # F, Q as (3, 1, 4, 4): the kernel reads the same model at every t (no (3, T, 4, 4) copy)
+    rts_smooth(xf, Pf, F[:, None], Q[:, None], -1, xs, Ps)
     return xs, Ps
 
 

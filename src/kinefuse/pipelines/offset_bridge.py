@@ -11,7 +11,8 @@ model selection, Dawid 1984), which also gives the covariance per horizon.
 from __future__ import annotations
 
 import numpy as np
-import scipy.signal
+
+from kinefuse.pipelines._kinefuse_kernels import bridge_scores, ewma_hold, horizon_sse
 
 __all__ = [
     "BRIDGE_DECAY_SAMPLES",
@@ -34,19 +35,9 @@ BRIDGE_VAR_WINDOW = 3000
 
 def _ewma(e: np.ndarray, seen: np.ndarray, tau: float) -> np.ndarray:
     """Causal EWMA over the seen rows of ``e (T, 3)``, held through gaps; NaN before the first."""
-    T = e.shape[0]
-    out = np.full((T, 3), np.nan)
-    idx = np.flatnonzero(seen)
-    if idx.size == 0:
-        return out
-    a = 1.0 - np.exp(-1.0 / tau)
-    x = e[idx]
-    # m_k = m_{k-1} + a (x_k − m_{k-1}), m_0 = x_0
-    m, _ = scipy.signal.lfilter([a], [1.0, a - 1.0], x[1:], axis=0, zi=((1 - a) * x[:1]))
-    m = np.concatenate([x[:1], m])
-    last = np.searchsorted(idx, np.arange(T), side="right") - 1
-    ok = last >= 0
-    out[ok] = m[last[ok]]
+    out = np.full((e.shape[0], 3), np.nan)
+    # m_k = m_{k-1} + a (x_k − m_{k-1}), m_0 = x_0, over the seen rows x_k
+    ewma_hold(e, seen, 1.0 - np.exp(-1.0 / tau), out)
     return out
 
 
@@ -117,11 +108,11 @@ def prequential_bridge(
         return pos, var, []
     errs = [np.where(seen[:, None], z_cam - b, np.nan) for b in bases]
     smooth = [{ts: _ewma(e, seen, ts) for ts in BRIDGE_SMOOTH_SAMPLES} for e in errs]
-    cands, cum_sse, cum_n = _cumulative_scores(errs, smooth, seen, horizon)
+    cands, cum_sse, cum_n = _cumulative_scores(errs, smooth, seen, horizon, onsets - 1)
     choices = []
-    for a in onsets:
-        score = cum_sse[:, a - 1] / np.maximum(cum_n[:, a - 1], 1.0)
-        score[cum_n[:, a - 1] == 0] = np.inf
+    for k, a in enumerate(onsets):
+        score = cum_sse[:, k] / np.maximum(cum_n[:, k], 1.0)
+        score[cum_n[:, k] == 0] = np.inf
         i, ts, td = cands[int(np.argmin(score))]
         nxt = np.flatnonzero(seen[a:])
         end = a + (int(nxt[0]) if nxt.size else T - a)
@@ -134,43 +125,35 @@ def prequential_bridge(
     return pos, var, choices
 
 
-def _cumulative_scores(errs, smooth, seen, horizon: int):
+def _cumulative_scores(errs, smooth, seen, horizon: int, at: np.ndarray):
     """Candidates ``(base, τ_s, τ_d)`` and, per candidate, the cumulative squared prediction
-    error and pair count over time: ``(cands, cum_sse (C, T), cum_n (C, T))``."""
+    error and pair count at the times ``at (n,)``: ``(cands, cum_sse (C, n), cum_n (C, n))``.
+
+    A pair ``(s, s + h)`` counts at its completion time ``t = s + h``; the sums over the pairs
+    are updated in O(1) per sample and decay (:func:`~kinefuse.pipelines._kinefuse_kernels.
+    bridge_scores`), O(T) per candidate whatever the horizon.
+    """
     T = seen.shape[0]
-    h_all = np.arange(1, horizon + 1)
-    # |e_{s+h} − w_h ē_s|² = |e_{s+h}|² − 2 w_h e_{s+h}·ē_s + w_h² |ē_s|²: the three terms per h
-    # once per (base, τ_s) and h, weighted for all decays at once
+    H = int(min(horizon, max(T - 1, 0)))  # a pair needs h < T
     decays = [td for td in BRIDGE_DECAY_SAMPLES if td != 0]
-    W = np.array([_weights(td, h_all) for td in decays])  # (D, H)
+    phis = np.array([1.0 if np.isinf(td) else np.exp(-1.0 / td) for td in decays])
+    at = np.ascontiguousarray(at, dtype=np.int64)
     cands, cum_sse, cum_n = [], [], []
     for i, e in enumerate(errs):
         e0 = np.where(np.isfinite(e), e, 0.0)
         for ts in BRIDGE_SMOOTH_SAMPLES:
             eb = smooth[i][ts]
-            eb0 = np.where(np.isfinite(eb), eb, 0.0)
             okb = np.all(np.isfinite(eb), axis=-1)
-            a_sum = np.zeros(T)
-            sse = np.zeros((len(decays), T))
-            n = np.zeros(T)
-            for k, h in enumerate(h_all):
-                if h >= T:
-                    break
-                m = seen[h:] & okb[:-h]  # pair (s, s + h) complete at s + h
-                a_k = np.where(m, np.sum(e0[h:] ** 2, -1), 0.0)
-                b_k = np.where(m, np.sum(e0[h:] * eb0[:-h], -1), 0.0)
-                c_k = np.where(m, np.sum(eb0[:-h] ** 2, -1), 0.0)
-                a_sum[h:] += a_k
-                sse[:, h:] += a_k - 2.0 * W[:, k, None] * b_k + W[:, k, None] ** 2 * c_k
-                n[h:] += m
-            n = np.cumsum(n)
+            eb0 = np.where(okb[:, None], eb, 0.0)
+            sse, n = np.empty((len(decays) + 1, at.size)), np.empty(at.size)
+            bridge_scores(e0, eb0, okb, seen, H, phis, at, sse, n)
             if ts == BRIDGE_SMOOTH_SAMPLES[0]:  # the chain alone (τ_d = 0) does not depend on τ_s
                 cands.append((i, ts, 0.0))
-                cum_sse.append(np.cumsum(a_sum))
+                cum_sse.append(sse[0])
                 cum_n.append(n)
             for d, td in enumerate(decays):
                 cands.append((i, ts, td))
-                cum_sse.append(np.cumsum(sse[d]))
+                cum_sse.append(sse[d + 1])
                 cum_n.append(n)
     return cands, np.array(cum_sse), np.array(cum_n)
 
@@ -183,13 +166,10 @@ def _horizon_mse(e, eb, td: float, a: int, horizon: int) -> np.ndarray:
     w = _weights(td, h_all)
     mse = np.full((horizon, 3), np.nan)
     lo = max(a - BRIDGE_VAR_WINDOW, 0)
-    for k, h in enumerate(h_all):
-        if h >= a - lo:
-            break
-        r = e[lo + h : a] - w[k] * eb[lo : a - h]
-        ok = np.all(np.isfinite(r), axis=-1)
-        if np.any(ok):
-            mse[k] = np.mean(r[ok] ** 2, axis=0)
+    H = max(min(horizon, a - lo - 1), 0)  # horizons with a pair (s, s + h), lo <= s, s + h < a
+    sse, n = np.zeros((H, 3)), np.zeros(H, dtype=np.int64)
+    horizon_sse(e, eb, w, int(lo), int(a), sse, n)
+    mse[:H] = np.where(n[:, None] > 0, sse / np.maximum(n, 1)[:, None], np.nan)
     return _fill_forward(mse)
 
 
