@@ -283,3 +283,24 @@ def test_bad_input_inf_and_unknown_joint():
 
     with pytest.raises(ValueError, match="distal"):
         joint_segments(upper_limb("r", lengths={"upper_arm_r": 0.3, "forearm_r": 0.25}), "knee_l")
+
+
+def test_offline_bridge_is_the_mean_of_smoother_and_both_sided_bridges():
+    from kinefuse.pipelines.offset_bridge import prequential_bridge
+
+    zi, zc, av, truth, feats = _scenario(J=1, cam_std=0.002)
+    zi = zi - np.array([0.04, -0.02, 0.03])  # plus a constant chain offset
+    on = kinefuse_fusion(zi, zc, av, DT, features=feats)
+    off = kinefuse_fusion(zi, zc, av, DT, features=feats, bridge=False)
+    out = ~av[:, 0]
+    np.testing.assert_array_equal(on.position[~out], off.position[~out])  # in view: unchanged
+    base = (zi[:, 0], zi[:, 0] + on.correction[:, 0])
+    fwd, _, _ = prequential_bridge(base, zc[:, 0], av[:, 0])
+    bwd, _, _ = prequential_bridge([b[::-1] for b in base], zc[::-1, 0], av[::-1, 0])
+    want = (off.position[:, 0] + fwd + bwd[::-1]) / 3.0
+    np.testing.assert_allclose(on.position[out, 0], want[out], rtol=0, atol=1e-12)
+    # each part recovers the truth here, so does the mean; its variance bounds the parts'
+    assert _rmse(on.position[out, 0], truth[out, 0]) < 0.01
+    var = on.cov[out, 0][:, range(3), range(3)]
+    assert np.all(var > 0) and np.all(np.isfinite(var))
+    assert np.all(on.source[out] == SOURCE_BRIDGED)
