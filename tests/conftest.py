@@ -146,21 +146,22 @@ def pytest_collection_modifyitems(config, items):
 # on-disk cache. With xdist, two workers reaching the same cold kernel at once would both compile
 # it; so the controller compiles them first, with the steps of ``kinefuse warm-up`` in two
 # processes at a time: one compiles the general UFIR, then the constant-velocity UFIR; the other
-# the KF and the IMM; once both the general UFIR and that process are done, a third compiles
-# the EM-KF and the integrated filter, which use the UFIR's and the KF's kernels (loaded, not
-# compiled again). Cold, on 2 cores: about 44 s + 10 s | 25 s + 19 s, then 44 s.
+# the KF, the IMM and the kinefuse fusion's own kernels; once both the general UFIR and that
+# process are done, a third compiles the EM-KF and the integrated filter, which use the UFIR's and
+# the KF's kernels (loaded, not compiled again). Cold, on 2 cores: about 44 s + 10 s | 25 s + 19 s
+# + 8 s, then 44 s.
 # The first process then also compiles the dense RTS for 6 states (about 20 s; off the path
 # the EM-KF waits on) and the IMM's loop for sizes other than paper B's ("imm-any": about 25 s,
 # used only by tests and non-standard IMMs, so not a step of `kinefuse warm-up`); otherwise two
 # workers running those tests would both compile them.
 _WARM_UP_UFIR = (1, 2, 5, "imm-any")  # WARM_UP_STEPS: UFIR general, constant-velocity, RTS dense
-_WARM_UP_OTHER = (0, 4)  # KF/RTS, IMM
+_WARM_UP_OTHER = (0, 4, 6)  # KF/RTS, IMM, the kinefuse fusion (its own kernels)
 _WARM_UP_LAST = (3,)  # EM-KF and the integrated filter: after the general UFIR and the KF
 _WARM_UP_CODE = (
     "import sys, warnings; warnings.simplefilter('ignore')\n"
     "import numpy as np\n"
     "from kinefuse.filters import IMM\n"
-    "from kinefuse.filters.warm_up import WARM_UP_STEPS\n"
+    "from kinefuse.pipelines.warm_up import WARM_UP_STEPS\n"
     "from kinefuse.models import constant_velocity\n"
     "def imm_any():  # two 2-D models: the IMM loop for any sizes (imm_run_any)\n"
     "    imm = IMM(constant_velocity(0.1, 0.5, 0.01, n_axes=2), constant_velocity(0.1, 3.0, 0.002, n_axes=2))\n"

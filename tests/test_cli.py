@@ -550,7 +550,7 @@ def test_bench_quick_runs_the_real_benchmark(tmp_path):
 def test_first_run_kernels_interprets_small_inputs_and_compiles_for_large(monkeypatch, tmp_path):
     from kinefuse import _kernel_mode
     from kinefuse.cli import offline
-    from kinefuse.filters import warm_up as warm_up_mod
+    from kinefuse.pipelines import warm_up as warm_up_mod
 
     small = tmp_path / "imu.csv"
     small.write_bytes(b"x" * 1000)

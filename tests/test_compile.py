@@ -130,3 +130,17 @@ def test_stale_kernel_caches_in_the_user_cache_dir(tmp_path, monkeypatch):
     (src_dir / "_k.py").write_text("y = 2\n")
     assert drop_stale_kernel_caches(root, ("kinefuse.a._k",)) == ["kinefuse.a._k"]
     assert not (mirror / "_k.f-1.py311.nbi").exists()
+
+
+def test_warm_up_compiles_every_kernel_of_the_fusion():
+    # `kinefuse warm-up` = the filters' steps, then the fusion's: after its step, every kernel
+    # of the fusion has a compiled specialisation (a first run then loads, not compiles, them)
+    from kinefuse.filters import warm_up as filters_warm_up
+    from kinefuse.pipelines import _kinefuse_kernels, warm_up
+
+    steps = warm_up.WARM_UP_STEPS
+    assert steps[: len(filters_warm_up.WARM_UP_STEPS)] == filters_warm_up.WARM_UP_STEPS
+    assert len(steps) == len(filters_warm_up.WARM_UP_STEPS) + 1
+    steps[-1][1]()
+    for name in _kinefuse_kernels.__all__:
+        assert getattr(_kinefuse_kernels, name).signatures, name

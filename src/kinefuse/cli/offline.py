@@ -127,7 +127,7 @@ def compile_kernels_now(quiet: bool) -> None:
     """Compile every kernel once, printing ``kinefuse warm-up``'s progress lines (a first run on
     a large input; see :func:`first_run_kernels`)."""
     # lazy: loads the kernel modules, after the interpreted-kernel decision
-    from kinefuse.filters.warm_up import warm_up as compile_kernels
+    from kinefuse.pipelines.warm_up import warm_up as compile_kernels
 
     console = stderr()
     if not quiet:
@@ -443,7 +443,7 @@ def bench(
 
 def warm_up(quiet: Quiet = False) -> None:
     """Compile the numba kernels once (minutes on a small machine), with progress; later runs load them."""
-    from kinefuse.filters.warm_up import warm_up as compile_kernels  # lazy: numba
+    from kinefuse.pipelines.warm_up import warm_up as compile_kernels  # lazy: numba
 
     console = stdout()
     compile_kernels(report=None if quiet else lambda m: console.print(Text(m)))

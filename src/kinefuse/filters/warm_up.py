@@ -108,18 +108,23 @@ WARM_UP_STEPS: tuple[tuple[str, Callable[[], None]], ...] = (
 )
 
 
-def warm_up(report: Callable[[str], None] | None = None) -> list[tuple[str, float]]:
+def warm_up(
+    report: Callable[[str], None] | None = None, steps=WARM_UP_STEPS
+) -> list[tuple[str, float]]:
     """Compile or load every filter kernel; returns ``(step, seconds)`` per step.
 
     Parameters
     ----------
     report : callable, optional
         Called with a progress line before each step and after the last (e.g. ``print``).
+    steps : sequence of (str, callable), optional
+        The steps to run (default :data:`WARM_UP_STEPS`; the layers above add theirs, e.g.
+        :data:`kinefuse.pipelines.warm_up.WARM_UP_STEPS`).
     """
     out = []
-    n = len(WARM_UP_STEPS)
+    n = len(steps)
     t_all = time.perf_counter()
-    for i, (what, fn) in enumerate(WARM_UP_STEPS, 1):
+    for i, (what, fn) in enumerate(steps, 1):
         if report is not None:
             report(f"[{i}/{n}] compiling {what} (numba; cached for later runs) ...")
         t0 = time.perf_counter()
