@@ -147,7 +147,10 @@ class KinefuseResult:
     chain_error : ndarray, shape (T, J, 3)
         Estimated residual chain error b (state), m.
     params : list of dict
-        Per joint: the fitted noise parameters and ridge model of the last refit.
+        Per joint: the fitted noise parameters (``"noise"``) and ridge model (``"correction"``)
+        of the last refit and, with ``bridge=True``, the outage bridge's choices
+        (``"bridge"``: causal, :func:`~kinefuse.pipelines.offset_bridge.prequential_bridge`'s
+        list; offline, ``{"forward": ..., "backward": ...}``).
     """
 
     position: np.ndarray
