@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kinefuse.exceptions import InputError
 from kinefuse.filters import KalmanFilter, fixed_lag_smooth, rts_smooth, rts_smooth_segments
 from kinefuse.filters._base import FilterResult, initial_covariance
 from kinefuse.models import constant_velocity
@@ -284,11 +285,40 @@ def test_dense_rts_for_six_states_equals_the_general_loop(rng):
     z[:, 40:50] = np.nan
     _, res = KalmanFilter(_full_r_twin(model)).filter(z)
     args = (res.mean, res.cov, np.ones((2, 150), bool), model.F, model.Q)
+    full = np.arange(6)
     for lag in (-1, 4):
         for n_cov in (2, 0):
             outs = []
             for fn in (rts_dense, rts_dense6):
                 m, c = np.empty((2, 150, 6)), np.empty((n_cov, 150 if n_cov else 0, 6, 6))
-                outs.append((fn(*args, lag, m, c), m, c))
+                outs.append((fn(*args, lag, m, c, full), m, c))
             for a, b in zip(*outs, strict=True):
                 np.testing.assert_array_equal(a, b)
+        # the position rows/columns only: that block of the full output, bit for bit
+        m_full, c_full = np.empty((2, 150, 6)), np.empty((2, 150, 6, 6))
+        rts_dense6(*args, lag, m_full, c_full, full)
+        m, c = np.empty((2, 150, 6)), np.empty((2, 150, 3, 3))
+        rts_dense6(*args, lag, m, c, np.array([0, 2, 4]))
+        np.testing.assert_array_equal(m, m_full)
+        np.testing.assert_array_equal(c, c_full[..., 0::2, 0::2])
+
+
+def test_segments_position_covariance_is_the_block_of_the_full_one(rng):
+    # cov="position": H P̃ Hᵀ, the same numbers as that block of the full smoothed covariance,
+    # on full (dense) covariances and on the axis-blocked layout, fixed interval and fixed lag
+    model = constant_velocity(1 / 30, q=1.0, r=np.diag([0.01, 0.02, 0.005]))
+    _, z = simulate(model, rng, 120, batch=(2,))
+    z[:, 30:36] = np.nan
+    avail = np.all(np.isfinite(z), axis=-1)
+    for flt in (KalmanFilter(_full_r_twin(model)), KalmanFilter(model)):
+        _, res = flt.filter(z)
+        for smooth in (
+            lambda **kw: rts_smooth_segments(model, res, avail, **kw),
+            lambda **kw: fixed_lag_smooth(model, res, 5, avail, **kw),
+        ):
+            full, pos = smooth(), smooth(cov="position")
+            assert pos.cov.shape == (2, 120, 3, 3)
+            np.testing.assert_array_equal(pos.mean, full.mean)
+            np.testing.assert_array_equal(pos.cov, full.cov[..., 0::2, 0::2])
+    with pytest.raises(InputError, match="cov"):
+        rts_smooth_segments(model, res, avail, cov="full")

@@ -538,18 +538,32 @@ def _start_run(mean, cov, b, t, s, Ps, n):
 
 
 @njit_inline
-def _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n):
-    """Store ``x̃_t`` (and ``P̃_t``) at ``(b, t)`` (element loops, no view)."""
+def _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n, cidx):
+    """Store ``x̃_t`` (and the rows/columns ``cidx`` of ``P̃_t``) at ``(b, t)`` (element loops,
+    no view)."""
     for i in range(n):
         sm_mean[b, t, i] = s[i]
     if want_cov:
-        for i in range(n):
-            for j in range(n):
-                sm_cov[b, t, i, j] = Ps[i, j]
+        k = cidx.shape[0]
+        for i in range(k):
+            for j in range(k):
+                sm_cov[b, t, i, j] = Ps[cidx[i], cidx[j]]
 
 
 @njit_inline
-def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x):
+def _copy_filtered_rows(mean, cov, sm_mean, sm_cov, b, t, want_cov, n, cidx):
+    """Outside the runs: the filtered ``x̂_t`` (and the rows/columns ``cidx`` of ``P̂_t``)."""
+    for i in range(n):
+        sm_mean[b, t, i] = mean[b, t, i]
+    if want_cov:
+        k = cidx.shape[0]
+        for i in range(k):
+            for j in range(k):
+                sm_cov[b, t, i, j] = cov[b, t, cidx[i], cidx[j]]
+
+
+@njit_inline
+def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x, cidx):
     """The loop of :func:`rts_dense` for states of size ``n_x``."""
     B, T = mean.shape[:2]
     want_cov = sm_cov.shape[0] > 0
@@ -563,7 +577,7 @@ def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x):
         if lag < 0:
             for t in range(T - 1, -1, -1):
                 if end[t] < 0:
-                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t, want_cov)
+                    _copy_filtered_rows(mean, cov, sm_mean, sm_cov, b, t, want_cov, n_x, cidx)
                     continue
                 if t == end[t]:
                     _start_run(mean, cov, b, t, s, Ps, n_x)
@@ -572,11 +586,11 @@ def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x):
                         F, Q, mean, cov, b, t, s, Ps, FP, Pp, L, D, d, want_cov, n_x
                     )
                     n_reg += st == CHOL_REGULARISED
-                _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n_x)
+                _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n_x, cidx)
         else:
             for t in range(T):
                 if end[t] < 0:
-                    _copy_filtered(mean, cov, sm_mean, sm_cov, b, t, want_cov)
+                    _copy_filtered_rows(mean, cov, sm_mean, sm_cov, b, t, want_cov, n_x, cidx)
                     continue
                 e = min(end[t], t + lag)
                 _start_run(mean, cov, b, e, s, Ps, n_x)
@@ -585,24 +599,26 @@ def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x):
                         F, Q, mean, cov, b, u, s, Ps, FP, Pp, L, D, d, want_cov, n_x
                     )
                     n_reg += st == CHOL_REGULARISED
-                _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n_x)
+                _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n_x, cidx)
     return n_reg
 
 
 @njit
-def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
+def rts_dense(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, cidx):
     """Dense reference RTS; same contract as :func:`rts_axis`. A zero-length ``sm_cov`` (first
-    axis 0) asks for the smoothed means only: the covariance recursion is skipped.
+    axis 0) asks for the smoothed means only: the covariance recursion is skipped. ``sm_cov``
+    of shape ``(B, T, k, k)`` receives the rows and columns ``cidx (k,)`` of the smoothed
+    covariance (e.g. the position states), ``cidx = arange(n_x)`` the whole matrix.
 
     Returns the number of backward steps whose ``P⁻`` had to be regularised (SPEC §13).
     """
-    return _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, mean.shape[2])
+    return _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, mean.shape[2], cidx)
 
 
 @njit
-def rts_dense6(mean, cov, mask, F, Q, lag, sm_mean, sm_cov):
+def rts_dense6(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, cidx):
     """:func:`rts_dense` for 6 states (3-D constant velocity: paper B's IMM output), the size a
     compile-time constant so that the compiler unrolls the 6x6 loops. The same arithmetic."""
     if mean.shape[2] != 6:
         raise ValueError("rts_dense6 takes 6 states")
-    return _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, 6)
+    return _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, 6, cidx)

@@ -121,7 +121,37 @@ def _smooth_blocks(model, result, mask, inputs, wanted_pos=True) -> FilterResult
     )
 
 
-def _smooth(model, result, mask, lag: int, position: bool = True, cov: bool = True) -> FilterResult:
+def _selected_states(H: np.ndarray) -> np.ndarray | None:
+    """The state index each row of ``H`` selects (``H = I[idx]``), or None for another H."""
+    idx = np.argmax(np.abs(H), axis=1)
+    return idx if np.array_equal(H, np.eye(H.shape[1])[idx]) else None
+
+
+def _check_cov(cov):
+    """The smoothers' ``cov`` option: True, False or ``"position"``."""
+    if isinstance(cov, (bool, np.bool_)):
+        return bool(cov)
+    if isinstance(cov, str) and cov == "position":
+        return cov
+    raise InputError(f"expected cov as a bool or 'position', got {cov!r}")
+
+
+def _position_block(res: FilterResult, H: np.ndarray) -> FilterResult:
+    """``res`` with ``cov`` replaced by its position block ``H P Hᵀ`` (the rows and columns of
+    the selected states when H selects states: the same numbers, NaN elsewhere kept out)."""
+    idx = _selected_states(H)
+    P = res.cov
+    block = H @ P @ H.T if idx is None else P[..., idx[:, None], idx]
+    return FilterResult(
+        mean=res.mean, cov=block, position=res.position, observed=res.observed,
+        innovation=res.innovation, distance=res.distance, mode=res.mode,
+    )  # fmt: skip
+
+
+def _smooth(model, result, mask, lag: int, position: bool = True, cov=True) -> FilterResult:
+    """The smoothers' common body; ``cov``: True (all of P̃), False (none) or ``"position"``
+    (the position states' block: on the dense path only that block is written)."""
+    H = np.asarray(model.H) if isinstance(model, LinearGaussianModel) else None
     if lag < 0 and isinstance(model, LinearGaussianModel):
         inputs = _block_inputs(model, result)
         if inputs is not None:
@@ -131,7 +161,8 @@ def _smooth(model, result, mask, lag: int, position: bool = True, cov: bool = Tr
                 raise InputError(
                     f"expected result.observed with shape {lead}, got {np.shape(result.observed)}"
                 )
-            return _smooth_blocks(model, result, m, inputs, position)
+            res = _smooth_blocks(model, result, m, inputs, position)
+            return _position_block(res, H) if cov == "position" else res
     mean, P, m = _check_inputs(model, result, mask)
     n_x = model.n_x
     lead = mean.shape[:-1]
@@ -149,20 +180,25 @@ def _smooth(model, result, mask, lag: int, position: bool = True, cov: bool = Tr
         )
         done = rts_axis(mean3, cov3, m2, Fb, Qb, lag, sm_mean, sm_cov)
     if not done:  # dense; a zero-length sm_cov: the means only (their recursion needs no P̃)
-        sm_cov = np.empty((B, T, n_x, n_x) if cov else (0, 0, n_x, n_x))
+        sel = _selected_states(H) if cov == "position" else None  # the block's states, if H selects
+        cidx = np.arange(n_x) if sel is None else sel
+        k = cidx.size
+        sm_cov = np.empty((B, T, k, k) if cov is not False else (0, 0, k, k))
         dense = rts_dense6 if n_x == 6 else rts_dense  # (6: the loops unrolled)
-        n_reg = dense(mean3, cov3, m2, model.F, model.Q, lag, sm_mean, sm_cov)
+        n_reg = dense(mean3, cov3, m2, model.F, model.Q, lag, sm_mean, sm_cov, cidx)
         warn_regularised(n_reg, "RTS smoother", "predicted covariance P⁻")
     sm_mean = sm_mean.reshape(*lead, n_x)
-    return FilterResult(
+    res = FilterResult(
         mean=sm_mean,
-        cov=sm_cov.reshape(*lead, n_x, n_x) if cov else None,
+        cov=sm_cov.reshape(*lead, *sm_cov.shape[2:]) if cov is not False else None,
         position=sm_mean @ model.H.T,  # H x̃ (BLAS matmul; same as _base.positions)
         observed=np.array(result.observed, dtype=bool),
         innovation=None,
         distance=None,
         mode=None if getattr(result, "mode", None) is None else np.array(result.mode),
     )
+    written = sm_cov.shape[-1]
+    return _position_block(res, H) if cov == "position" and written == n_x else res
 
 
 def rts_smooth(
@@ -230,10 +266,13 @@ def rts_smooth_segments(
         Per-sample availability (paper B: Kinect joint tracked). Default ``result.observed``.
         Each maximal run of available samples is smoothed on its own; other samples (outages)
         are returned as filtered.
-    cov : bool, default True
+    cov : bool or "position", default True
         Return the smoothed covariances. False: ``cov`` is None, and on full (not axis-blocked)
         covariances they are not computed (the means' recursion reads only the filtered ones:
-        about a third less work).
+        about a third less work). ``"position"``: ``cov`` is the position states' block
+        ``H P̃ Hᵀ``, shape ``(..., T, n_z, n_z)``, the same numbers as that block of the full
+        output; on full covariances only that block is written (paper B's offline output
+        needs no more: a quarter of the memory for 6 states).
 
     Returns
     -------
@@ -242,11 +281,11 @@ def rts_smooth_segments(
     """
     if available is None:
         available = getattr(result, "observed", None)
-    return _smooth(model, result, available, -1, True, bool(cov))
+    return _smooth(model, result, available, -1, True, _check_cov(cov))
 
 
 def fixed_lag_smooth(
-    model: LinearGaussianModel, result: FilterResult, lag: int, mask=None
+    model: LinearGaussianModel, result: FilterResult, lag: int, mask=None, *, cov=True
 ) -> FilterResult:
     """Fixed-lag RTS: the estimate at ``t`` given the measurements up to ``t + lag``.
 
@@ -263,6 +302,8 @@ def fixed_lag_smooth(
         Lag in samples, >= 0 (0 returns the filtered values).
     mask : array_like of bool, shape (..., T), optional
         As in :func:`rts_smooth`: windows never cross a False sample.
+    cov : bool or "position", default True
+        As in :func:`rts_smooth_segments`.
 
     Returns
     -------
@@ -272,4 +313,4 @@ def fixed_lag_smooth(
     """
     if isinstance(lag, bool) or not isinstance(lag, (int, np.integer)) or lag < 0:
         raise InputError(f"expected lag as an int >= 0 (samples), got {lag!r}")
-    return _smooth(model, result, mask, int(lag))
+    return _smooth(model, result, mask, int(lag), True, _check_cov(cov))

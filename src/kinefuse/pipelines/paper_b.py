@@ -632,13 +632,13 @@ def _elm_bridge(ctx: FusionContext) -> FusionResult:
     pos, cov = out.position, out.cov
     avail = ctx.available
     if not ctx.causal or p.fixed_lag > 0:
-        if ctx.causal:
-            base = fixed_lag_smooth(core.model_imu, out.imm, p.fixed_lag, mask=avail)
+        if ctx.causal:  # (the position block of the smoothed covariance: all the output needs)
+            base = fixed_lag_smooth(core.model_imu, out.imm, p.fixed_lag, avail, cov="position")
         else:
-            base = rts_smooth_segments(core.model_imu, out.imm, avail)
+            base = rts_smooth_segments(core.model_imu, out.imm, avail, cov="position")
         fused = out.source == SOURCE_FUSED
         pos[fused] = base.position[fused]
-        cov[fused] = pos_cov(base.cov)[fused]
+        cov[fused] = base.cov[fused]
         cov[~np.all(np.isfinite(pos), axis=-1)] = np.nan
     return finish(
         ctx,
