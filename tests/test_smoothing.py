@@ -312,11 +312,8 @@ def test_segments_position_covariance_is_the_block_of_the_full_one(rng):
     avail = np.all(np.isfinite(z), axis=-1)
     for flt in (KalmanFilter(_full_r_twin(model)), KalmanFilter(model)):
         _, res = flt.filter(z)
-        for smooth in (
-            lambda **kw: rts_smooth_segments(model, res, avail, **kw),
-            lambda **kw: fixed_lag_smooth(model, res, 5, avail, **kw),
-        ):
-            full, pos = smooth(), smooth(cov="position")
+        for smooth, args in ((rts_smooth_segments, (avail,)), (fixed_lag_smooth, (5, avail))):
+            full, pos = smooth(model, res, *args), smooth(model, res, *args, cov="position")
             assert pos.cov.shape == (2, 120, 3, 3)
             np.testing.assert_array_equal(pos.mean, full.mean)
             np.testing.assert_array_equal(pos.cov, full.cov[..., 0::2, 0::2])
