@@ -551,18 +551,6 @@ def _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n, cidx):
 
 
 @njit_inline
-def _copy_filtered_rows(mean, cov, sm_mean, sm_cov, b, t, want_cov, n, cidx):
-    """Outside the runs: the filtered ``x̂_t`` (and the rows/columns ``cidx`` of ``P̂_t``)."""
-    for i in range(n):
-        sm_mean[b, t, i] = mean[b, t, i]
-    if want_cov:
-        k = cidx.shape[0]
-        for i in range(k):
-            for j in range(k):
-                sm_cov[b, t, i, j] = cov[b, t, cidx[i], cidx[j]]
-
-
-@njit_inline
 def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x, cidx):
     """The loop of :func:`rts_dense` for states of size ``n_x``."""
     B, T = mean.shape[:2]
@@ -577,7 +565,8 @@ def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x, cidx):
         if lag < 0:
             for t in range(T - 1, -1, -1):
                 if end[t] < 0:
-                    _copy_filtered_rows(mean, cov, sm_mean, sm_cov, b, t, want_cov, n_x, cidx)
+                    _start_run(mean, cov, b, t, s, Ps, n_x)  # outside the runs: the filtered
+                    _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n_x, cidx)
                     continue
                 if t == end[t]:
                     _start_run(mean, cov, b, t, s, Ps, n_x)
@@ -590,7 +579,8 @@ def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x, cidx):
         else:
             for t in range(T):
                 if end[t] < 0:
-                    _copy_filtered_rows(mean, cov, sm_mean, sm_cov, b, t, want_cov, n_x, cidx)
+                    _start_run(mean, cov, b, t, s, Ps, n_x)  # outside the runs: the filtered
+                    _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n_x, cidx)
                     continue
                 e = min(end[t], t + lag)
                 _start_run(mean, cov, b, e, s, Ps, n_x)

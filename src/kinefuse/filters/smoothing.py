@@ -136,10 +136,9 @@ def _check_cov(cov):
     raise InputError(f"expected cov as a bool or 'position', got {cov!r}")
 
 
-def _position_block(res: FilterResult, H: np.ndarray) -> FilterResult:
-    """``res`` with ``cov`` replaced by its position block ``H P Hᵀ`` (the rows and columns of
-    the selected states when H selects states: the same numbers, NaN elsewhere kept out)."""
-    idx = _selected_states(H)
+def _position_block(res: FilterResult, H: np.ndarray, idx) -> FilterResult:
+    """``res`` with ``cov`` replaced by its position block ``H P Hᵀ`` (the rows and columns
+    ``idx`` of the states H selects, when it does: the same numbers, NaN elsewhere kept out)."""
     P = res.cov
     block = H @ P @ H.T if idx is None else P[..., idx[:, None], idx]
     return FilterResult(
@@ -152,6 +151,7 @@ def _smooth(model, result, mask, lag: int, position: bool = True, cov=True) -> F
     """The smoothers' common body; ``cov``: True (all of P̃), False (none) or ``"position"``
     (the position states' block: on the dense path only that block is written)."""
     H = np.asarray(model.H) if isinstance(model, LinearGaussianModel) else None
+    sel = _selected_states(H) if cov == "position" else None  # the block's states, if H selects
     if lag < 0 and isinstance(model, LinearGaussianModel):
         inputs = _block_inputs(model, result)
         if inputs is not None:
@@ -162,7 +162,7 @@ def _smooth(model, result, mask, lag: int, position: bool = True, cov=True) -> F
                     f"expected result.observed with shape {lead}, got {np.shape(result.observed)}"
                 )
             res = _smooth_blocks(model, result, m, inputs, position)
-            return _position_block(res, H) if cov == "position" else res
+            return _position_block(res, H, sel) if cov == "position" else res
     mean, P, m = _check_inputs(model, result, mask)
     n_x = model.n_x
     lead = mean.shape[:-1]
@@ -180,7 +180,6 @@ def _smooth(model, result, mask, lag: int, position: bool = True, cov=True) -> F
         )
         done = rts_axis(mean3, cov3, m2, Fb, Qb, lag, sm_mean, sm_cov)
     if not done:  # dense; a zero-length sm_cov: the means only (their recursion needs no P̃)
-        sel = _selected_states(H) if cov == "position" else None  # the block's states, if H selects
         cidx = np.arange(n_x) if sel is None else sel
         k = cidx.size
         sm_cov = np.empty((B, T, k, k) if cov is not False else (0, 0, k, k))
@@ -197,8 +196,9 @@ def _smooth(model, result, mask, lag: int, position: bool = True, cov=True) -> F
         distance=None,
         mode=None if getattr(result, "mode", None) is None else np.array(result.mode),
     )
-    written = sm_cov.shape[-1]
-    return _position_block(res, H) if cov == "position" and written == n_x else res
+    # the block is still to be taken when the full P̃ was written (axis path, or H not a selection)
+    full_written = done or sel is None
+    return _position_block(res, H, sel) if cov == "position" and full_written else res
 
 
 def rts_smooth(

@@ -496,11 +496,16 @@ def _bridge(pos, cov, zi, corr, zc, seen, min_history):
     (``pos (T, 3)``, ``cov (T, 3, 3)`` of one joint, in place); returns the choices made."""
     bp, bv, choices = prequential_bridge((zi, zi + corr), zc, seen, min_history=min_history)
     rows = np.flatnonzero(np.all(np.isfinite(bp), axis=-1))
-    pos[rows] = bp[rows]
+    _put_rows(pos, cov, rows, bp[rows], bv[rows])
+    return choices
+
+
+def _put_rows(pos, cov, rows, p, var):
+    """``pos[rows] = p`` and ``cov[rows]`` = the diagonal ``var (n, 3)`` (the axes independent)."""
+    pos[rows] = p
     cov[rows] = 0.0
     ax = np.arange(3)
-    cov[rows[:, None], ax, ax] = bv[rows]
-    return choices
+    cov[rows[:, None], ax, ax] = var
 
 
 def _two_sided_bridge(pos, cov, zi, corr, zc, seen, min_history):
@@ -520,8 +525,6 @@ def _two_sided_bridge(pos, cov, zi, corr, zc, seen, min_history):
     # the three estimates' correlation is unknown: the standard deviation of their mean is at
     # most the mean of their standard deviations (equality when fully correlated)
     sd = (np.sqrt(cov[rows][:, ax, ax]) + np.sqrt(fv[rows]) + np.sqrt(bv[rows])) / 3.0
-    pos[rows] = (pos[rows] + fp[rows] + bp[rows]) / 3.0
-    cov[rows] = 0.0
-    cov[rows[:, None], ax, ax] = sd**2
+    _put_rows(pos, cov, rows, (pos[rows] + fp[rows] + bp[rows]) / 3.0, sd**2)
     T = seen.size
     return {"forward": fwd, "backward": [(T - 1 - a, *rest) for a, *rest in bwd]}
