@@ -304,3 +304,12 @@ def test_offline_bridge_is_the_mean_of_smoother_and_both_sided_bridges():
     var = on.cov[out, 0][:, range(3), range(3)]
     assert np.all(var > 0) and np.all(np.isfinite(var))
     assert np.all(on.source[out] == SOURCE_BRIDGED)
+
+
+def test_correction_cross_validates_over_2_s_blocks_offline_and_1_s_causal():
+    # blocks longer than a gait cycle keep the validation honest (module Notes); at 30 Hz:
+    zi, zc, av, _, feats = _scenario()
+    off = kinefuse_fusion(zi, zc, av, DT, features=feats)
+    cau = kinefuse_fusion(zi, zc, av, DT, features=feats, causal=True)
+    assert [p["correction"].block for p in off.params] == [60, 60]
+    assert [p["correction"].block for p in cau.params] == [30, 30]
