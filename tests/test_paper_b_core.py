@@ -3,11 +3,16 @@ and streaming forms are that core (so stream == causal batch follows from the sp
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
+from kinefuse.conventions import SOURCE_FUSED
+from kinefuse.filters import rts_smooth_segments
 from kinefuse.pipelines import VisionParams, vision_assisted
 from kinefuse.pipelines._outages import find_episodes
+from kinefuse.pipelines._paper_b_smooth import RunSmoother
 from kinefuse.pipelines.paper_b import PaperBCore
 from kinefuse.streaming.paper_b import VisionAssistedProcessor
 from test_streaming_paper_b import DT, PARAMS, TOL, make_scenario
@@ -84,3 +89,26 @@ def test_recovery_rule_blocks_equal_an_explicit_count():
                 assert _recovery(av, run0, N) == want
                 if not want[1]:
                     assert _run_length(av, run0) == run
+
+
+@pytest.mark.parametrize("block", [1, 13, 250])
+def test_run_smoother_equals_one_rts_over_the_series(block):
+    """The batch form smooths each available run as it ends (RunSmoother); the oracle is one
+    rts_smooth_segments over the whole series' IMM output, as the offline output is defined."""
+    z_imu, z_cam, av = make_scenario(T=700)
+    core = PaperBCore("elm-fir", PARAMS["short-window"], DT)
+    zi, zc, a = (np.ascontiguousarray(np.swapaxes(x, 0, 1)) for x in (z_imu, z_cam, av))
+    step = core.advance(core.init(zi.shape[0]), zi, zc, a)
+    oracle = rts_smooth_segments(core.model_imu, step.imm, a, cov="position")
+    pos, cov = step.position.copy(), step.cov.copy()
+    smoother = RunSmoother(core.model_imu, pos, cov, step.source)
+    T = a.shape[1]
+    for s in range(0, T, block):
+        e = min(s + block, T)
+        part = SimpleNamespace(mean=step.imm.mean[:, s:e], cov=step.imm.cov[:, s:e])
+        smoother.add(part, a[:, s:e], final=e == T)
+    fused = step.source == SOURCE_FUSED
+    assert fused.sum() > 0.5 * fused.size and (~a).any()
+    np.testing.assert_array_equal(pos[fused], oracle.position[fused])
+    np.testing.assert_array_equal(cov[fused], oracle.cov[fused])
+    np.testing.assert_array_equal(pos[~fused], step.position[~fused])  # the rest untouched

@@ -78,6 +78,7 @@ from kinefuse.filters._base import expand_shared_block
 from kinefuse.learning import ELMRegressor
 from kinefuse.models import LinearGaussianModel
 from kinefuse.pipelines._outages import SOURCE_NONE, OutageEpisode, segment_start
+from kinefuse.pipelines._paper_b_smooth import RunSmoother
 from kinefuse.pipelines.fusion_context import FusionContext, FusionResult, finish, pos_cov
 from kinefuse.pipelines.vision_params import VisionParams
 
@@ -628,29 +629,19 @@ def _elm_bridge(ctx: FusionContext) -> FusionResult:
     state = core.init(ctx.shape[0])
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="ELM fitted on", category=UserWarning)
-        out = _advance_in_blocks(core, state, ctx)
+        out, mu = _advance_in_blocks(core, state, ctx)
     pos, cov = out.position, out.cov
     avail = ctx.available
-    if not ctx.causal or p.fixed_lag > 0:
-        if ctx.causal:  # (the position block of the smoothed covariance: all the output needs)
-            base = fixed_lag_smooth(core.model_imu, out.imm, p.fixed_lag, avail, cov="position")
-        else:
-            base = rts_smooth_segments(core.model_imu, out.imm, avail, cov="position")
+    if ctx.causal and p.fixed_lag > 0:  # (the position block of the smoothed covariance)
+        base = fixed_lag_smooth(core.model_imu, out.imm, p.fixed_lag, avail, cov="position")
         fused = out.source == SOURCE_FUSED
         pos[fused] = base.position[fused]
         cov[fused] = base.cov[fused]
+    if not ctx.causal or p.fixed_lag > 0:
         cov[~np.all(np.isfinite(pos), axis=-1)] = np.nan
-    return finish(
-        ctx,
-        pos,
-        cov,
-        out.source,
-        causal=ctx.causal and p.fixed_lag == 0,
-        mu=np.where(avail[..., None], out.imm.mu, np.nan),
-        imu_fallback=out.imu_fallback,
-        elm2_skipped=out.elm2_skipped,
-        episodes=state.episodes(),
-    )
+    return finish(ctx, pos, cov, out.source, causal=ctx.causal and p.fixed_lag == 0,
+                  mu=np.where(avail[..., None], mu, np.nan), imu_fallback=out.imu_fallback,
+                  elm2_skipped=out.elm2_skipped, episodes=state.episodes())  # fmt: skip
 
 
 #: Frames per :meth:`PaperBCore.advance` call of the batch form. The core's temporaries (the
@@ -660,34 +651,39 @@ def _elm_bridge(ctx: FusionContext) -> FusionResult:
 BATCH_BLOCK_FRAMES = 4096
 
 
-def _advance_in_blocks(core: PaperBCore, state: PaperBState, ctx: FusionContext) -> PaperBStep:
+def _advance_in_blocks(core: PaperBCore, state: PaperBState, ctx: FusionContext):
     """:meth:`PaperBCore.advance` over the whole series in blocks of
-    :data:`BATCH_BLOCK_FRAMES`, the outputs written into arrays of the full length."""
+    :data:`BATCH_BLOCK_FRAMES`, the outputs written into arrays of the full length; returns
+    them and the IMM's model probabilities ``mu (J, T, M)``. Offline, the fused frames are the
+    RTS of the IMM per available run (:class:`RunSmoother`: the IMM output is kept for the open
+    runs only); causal with a fixed lag, the step's ``imm`` is the IMM output of the series."""
     J, T = ctx.shape
-    out = None
+    keep_imm = ctx.causal and core.params.fixed_lag > 0
+    out = smoother = None
     for a in range(0, T, BATCH_BLOCK_FRAMES):
         sl = slice(a, min(a + BATCH_BLOCK_FRAMES, T))
         feat = None if ctx.features is None else ctx.features[:, sl]
         step = core.advance(state, ctx.z_imu[:, sl], ctx.z_cam[:, sl], ctx.available[:, sl], feat)
         if out is None:
-            if sl.stop == T:
-                return step
-            imm = {f.name: getattr(step.imm, f.name) for f in dataclasses.fields(step.imm)}
-            out = (
-                [_full_length(arr, T) for arr in step[:-1]],
-                {k: None if v is None else _full_length(v, T) for k, v in imm.items()},
-            )
-        for dst, src in zip(out[0], step[:-1], strict=True):
+            names = [f.name for f in dataclasses.fields(step.imm)] if keep_imm else ["mu"]
+            out = [_full_length(arr, T) for arr in step[:-1]]
+            imm = {k: _full_length(getattr(step.imm, k), T) for k in names}
+            if not ctx.causal:
+                smoother = RunSmoother(core.model_imu, out[0], out[1], out[2])
+        for dst, src in zip(out, step[:-1], strict=True):
             dst[:, sl] = src
-        for k, dst in out[1].items():
+        for k, dst in imm.items():
             if dst is not None:
                 dst[:, sl] = getattr(step.imm, k)
-    return PaperBStep(*out[0], type(step.imm)(**out[1]))
+        if smoother is not None:
+            smoother.add(step.imm, ctx.available[:, sl], final=sl.stop == T)
+    result = PaperBStep(*out, type(step.imm)(**imm) if keep_imm else None)
+    return result, imm["mu"]
 
 
-def _full_length(a: np.ndarray, T: int) -> np.ndarray:
-    """An empty ``(J, T, ...)`` array like the block output ``a (J, L, ...)``."""
-    return np.empty((a.shape[0], T, *a.shape[2:]), a.dtype)
+def _full_length(a: np.ndarray | None, T: int) -> np.ndarray | None:
+    """An empty ``(J, T, ...)`` array like the block output ``a (J, L, ...)`` (None: None)."""
+    return None if a is None else np.empty((a.shape[0], T, *a.shape[2:]), a.dtype)
 
 
 def elm_fir(ctx: FusionContext) -> FusionResult:
