@@ -592,3 +592,12 @@ def test_first_kinefuse_run_without_compiled_kernels_runs_interpreted(shared_dat
         assert (tmp_path / "first" / name).read_bytes() == (
             tmp_path / "compiled" / name
         ).read_bytes(), name
+
+
+def test_run_given_a_recording_or_a_folder_says_how_to_make_a_session(tmp_path):
+    rec = tmp_path / "walk.csv"
+    rec.write_text("t,acc_x\n0,1\n", encoding="utf-8")
+    result = runner.invoke(cli.app, ["run", str(rec)])
+    _assert_one_line_error(result, 2, "walk.csv", "not valid TOML", "init-session", "--from")
+    result = runner.invoke(cli.app, ["run", str(tmp_path)])
+    _assert_one_line_error(result, 2, "a folder, not a session file", "--from")

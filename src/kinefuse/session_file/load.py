@@ -74,6 +74,23 @@ def read_toml(path: str | Path, *, missing: str = "file not found") -> dict:
         raise ConfigError(f"{p.name}: not a UTF-8 text file") from None
 
 
+def _read_session_toml(p: Path) -> dict:
+    """:func:`read_toml` of a session file; a folder, or a file that is not TOML and not named
+    ``.toml`` (a recording given where the session belongs), gets the command that makes a
+    session from it."""
+    make = f"make a session from it with `kinefuse init-session SESSION.toml --from {p}`"
+    if p.is_dir():
+        raise ConfigError(f"{p}: a folder, not a session file; {make}")
+    try:
+        return read_toml(
+            p, missing=f"session file not found (create one with `kinefuse init-session {p}`)"
+        )
+    except ConfigError as exc:
+        if p.is_file() and p.suffix.lower() != ".toml":
+            raise ConfigError(f"{exc}; if {p.name} is a recording, {make}") from None
+        raise
+
+
 def load_session(path: str | Path, *, document: Mapping | None = None) -> SessionConfig:
     """Read and validate a session TOML file.
 
@@ -101,9 +118,7 @@ def load_session(path: str | Path, *, document: Mapping | None = None) -> Sessio
     p = Path(path).expanduser()
     doc = document
     if doc is None:
-        doc = read_toml(
-            p, missing=f"session file not found (create one with `kinefuse init-session {p}`)"
-        )
+        doc = _read_session_toml(p)
     p = p.resolve()
     c = _Ctx(p)
     c.check_keys(doc, "top level", _SECTIONS + _OTHER_COMMANDS)
