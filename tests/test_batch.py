@@ -705,6 +705,16 @@ def test_cli_study_that_does_not_exist_is_named(tmp_path, monkeypatch, target):
     assert f"{target}: no such file or folder" in _err(res)
 
 
+def test_cli_recording_instead_of_a_study_is_refused_before_running(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "walk.mat").write_bytes(b"MATLAB 5.0")
+    res = runner.invoke(cli.app, ["batch", "walk.mat"])
+    assert res.exit_code == 2
+    assert "walk.mat: not a study or session file (*.toml)" in _err(res)
+    assert "init-session SESSION.toml --from walk.mat" in _err(res)
+    assert not (tmp_path / "walk-batch").exists()  # nothing written
+
+
 def test_cli_existing_json_is_refused_before_running_and_says_what_force_does(
     tmp_path, monkeypatch
 ):

@@ -500,6 +500,11 @@ def study_from_sessions(
             f"{target}: no such file or folder (expected a study file, a folder of session "
             "files or a glob of them)"
         )
+    if t.is_file() and t.suffix.lower() != ".toml" and not _glob.has_magic(str(t)):
+        raise ConfigError(
+            f"{target}: not a study or session file (*.toml); a recording needs a session: "
+            f"`kinefuse init-session SESSION.toml --from {target}`"
+        )
     if t.is_dir():
         files = sorted(t.glob("*.toml"))
         name = t.resolve().name
