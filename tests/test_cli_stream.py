@@ -255,6 +255,7 @@ def test_cli_stream_accepts_offline_session(lsl_env, tmp_path):
     ("args", "needles"),
     [
         (["replay", "missing.csv"], ["RECORDING missing.csv: file not found"]),
+        (["replay", "rand.bin"], ["rand.bin: unsupported format"]),  # before "Publishing"
         (["replay", "demo", "--rate", "0"], ["--rate", "> 0"]),
         (["replay", "demo", "--duration", "-1"], ["--duration", "> 0"]),
         (
@@ -282,6 +283,7 @@ def test_cli_stream_replay_bad_input_exits_2_before_lsl(args, needles, tmp_path,
     (tmp_path / "notab.toml").write_text("stream = 1\n")
     (tmp_path / "broken.toml").write_text("[stream\n")
     (tmp_path / "existing.npz").write_bytes(b"keep me")
+    (tmp_path / "rand.bin").write_bytes(bytes(range(256)) * 4)
     result = runner.invoke(cli.app, args)
     assert result.exit_code == 2, (result.output, cli_stderr(result))
     _one_line_error(cli_stderr(result), *needles)

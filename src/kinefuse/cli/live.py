@@ -25,6 +25,7 @@ from kinefuse.cli._output import (
     one_line,
 )
 from kinefuse.exceptions import InputError
+from kinefuse.io import detect_format
 from kinefuse.session_file import load_session, read_toml
 
 __all__ = ["replay", "stream"]
@@ -306,6 +307,8 @@ def replay(
         )
     check_json(json_file, force, () if recording == "demo" else (Path(recording),))
     source = recording if recording == "demo" else Path(recording)
+    if source != "demo":
+        detect_format(source)  # an unreadable recording fails here, before "Publishing"
     if not quiet:
         stderr().print(
             f"Publishing {recording} as {prefix}_* LSL streams at {rate:g}x (Ctrl-C stops)..."
