@@ -601,3 +601,14 @@ def test_run_given_a_recording_or_a_folder_says_how_to_make_a_session(tmp_path):
     _assert_one_line_error(result, 2, "walk.csv", "not valid TOML", "init-session", "--from")
     result = runner.invoke(cli.app, ["run", str(tmp_path)])
     _assert_one_line_error(result, 2, "a folder, not a session file", "--from")
+
+
+def test_evaluate_unreadable_recording_fails_before_the_kernel_note(monkeypatch, tmp_path):
+    from kinefuse import _kernel_mode
+
+    bad = tmp_path / "rand.bin"
+    bad.write_bytes(bytes(range(256)) * 4)
+    monkeypatch.setattr(_kernel_mode, "kernels_cached", lambda: False)  # a first run ...
+    monkeypatch.setattr(_kernel_mode, "interpret_kernels", lambda: True)  # ... interpreted
+    result = runner.invoke(cli.app, ["evaluate", str(bad), "--method", "imu-only"])
+    _assert_one_line_error(result, 2, "rand.bin: unsupported format")  # the note not printed

@@ -23,7 +23,7 @@ from kinefuse.cli._output import (
     present,
 )
 from kinefuse.exceptions import InputError
-from kinefuse.io import FORMATS
+from kinefuse.io import FORMATS, detect_format
 from kinefuse.progress import progress
 from kinefuse.session_file import CALIBRATIONS, METHODS, ROOTS, load_session, session_template
 from kinefuse.session_file.from_recording import filled_template
@@ -343,6 +343,8 @@ def evaluate(
     ):
         if value not in choices:
             raise InputError(f"{opt}: expected one of {', '.join(choices)}, got {value!r}")
+    if fmt is None:
+        detect_format(recording)  # an unreadable recording fails here, before any kernel note
     if first_run_kernels((recording,), quiet) == "compile":  # before any kernel is imported
         compile_kernels_now(quiet)
     summary = backend("evaluate")(
