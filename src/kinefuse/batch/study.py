@@ -58,7 +58,14 @@ from pathlib import Path
 
 from kinefuse.exceptions import ConfigError
 from kinefuse.methods import unknown_fix
-from kinefuse.session_file import METHODS, SECTION_PARAMETERS, _Ctx, load_session, read_toml
+from kinefuse.session_file import (
+    METHODS,
+    SECTION_PARAMETERS,
+    _Ctx,
+    init_session_hint,
+    load_session,
+    read_toml,
+)
 
 __all__ = ["Study", "Task", "load_study", "study_from_sessions"]
 
@@ -503,7 +510,7 @@ def study_from_sessions(
     if t.is_file() and t.suffix.lower() != ".toml" and not _glob.has_magic(str(t)):
         raise ConfigError(
             f"{target}: not a study or session file (*.toml); a recording needs a session: "
-            f"`kinefuse init-session SESSION.toml --from {target}`"
+            f"{init_session_hint(target)}"
         )
     if t.is_dir():
         files = sorted(t.glob("*.toml"))

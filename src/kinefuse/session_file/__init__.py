@@ -13,7 +13,14 @@ resolved against the folder of the TOML file, so a session folder can be moved a
 from kinefuse.session_file import config
 from kinefuse.session_file._checks import _Ctx
 from kinefuse.session_file.config import *  # noqa: F403 - the dataclasses and the choices
-from kinefuse.session_file.load import load_session, read_toml
+from kinefuse.session_file.load import init_session_hint, load_session, read_toml
 from kinefuse.session_file.template import session_template
 
-__all__ = [*config.__all__, "load_session", "read_toml", "session_template", "_Ctx"]
+__all__ = [
+    *config.__all__,
+    "init_session_hint",
+    "load_session",
+    "read_toml",
+    "session_template",
+    "_Ctx",
+]

@@ -74,11 +74,16 @@ def read_toml(path: str | Path, *, missing: str = "file not found") -> dict:
         raise ConfigError(f"{p.name}: not a UTF-8 text file") from None
 
 
+def init_session_hint(recording) -> str:
+    """The command that makes a session file from ``recording`` (for error messages)."""
+    return f"`kinefuse init-session SESSION.toml --from {recording}`"
+
+
 def _read_session_toml(p: Path) -> dict:
     """:func:`read_toml` of a session file; a folder, or a file that is not TOML and not named
     ``.toml`` (a recording given where the session belongs), gets the command that makes a
     session from it."""
-    make = f"make a session from it with `kinefuse init-session SESSION.toml --from {p}`"
+    make = f"make a session from it with {init_session_hint(p)}"
     if p.is_dir():
         raise ConfigError(f"{p}: a folder, not a session file; {make}")
     try:
