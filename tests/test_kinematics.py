@@ -193,6 +193,30 @@ def test_length_preference_and_lengths_from_joints(rng):
 
 
 # ---------------------------------------------------------------- bad input
+def test_rotation_matrix_check_matches_gram_and_determinant(rng):
+    """Oracle: max |RᵀR − I| from batched matrix products and numpy's determinant, over more
+    matrices than one chunk of the check; NaN rows are missing, not refused."""
+    from kinefuse.kinematics.forward import _orthonormality, as_rotation_matrices
+
+    R = Rotation.random(20000, random_state=3).as_matrix()
+    R[123] += rng.normal(0, 2e-5, (3, 3))  # within the 1e-4 tolerance
+    R[17_000, 0] *= 1 + 3e-5
+    err, det_min = _orthonormality(R.reshape(-1, 9))
+    want = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max()
+    assert err == pytest.approx(want, rel=1e-9) and 1e-5 < err < 1e-4
+    assert det_min == pytest.approx(np.linalg.det(R).min(), rel=1e-12)
+    R[5] = np.nan
+    assert as_rotation_matrices(R) is not None
+    bad = R.copy()
+    bad[9000, :, 1] *= 1.001  # off by 2e-3
+    with pytest.raises(InputError, match=r"max \|RᵀR − I\| = 0.002"):
+        as_rotation_matrices(bad)
+    bad = R.copy()
+    bad[19_999] *= -1  # a reflection: orthonormal, det −1
+    with pytest.raises(InputError, match="det < 0"):
+        as_rotation_matrices(bad)
+
+
 def test_bad_input_messages():
     sk = upper_limb(lengths={"upper_arm_r": 0.3, "forearm_r": 0.25})
     ok = {"upper_arm_r": IDENTITY, "forearm_r": IDENTITY}

@@ -330,3 +330,21 @@ def test_ufir_cv_covariance_closed_form_matches_iterative(N, dt, q, r, missing, 
     np.testing.assert_allclose(
         fast.cov, ref.cov, rtol=1e-9, atol=1e-13 * np.nanmax(np.abs(ref.cov))
     )
+
+
+@_SETTINGS
+@given(
+    shape=st.lists(st.integers(0, 6), min_size=1, max_size=3),
+    fill=st.sampled_from([np.nan, np.inf, -np.inf]),
+    frac=st.floats(0.0, 1.0),
+    seed=st.integers(0, 2**31 - 1),
+)
+def test_finite_rows_equals_numpy_reduction(shape, fill, frac, seed):
+    """Any shape (an empty last axis too) and any non-finite value: ``finite_rows`` is numpy's
+    ``np.all(np.isfinite(a), axis=-1)`` (the oracle)."""
+    from kinefuse._validation import finite_rows
+
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=shape)
+    a[rng.random(shape) < frac] = fill
+    np.testing.assert_array_equal(finite_rows(a), np.all(np.isfinite(a), axis=-1))

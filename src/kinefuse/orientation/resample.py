@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinefuse._validation import as_float_array
+from kinefuse._validation import as_float_array, finite_rows
 from kinefuse.exceptions import InputError
 
 __all__ = ["MAX_GAP_S", "default_max_gap_s", "slerp_pairs", "slerp_resample"]
@@ -54,11 +54,12 @@ def slerp_resample(t_src_s, q_src, t_dst_s, *, max_gap_s: float | None = None) -
         raise InputError(f"expected t_dst_s with shape (M,), got {t_dst.shape}")
     if t_src.shape == t_dst.shape and np.array_equal(t_src, t_dst):
         return q.copy()
-    ok = np.all(np.isfinite(q), axis=1)
+    ok = finite_rows(q)
     out = np.full((t_dst.size, 4), np.nan)
-    if ok.sum() < 2:
+    n_ok = int(np.count_nonzero(ok))
+    if n_ok < 2:
         return out
-    ts, qs = t_src[ok], q[ok]
+    ts, qs = (t_src, q) if n_ok == ok.size else (t_src[ok], q[ok])
     if np.any(np.diff(ts) <= 0):
         raise InputError("expected t_src_s strictly increasing where q_src is valid")
     if max_gap_s is None:
@@ -70,12 +71,13 @@ def slerp_resample(t_src_s, q_src, t_dst_s, *, max_gap_s: float | None = None) -
     exact = ts[np.minimum(left, ts.size - 1)] == t_dst  # t_dst is a source time (ts sorted)
     use = inside & ((gap <= max_gap_s + 1e-12) | exact)
     if np.any(use):
-        out[use] = _slerp(ts, qs, t_dst[use])
+        out[use] = _slerp(ts, qs, t_dst[use], left[use])
     return out
 
 
-def _slerp(ts: np.ndarray, qs: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """SLERP of ``qs (T, 4)`` (``wxyz``, any norm) at ``t (M,)`` inside ``[ts[0], ts[-1]]``.
+def _slerp(ts: np.ndarray, qs: np.ndarray, t: np.ndarray, left: np.ndarray) -> np.ndarray:
+    """SLERP of ``qs (T, 4)`` (``wxyz``, any norm) at ``t (M,)`` inside ``[ts[0], ts[-1]]``
+    (``left = np.searchsorted(ts, t)``).
 
     The arithmetic of :class:`scipy.spatial.transform.Slerp` (its interval choice: a target on
     a source time ``ts[k]``, ``k > 0``, is the end of interval ``k − 1``; the shortest rotation
@@ -83,7 +85,7 @@ def _slerp(ts: np.ndarray, qs: np.ndarray, t: np.ndarray) -> np.ndarray:
     intervals the targets fall in: O(M) instead of O(T) rotation products (tested against
     scipy to 1e-12).
     """
-    k = np.searchsorted(ts, t) - 1
+    k = left - 1
     k[t == ts[0]] = 0
     return slerp_pairs(qs[k], qs[k + 1], (t - ts[k]) / (ts[k + 1] - ts[k]))
 
@@ -104,30 +106,54 @@ def slerp_pairs(q0, q1, alpha) -> np.ndarray:
         Unit ``wxyz``, the sign of ``q0``; the arithmetic of :func:`slerp_resample`, so a
         live sample interpolated between its two neighbours equals the offline resampling.
     """
-    q0 = q0 / np.linalg.norm(q0, axis=1, keepdims=True)
-    q1 = q1 / np.linalg.norm(q1, axis=1, keepdims=True)
-    d = _mul(q0 * [1.0, -1.0, -1.0, -1.0], q1)  # q0* q1
-    d[d[:, 0] < 0] *= -1.0  # the shorter way round
-    v = d[:, 1:]
-    vn = np.linalg.norm(v, axis=1)
-    half = alpha * np.arctan2(vn, d[:, 0])  # fraction of half the rotation angle
+    q0, q1, alpha = np.asarray(q0), np.asarray(q1), np.asarray(alpha, dtype=float)
+    out = np.empty((alpha.size, 4))
+    for i in range(0, alpha.size, _CHUNK):  # chunks: the temporaries stay in cache
+        sl = slice(i, i + _CHUNK)
+        out[sl] = _slerp_columns(q0[sl].T, q1[sl].T, alpha[sl]).T
+    return out
+
+
+#: Rows per chunk of :func:`slerp_pairs` (about 4x faster than whole 100 000-row arrays).
+_CHUNK = 8192
+
+
+def _slerp_columns(a: np.ndarray, b: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """:func:`slerp_pairs` on ``(4, M)`` component rows: every operation on contiguous rows."""
+    a = a / _norm4(a)
+    b = b / _norm4(b)
+    d = _mul(a * _CONJ, b)  # a* b
+    np.negative(d, out=d, where=d[0] < 0)  # the shorter way round
+    v = d[1:]
+    vn = _norm4(v)
+    half = alpha * np.arctan2(vn, d[0])  # fraction of half the rotation angle
     small = vn < 1e-8  # sin(half)/vn -> alpha / w (error O(angle²) < 1e-16)
-    ratio = np.where(small, alpha / d[:, 0], np.sin(half) / np.where(small, 1.0, vn))
-    e = np.concatenate([np.cos(half)[:, None], v * ratio[:, None]], axis=1)
-    out = _mul(q0, e)
-    return out / np.linalg.norm(out, axis=1, keepdims=True)
+    ratio = np.where(small, alpha / d[0], np.sin(half) / np.where(small, 1.0, vn))
+    out = _mul(a, np.concatenate([np.cos(half)[None], v * ratio]))
+    return out / _norm4(out)
+
+
+_CONJ = np.array([[1.0], [-1.0], [-1.0], [-1.0]])
+
+
+def _norm4(a: np.ndarray) -> np.ndarray:
+    """Euclidean norm of the columns of ``a (d, M)``, summed in row order as ``np.linalg.norm``
+    sums a short last axis: ``(M,)``."""
+    s = a[0] * a[0]
+    for r in a[1:]:
+        s = s + r * r
+    return np.sqrt(s)
 
 
 def _mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton products ``a b`` of ``wxyz`` quaternions, row by row: ``(M, 4)``."""
-    aw, ax, ay, az = a.T
-    bw, bx, by, bz = b.T
+    """Hamilton products ``a b`` of ``wxyz`` quaternions given as component rows ``(4, M)``."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
     return np.stack(
         [
             aw * bw - ax * bx - ay * by - az * bz,
             aw * bx + ax * bw + ay * bz - az * by,
             aw * by - ax * bz + ay * bw + az * bx,
             aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=1,
+        ]
     )
