@@ -129,3 +129,27 @@ def test_baselines_run_as_session_methods_and_appear_in_the_evaluation():
     assert ev.methods[0] == "offset interp"
     assert {"offset hold", "camera gap-fill", "IMU chain"} <= set(ev.methods)
     assert ev.methods.count("offset interp") == 1
+
+
+def test_joint_major_outputs_are_returned_without_a_copy():
+    """``empty_output``'s arrays are joint-major views of time-major arrays: ``finish`` returns
+    those arrays themselves (no transposing copy of the covariances), with the values written
+    through the views."""
+    from kinefuse.pipelines.fusion_context import empty_output, finish, joint_major
+
+    _, truth, cam, av = _scenario()
+    a = joint_major(2, 5, (3, 3), fill=0.0)
+    assert a.shape == (2, 5, 3, 3) and np.swapaxes(a, 0, 1).flags.c_contiguous
+    res = vision_assisted(truth, cam, av, DT, "offset-hold")  # written into empty_output's
+    assert res.position.flags.c_contiguous and res.cov.flags.c_contiguous
+    pos = joint_major(2, 400, (3,), fill=np.nan)
+    pos[1, 7] = 1.5
+    cov = joint_major(2, 400, (3, 3), fill=np.nan)
+    src = joint_major(2, 400, dtype=np.int8, fill=SOURCE_NONE)
+    ctx = type("Ctx", (), {"shape": (2, 400), "available": av.T, "joints": ("a", "b"),
+                           "method": "m", "dt_s": DT, "params": res.params})()  # fmt: skip
+    out = finish(ctx, pos, cov, src, causal=True)
+    assert np.shares_memory(out.position, pos) and np.shares_memory(out.cov, cov)
+    assert out.position[7, 1, 0] == 1.5 and out.position.shape == (400, 2, 3)
+    _, c2, s2 = empty_output(ctx)
+    assert np.swapaxes(c2, 0, 1).flags.c_contiguous and s2.dtype == np.int8

@@ -17,7 +17,15 @@ from kinefuse.models import LinearGaussianModel
 from kinefuse.pipelines._outages import SOURCE_NONE, outage_intervals
 from kinefuse.pipelines.vision_params import VisionParams, check_float
 
-__all__ = ["FusionContext", "FusionResult", "check_inputs", "empty_output", "finish", "pos_cov"]
+__all__ = [
+    "FusionContext",
+    "FusionResult",
+    "check_inputs",
+    "empty_output",
+    "finish",
+    "joint_major",
+    "pos_cov",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,20 +119,33 @@ def pos_cov(cov: np.ndarray) -> np.ndarray:
     return cov[..., 0::2, 0::2]
 
 
+def joint_major(J: int, T: int, tail: tuple = (), dtype=np.float64, fill=None) -> np.ndarray:
+    """A joint-major ``(J, T, *tail)`` view of a new time-major ``(T, J, *tail)`` array.
+
+    :func:`finish` returns time-major arrays: a method that writes its output into these views
+    is returned without a transposing copy (of the covariances, the largest output). ``fill``:
+    the initial value (None: uninitialised).
+    """
+    a = np.empty((T, J, *tail), dtype) if fill is None else np.full((T, J, *tail), fill, dtype)
+    return np.swapaxes(a, 0, 1)
+
+
 def empty_output(ctx: FusionContext):
-    """All-missing joint-major ``(position, cov, source)`` arrays for ``ctx``."""
+    """All-missing joint-major ``(position, cov, source)`` arrays for ``ctx``
+    (:func:`joint_major` views)."""
     J, T = ctx.shape
     return (
-        np.full((J, T, 3), np.nan),
-        np.full((J, T, 3, 3), np.nan),
-        np.full((J, T), SOURCE_NONE, dtype=np.int8),
+        joint_major(J, T, (3,), fill=np.nan),
+        joint_major(J, T, (3, 3), fill=np.nan),
+        joint_major(J, T, dtype=np.int8, fill=SOURCE_NONE),
     )
 
 
 def finish(
     ctx: FusionContext, pos, cov, src, *, causal: bool, mu=None, episodes=None, **flags
 ) -> FusionResult:
-    """Assemble a time-major :class:`FusionResult` from joint-major arrays."""
+    """Assemble a time-major :class:`FusionResult` from joint-major arrays (copied unless they
+    are :func:`joint_major` views)."""
     J, T = ctx.shape
     flags = {
         k: flags.get(k, np.zeros((J, T), dtype=bool)) for k in ("imu_fallback", "elm2_skipped")

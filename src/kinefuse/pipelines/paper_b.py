@@ -77,6 +77,7 @@ from kinefuse.filters import (
 from kinefuse.filters._base import expand_shared_block
 from kinefuse.learning import ELMRegressor
 from kinefuse.models import LinearGaussianModel
+from kinefuse.pipelines import fusion_context as fc
 from kinefuse.pipelines._outages import SOURCE_NONE, OutageEpisode, segment_start
 from kinefuse.pipelines._paper_b_smooth import RunSmoother
 from kinefuse.pipelines.fusion_context import FusionContext, FusionResult, finish, pos_cov
@@ -682,8 +683,9 @@ def _advance_in_blocks(core: PaperBCore, state: PaperBState, ctx: FusionContext)
 
 
 def _full_length(a: np.ndarray | None, T: int) -> np.ndarray | None:
-    """An empty ``(J, T, ...)`` array like the block output ``a (J, L, ...)`` (None: None)."""
-    return None if a is None else np.empty((a.shape[0], T, *a.shape[2:]), a.dtype)
+    """An empty ``(J, T, ...)`` array like the block output ``a (J, L, ...)`` (None: None); a
+    :func:`~kinefuse.pipelines.fusion_context.joint_major` view (no copy in ``finish``)."""
+    return None if a is None else fc.joint_major(a.shape[0], T, a.shape[2:], a.dtype)
 
 
 def elm_fir(ctx: FusionContext) -> FusionResult:
