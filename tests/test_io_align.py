@@ -10,6 +10,7 @@ import kinefuse.io as kio
 from kinefuse.io.align import (
     common_timeline,
     estimate_clock_offset,
+    resample_coverage,
     resample_orientation,
     resample_positions,
 )
@@ -75,6 +76,35 @@ def test_positions_linear_and_availability(rng):
     assert o2.shape == (t_new.size, 3) and a2.shape == (t_new.size,)
     with pytest.raises(ValueError, match="strictly increasing t_src"):
         resample_positions(t[::-1], p, t_new)
+
+
+@pytest.mark.parametrize("max_gap_s", [None, 0.05, 0.2])
+def test_resample_coverage_follows_its_definition(rng, max_gap_s):
+    """Oracle, a loop over the targets: a target is covered when it is a usable source time, or
+    lies between two consecutive usable source times at most ``max_gap_s`` apart (default 1.5
+    source steps); and it is where resample_positions gives a value."""
+    t = np.cumsum(rng.uniform(0.01, 0.03, 300))
+    usable = rng.random(300) > 0.15
+    usable[40:50] = False  # a long gap
+    t_new = np.concatenate([rng.uniform(t[0] - 0.1, t[-1] + 0.1, 700), t[::7]])
+    t_new = np.unique(t_new)
+    got = resample_coverage(t, usable, t_new, max_gap_s=max_gap_s)
+    gap = 1.5 * np.median(np.diff(t)) if max_gap_s is None else max_gap_s
+    tv = t[usable]
+    want = np.zeros(t_new.size, bool)
+    for i, x in enumerate(t_new):
+        if x in tv:
+            want[i] = True
+            continue
+        for a, b in zip(tv[:-1], tv[1:], strict=True):
+            if a < x < b:
+                want[i] = b - a <= gap
+                break
+    np.testing.assert_array_equal(got, want)
+    p = np.where(usable[:, None], rng.normal(size=(300, 3)), np.nan)
+    np.testing.assert_array_equal(resample_positions(t, p, t_new, max_gap_s=max_gap_s)[1], want)
+    with pytest.raises(ValueError, match="usable with shape"):
+        resample_coverage(t, usable[:-1], t_new)
 
 
 def test_common_timeline_overlap():

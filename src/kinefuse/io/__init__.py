@@ -30,6 +30,7 @@ _LAZY = {
     "read_joint_csv": "generic_csv",
     "write_imu_csv": "generic_csv",
     "write_joint_csv": "generic_csv",
+    "resample_coverage": "align",
     "resample_orientation": "align",
     "resample_positions": "align",
     "resample_recording": "align",

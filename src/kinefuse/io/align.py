@@ -23,6 +23,7 @@ __all__ = [
     "ClockOffset",
     "common_timeline",
     "estimate_clock_offset",
+    "resample_coverage",
     "resample_orientation",
     "resample_positions",
     "resample_recording",
@@ -136,6 +137,33 @@ def resample_orientation(t_src, q, t_new, *, max_gap_s: float | None = None) -> 
     if tt.size:
         out[ok] = slerp(tt).as_quat(scalar_first=True)
     return out
+
+
+def resample_coverage(t_src, usable, t_new, *, max_gap_s: float | None = None) -> np.ndarray:
+    """Where :func:`resample_positions` gives a value at ``t_new``, without computing the values.
+
+    Parameters
+    ----------
+    t_src : array_like, shape (T,)
+        Source times, s, strictly increasing.
+    usable : array_like of bool, shape (T,)
+        The source samples that can be interpolated from (e.g. the finite rows).
+    t_new : array_like, shape (T_new,)
+        Target times, s, strictly increasing.
+    max_gap_s : float or None
+        As in :func:`resample_positions`.
+
+    Returns
+    -------
+    ndarray of bool, shape (T_new,)
+        :func:`resample_positions`' ``available_new`` for a signal usable at ``usable``.
+    """
+    t_src = _times(t_src, "t_src")
+    t_new = _times(t_new, "t_new")
+    u = np.asarray(usable, dtype=bool)
+    if u.shape != t_src.shape:
+        raise InputError(f"expected usable with shape {t_src.shape}, got {u.shape}")
+    return _brackets(t_src[u], t_new, _default_gap(t_src, max_gap_s))[2]
 
 
 def resample_positions(

@@ -174,10 +174,8 @@ class JointStream:
     def position(self, joint: str, *, masked: bool = True) -> np.ndarray:
         """Positions ``(T, 3)`` of one joint; NaN where unavailable when ``masked``."""
         j = self.index(joint)
-        p = self.position_m[:, j].copy()
-        if masked:
-            p[~self.available[:, j]] = np.nan
-        return p
+        p = self.position_m[:, j]
+        return np.where(self.available[:, j, None], p, np.nan) if masked else p.copy()
 
     def subset(self, joints: Sequence[str]) -> JointStream:
         """A stream with only ``joints`` (in that order)."""

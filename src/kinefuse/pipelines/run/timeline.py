@@ -12,10 +12,11 @@ from collections.abc import Mapping
 import numpy as np
 
 from kinefuse import methods
+from kinefuse._validation import finite_rows
 from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_IMU, SOURCE_KINDS, SOURCE_PREDICTED
 from kinefuse.evaluation.tables import ResultTable, TableRow
 from kinefuse.exceptions import InputError
-from kinefuse.io import resample_positions
+from kinefuse.io import resample_coverage, resample_positions
 from kinefuse.orientation.resample import MAX_GAP_S, default_max_gap_s
 from kinefuse.pipelines.run.output import SessionOutput
 
@@ -119,7 +120,7 @@ def _extend_to_imu(t: np.ndarray, recording) -> np.ndarray:
 
 
 def _covered(t_src, p, t: np.ndarray, max_gap_s: float | None = None) -> np.ndarray:
-    return resample_positions(t_src, p, t, max_gap_s=max_gap_s)[1]
+    return resample_coverage(t_src, finite_rows(p), t, max_gap_s=max_gap_s)
 
 
 def _input_coverage(recording, sk, root_stream, t: np.ndarray, joints):
