@@ -85,13 +85,24 @@ def _kernel_filter(zc, zi, F, Q, p, x, P):
     return xf, Pf
 
 
+def _smooth_full(zc, zi, F, Q, p, x, P):
+    """The offline path's filter and fixed-interval RTS with the full smoothed covariances
+    (``_run`` keeps the position variances only)."""
+    xf, Pf = _kernel_filter(zc, zi, F, Q, p, x, P)
+    xs, Ps = np.empty_like(xf), np.empty_like(Pf)
+    rts_smooth(xf, Pf, F[:, None], Q[:, None], -1, xs, Ps)
+    return xs, Ps
+
+
 def test_filter_and_fixed_interval_rts_equal_filterpy():
     zc, zi = _series()
     p = _params()
     F, Q = _model_matrices(p, DT)
     x0, P0 = _prior(zc[0], zi[0], p)
     xf, Pf = _kernel_filter(zc, zi, F, Q, p, x0.copy(), P0.copy())
-    xs, Ps = _run(zc, zi, p, DT)  # the offline path: filter + fixed-interval RTS
+    xs, Ps = _smooth_full(zc, zi, F, Q, p, x0.copy(), P0.copy())
+    xr, var = _run(zc, zi, p, DT)  # the offline path: filter + fixed-interval RTS
+    assert var.shape == (3, zc.shape[0], 1, 1)
     for a in range(3):
         fx, fP, sx, sP = _filterpy_axis(zc[:, a], zi[:, a], F[a], Q[a], p.r_cam[a], p.r_imu[a],
                                         x0[a], P0[a])  # fmt: skip
@@ -99,6 +110,8 @@ def test_filter_and_fixed_interval_rts_equal_filterpy():
         np.testing.assert_allclose(Pf[a], fP, atol=TOL, rtol=0)
         np.testing.assert_allclose(xs[a], sx, atol=TOL, rtol=0)
         np.testing.assert_allclose(Ps[a], sP, atol=TOL, rtol=0)
+        np.testing.assert_allclose(xr[a], sx, atol=TOL, rtol=0)
+        np.testing.assert_allclose(var[a, :, 0, 0], sP[:, 0, 0], atol=TOL, rtol=0)
 
 
 def test_fixed_lag_time_varying_rts_equals_filterpy_on_truncated_series():
@@ -136,7 +149,7 @@ def test_rts_equals_closed_form_joint_gaussian():
     p = _params()
     F, Q = _model_matrices(p, DT)
     x0, P0 = _prior(zc[0], zi[0], p)
-    xs, Ps = _run(zc, zi, p, DT)
+    xs, Ps = _smooth_full(zc, zi, F, Q, p, x0.copy(), P0.copy())
     n = _N_X
     for a in range(3):
         # states x_t = Φ_t x_0 + Σ_{s<=t} Φ_{t-s} w_s: mean and covariance of the stacked (T n,)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinefuse._compile import njit
+from kinefuse._compile import njit, njit_inline
 
 __all__ = [
     "accumulate_moments",
@@ -28,10 +28,14 @@ __all__ = [
 ]
 
 
-@njit
-def _scalar_update(x, P, z, h, r, ph):
+#: States per axis of the model, ``[p, v, b, c]`` (:mod:`kinefuse.pipelines.kinefuse_fusion`):
+#: the kernels' matrix sizes, fixed so that the compiler unrolls their loops.
+N_X = 4
+
+
+@njit_inline
+def _scalar_update(x, P, z, h, r, ph, n):
     """Scalar measurement update in place: ``x (n,)``, ``P (n, n)``; ``ph (n,)`` scratch."""
-    n = x.shape[0]
     for i in range(n):
         acc = 0.0
         for j in range(n):
@@ -55,12 +59,11 @@ def _scalar_update(x, P, z, h, r, ph):
             P[j, i] = v
 
 
-@njit
-def _predict(x, P, F, Q, b, w, W):
+@njit_inline
+def _predict(x, P, F, Q, b, w, W, n):
     """Prediction in place: ``x ← F x``, ``P ← F P Fᵀ + Q`` (symmetrised) with ``F[b], Q[b]``;
     ``w (n,)``, ``W (n, n)`` scratch. (Whole arrays and an index, no views: a view made per
     sample costs numba reference-count calls.)"""
-    n = x.shape[0]
     for i in range(n):
         acc = 0.0
         for m in range(n):
@@ -83,15 +86,18 @@ def _predict(x, P, F, Q, b, w, W):
 
 @njit
 def kf_segment(z_cam, z_imu, F, Q, r_cam, r_imu, x, P, predict_first, h_cam, h_imu, x_out, P_out):
-    """Forward KF over one segment, batch (B, L), continuing from ``x (B, n)``, ``P (B, n, n)``.
+    """Forward KF over one segment, batch (B, L), continuing from ``x (B, n)``, ``P (B, n, n)``
+    (``n =`` :data:`N_X`).
 
     Each sample has two scalar measurements, either may be NaN (not measured). The first
     sample is predicted from ``(x, P)`` when ``predict_first`` (a continuation), else ``(x, P)``
     is the prior of the first sample. ``x`` and ``P`` are overwritten with the last posterior.
     No allocation and no array view per sample.
     """
+    n = N_X  # a compile-time constant: the small matrix loops are unrolled
+    if x.shape[1] != n:
+        raise ValueError("kf_segment: expected x with shape (B, N_X)")
     B, L = z_cam.shape
-    n = x.shape[1]
     xb = np.empty(n)
     Pb = np.empty((n, n))
     w = np.empty(n)
@@ -103,13 +109,13 @@ def kf_segment(z_cam, z_imu, F, Q, r_cam, r_imu, x, P, predict_first, h_cam, h_i
                 Pb[i, j] = P[b, i, j]
         for t in range(L):
             if t > 0 or predict_first:
-                _predict(xb, Pb, F, Q, b, w, W)
+                _predict(xb, Pb, F, Q, b, w, W, n)
             zc = z_cam[b, t]
             zi = z_imu[b, t]
             if np.isfinite(zc):
-                _scalar_update(xb, Pb, zc, h_cam, r_cam[b], w)
+                _scalar_update(xb, Pb, zc, h_cam, r_cam[b], w, n)
             if np.isfinite(zi):
-                _scalar_update(xb, Pb, zi, h_imu, r_imu[b], w)
+                _scalar_update(xb, Pb, zi, h_imu, r_imu[b], w, n)
             for i in range(n):
                 x_out[b, t, i] = xb[i]
                 for j in range(n):
@@ -120,11 +126,10 @@ def kf_segment(z_cam, z_imu, F, Q, r_cam, r_imu, x, P, predict_first, h_cam, h_i
                 P[b, i, j] = Pb[i, j]
 
 
-@njit
-def _solve_into(A, B, X):
+@njit_inline
+def _solve_into(A, B, X, n):
     """``X = A⁻¹ B`` by Gaussian elimination with partial pivoting (as LAPACK's ``gesv``), in
     place: ``A`` is overwritten by its factors. No allocation."""
-    n = A.shape[0]
     X[:, :] = B
     for k in range(n):
         p = k
@@ -150,12 +155,11 @@ def _solve_into(A, B, X):
             X[k, j] = v / A[k, k]
 
 
-@njit
-def _rts_step(xf, Pf, F, Q, b, t, u, xs, Ps, FP, Pp, A, CT, d):
+@njit_inline
+def _rts_step(xf, Pf, F, Q, b, t, u, xs, Ps, FP, Pp, A, CT, d, n):
     """One RTS step back, in place on ``xs, Ps``: filtered ``(xf[b, t], Pf[b, t])``, smoothed
     ``(xs, Ps)`` at t+1 in, at t out; ``F[b, u], Q[b, u]``: t -> t+1 (u = t + 1, or 0 for a
     constant model). ``FP, Pp, A, CT (n, n)``, ``d (n,)`` scratch (no allocation, no view)."""
-    n = xs.shape[0]
     for i in range(n):
         for j in range(n):
             acc = 0.0
@@ -169,7 +173,7 @@ def _rts_step(xf, Pf, F, Q, b, t, u, xs, Ps, FP, Pp, A, CT, d):
                 v += FP[i, m] * F[b, u, j, m]
             Pp[i, j] = v  # P⁻_{t+1} = F P̂ Fᵀ + Q
             A[i, j] = v + (1e-15 if i == j else 0.0)
-    _solve_into(A, FP, CT)  # Cᵀ = (P⁻)⁻¹ F P̂,  C = P̂ Fᵀ (P⁻)⁻¹
+    _solve_into(A, FP, CT, n)  # Cᵀ = (P⁻)⁻¹ F P̂,  C = P̂ Fᵀ (P⁻)⁻¹
     for i in range(n):  # x̃_{t+1} − F x̂_t
         acc = 0.0
         for m in range(n):
@@ -197,18 +201,19 @@ def _rts_step(xf, Pf, F, Q, b, t, u, xs, Ps, FP, Pp, A, CT, d):
             Ps[i, j] = 0.5 * (FP[i, j] + FP[j, i])
 
 
-@njit
-def _store(x_out, P_out, b, t, xs, Ps):
-    n = xs.shape[0]
+@njit_inline
+def _store(x_out, P_out, b, t, xs, Ps, n):
+    """``x_out[b, t] = xs`` and the leading ``k × k`` block of ``Ps`` into ``P_out (B, T, k, k)``."""
+    k = P_out.shape[2]
     for i in range(n):
         x_out[b, t, i] = xs[i]
-        for j in range(n):
+    for i in range(k):
+        for j in range(k):
             P_out[b, t, i, j] = Ps[i, j]
 
 
-@njit
-def _load(xf, Pf, b, t, xs, Ps):
-    n = xs.shape[0]
+@njit_inline
+def _load(xf, Pf, b, t, xs, Ps, n):
     for i in range(n):
         xs[i] = xf[b, t, i]
         for j in range(n):
@@ -222,9 +227,13 @@ def rts_smooth(xf, Pf, F, Q, lag, x_out, P_out):
     ``F[b, t], Q[b, t]`` are the transition into sample t (from t − 1); time-varying, so the
     causal mode's piecewise-constant parameters are smoothed with the model that was filtered;
     ``F, Q`` of shape ``(B, 1, n, n)``: the same model at every t. No allocation and no array
-    view per sample.
+    view per sample. ``P_out (B, T, k, k)``: the leading k×k block of each smoothed covariance
+    (``k = n``: all of it; ``k = 1``: the position variance, when nothing else is read).
     """
-    B, T, n = xf.shape
+    n = N_X  # a compile-time constant (as in kf_segment)
+    if xf.shape[2] != n:
+        raise ValueError("rts_smooth: expected xf with shape (B, T, N_X)")
+    B, T = xf.shape[:2]
     step = 1 if F.shape[1] > 1 else 0
     xs = np.empty(n)
     Ps = np.empty((n, n))
@@ -232,18 +241,18 @@ def rts_smooth(xf, Pf, F, Q, lag, x_out, P_out):
     d = np.empty(n)
     for b in range(B):
         if lag < 0:
-            _load(xf, Pf, b, T - 1, xs, Ps)
-            _store(x_out, P_out, b, T - 1, xs, Ps)
+            _load(xf, Pf, b, T - 1, xs, Ps, n)
+            _store(x_out, P_out, b, T - 1, xs, Ps, n)
             for t in range(T - 2, -1, -1):
-                _rts_step(xf, Pf, F, Q, b, t, (t + 1) * step, xs, Ps, FP, Pp, A, CT, d)
-                _store(x_out, P_out, b, t, xs, Ps)
+                _rts_step(xf, Pf, F, Q, b, t, (t + 1) * step, xs, Ps, FP, Pp, A, CT, d, n)
+                _store(x_out, P_out, b, t, xs, Ps, n)
         else:
             for t in range(T):
                 e = min(t + lag, T - 1)
-                _load(xf, Pf, b, e, xs, Ps)
+                _load(xf, Pf, b, e, xs, Ps, n)
                 for s in range(e - 1, t - 1, -1):
-                    _rts_step(xf, Pf, F, Q, b, s, (s + 1) * step, xs, Ps, FP, Pp, A, CT, d)
-                _store(x_out, P_out, b, t, xs, Ps)
+                    _rts_step(xf, Pf, F, Q, b, s, (s + 1) * step, xs, Ps, FP, Pp, A, CT, d, n)
+                _store(x_out, P_out, b, t, xs, Ps, n)
 
 
 @njit

@@ -115,7 +115,7 @@ import numpy as np
 from kinefuse._validation import positive_finite
 from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED, SOURCE_IMU
 from kinefuse.exceptions import InputError
-from kinefuse.pipelines._kinefuse_kernels import kf_segment, rts_smooth
+from kinefuse.pipelines._kinefuse_kernels import N_X, kf_segment, rts_smooth
 from kinefuse.pipelines.features import chain_features
 from kinefuse.pipelines.kinefuse_noise import NoiseParameters, _Moments, estimate_noise
 from kinefuse.pipelines.kinefuse_ridge import RidgeCorrection
@@ -129,7 +129,7 @@ __all__ = [
     "kinefuse_fusion",
 ]
 
-_N_X = 4  # per axis: [p, v, b, c]
+_N_X = N_X  # per axis: [p, v, b, c]
 _H_CAM = np.array([1.0, 0.0, 0.0, 1.0])  # z_cam = p + c + n_V
 _H_IMU = np.array([1.0, 0.0, 1.0, 0.0])  # z_imu + f(φ) = p + b + n_I
 # causal mode (see the module Notes, "Causal")
@@ -202,7 +202,8 @@ def _prior(z0_cam, z0_imu, p: NoiseParameters):
 
 
 def _run(zc, zi, p: NoiseParameters, dt: float):
-    """Offline: filter + fixed-interval RTS of one joint, ``zc, zi (T, 3)`` -> (3, T, 4), (3, T, 4, 4)."""
+    """Offline: filter + fixed-interval RTS of one joint, ``zc, zi (T, 3)`` -> the smoothed
+    states (3, T, 4) and position variances (3, T, 1, 1) (the rest is not read)."""
     T = zc.shape[0]
     F, Q = _model_matrices(p, dt)
     first = lambda z: np.array([next(iter(z[np.isfinite(z[:, a]), a]), np.nan) for a in range(3)])  # noqa: E731
@@ -211,7 +212,7 @@ def _run(zc, zi, p: NoiseParameters, dt: float):
     Pf = np.empty((3, T, _N_X, _N_X))
     zc_b, zi_b = np.ascontiguousarray(zc.T), np.ascontiguousarray(zi.T)
     kf_segment(zc_b, zi_b, F, Q, p.r_cam, p.r_imu, x, P, False, _H_CAM, _H_IMU, xf, Pf)
-    xs, Ps = np.empty_like(xf), np.empty_like(Pf)
+    xs, Ps = np.empty_like(xf), np.empty((3, T, 1, 1))
     # F, Q as (3, 1, 4, 4): the kernel reads the same model at every t (no (3, T, 4, 4) copy)
     rts_smooth(xf, Pf, F[:, None], Q[:, None], -1, xs, Ps)
     return xs, Ps
