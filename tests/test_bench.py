@@ -60,3 +60,17 @@ def test_engine_rows_interleave_every_processor_and_the_peer(monkeypatch):
     assert [r["processor"] for r in rows] == [*ENGINE_PROCESSORS, "filterpy KF (peer)"]
     assert all(r["frames"] == 270 for r in rows)  # 300 timed, the first 30 skipped
     assert len(order) >= 2 * len(rows) and order[: len(rows)] == order[len(rows) : 2 * len(rows)]
+
+
+def test_pipeline_rows_input_has_no_simulator_truth():
+    """The whole-pipeline rows run on what a recording read from files holds: the simulator's
+    truth (about 1.2 GB an hour) is left out, the sensor, camera and reference data are kept."""
+    from kinefuse.apps.bench_engine import _SIM_TRUTH, _as_read_from_files, pipeline_recording
+
+    full = pipeline_recording(2.0, seed=1)
+    assert set(_SIM_TRUTH) <= set(full.metadata)
+    rec = _as_read_from_files(full)
+    assert not set(_SIM_TRUTH) & set(rec.metadata)
+    assert all(rec.imu[k] is v for k, v in full.imu.items()) and len(rec.imu) == len(full.imu)
+    assert rec.vision is full.vision and rec.reference is full.reference
+    assert set(full.metadata) - set(rec.metadata) == set(_SIM_TRUTH)

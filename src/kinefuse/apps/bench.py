@@ -207,7 +207,7 @@ def _engine_lines(results: dict, lines: list[str]) -> None:
         lines.append(
             f"Whole pipelines on a {dur / 3600:.2g} h recording (9 IMUs at 100 Hz, camera at 30 Hz"
             " with outages), one core, thread CPU time; peak RSS of the process (recording"
-            " loaded, kernels warm)"
+            " loaded without the simulator's truth, kernels warm)"
         )
         for r in pl:
             if "error" in r:
