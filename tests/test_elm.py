@@ -60,6 +60,23 @@ def test_deterministic_for_fixed_seed_and_different_across_seeds(rng):
     assert not np.array_equal(w0, a.input_weights_)
 
 
+def test_integer_seed_draws_numpys_layer_every_fit(rng):
+    """Oracle: ``np.random.default_rng(seed)``'s uniform draws, W then b, at every fit of an
+    integer seed (they are drawn once and reused); a fitted model's arrays are its own."""
+    X, y = _smooth_data(rng, 300)
+    g = np.random.default_rng(11)
+    W, b = g.uniform(-1.0, 1.0, size=(2, 20)), g.uniform(-1.0, 1.0, size=20)
+    m1 = ELMRegressor(random_state=11).fit(X, y)
+    m1.input_weights_ += 1.0  # writable, and not the shared draws
+    m2 = ELMRegressor(random_state=np.int64(11)).fit(X[:200], y[:200])
+    np.testing.assert_array_equal(m2.input_weights_, W)
+    np.testing.assert_array_equal(m2.biases_, b)
+    m1.fit(X, y)
+    np.testing.assert_array_equal(m1.input_weights_, W)
+    with pytest.raises(InputError, match="random_state >= 0"):
+        ELMRegressor(random_state=-1).fit(X, y)
+
+
 def test_pinv_solver_equals_lstsq_on_hidden_matrix(rng):
     X = rng.normal(size=(200, 3)) * [1.0, 10.0, 0.1] + [0.0, 5.0, -1.0]
     Y = np.column_stack([np.sin(X[:, 0]) + X[:, 1], X[:, 2] ** 2])
