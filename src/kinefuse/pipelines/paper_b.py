@@ -459,7 +459,7 @@ class PaperBCore:
         ok = np.all(np.isfinite(x_span), axis=-1)
         zhat = np.full((hi - w0, 3), np.nan)
         zhat[ok] = elm1.predict(x_span[ok])
-        st3, m3, _ = _run_filter(self.fir3, zhat[None], self.fir3.init((1,)))
+        st3, m3, _ = _run_filter(self.fir3, zhat[None], self.fir3.init((1,)), None)
         p3 = m3[0, :, 0::2]
         tr = win[win >= s]
         if s < hi:
@@ -531,12 +531,12 @@ _EYE3 = np.eye(3)
 _EYE3.setflags(write=False)
 
 
-def _run_filter(flt, z: np.ndarray, state, position_cov: bool = False):
+def _run_filter(flt, z: np.ndarray, state, position_cov: bool | None = False):
     """``(state, mean, cov)`` of ``flt.filter(z (J, L, n_z), state)``, on the filters' trusted
     fast path (``_filter_unchecked``: ``z`` is float64 without ±inf, checked by the callers of
-    :meth:`PaperBCore.advance`, and ``state`` is the filter's own). With ``position_cov``,
-    ``cov`` is the position block ``(J, L, n_z, n_z)`` only (:func:`pos_cov`, the same numbers).
-    For one frame the full covariance is the filter state's own (the same numbers).
+    :meth:`PaperBCore.advance`, and ``state`` is the filter's own). ``position_cov``: ``cov`` is
+    the position block ``(J, L, n_z, n_z)`` (:func:`pos_cov`, the same numbers); None: no ``cov``
+    (a UFIR does not compute it). One frame's full covariance is the filter state's own.
 
     A constant-velocity UFIR (paper B's FIRs) runs its compiled loop on the state's own arrays,
     updated in place (``UFIRFilter._run_cv_inplace``: the core owns its states, a checkpoint is
@@ -548,10 +548,12 @@ def _run_filter(flt, z: np.ndarray, state, position_cov: bool = False):
     J, L, n_z = z.shape
     if type(state) is UFIRState and flt._cv_route and state.x.ndim == 2:
         z = np.ascontiguousarray(z)
-        mean, covb = flt._run_cv_inplace(  # one frame's full covariance is the state's own
-            z, state.x, state.P, state.initialized, state.z_buf, state.k, position_cov or L > 1
-        )[:2]
-        if position_cov:  # p00 on the diagonal (the position rows of every axis block)
+        wanted = position_cov is not None and (position_cov or L > 1)  # (L = 1: the state's)
+        mean, covb = flt._run_cv_inplace(z, state.x, state.P, state.initialized, state.z_buf,
+                                         state.k, wanted)[:2]  # fmt: skip
+        if position_cov is None:
+            cov = None
+        elif position_cov:  # p00 on the diagonal (the position rows of every axis block)
             cov = covb[:, :, 0, 0, None, None] * (_EYE3 if n_z == 3 else np.eye(n_z))
         elif L == 1:  # the state's full covariance is that of the one frame (a state not
             cov = state.P[:, None].copy()  # initialised keeps init()'s NaN: no estimate)
