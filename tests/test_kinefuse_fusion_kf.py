@@ -10,11 +10,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from kinefuse.pipelines._kinefuse_kernels import kf_segment, rts_smooth
+from kinefuse.pipelines._kinefuse_kernels import N_X, kf_segment, rts_smooth
 from kinefuse.pipelines.kinefuse_fusion import (
     _H_CAM,
     _H_IMU,
-    _N_X,
     NoiseParameters,
     _model_matrices,
     _prior,
@@ -52,7 +51,7 @@ def _series(T=60, seed=0):
 
 def _filterpy_axis(zc, zi, F, Q, r_cam, r_imu, x0, P0):
     """filterpy forward filter + RTS of one axis (first sample: prior, not predicted)."""
-    kf = filterpy_kalman.KalmanFilter(dim_x=_N_X, dim_z=2)
+    kf = filterpy_kalman.KalmanFilter(dim_x=N_X, dim_z=2)
     kf.x = x0.reshape(-1, 1).copy()
     kf.P = P0.copy()
     kf.F, kf.Q = F, Q
@@ -78,8 +77,8 @@ def _filterpy_axis(zc, zi, F, Q, r_cam, r_imu, x0, P0):
 
 def _kernel_filter(zc, zi, F, Q, p, x, P):
     T = zc.shape[0]
-    xf = np.empty((3, T, _N_X))
-    Pf = np.empty((3, T, _N_X, _N_X))
+    xf = np.empty((3, T, N_X))
+    Pf = np.empty((3, T, N_X, N_X))
     kf_segment(np.ascontiguousarray(zc.T), np.ascontiguousarray(zi.T), F, Q, p.r_cam, p.r_imu,
                x, P, False, _H_CAM, _H_IMU, xf, Pf)  # fmt: skip
     return xf, Pf
@@ -150,7 +149,7 @@ def test_rts_equals_closed_form_joint_gaussian():
     F, Q = _model_matrices(p, DT)
     x0, P0 = _prior(zc[0], zi[0], p)
     xs, Ps = _smooth_full(zc, zi, F, Q, p, x0.copy(), P0.copy())
-    n = _N_X
+    n = N_X
     for a in range(3):
         # states x_t = Φ_t x_0 + Σ_{s<=t} Φ_{t-s} w_s: mean and covariance of the stacked (T n,)
         mean = np.concatenate([np.linalg.matrix_power(F[a], t) @ x0[a] for t in range(T)])
@@ -192,8 +191,8 @@ def test_filter_split_and_resume_equals_one_run():
     x, P = x0.copy(), P0.copy()
     parts = []
     for t0, t1 in ((0, 17), (17, 18), (18, 50)):
-        xo = np.empty((3, t1 - t0, _N_X))
-        Po = np.empty((3, t1 - t0, _N_X, _N_X))
+        xo = np.empty((3, t1 - t0, N_X))
+        Po = np.empty((3, t1 - t0, N_X, N_X))
         kf_segment(np.ascontiguousarray(zc[t0:t1].T), np.ascontiguousarray(zi[t0:t1].T), F, Q,
                    p.r_cam, p.r_imu, x, P, t0 > 0, _H_CAM, _H_IMU, xo, Po)  # fmt: skip
         parts.append((xo, Po))

@@ -49,14 +49,17 @@ def _rng(random_state) -> np.random.Generator:
     )
 
 
+def _draw_layer(rng: np.random.Generator, n_in: int, d: int) -> tuple[np.ndarray, np.ndarray]:
+    """The random layer ``W (n_in, d) ~ U[−1, 1]``, then ``b (d,) ~ U[−1, 1]``, from ``rng``."""
+    return rng.uniform(-1.0, 1.0, size=(n_in, d)), rng.uniform(-1.0, 1.0, size=d)
+
+
 @functools.lru_cache(maxsize=64)
 def _seeded_layer(seed: int, n_in: int, d: int) -> tuple[np.ndarray, np.ndarray]:
-    """The random layer ``(W (n_in, d), b (d,))`` that ``np.random.default_rng(seed)`` draws
-    (read-only; ``fit`` copies it). Paper B refits its ELMs with the same seed at every outage
-    onset: the draws, not the data, are the same each time (about 40 µs a fit)."""
-    rng = np.random.default_rng(seed)
-    W = rng.uniform(-1.0, 1.0, size=(n_in, d))  # W ~ U[−1, 1]
-    b = rng.uniform(-1.0, 1.0, size=d)  # b ~ U[−1, 1]
+    """:func:`_draw_layer` from ``np.random.default_rng(seed)`` (read-only; ``fit`` copies it).
+    Paper B refits its ELMs with the same seed at every outage onset: the draws, not the data,
+    are the same each time (about 40 µs a fit)."""
+    W, b = _draw_layer(np.random.default_rng(seed), n_in, d)
     W.setflags(write=False)
     b.setflags(write=False)
     return W, b
@@ -369,9 +372,7 @@ class ELMRegressor:
             W, b = _seeded_layer(int(rs), n_in, d)
             self.input_weights_, self.biases_ = W.copy(), b.copy()
         else:
-            rng = _rng(rs)
-            self.input_weights_ = rng.uniform(-1.0, 1.0, size=(n_in, d))  # W ~ U[−1, 1]
-            self.biases_ = rng.uniform(-1.0, 1.0, size=d)  # b ~ U[−1, 1]
+            self.input_weights_, self.biases_ = _draw_layer(_rng(rs), n_in, d)
         if self.standardize:
             self.x_mean_ = X.mean(axis=0)
             sx = X.std(axis=0)

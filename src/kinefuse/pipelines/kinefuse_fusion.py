@@ -129,7 +129,6 @@ __all__ = [
     "kinefuse_fusion",
 ]
 
-_N_X = N_X  # per axis: [p, v, b, c]
 _H_CAM = np.array([1.0, 0.0, 0.0, 1.0])  # z_cam = p + c + n_V
 _H_IMU = np.array([1.0, 0.0, 1.0, 0.0])  # z_imu + f(φ) = p + b + n_I
 # causal mode (see the module Notes, "Causal")
@@ -178,8 +177,8 @@ class KinefuseResult:
 # --------------------------------------------------------------------------- core
 def _model_matrices(p: NoiseParameters, dt: float):
     """``F, Q (3, 4, 4)`` per axis for states [p, v, b, c]."""
-    F = np.zeros((3, _N_X, _N_X))
-    Q = np.zeros((3, _N_X, _N_X))
+    F = np.zeros((3, N_X, N_X))
+    Q = np.zeros((3, N_X, N_X))
     g = np.array([dt / 2.0, 1.0])
     F[:, 0, 0] = F[:, 1, 1] = 1.0
     F[:, 0, 1] = dt  # p += dt v
@@ -193,8 +192,8 @@ def _model_matrices(p: NoiseParameters, dt: float):
 
 def _prior(z0_cam, z0_imu, p: NoiseParameters):
     """Prior ``x (3, 4)``, ``P (3, 4, 4)`` at the first sample: p from the given position."""
-    x = np.zeros((3, _N_X))
-    P = np.zeros((3, _N_X, _N_X))
+    x = np.zeros((3, N_X))
+    P = np.zeros((3, N_X, N_X))
     for a in range(3):
         x[a, 0] = next((float(z[a]) for z in (z0_cam, z0_imu) if np.isfinite(z[a])), 0.0)
         P[a] = np.diag([1.0, 1.0, p.var_b[a], p.var_c[a]])
@@ -208,8 +207,8 @@ def _run(zc, zi, p: NoiseParameters, dt: float):
     F, Q = _model_matrices(p, dt)
     first = lambda z: np.array([next(iter(z[np.isfinite(z[:, a]), a]), np.nan) for a in range(3)])  # noqa: E731
     x, P = _prior(first(zc), first(zi), p)
-    xf = np.empty((3, T, _N_X))
-    Pf = np.empty((3, T, _N_X, _N_X))
+    xf = np.empty((3, T, N_X))
+    Pf = np.empty((3, T, N_X, N_X))
     zc_b, zi_b = np.ascontiguousarray(zc.T), np.ascontiguousarray(zi.T)
     kf_segment(zc_b, zi_b, F, Q, p.r_cam, p.r_imu, x, P, False, _H_CAM, _H_IMU, xf, Pf)
     xs, Ps = np.empty_like(xf), np.empty((3, T, 1, 1))
@@ -279,9 +278,9 @@ def _causal_joint(zc, zi, phi, seen, dt, cfg: _CausalSettings):
     shift = np.zeros(3)
     p = mom.noise(dt, cfg.prior_s / dt, camera_white=True)
     x, P = _prior(zc[0], zi[0], p)
-    xf = np.empty((3, T, _N_X))
-    Pf = np.empty((3, T, _N_X, _N_X))
-    Fs = np.empty((3, T, _N_X, _N_X)) if cfg.lag else None
+    xf = np.empty((3, T, N_X))
+    Pf = np.empty((3, T, N_X, N_X))
+    Fs = np.empty((3, T, N_X, N_X)) if cfg.lag else None
     Qs = np.empty_like(Fs) if cfg.lag else None
     times = _refit_times(seen, cfg.min_history, cfg.refit_every)
     bounds = [0, *times, T]
@@ -307,8 +306,8 @@ def _causal_joint(zc, zi, phi, seen, dt, cfg: _CausalSettings):
         F, Q = _model_matrices(p, dt)
         # contiguous outputs, copied in: the kernel's one (C-contiguous) specialisation, the
         # one the offline path uses (a strided slice would compile the loop a second time)
-        x_seg = np.empty((3, t1 - t0, _N_X))
-        P_seg = np.empty((3, t1 - t0, _N_X, _N_X))
+        x_seg = np.empty((3, t1 - t0, N_X))
+        P_seg = np.empty((3, t1 - t0, N_X, N_X))
         kf_segment(
             np.ascontiguousarray(zc[t0:t1].T),
             np.ascontiguousarray(zu[t0:t1].T),
