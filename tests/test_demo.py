@@ -154,3 +154,24 @@ def test_demo_report_viewer_in_chromium(demo, tmp_path):
     assert on["non_white"] > 0.01
     assert color_fraction(on["pixels"], color) > 5e-4
     assert color_fraction(off["pixels"], color) < 0.1 * color_fraction(on["pixels"], color)
+
+
+def test_demo_refuses_an_unusable_out_folder_in_one_line_before_any_work(tmp_path, monkeypatch):
+    """`kinefuse demo --out DIR` where DIR cannot be created (``/proc`` refuses new entries even
+    to root) or lies under a file: exit 2 with one line naming the folder, printed before
+    anything else (no kernel note, no demo run)."""
+    from typer.testing import CliRunner
+
+    from conftest import cli_stderr
+    from kinefuse import cli
+    from kinefuse.cli import offline
+
+    monkeypatch.setattr(offline, "backend", lambda name: pytest.fail("the demo ran"))
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    for out, reason in (("/proc/kinefuse-demo", "not writable"), (afile / "d", "not a folder")):
+        res = CliRunner().invoke(cli.app, ["demo", "--out", str(out)])
+        err = [ln for ln in cli_stderr(res).splitlines() if ln.strip()]
+        assert res.exit_code == 2 and len(err) == 1, (res.exit_code, err)
+        assert err[0].startswith(f"kinefuse: error: --out {out}") and reason in err[0], err
+    assert list(tmp_path.iterdir()) == [afile]  # no probe left behind

@@ -19,7 +19,7 @@ from kinefuse.evaluation import tables
 from kinefuse.evaluation._names import REPORT_NAME
 from kinefuse.exceptions import InputError
 from kinefuse.io._write import write_text_safely
-from kinefuse.io.output_folder import check_writable_file
+from kinefuse.io.output_folder import check_folder_usable, check_writable_file
 
 __all__ = [
     "Force",
@@ -126,6 +126,7 @@ def check_report_free(out_dir: Path, force: bool) -> None:
         )
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"--out {out_dir}: exists and is not a folder")
+    check_folder_usable(out_dir, "--out")
 
 
 def fresh_dir(stem: str) -> Path:

@@ -21,7 +21,7 @@ from pathlib import Path
 from kinefuse.exceptions import InputError
 from kinefuse.io._write import current_umask
 
-__all__ = ["OutputFolder", "check_writable_file", "deferred_interrupts"]
+__all__ = ["OutputFolder", "check_folder_usable", "check_writable_file", "deferred_interrupts"]
 
 _STAGING_PREFIX = ".kinefuse-partial-"
 _PREVIOUS_PREFIX = ".kinefuse-previous-"
@@ -68,6 +68,28 @@ def _check_dir_writable(folder: Path, what: str) -> None:
         raise InputError(f"{what} {folder}: exists and is not a folder")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise InputError(f"{what} {folder}: folder is not writable (permission denied)")
+
+
+def check_folder_usable(folder: Path, what: str = "output folder") -> None:
+    """Refuse, before any work, an output folder that cannot be created or written.
+
+    An existing ``folder`` must be a writable folder. Otherwise a probe folder is created (and
+    removed at once) in its nearest existing parent, as :class:`OutputFolder` will stage there:
+    permission checks alone pass for root on file systems that refuse new entries (``/proc``).
+
+    Raises
+    ------
+    InputError
+        The folder (or its nearest existing parent) is a file or not writable, or nothing can
+        be created in it; the message names the folder and the system's reason.
+    """
+    folder = Path(folder)
+    anchor = folder if folder.exists() else _nearest_existing(folder.parent)
+    _check_dir_writable(anchor, what if anchor == folder else f"{what} {folder}: parent")
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=_STAGING_PREFIX, dir=anchor))
+    except OSError as exc:
+        raise InputError(f"{what} {folder}: not writable ({exc.strerror})") from None
 
 
 def check_writable_file(
