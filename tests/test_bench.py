@@ -74,3 +74,19 @@ def test_pipeline_rows_input_has_no_simulator_truth():
     assert all(rec.imu[k] is v for k, v in full.imu.items()) and len(rec.imu) == len(full.imu)
     assert rec.vision is full.vision and rec.reference is full.reference
     assert set(full.metadata) - set(rec.metadata) == set(_SIM_TRUTH)
+
+
+def test_interleaved_rounds_time_each_row_right_after_its_own_call(monkeypatch):
+    """`measure_interleaved`: round by round every row is called twice in a row and only the
+    second call is timed (a timed call never follows another row's); one row alone is called
+    once a round. The recorded calls and clock reads are the oracle."""
+    from kinefuse.apps import bench_filters
+
+    log = []
+    monkeypatch.setattr(bench_filters.time, "thread_time", lambda: log.append("|") or 0.0)
+    calls = {k: (lambda k=k: log.append(k)) for k in "abc"}
+    assert set(bench_filters.measure_interleaved(calls, 2, warm_up=False)) == set(calls)
+    assert "".join(log) == "a|a|b|b|c|c|" * 2
+    log.clear()
+    bench_filters.measure_interleaved({"a": calls["a"]}, 3, warm_up=True)
+    assert "".join(log) == "a" + "|a|" * 3
