@@ -6,6 +6,8 @@ import warnings
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import InputError, NumericalWarning
@@ -257,3 +259,36 @@ def test_calibration_bad_input():
         InputError, match=r"expected root 'hip_l' with shape \(T, 3\) = \(50, 3\), got \(49, 3\)"
     ):
         chain_positions(rec, sk, root={"hip_l": np.zeros((49, 3)), "hip_r": np.zeros((50, 3))})
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    psi=st.floats(-720.0, 720.0, allow_nan=False),
+    seed=st.integers(0, 2**32 - 1),
+    scale=st.floats(0.5, 2.0),
+)
+def test_turn_heading_is_scipys_composition_with_rz(psi, seed, scale):
+    """`turn_heading(q, ψ)` is scipy's ``Rotation.from_matrix(R_z(ψ)) * Rotation.from_quat(q)``
+    (the heading matrix the calibration reports) for rows that are not exactly unit, up to the
+    quaternion's sign (scipy's ``from_matrix`` picks one; ``turn_heading`` keeps ``q``'s at
+    ψ = 0); NaN rows stay NaN. Components are bounded by 1: 1e-12 is far above rounding."""
+    from kinefuse.kinematics.calibration_result import turn_heading
+    from kinefuse.kinematics.forward import rotation_z
+
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(50, 4)) * scale
+    q[7] = np.nan
+    got = turn_heading(q, psi)
+    ok = np.ones(50, bool)
+    ok[7] = False
+    H = Rotation.from_matrix(rotation_z(np.radians(psi)))
+    want = (H * Rotation.from_quat(q[ok], scalar_first=True)).as_quat(scalar_first=True)
+    sign = np.sign(np.sum(got[ok] * want, axis=1))[:, None]
+    np.testing.assert_allclose(got[ok], sign * want, atol=1e-12)
+    np.testing.assert_allclose(
+        turn_heading(q[ok], 0.0),
+        q[ok] / np.linalg.norm(q[ok], axis=1)[:, None],
+        rtol=1e-15,
+        atol=1e-15,
+    )
+    assert np.isnan(got[7]).all()

@@ -20,7 +20,7 @@ from kinefuse.kinematics.forward import rotation_z
 from kinefuse.kinematics.skeleton import Skeleton, unit_axis
 from kinefuse.kinematics.still import StillWindow
 
-__all__ = ["Calibration", "joint_stream", "oriented_imu", "turned_heading"]
+__all__ = ["Calibration", "joint_stream", "oriented_imu", "turn_heading", "turned_heading"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -159,12 +159,28 @@ def turned_heading(stream: ImuStream, psi_deg: float) -> ImuStream:
     """``stream`` with its orientations turned about the vertical of their world frame:
     ``q_world_from_sensor <- Rz(ψ) q_world_from_sensor``, ``ψ = psi_deg``; missing rows stay
     missing (NaN)."""
-    q = np.array(stream.q_world_from_sensor, dtype=float)
-    ok = np.all(np.isfinite(q), axis=1)
-    rot = Rotation.from_rotvec([0.0, 0.0, np.radians(psi_deg)])
-    q[ok] = (rot * Rotation.from_quat(q[ok], scalar_first=True)).as_quat(scalar_first=True)
-    q[~ok] = np.nan
+    q = turn_heading(np.asarray(stream.q_world_from_sensor, dtype=float), psi_deg)
+    q[~np.all(np.isfinite(q), axis=1)] = np.nan
     return replace(stream, q_world_from_sensor=q)
+
+
+def turn_heading(q: np.ndarray, psi_deg: float) -> np.ndarray:
+    """``Rz(ψ) q`` for ``wxyz`` quaternions ``q (..., 4)``, ``ψ = psi_deg``: a new array.
+
+    Each row is normalised first (as ``scipy.spatial.transform.Rotation.from_quat``), then
+    multiplied on the left by ``[cos ψ/2, 0, 0, sin ψ/2]`` (the Hamilton product written out):
+    the rotation of scipy's ``Rotation.from_matrix(R_z(ψ)) * Rotation.from_quat(q)``, with the
+    sign that follows ``q`` (scipy's ``from_matrix`` picks its own, flipping the result for
+    some ψ). A NaN row stays NaN; ``ψ = 0`` returns the normalised rows.
+    """
+    q = np.asarray(q, dtype=float)
+    q = q / np.sqrt(np.sum(q * q, axis=-1, keepdims=True))
+    if psi_deg == 0.0:
+        return q
+    half = np.radians(psi_deg) / 2.0
+    c, s = np.cos(half), np.sin(half)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w], axis=-1)
 
 
 def joint_stream(recording: Recording, source: str) -> JointStream:

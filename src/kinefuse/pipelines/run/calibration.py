@@ -12,7 +12,6 @@ import warnings
 from collections.abc import Mapping, Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from kinefuse.exceptions import NumericalWarning
 from kinefuse.kinematics import (
@@ -22,6 +21,7 @@ from kinefuse.kinematics import (
     segment_orientations,
 )
 from kinefuse.kinematics.angles import JOINTS, angle_words
+from kinefuse.kinematics.calibration_result import turn_heading
 from kinefuse.kinematics.functional import align_headings
 from kinefuse.kinematics.hinge import OPPOSITE_DEG
 from kinefuse.orientation.resample import slerp_resample
@@ -280,13 +280,8 @@ def _sensor_orientations(recording, cal, t: np.ndarray) -> dict[str, np.ndarray]
         st = recording.imu.get(s)
         if st is None or st.q_world_from_sensor is None:
             continue
-        q = slerp_resample(st.t_s, st.q_world_from_sensor, t)
-        ok = np.all(np.isfinite(q), axis=1)
-        qw = np.full(q.shape, np.nan)
-        if np.any(ok):
-            H = Rotation.from_matrix(cal.heading_matrix(s))
-            qw[ok] = (H * Rotation.from_quat(q[ok], scalar_first=True)).as_quat(scalar_first=True)
-        out[s] = qw
+        q = slerp_resample(st.t_s, st.q_world_from_sensor, t)  # NaN rows stay NaN
+        out[s] = turn_heading(q, cal.world_heading_deg.get(s, 0.0))
     return out
 
 
