@@ -770,3 +770,19 @@ def test_docs_table_snippet_runs_with_the_batch_extra_alone(tmp_path, monkeypatc
     monkeypatch.setattr("builtins.print", lambda *a: printed.append(" ".join(map(str, a))))
     exec(compile(snippet, "docs/batch.md", "exec"), {})
     assert printed == ["kinefuse IMU chain wrist_r 0.060", "kinefuse kinefuse wrist_r 0.020"]
+
+
+def test_cli_refuses_an_unusable_out_folder_before_any_task(tmp_path, monkeypatch):
+    """`kinefuse batch ... --out DIR` where DIR cannot be created (``/proc`` refuses new entries
+    even to root) or lies under a file: exit 2 with one line naming the folder, before any task
+    runs (the study runner must not be reached)."""
+    pytest.importorskip("dask.distributed")
+    monkeypatch.setattr(kb, "run_study", lambda *a, **k: pytest.fail("the study ran"))
+    d = _broken_sessions(tmp_path)
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    for out, reason in (("/proc/kinefuse-batch", "not writable"), (afile / "o", "not a folder")):
+        res = runner.invoke(cli.app, ["batch", str(d), "--out", str(out)])
+        err = [ln for ln in _err(res).splitlines() if ln.strip()]
+        assert res.exit_code == 2 and len(err) == 1, (res.exit_code, err)
+        assert err[0].startswith(f"kinefuse: error: --out {out}") and reason in err[0], err

@@ -9,6 +9,7 @@ import typer
 from kinefuse.cli._app import BackendUnavailable, backend_module
 from kinefuse.cli._output import Json, Quiet, Scheduler, Workers, check_json, present
 from kinefuse.exceptions import InputError
+from kinefuse.io.output_folder import check_folder_usable
 
 __all__ = ["batch"]
 
@@ -65,6 +66,7 @@ def batch(
             st = dataclasses.replace(st, out_dir=out.resolve())
     else:
         st = kb.study_from_sessions(study, method, out)
+    check_folder_usable(Path(st.out_dir), "--out" if out is not None else f"{study}: out_dir")
     if counts:
         runs = kb.compare_workers(st, counts, quiet=quiet)
         c = {"tables": runner.compare_tables(runs), "runs": runs}
