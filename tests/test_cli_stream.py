@@ -270,6 +270,11 @@ def test_cli_stream_accepts_offline_session(lsl_env, tmp_path):
         (["stream", "broken.toml"], ["broken.toml: not valid TOML"]),
         (["stream", "missing.toml"], ["missing.toml: file not found"]),
         (["stream", "s.toml", "--out", "existing"], ["existing.npz already exists", "--force"]),
+        (
+            ["stream", "s.toml", "--out", "/proc/kf-live/out"],
+            ["--out /proc/kf-live", "not writable"],
+        ),
+        (["stream", "s.toml", "--out", "existing.npz/sub/out"], ["existing.npz", "not a folder"]),
         (["stream", "s.toml", "--record-inputs"], ["--record-inputs needs --out"]),
         (["stream", "s.toml", "--idle-timeout", "0"], ["--idle-timeout", "> 0"]),
         (["stream", "s.toml", "--view", "--view-port", "70000"], ["--view-port", "[0, 65535]"]),

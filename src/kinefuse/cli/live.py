@@ -26,6 +26,7 @@ from kinefuse.cli._output import (
 )
 from kinefuse.exceptions import InputError
 from kinefuse.io import detect_format
+from kinefuse.io.output_folder import check_folder_usable
 from kinefuse.session_file import load_session, read_toml
 
 __all__ = ["replay", "stream"]
@@ -79,6 +80,7 @@ def _out_files(out: Path, force: bool) -> None:
             raise FileExistsError(
                 f"{target} already exists; pass --force to overwrite it, or choose another --out"
             )
+    check_folder_usable(out.parent, "--out")  # written when the stream ends: checked now
 
 
 def _kv_table(title: str, rows: list[tuple[str, str]], caption: str | None = None):
