@@ -117,6 +117,23 @@ def test_json_of_other_commands_needs_force(tmp_path):
     assert js.read_text() == "mine"
 
 
+def test_json_and_template_in_a_folder_that_refuses_files_are_exit_2_before_work(monkeypatch):
+    """``/proc`` refuses new files even to root, whose permission checks all pass: `--json`
+    there, or an init-session template, is one line and exit 2 before any work (the bench and
+    the template writer must not be reached)."""
+    from kinefuse.cli import offline
+
+    monkeypatch.setattr(offline, "backend", lambda name: pytest.fail(f"{name} ran"))
+    for args, label in (
+        (["bench", "--quick", "--json", "/proc/kf.json"], "--json /proc/kf.json"),
+        (["init-session", "/proc/kf.toml"], "PATH /proc/kf.toml"),
+    ):
+        res = runner.invoke(cli.app, args)
+        err = [ln for ln in _err(res).splitlines() if ln.strip()]
+        assert res.exit_code == 2 and len(err) == 1, (args, res.exit_code, err)
+        assert f"{label}: not writable" in err[0], err
+
+
 # ------------------------------------------------------------------------------------ case 6
 @pytest.mark.parametrize("present", ["metrics.json", "figures", "synthetic_joints.trc"])
 def test_any_earlier_result_needs_force(synthetic_files, tmp_path, monkeypatch, present):

@@ -24,6 +24,7 @@ from kinefuse.cli._output import (
 )
 from kinefuse.exceptions import InputError
 from kinefuse.io import FORMATS, detect_format
+from kinefuse.io.output_folder import check_writable_file
 from kinefuse.progress import progress
 from kinefuse.session_file import CALIBRATIONS, METHODS, ROOTS, load_session, session_template
 from kinefuse.session_file.from_recording import filled_template
@@ -211,6 +212,7 @@ def init_session(
         raise InputError(f"{path} is a folder; give a file name such as {path / 'session.toml'}")
     if not path.parent.is_dir():
         raise InputError(f"folder {path.parent} does not exist; create it first")
+    check_writable_file(path, force=True, what="PATH")  # (existing file: refused above)
     session_name = name or (path.stem if path.stem != "session" else "my-session")
     if source is None:
         text, what = (

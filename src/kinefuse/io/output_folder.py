@@ -86,10 +86,16 @@ def check_folder_usable(folder: Path, what: str = "output folder") -> None:
     folder = Path(folder)
     anchor = folder if folder.exists() else _nearest_existing(folder.parent)
     _check_dir_writable(anchor, what if anchor == folder else f"{what} {folder}: parent")
+    _probe(anchor, f"{what} {folder}")
+
+
+def _probe(folder: Path, label: str) -> None:
+    """Create and remove a folder in ``folder``: an InputError ``label: not writable (why)``
+    where the file system refuses (``os.access`` says yes to root on ``/proc``)."""
     try:
-        os.rmdir(tempfile.mkdtemp(prefix=_STAGING_PREFIX, dir=anchor))
+        os.rmdir(tempfile.mkdtemp(prefix=_STAGING_PREFIX, dir=folder))
     except OSError as exc:
-        raise InputError(f"{what} {folder}: not writable ({exc.strerror})") from None
+        raise InputError(f"{label}: not writable ({exc.strerror})") from None
 
 
 def check_writable_file(
@@ -114,7 +120,8 @@ def check_writable_file(
     FileExistsError
         ``path`` exists and ``force`` is False.
     InputError
-        ``path`` is an input, a folder, or its folder is missing or not writable.
+        ``path`` is an input, a folder, or its folder is missing or not writable (probed by
+        creating and removing a folder in it, as :func:`check_folder_usable` does).
     """
     path = Path(path)
     target = path.resolve()
@@ -136,6 +143,7 @@ def check_writable_file(
     if not path.parent.is_dir():
         raise InputError(f"{what} {path}: folder {path.parent} does not exist")
     _check_dir_writable(path.parent, what)
+    _probe(path.parent, f"{what} {path}")
     if path.exists() and not os.access(path, os.W_OK):
         raise InputError(f"{what} {path}: file is not writable (permission denied)")
 
