@@ -124,9 +124,7 @@ def check_report_free(out_dir: Path, force: bool) -> None:
         raise FileExistsError(
             f"{target} already exists; pass --force to overwrite it, or choose another --out folder"
         )
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"--out {out_dir}: exists and is not a folder")
-    check_folder_usable(out_dir, "--out")
+    check_folder_usable(out_dir, "--out")  # a file there: "--out X: exists and is not a folder"
 
 
 def fresh_dir(stem: str) -> Path:
