@@ -90,3 +90,26 @@ def test_interleaved_rounds_time_each_row_right_after_its_own_call(monkeypatch):
     log.clear()
     bench_filters.measure_interleaved({"a": calls["a"]}, 3, warm_up=True)
     assert "".join(log) == "a" + "|a|" * 3
+
+
+def test_pipeline_rows_compare_numpys_hugepage_advice(monkeypatch):
+    """Each method runs as `kinefuse run` does (the CLI's small pages), and paper B once more
+    with numpy's hugepage advice on; a NUMPY_MADVISE_HUGEPAGE the user set applies to all rows."""
+    from kinefuse import _memory
+    from kinefuse.apps.bench_engine import PIPELINE_METHODS, _pipeline_runs
+
+    monkeypatch.setattr(_memory, "_set_here", True)  # as after the CLI's prefer_small_pages()
+    monkeypatch.setenv(_memory.HUGEPAGE_ENV, "0")
+    runs = _pipeline_runs()
+    assert [m for _, m, _ in runs] == ["paper-a", "elm-fir", "elm-fir", "kinefuse"]
+    assert [label for label, _, _ in runs if label not in PIPELINE_METHODS] == [
+        "elm-fir, numpy hugepage advice on"
+    ]
+    assert [env[_memory.HUGEPAGE_ENV] for _, _, env in runs] == ["0", "0", "1", "0"]
+    monkeypatch.setattr(_memory, "_set_here", False)  # the user's own setting
+    for value in ("0", "1"):
+        monkeypatch.setenv(_memory.HUGEPAGE_ENV, value)
+        runs = _pipeline_runs()
+        assert [(label, env[_memory.HUGEPAGE_ENV]) for label, _, env in runs] == [
+            (m, value) for m in PIPELINE_METHODS
+        ]

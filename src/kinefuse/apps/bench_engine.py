@@ -19,6 +19,7 @@ import time
 
 import numpy as np
 
+from kinefuse._memory import HUGEPAGE_ENV, user_chose_pages
 from kinefuse.apps.bench_filters import filterpy_filter, make_data, measure, paper_model
 from kinefuse.data import demo_motion
 from kinefuse.models import constant_velocity
@@ -225,9 +226,11 @@ def hwm_mb():
     return float("nan")
 
 
+from kinefuse._memory import prefer_small_pages
 from kinefuse.apps.bench_engine import pipeline_recording
 from kinefuse.pipelines.run import process_recording
 method, path = sys.argv[1], sys.argv[2]
+prefer_small_pages()  # as `kinefuse run` does (unless NUMPY_MADVISE_HUGEPAGE is set)
 process_recording(pipeline_recording(5.0, seed=1), method)  # load the kernels (cached)
 rss0 = hwm_mb()
 with open(path, "rb") as fh:
@@ -239,6 +242,18 @@ print(json.dumps({"cpu_s": cpu, "wall_s": wall, "peak_rss_mb": hwm_mb(),
                   "rss_before_mb": rss0,
                   "camera_frames": int(len(rec.vision)), "joints": len(out.joints)}))
 """
+
+
+def _pipeline_runs() -> list[tuple[str, str, dict]]:
+    """``(row label, method, environment)`` of the pipeline rows: each method as ``kinefuse
+    run`` runs it, and paper B once more with numpy's transparent-hugepage advice on (numpy's
+    default, which the CLI turns off: :mod:`kinefuse._memory`), for comparison. A
+    ``NUMPY_MADVISE_HUGEPAGE`` set by the user applies to every row."""
+    env = dict(os.environ)
+    runs = [(m, m, env) for m in PIPELINE_METHODS]
+    if not user_chose_pages():
+        runs.insert(2, ("elm-fir, numpy hugepage advice on", "elm-fir", {**env, HUGEPAGE_ENV: "1"}))
+    return runs
 
 
 def pipeline_rows(quick: bool) -> list[dict]:
@@ -254,15 +269,16 @@ def pipeline_rows(quick: bool) -> list[dict]:
             pickle.dump(_as_read_from_files(pipeline_recording(duration)), fh)
         procs = [
             (
-                m,
+                label,
                 subprocess.run(
                     [sys.executable, "-c", _PIPELINE_WORKER, m, path],
                     capture_output=True,
                     text=True,
                     check=False,
+                    env=env,
                 ),
             )  # fmt: skip
-            for m in PIPELINE_METHODS
+            for label, m, env in _pipeline_runs()
         ]
     for method, proc in procs:
         if proc.returncode != 0:

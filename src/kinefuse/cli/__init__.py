@@ -55,6 +55,7 @@ The commands are registered below, in the order ``kinefuse --help`` lists them.
 
 import warnings
 
+from kinefuse._memory import prefer_small_pages
 from kinefuse.cli import live, offline, study
 from kinefuse.cli._app import (
     BACKENDS,
@@ -96,6 +97,8 @@ for _name, _command in (
 
 
 def main() -> None:
-    """Console-script entry point (``kinefuse``): Python warnings print as one line each."""
+    """Console-script entry point (``kinefuse``): Python warnings print as one line each, and
+    numpy's arrays get small pages (:func:`kinefuse._memory.prefer_small_pages`)."""
     warnings.showwarning = show_warning
+    prefer_small_pages()
     app(prog_name="kinefuse")
