@@ -113,3 +113,43 @@ def test_pipeline_rows_compare_numpys_hugepage_advice(monkeypatch):
         assert [(label, env[_memory.HUGEPAGE_ENV]) for label, _, env in runs] == [
             (m, value) for m in PIPELINE_METHODS
         ]
+
+
+def test_pipeline_rows_run_in_rounds_of_fresh_processes_and_give_the_median(monkeypatch):
+    """A full run times every pipeline row in PIPELINE_REPEATS fresh processes, round by round;
+    a row is the median CPU time of its runs, with the largest peak RSS (the recorded calls and
+    made-up worker outputs are the oracle); a failed run makes its row a failure."""
+    pytest.importorskip("filterpy")
+    import json
+    import subprocess
+
+    from kinefuse import _memory
+    from kinefuse.apps import bench_engine as be
+
+    monkeypatch.setattr(_memory, "_set_here", True)  # as after the CLI's prefer_small_pages()
+    monkeypatch.setenv(_memory.HUGEPAGE_ENV, "0")
+    real = be.pipeline_recording
+    monkeypatch.setattr(be, "pipeline_recording", lambda duration, seed=0: real(1.0, seed))
+    cpu = iter([3.0, 9.0, 30.0, 40.0, 2.0, 8.0, 31.0, 39.0, 4.0, 7.0, 32.0, 41.0])
+    calls = []
+
+    def run(cmd, **kw):
+        calls.append((cmd[3], kw["env"][_memory.HUGEPAGE_ENV]))
+        c = next(cpu)
+        if c == 39.0:  # kinefuse's second run fails
+            return subprocess.CompletedProcess(cmd, 1, stdout="", stderr="Traceback\nValueError: x")
+        out = {"cpu_s": c, "wall_s": c + 0.5, "peak_rss_mb": 100.0 + c, "rss_before_mb": 1.0,
+               "camera_frames": 30, "joints": 8}  # fmt: skip
+        return subprocess.CompletedProcess(cmd, 0, stdout=json.dumps(out) + "\n", stderr="")
+
+    monkeypatch.setattr(be.subprocess, "run", run)
+    rows = be.pipeline_rows(quick=False)
+    one_round = [("paper-a", "0"), ("elm-fir", "0"), ("elm-fir", "1"), ("kinefuse", "0")]
+    assert be.PIPELINE_REPEATS == 3 and calls == one_round * 3
+    by = {r["method"]: r for r in rows}
+    assert by["paper-a"]["cpu_s"] == 3.0 and by["paper-a"]["cpu_s_runs"] == [3.0, 2.0, 4.0]
+    assert by["paper-a"]["x_real_time"] == 3600.0 / 3.0 and by["paper-a"]["peak_rss_mb"] == 104.0
+    assert by["elm-fir"]["cpu_s"] == 8.0 and by["elm-fir"]["wall_s"] == 8.5
+    assert by["elm-fir, numpy hugepage advice on"]["cpu_s"] == 31.0
+    assert by["kinefuse"] == {"method": "kinefuse", "error": "ValueError: x"}
+    assert "filterpy KF, per camera joint (peer)" in by

@@ -207,7 +207,8 @@ def _engine_lines(results: dict, lines: list[str]) -> None:
         lines.append(
             f"Whole pipelines on a {dur / 3600:.2g} h recording (9 IMUs at 100 Hz, camera at 30 Hz"
             " with outages), one core, thread CPU time; peak RSS of the process (recording"
-            " loaded without the simulator's truth, kernels warm)"
+            " loaded without the simulator's truth, kernels warm); each row a fresh process"
+            " per run, runs in rounds"
         )
         for r in pl:
             if "error" in r:
@@ -215,6 +216,9 @@ def _engine_lines(results: dict, lines: list[str]) -> None:
                 continue
             mem = "" if r.get("peak_rss_mb") is None else f"  peak {r['peak_rss_mb']:.0f} MB"
             note = f"  ({r['note']})" if r.get("note") else ""
+            runs = [c * 3600.0 / r["duration_s"] for c in r.get("cpu_s_runs", [])]
+            if len(runs) > 1:
+                note += f"  (median of {len(runs)}: {min(runs):.1f}-{max(runs):.1f} s)"
             lines.append(
                 f"{r['method']:<38} {r['s_per_hour']:>8.1f} s per recorded hour"
                 f"  {r['x_real_time']:>7.0f}x real time{mem}{note}"

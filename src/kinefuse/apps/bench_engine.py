@@ -256,41 +256,58 @@ def _pipeline_runs() -> list[tuple[str, str, dict]]:
     return runs
 
 
+def _pipeline_row(label: str, procs: list, duration: float) -> dict:
+    """One pipeline row from its worker processes (:func:`pipeline_rows`); a failed run makes
+    the row a failure naming its last stderr line."""
+    runs = []
+    for proc in procs:
+        if proc.returncode != 0:
+            err = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed"
+            return {"method": label, "error": err}
+        runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    cpu = float(np.median([r["cpu_s"] for r in runs]))
+    return {
+        **runs[0],
+        "method": label,
+        "cpu_s": cpu,
+        "wall_s": float(np.median([r["wall_s"] for r in runs])),
+        "peak_rss_mb": max(r["peak_rss_mb"] for r in runs),
+        "cpu_s_runs": [r["cpu_s"] for r in runs],
+        "duration_s": duration,
+        "s_per_hour": cpu * 3600.0 / duration,
+        "x_real_time": duration / cpu,
+    }
+
+
+#: Fresh processes per pipeline row in a full run (one in ``--quick``): the row is their median.
+PIPELINE_REPEATS = 3
+
+
 def pipeline_rows(quick: bool) -> list[dict]:
     """Seconds of one core per recorded hour for each pipeline, next to filterpy's KF doing the
-    per-joint filtering of the same camera joints (measured on a subset, scaled)."""
+    per-joint filtering of the same camera joints (measured on a subset, scaled).
+
+    Each row runs in :data:`PIPELINE_REPEATS` fresh processes, in rounds (round r runs every
+    row once before round r + 1, so that a slow phase of the machine falls on every row alike);
+    the row gives the median CPU and wall time, the largest peak RSS, and every run's CPU time
+    (``cpu_s_runs``).
+    """
     duration = 30.0 if quick else 3600.0
-    rows = []
+    repeats = 1 if quick else PIPELINE_REPEATS
+    runs = _pipeline_runs()
+    done = {label: [] for label, _, _ in runs}
     # the recording is simulated once (minutes for an hour: orientation filters on 9 IMUs) and
-    # handed to one fresh process per method, so that each peak RSS is that method's own
+    # handed to one fresh process per method and run, so that each peak RSS is that method's own
     with tempfile.TemporaryDirectory() as tmp:
         path = os.path.join(tmp, "recording.pickle")
         with open(path, "wb") as fh:
             pickle.dump(_as_read_from_files(pipeline_recording(duration)), fh)
-        procs = [
-            (
-                label,
-                subprocess.run(
-                    [sys.executable, "-c", _PIPELINE_WORKER, m, path],
-                    capture_output=True,
-                    text=True,
-                    check=False,
-                    env=env,
-                ),
-            )  # fmt: skip
-            for label, m, env in _pipeline_runs()
-        ]
-    for method, proc in procs:
-        if proc.returncode != 0:
-            err = proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed"
-            rows.append({"method": method, "error": err})
-            continue
-        d = json.loads(proc.stdout.strip().splitlines()[-1])
-        d["method"] = method
-        d["duration_s"] = duration
-        d["s_per_hour"] = d["cpu_s"] * 3600.0 / duration
-        d["x_real_time"] = duration / d["cpu_s"]
-        rows.append(d)
+        for _ in range(repeats):
+            for label, m, env in runs:
+                cmd = [sys.executable, "-c", _PIPELINE_WORKER, m, path]
+                proc = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env)
+                done[label].append(proc)
+    rows = [_pipeline_row(label, procs, duration) for label, procs in done.items()]
     ok = [r for r in rows if "error" not in r]
     if ok:
         frames, joints = ok[0]["camera_frames"], max(r["joints"] for r in ok)
