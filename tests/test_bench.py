@@ -1,10 +1,14 @@
-"""The benchmark's online-engine timing helpers (`kinefuse bench`, benchmarks/bench_latency.py).
+"""The benchmark's timing helpers (`kinefuse bench`, benchmarks/bench_latency.py).
 
 No timing assertions (STYLE.md): only that every frame is timed, the numbers are sane and the
-outage-onset frames of the paper-B processor are found.
+outage-onset frames of the paper-B processor are found; that rows are timed in the order and
+rounds they should be, and that the pipeline rows run as `kinefuse run` does.
 """
 
 from __future__ import annotations
+
+import json
+import subprocess
 
 import numpy as np
 import pytest
@@ -120,9 +124,6 @@ def test_pipeline_rows_run_in_rounds_of_fresh_processes_and_give_the_median(monk
     a row is the median CPU time of its runs, with the largest peak RSS (the recorded calls and
     made-up worker outputs are the oracle); a failed run makes its row a failure."""
     pytest.importorskip("filterpy")
-    import json
-    import subprocess
-
     from kinefuse import _memory
     from kinefuse.apps import bench_engine as be
 
