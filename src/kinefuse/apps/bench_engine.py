@@ -250,9 +250,11 @@ def _pipeline_runs() -> list[tuple[str, str, dict]]:
     default, which the CLI turns off: :mod:`kinefuse._memory`), for comparison. A
     ``NUMPY_MADVISE_HUGEPAGE`` set by the user applies to every row."""
     env = dict(os.environ)
-    runs = [(m, m, env) for m in PIPELINE_METHODS]
-    if not user_chose_pages():
-        runs.insert(2, ("elm-fir, numpy hugepage advice on", "elm-fir", {**env, HUGEPAGE_ENV: "1"}))
+    runs = []
+    for m in PIPELINE_METHODS:
+        runs.append((m, m, env))
+        if m == "elm-fir" and not user_chose_pages():  # the comparison row, right after it
+            runs.append((f"{m}, numpy hugepage advice on", m, {**env, HUGEPAGE_ENV: "1"}))
     return runs
 
 
