@@ -38,6 +38,7 @@ __all__ = [
     "state_is_block_diagonal",
     "kf_filter_axis",
     "kf_filter_dense",
+    "load_filtered",
     "rts_axis",
     "rts_dense",
 ]
@@ -529,8 +530,10 @@ def _rts_dense_step(F, Q, mean, cov, b, t, s, Ps, FP, Pp, L, D, d, want_cov, n):
 
 
 @njit_inline
-def _start_run(mean, cov, b, t, s, Ps, n):
-    """``x̃_{t_end} = x̂_{t_end}``, ``P̃_{t_end} = P̂_{t_end}`` (element loops, no view)."""
+def load_filtered(mean, cov, b, t, s, Ps, n):
+    """``s ← mean[b, t]``, ``Ps ← cov[b, t]`` (``n`` states; element loops, no array view): the
+    start of an RTS run, ``x̃_{t_end} = x̂_{t_end}``, ``P̃_{t_end} = P̂_{t_end}``. Shared with the
+    ``"kinefuse"`` fusion's RTS (:mod:`kinefuse.pipelines._kinefuse_kernels`)."""
     for i in range(n):
         s[i] = mean[b, t, i]
         for j in range(n):
@@ -565,11 +568,11 @@ def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x, cidx):
         if lag < 0:
             for t in range(T - 1, -1, -1):
                 if end[t] < 0:
-                    _start_run(mean, cov, b, t, s, Ps, n_x)  # outside the runs: the filtered
+                    load_filtered(mean, cov, b, t, s, Ps, n_x)  # outside the runs: the filtered
                     _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n_x, cidx)
                     continue
                 if t == end[t]:
-                    _start_run(mean, cov, b, t, s, Ps, n_x)
+                    load_filtered(mean, cov, b, t, s, Ps, n_x)
                 else:
                     st = _rts_dense_step(
                         F, Q, mean, cov, b, t, s, Ps, FP, Pp, L, D, d, want_cov, n_x
@@ -579,11 +582,11 @@ def _rts_dense_loop(mean, cov, mask, F, Q, lag, sm_mean, sm_cov, n_x, cidx):
         else:
             for t in range(T):
                 if end[t] < 0:
-                    _start_run(mean, cov, b, t, s, Ps, n_x)  # outside the runs: the filtered
+                    load_filtered(mean, cov, b, t, s, Ps, n_x)  # outside the runs: the filtered
                     _put_smoothed(sm_mean, sm_cov, b, t, s, Ps, want_cov, n_x, cidx)
                     continue
                 e = min(end[t], t + lag)
-                _start_run(mean, cov, b, e, s, Ps, n_x)
+                load_filtered(mean, cov, b, e, s, Ps, n_x)
                 for u in range(e - 1, t - 1, -1):
                     st = _rts_dense_step(
                         F, Q, mean, cov, b, u, s, Ps, FP, Pp, L, D, d, want_cov, n_x

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from kinefuse._compile import njit, njit_inline
+from kinefuse.filters._kernels_axis import load_filtered
 
 __all__ = [
     "accumulate_moments",
@@ -212,14 +213,6 @@ def _store(x_out, P_out, b, t, xs, Ps, n):
             P_out[b, t, i, j] = Ps[i, j]
 
 
-@njit_inline
-def _load(xf, Pf, b, t, xs, Ps, n):
-    for i in range(n):
-        xs[i] = xf[b, t, i]
-        for j in range(n):
-            Ps[i, j] = Pf[b, t, i, j]
-
-
 @njit
 def rts_smooth(xf, Pf, F, Q, lag, x_out, P_out):
     """RTS over a batch (B, T): fixed-interval (``lag < 0``) or fixed-lag with ``lag`` samples.
@@ -241,7 +234,7 @@ def rts_smooth(xf, Pf, F, Q, lag, x_out, P_out):
     d = np.empty(n)
     for b in range(B):
         if lag < 0:
-            _load(xf, Pf, b, T - 1, xs, Ps, n)
+            load_filtered(xf, Pf, b, T - 1, xs, Ps, n)
             _store(x_out, P_out, b, T - 1, xs, Ps, n)
             for t in range(T - 2, -1, -1):
                 _rts_step(xf, Pf, F, Q, b, t, (t + 1) * step, xs, Ps, FP, Pp, A, CT, d, n)
@@ -249,7 +242,7 @@ def rts_smooth(xf, Pf, F, Q, lag, x_out, P_out):
         else:
             for t in range(T):
                 e = min(t + lag, T - 1)
-                _load(xf, Pf, b, e, xs, Ps, n)
+                load_filtered(xf, Pf, b, e, xs, Ps, n)
                 for s in range(e - 1, t - 1, -1):
                     _rts_step(xf, Pf, F, Q, b, s, (s + 1) * step, xs, Ps, FP, Pp, A, CT, d, n)
                 _store(x_out, P_out, b, t, xs, Ps, n)
