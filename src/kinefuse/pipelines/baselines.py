@@ -47,12 +47,29 @@ def imu_only(ctx: FusionContext) -> FusionResult:
     return finish(ctx, pos, pos_cov(res.cov), src, causal=True)
 
 
+def _assemble(ctx: FusionContext, pos_jt, src_jt, rows_i, rows_v):
+    """A baseline's ``(position, cov, source)`` outputs (:func:`empty_output`'s joint-major
+    views of time-major arrays) from its positions ``(J, T, 3)`` and sources ``(J, T)``, with
+    the nominal covariance ``R_I`` at ``rows_i`` (None: nowhere) and ``R_V`` at ``rows_v`` (which
+    wins), NaN elsewhere. Each output is written once for all joints: a joint's rows of a
+    time-major array are strided, and masked writes joint by joint went through the whole array
+    once per joint."""
+    pos, cov, src = empty_output(ctx)
+    pos[...] = pos_jt
+    src[...] = src_jt
+    if rows_i is not None:
+        np.copyto(cov, np.asarray(ctx.params.r_imu), where=rows_i[..., None, None])
+    np.copyto(cov, np.asarray(ctx.params.r_cam), where=rows_v[..., None, None])
+    return pos, cov, src
+
+
 def _camera_interp(ctx: FusionContext, max_gap: int | None) -> FusionResult:
     """Camera where available, gaps linearly interpolated (at most ``max_gap`` samples between
     two camera samples; None: every gap, and the last value held after the last sample)."""
-    pos, cov, src = empty_output(ctx)
     J, T = ctx.shape
-    R_V = np.asarray(ctx.params.r_cam)
+    p = np.full((J, T, 3), np.nan)
+    src = np.where(ctx.available, SOURCE_CAMERA, SOURCE_NONE).astype(np.int8)
+    keep = ctx.available.copy()
     for j in range(J):
         av = ctx.available[j]
         pj, filled = interpolate_gaps(ctx.z_cam[j], av)
@@ -61,11 +78,10 @@ def _camera_interp(ctx: FusionContext, max_gap: int | None) -> FusionResult:
             for a, e in zip(g_s, g_e, strict=True):
                 if a == 0 or e == T or e - a > max_gap:
                     filled[a:e] = False
-        keep = av | filled
-        pos[j, keep] = pj[keep]
-        src[j, av] = SOURCE_CAMERA
+        keep[j] |= filled
+        p[j, keep[j]] = pj[keep[j]]
         src[j, filled] = SOURCE_BRIDGED
-        cov[j, keep] = R_V
+    pos, cov, src = _assemble(ctx, p, src, None, keep)
     # interpolation reads the next camera sample: not causal
     return finish(ctx, pos, cov, src, causal=False)
 
@@ -76,8 +92,9 @@ def camera_only(ctx: FusionContext) -> FusionResult:
     return _camera_interp(ctx, None)
 
 
-def _imu_rows(ctx: FusionContext, j: int) -> np.ndarray:
-    return np.all(np.isfinite(ctx.z_imu[j]), axis=-1)
+def _imu_rows(ctx: FusionContext) -> np.ndarray:
+    """``(J, T)``: the chain measured the joint."""
+    return np.all(np.isfinite(ctx.z_imu), axis=-1)
 
 
 def offset_interp(ctx: FusionContext) -> FusionResult:
@@ -91,25 +108,21 @@ def offset_interp(ctx: FusionContext) -> FusionResult:
     The simplest fusion a skeptic would try: it assumes the chain error is constant or drifts
     linearly through an outage. Covariance: ``R_V`` in view, ``R_I`` in outages (nominal).
     """
-    pos, cov, src = empty_output(ctx)
     J, T = ctx.shape
     t = np.arange(T)
-    R_V, R_I = np.asarray(ctx.params.r_cam), np.asarray(ctx.params.r_imu)
-    for j in range(J):
-        ok_i = _imu_rows(ctx, j)
-        seen = ctx.available[j] & ok_i
-        idx = np.flatnonzero(seen)
-        off = np.zeros((T, 3))
-        if idx.size:
-            d = ctx.z_cam[j, idx] - ctx.z_imu[j, idx]
-            for k in range(3):
-                off[:, k] = np.interp(t, idx, d[:, k])
-        pos[j] = ctx.z_imu[j] + off
-        pos[j, seen] = ctx.z_cam[j, seen]
-        src[j, ok_i] = SOURCE_BRIDGED if idx.size else SOURCE_IMU
-        src[j, seen] = SOURCE_CAMERA
-        cov[j, ok_i] = R_I
-        cov[j, seen] = R_V
+    ok_i = _imu_rows(ctx)
+    seen = ctx.available & ok_i
+    off = np.zeros((J, T, 3))
+    bridged = seen.any(axis=1)
+    for j in np.flatnonzero(bridged):
+        idx = np.flatnonzero(seen[j])
+        d = ctx.z_cam[j, idx] - ctx.z_imu[j, idx]
+        for k in range(3):
+            off[j, :, k] = np.interp(t, idx, d[:, k])
+    p = np.where(seen[..., None], ctx.z_cam, ctx.z_imu + off)
+    chain_src = np.where(bridged, SOURCE_BRIDGED, SOURCE_IMU)[:, None]
+    src = np.where(seen, SOURCE_CAMERA, np.where(ok_i, chain_src, SOURCE_NONE)).astype(np.int8)
+    pos, cov, src = _assemble(ctx, p, src, ok_i, seen)
     return finish(ctx, pos, cov, src, causal=False)
 
 
@@ -122,30 +135,26 @@ def offset_hold(ctx: FusionContext) -> FusionResult:
     alone (source IMU). Every output at t reads inputs up to t only. The simplest causal
     bridge a skeptic would try (it holds the chain error constant through the outage).
     """
-    pos, cov, src = empty_output(ctx)
     J, T = ctx.shape
-    R_V, R_I = np.asarray(ctx.params.r_cam), np.asarray(ctx.params.r_imu)
     n = OFFSET_HOLD_SAMPLES
-    for j in range(J):
-        ok_i = _imu_rows(ctx, j)
-        seen = ctx.available[j] & ok_i
-        idx = np.flatnonzero(seen)
-        pos[j] = ctx.z_imu[j]
-        src[j, ok_i] = SOURCE_IMU
-        cov[j, ok_i] = R_I
-        if idx.size:
-            d = ctx.z_cam[j, idx] - ctx.z_imu[j, idx]
-            c = np.concatenate([np.zeros((1, 3)), np.cumsum(d, axis=0)])
-            m = np.arange(1, idx.size + 1)  # seen samples so far, at each seen sample
-            lo = np.maximum(m - n, 0)
-            mean = (c[m] - c[lo]) / (m - lo)[:, None]  # mean of the last <= n offsets
-            last = np.searchsorted(idx, np.arange(T), side="right") - 1  # last seen <= t
-            gap = ok_i & ~seen & (last >= 0)
-            pos[j, gap] = ctx.z_imu[j, gap] + mean[last[gap]]
-            src[j, gap] = SOURCE_BRIDGED
-        pos[j, seen] = ctx.z_cam[j, seen]
-        src[j, seen] = SOURCE_CAMERA
-        cov[j, seen] = R_V
+    ok_i = _imu_rows(ctx)
+    seen = ctx.available & ok_i
+    p = ctx.z_imu.copy()
+    src = np.where(ok_i, SOURCE_IMU, SOURCE_NONE).astype(np.int8)
+    for j in np.flatnonzero(seen.any(axis=1)):
+        idx = np.flatnonzero(seen[j])
+        d = ctx.z_cam[j, idx] - ctx.z_imu[j, idx]
+        c = np.concatenate([np.zeros((1, 3)), np.cumsum(d, axis=0)])
+        m = np.arange(1, idx.size + 1)  # seen samples so far, at each seen sample
+        lo = np.maximum(m - n, 0)
+        mean = (c[m] - c[lo]) / (m - lo)[:, None]  # mean of the last <= n offsets
+        last = np.searchsorted(idx, np.arange(T), side="right") - 1  # last seen <= t
+        gap = ok_i[j] & ~seen[j] & (last >= 0)
+        p[j, gap] = ctx.z_imu[j, gap] + mean[last[gap]]
+        src[j, gap] = SOURCE_BRIDGED
+    p[seen] = ctx.z_cam[seen]
+    src[seen] = SOURCE_CAMERA
+    pos, cov, src = _assemble(ctx, p, src, ok_i, seen)
     return finish(ctx, pos, cov, src, causal=True)
 
 
