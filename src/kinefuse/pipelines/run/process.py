@@ -564,18 +564,18 @@ def _baselines(chain, camera, dt, joints) -> dict[str, np.ndarray]:
     """The simple baselines (offset interp / hold, camera gap-fill) on one chain and camera."""
     avail = np.all(np.isfinite(camera), axis=-1)
     keep = [j for j in range(len(joints)) if np.any(np.all(np.isfinite(chain[:, j]), axis=-1))]
+    every = 0 < len(keep) == len(joints)  # (the common case: no copies of the joints kept)
+    if keep and not every:
+        chain, camera, avail = chain[:, keep], camera[:, keep], avail[:, keep]
+    names = [joints[j] for j in keep]
     out = {}
     for m in methods.BASELINES:
-        pos = np.full(chain.shape, np.nan)
-        if keep:
-            res = vision_assisted(
-                chain[:, keep],
-                camera[:, keep],
-                avail[:, keep],
-                dt,
-                m,
-                joints=[joints[j] for j in keep],
-            )
-            pos[:, keep] = res.position
+        if every:
+            pos = vision_assisted(chain, camera, avail, dt, m, joints=names).position
+        else:
+            pos = np.full((chain.shape[0], len(joints), 3), np.nan)
+            if keep:
+                res = vision_assisted(chain, camera, avail, dt, m, joints=names)
+                pos[:, keep] = res.position
         out[methods.get(m).label] = pos
     return out
