@@ -8,7 +8,6 @@ method on a long virtual recording in a fresh process (its own peak RSS).
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import json
 import os
 import pickle
@@ -16,6 +15,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from itertools import islice
 
 import numpy as np
 
@@ -56,7 +56,7 @@ def engine_frame_times(rec, processor: str, n_frames: int = 600, loops: int = 1)
     onset : ndarray of bool, shape (n,)
         Frames in which a bridging processor trained at an outage onset.
     """
-    frames = list(itertools.islice(_engine_frames(rec, processor, loops), n_frames))
+    frames = list(islice(_engine_frames(rec, processor, loops), n_frames))
     return _columns(frames[30:], 3)
 
 
@@ -158,7 +158,7 @@ def engine_rows(quick: bool) -> list[dict]:
     while live:
         for name, gen in list(live.items()):
             k = min(ENGINE_ROUND_FRAMES * want[name] // n, want[name] - len(got[name]))
-            chunk = list(itertools.islice(gen, max(k, 1)))
+            chunk = list(islice(gen, max(k, 1)))
             got[name] += chunk
             if not chunk or len(got[name]) >= want[name]:
                 del live[name]
