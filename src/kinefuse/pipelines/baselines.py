@@ -135,7 +135,7 @@ def offset_hold(ctx: FusionContext) -> FusionResult:
     alone (source IMU). Every output at t reads inputs up to t only. The simplest causal
     bridge a skeptic would try (it holds the chain error constant through the outage).
     """
-    J, T = ctx.shape
+    T = ctx.shape[1]
     n = OFFSET_HOLD_SAMPLES
     ok_i = _imu_rows(ctx)
     seen = ctx.available & ok_i
