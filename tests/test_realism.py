@@ -28,12 +28,12 @@ def test_tuning_and_report_sets_are_disjoint():
         assert not set(TUNING[key]) & set(REPORT[key]), key
 
 
-def test_realism_quick_runs_all_three_measures(shared_data):
+def test_realism_quick_runs_all_four_measures(shared_data):
     assert "realism" in EXPERIMENTS
     out = run_experiment("realism", shared_data, quick=True, quiet=True)
     rows = out["results"]["rows"]
     measures = {r["measure"][:5] for r in rows}
-    assert measures == {"(i) B", "(ii) ", "(iii)"}
+    assert measures == {"(i) B", "(ii) ", "(iii)", "(iv) "}
     assert {r["set"] for r in rows} == {"tuning", "report"}
     for r in rows:
         assert np.isfinite(r["real"]) and r["real"] > 0 and r["virtual"] > 0, r
