@@ -409,28 +409,28 @@ def _broad_rows(data_dir: Path, quick: bool, advance: Callable, rows: list, res:
             res.append(d)
 
 
-def _walk_rows(data_dir: Path, quick: bool, advance: Callable, rows: list, res: list) -> None:
-    """(ii) walking: the leg chain error on the Neura walk (real) and on CMU walks (virtual)."""
+def _cmu_walk_rows(data_dir: Path, quick: bool, advance: Callable, rows: list, res: list, *,
+                   measure: str, unit: str, real: float, real_name: str, per_walk, seed0: int):  # fmt: skip
+    """The tuning and report rows of a walking measure: ``real`` next to the mean of
+    ``per_walk(motion, seed)`` over the CMU walks of each set (seeds ``seed0``, ``seed0 + 1``...)."""
     take = functools.partial(_take, quick=quick)
-    real_walk = neura_chain_error_mm(data_dir)
-    advance()
     for which, names in (("tuning", TUNING["cmu_walk"]), ("report", REPORT["cmu_walk"])):
-        errs = [
-            cmu_walk_chain_error_mm(_cmu(data_dir, n), _SEED + 10 + i)
-            for i, n in enumerate(take(names))
-        ]
+        vals = [per_walk(_cmu(data_dir, n), seed0 + i) for i, n in enumerate(take(names))]
         advance()
-        r, d = _row(
-            "(ii) walk: leg chain vs truth, mm",
-            which,
-            real_walk,
-            float(np.mean(errs)),
-            "mm",
-            "Neura / CMU " + " ".join(take(names)),
-        )
-        d["virtual_per_trial"] = errs
+        trials = f"{real_name} / CMU " + " ".join(take(names))
+        r, d = _row(measure, which, real, float(np.mean(vals)), unit, trials)
+        d["virtual_per_trial"] = vals
         rows.append(r)
         res.append(d)
+
+
+def _walk_rows(data_dir: Path, quick: bool, advance: Callable, rows: list, res: list) -> None:
+    """(ii) walking: the leg chain error on the Neura walk (real) and on CMU walks (virtual)."""
+    real_walk = neura_chain_error_mm(data_dir)
+    advance()
+    _cmu_walk_rows(data_dir, quick, advance, rows, res, measure="(ii) walk: leg chain vs truth, mm",
+                   unit="mm", real=real_walk, real_name="Neura",
+                   per_walk=cmu_walk_chain_error_mm, seed0=_SEED + 10)  # fmt: skip
 
 
 def _wrist_rows(
@@ -484,25 +484,10 @@ def _wrist_rows(
 
 def _knee_rows(data_dir: Path, quick: bool, advance: Callable, rows: list, res: list) -> None:
     """(iv) knee rotation off the flexion axis: the x-IMU3 walk (real) and CMU walks (virtual)."""
-    take = functools.partial(_take, quick=quick)
     real = knee_off_axis_share(load(data_dir / "xio_imu_mocap_lower_body"))
-    for which, names in (("tuning", TUNING["cmu_walk"]), ("report", REPORT["cmu_walk"])):
-        shares = [
-            cmu_knee_off_axis_share(_cmu(data_dir, n), _SEED + 20 + i)
-            for i, n in enumerate(take(names))
-        ]
-        advance()
-        r, d = _row(
-            "(iv) knee rate off the flexion axis",
-            which,
-            real,
-            float(np.mean(shares)),
-            "ratio",
-            "x-IMU3 / CMU " + " ".join(take(names)),
-        )
-        d["virtual_per_trial"] = shares
-        rows.append(r)
-        res.append(d)
+    _cmu_walk_rows(data_dir, quick, advance, rows, res,
+                   measure="(iv) knee rate off the flexion axis", unit="ratio", real=real,
+                   real_name="x-IMU3", per_walk=cmu_knee_off_axis_share, seed0=_SEED + 20)  # fmt: skip
 
 
 def _notes(res: list[dict]) -> list[str]:
