@@ -554,7 +554,9 @@ def run_realism(data_dir: Path | None, quick: bool, advance: Callable, notes: li
         difference, within tolerance, set).
     """
     if data_dir is None:
-        raise InputError("experiment realism needs --data (BROAD, CMU, UTD-MHAD and Neura data)")
+        raise InputError(
+            "experiment realism needs --data (BROAD, CMU, UTD-MHAD, Neura and x-IMU3 data)"
+        )
     data_dir = Path(data_dir)
     for sub in (
         "broad",
