@@ -31,12 +31,12 @@ Hinge prior: for a joint in ``hinge_joints`` whose axial excitation (the excitat
 centre moving along the hinge axis in both frames at once, ``(j_A, j_B)/√2``) is below
 ``min_excitation_s2``, ``r_D − r_P`` is first projected on the plane normal to the hinge
 axis (the femoral and tibial mechanical axes are perpendicular to the knee flexion axis
-within a few degrees). CMU's 1-DoF virtual knees give 0.1-1.6 s⁻² with ideal sensors and
-1.2-5.3 s⁻² with the simulator's soft-tissue artefact (CMU 02_01 and BVH 131_02 walks: the
-prior is used at some of them); real knees in walking 10-16 s⁻² (Neura, x-IMU3: not used).
-The simulator's knees do not rotate off the flexion axis as real ones do (``kinefuse
-experiment realism``, measure (iv)), so this threshold cannot be tested on virtual walks: there
-the fit's position along the axis comes from soft tissue alone.
+within a few degrees). CMU's own 1-DoF knees give 0.1-1.6 s⁻² with ideal sensors and
+1.2-5.3 s⁻² with the simulator's soft-tissue artefact (CMU 02_01 and BVH 131_02 walks); with the
+simulator's knee rotations (:mod:`kinefuse.sim.knee`, internal/external rotation and
+ab/adduction of the measured ranges) 2.7-7.4 s⁻², and real knees in walking 10-16 s⁻² (Neura,
+x-IMU3: not used). Real knees also rotate off the flexion axis more than the simulator's
+(``kinefuse experiment realism``, measure (iv)), so the threshold was not chosen on virtual walks.
 
 Excitation of a joint: ``min`` over its sensors of ``sqrt(λ₂)``, ``λ₂`` the middle
 eigenvalue of ``mean_k K(k)ᵀ K(k)``: the acceleration change per metre of centre error in

@@ -5,18 +5,21 @@
 with IMU streams, a camera skeleton stream and the truth, so that pipelines can be evaluated
 against exact ground truth. Error models and defaults: :mod:`kinefuse.sim.imu` (ICM-20948 raw
 gyro/accelerometer/magnetometer, soft-tissue artefact, mounting error, indoor magnetic
-disturbances; orientation from VQF run on the raw signals) and :mod:`kinefuse.sim.camera` (fitted
-to UTD-MHAD Kinect). ``kinefuse experiment realism`` prints how close the virtual sensors come to
-real ones.
+disturbances; orientation from VQF run on the raw signals), :mod:`kinefuse.sim.knee` (knee
+internal/external rotation and ab/adduction added to hinge knees) and :mod:`kinefuse.sim.camera`
+(fitted to UTD-MHAD Kinect). ``kinefuse experiment realism`` prints how close the virtual sensors
+come to real ones.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import asdict
 
 import numpy as np
 
+from kinefuse._validation import as_float
 from kinefuse.conventions import SEGMENTS
 from kinefuse.exceptions import InputError
 from kinefuse.io.motion import Motion
@@ -24,9 +27,11 @@ from kinefuse.io.recording import ImuStream, Recording
 from kinefuse.sim.camera import CameraConfig, camera_pose, reference_at, simulate_camera
 from kinefuse.sim.imu import simulate_imu, simulate_imu_from_pose, time_grid
 from kinefuse.sim.imu_config import ORIENTATIONS, ImuConfig
+from kinefuse.sim.knee import KNEE_SECONDARY_GAIN, with_knee_secondary
 from kinefuse.sim.soft_tissue import STA_AMPLITUDE
 
 __all__ = [
+    "KNEE_SECONDARY_GAIN",
     "ORIENTATIONS",
     "PAPER_B_SEGMENTS",
     "STA_AMPLITUDE",
@@ -55,6 +60,7 @@ def virtual_recording(
     segments: Sequence[str] = PAPER_B_SEGMENTS,
     seed: int = 0,
     reference_rate_hz: float | None = None,
+    knee_secondary: float = 1.0,
 ) -> Recording:
     """Simulate body-worn IMUs and a depth camera from a real motion.
 
@@ -76,6 +82,11 @@ def virtual_recording(
         a sensor does not change the others.
     reference_rate_hz : float, optional
         Rate of ``recording.reference``; default the camera rate (30 Hz without a camera).
+    knee_secondary : float
+        Factor on the internal/external rotation and ab/adduction added to hinge knees
+        (:mod:`kinefuse.sim.knee`: 1 = the measured ranges in walking; 0 = the mocap's own knees).
+        The truth (reference joints and orientations) is the motion with them, drawn from
+        ``default_rng([seed, 3])``.
 
     Returns
     -------
@@ -92,10 +103,18 @@ def virtual_recording(
         soft-tissue artefact, noise-free acc/gyr/mag, biases, sensitivity matrices, magnetic
         disturbance episodes), ``camera_truth`` (masks, bone
         scales), ``R_world_from_camera``, ``camera_position_m``, ``segment_length_m``,
-        ``segment_joints``, the configurations, ``seed`` and the motion's source.
+        ``segment_joints``, the configurations, ``seed``, the motion's source and
+        ``knee_secondary`` (its factor and, per knee changed, the added rotation vector, rad, at
+        the motion's samples).
     """
     segments = _checked_segments(motion, imu, camera, segments)
     seed = int(seed)
+    scale = as_float(
+        knee_secondary, f"expected knee_secondary as a number >= 0, got {knee_secondary!r}"
+    )
+    if not (math.isfinite(scale) and scale >= 0.0):
+        raise InputError(f"expected knee_secondary finite and >= 0, got {knee_secondary!r}")
+    motion, knee_truth = with_knee_secondary(motion, np.random.default_rng([seed, 3]), scale)
     cam_rate = camera.rate_hz if camera is not None else 30.0
     ref_rate = cam_rate if reference_rate_hz is None else float(reference_rate_hz)
     t_ref = time_grid(motion.t_s, ref_rate)
@@ -110,6 +129,7 @@ def virtual_recording(
         "segment_length_m": dict(motion.segment_length_m),
         "segment_joints": dict(motion.segment_joints),
         "segment_axis": "e2 (proximal -> distal) in the segment frame",
+        "knee_secondary": {"scale": scale, "rotvec_rad": knee_truth},
     }
     imus: dict[str, ImuStream] = {}
     ref_orient: dict[str, ImuStream] = {}
