@@ -28,8 +28,10 @@ the simulated figure should lie within ±30 % of the real one (:data:`TOLERANCE`
     (50 Hz like UTD-MHAD, VQF 6D, sensor at 90 % of the forearm) and the virtual Kinect
     (:class:`kinefuse.sim.CameraConfig`, fitted to UTD-MHAD, no outages), the same calibration.
 (iv) Knee rotation off the flexion axis, walking
-    Real: the x-IMU3 lower-body walk (IMU only). Virtual: CMU walks with virtual pelvis, thigh,
-    shank and foot IMUs (VQF 9D). The same functional calibration
+    Real: the x-IMU3 lower-body recording (IMU only; a few steps, a turn on the spot, steps
+    back and a second turn: its pelvis turns at up to 140°/s around 8 s and 13 s). Virtual:
+    straight CMU walks with virtual pelvis, thigh, shank and foot IMUs (VQF 9D) and the
+    simulator's knee rotations (:mod:`kinefuse.sim.knee`). The same functional calibration
     (:func:`kinefuse.kinematics.calibrate`, ``"functional"``) on both; figure: the RMS relative
     angular rate of thigh and shank about the second principal axis over that about the first
     (the flexion axis), mean of both knees. A pure hinge gives 0. It tells whether the knee moves
@@ -39,8 +41,10 @@ the simulated figure should lie within ±30 % of the real one (:data:`TOLERANCE`
 
 Tuning and report sets (:data:`TUNING`, :data:`REPORT`): the simulator's error magnitudes (magnetic
 inhomogeneity and disturbance sizes, soft-tissue scale, sensor placement) were chosen on the
-tuning rows only; the report rows were not looked at while choosing them. The Neura walk is
-evaluation-only (single trial): its row is a report row on both sides and nothing was tuned on it.
+tuning rows only; the report rows were not looked at while choosing them. The knee rotations'
+gains were set on the tuning walks (CMU 02_01, 02_02) against published ranges of motion, not
+against any real row (:mod:`kinefuse.sim.knee`). The Neura walk is evaluation-only (single
+trial): its row is a report row on both sides and nothing was tuned on it.
 """
 
 from __future__ import annotations
@@ -501,7 +505,8 @@ def _notes(res: list[dict]) -> list[str]:
         "error size and time); "
         "'report' = not used for any choice. (ii) has no tuning: its real side, the Neura walk, "
         "is evaluation-only, so both its rows are untuned (they differ in the CMU walks); nor has "
-        "(iv).",
+        "(iv): the knee rotations' gains were set on CMU 02_01 02_02 to published ranges of "
+        "motion, not to any real figure.",
         "(i) RMSE of the total orientation error over BROAD's motion phases, VQF 9D (causal, "
         "defaults) on the raw real / virtual signals, mean over the trials listed; the virtual "
         "IMU follows the trial's optical pose; virtual figure = mean over "
@@ -523,12 +528,15 @@ def _notes(res: list[dict]) -> list[str]:
         "pieces.",
         "(iv) RMS relative angular rate of thigh and shank sensors about the second principal "
         "axis over that about the first (the flexion axis), from the functional calibration of "
-        "each walk, mean of both knees (0 for a pure hinge); real: the x-IMU3 lower-body walk "
-        "(IMU only); virtual: CMU walks, pelvis, thigh, shank and foot IMUs. CMU's knees are "
-        "1-DoF hinges: what the virtual knees show off the axis is soft tissue and sensor error.",
+        "each walk, mean of both knees (0 for a pure hinge); real: the x-IMU3 lower-body "
+        "recording (IMU only: steps, a turn on the spot, steps back, a second turn); virtual: CMU "
+        "walks (straight), pelvis, thigh, shank and foot IMUs. CMU's knees are 1-DoF hinges; "
+        "the simulator adds internal/external rotation and ab/adduction of the ranges measured "
+        "in walking (kinefuse.sim.knee).",
         "Simulator: kinefuse.sim defaults (calibrated ICM-20948 residual errors, soft-tissue "
         "artefact, mounting error, indoor magnetic inhomogeneity and disturbances, orientation "
-        "from VQF on the raw virtual signals; Kinect with tracking error).",
+        "from VQF on the raw virtual signals; knee secondary rotations; Kinect with tracking "
+        "error).",
     ]
 
 
