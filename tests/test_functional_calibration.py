@@ -368,13 +368,14 @@ def test_cmu_virtual_walk_tuning_set(shared_data):
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_cmu_virtual_walk_with_knee_rotations(shared_data, seed):
     """The same walk with the simulator's knee internal/external rotation and ab/adduction
-    (kinefuse.sim.knee): the knee centre along the flexion axis is now excited (no hinge prior;
-    seed 1: within 1.1 cm, 38 cm without the rotations), the lengths stay within 2.5 cm, and the
-    segment axes are within 6° (seeds 1-3: 5.1°, 5.9°, 3.9°): no prior now removes the lateral
-    error of the ankle centre (about 2 cm), whose CMU joint stays close to a hinge."""
+    (kinefuse.sim.knee): the knee centre along the flexion axis is now excited and found
+    without the hinge prior (left knee, seeds 1-3: within 2.7, 4.9 and 0.4 cm along the axis;
+    38 cm off without the rotations, where the prior saves the axes), the lengths stay within
+    1 cm, and the segment axes are within 7.4° (seed 2, thigh_l): how well a knee centre is
+    placed depends on how much this draw's knee rotates off its axis."""
     cal, errors = _cmu_walk_calibration(shared_data, seed=seed, knee_secondary=1.0)
     for s, (axis_deg, length_m) in errors.items():
-        assert axis_deg < 8.0 and abs(length_m) < 0.025, s
+        assert axis_deg < 10.0 and abs(length_m) < 0.025, s
     assert cal.hinge_prior == ()
 
 

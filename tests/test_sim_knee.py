@@ -67,18 +67,19 @@ def test_the_knee_leaves_its_hinge_by_the_added_rotation(walks):
 
 
 def test_the_gains_give_the_measured_ranges_on_the_tuning_walks(walks):
-    """The documented calibration: mean range (2.5-97.5 percentile) over 40 draws on CMU 02_01
-    and 02_02 equals the measured 11.5° internal/external and 3.7° ab/adduction (the gains
-    are rounded: within 5 %)."""
+    """The documented calibration: the mean range (2.5-97.5 percentile span) on CMU 02_01 and
+    02_02 equals the measured 11.5° internal/external and 3.7° ab/adduction. 100 draws per walk
+    (400 knees): the ranges scatter by about 43 % (sd/mean), so the mean is known to about 2 %;
+    the gains were rounded to two digits on 2000 knees. Tolerance 8 %."""
     ranges = []
     for walk in walks:
-        for seed in range(40):
-            _, truth = with_knee_secondary(walk, np.random.default_rng([seed, 3]))
+        for seed in range(100):
+            _, truth = with_knee_secondary(walk, np.random.default_rng([seed, 4]))
             for th in truth.values():
                 ranges.append(np.percentile(th, 97.5, axis=0) - np.percentile(th, 2.5, axis=0))
     mean_deg = np.degrees(np.mean(ranges, axis=0))
-    assert mean_deg[1] == pytest.approx(11.5, rel=0.05)
-    assert mean_deg[2] == pytest.approx(3.7, rel=0.05)
+    assert mean_deg[1] == pytest.approx(11.5, rel=0.08)
+    assert mean_deg[2] == pytest.approx(3.7, rel=0.08)
     assert KNEE_SECONDARY_GAIN["internal_external"] > KNEE_SECONDARY_GAIN["ab_adduction"]
 
 
@@ -104,7 +105,7 @@ def test_virtual_sensors_follow_the_changed_shank(walks):
         segments=("shank_l",),
         seed=seed,
     )
-    moved, truth = with_knee_secondary(walk, np.random.default_rng([seed, 3]))
+    moved, truth = with_knee_secondary(walk, np.random.default_rng([seed, 4]))
     for k, v in truth.items():
         np.testing.assert_array_equal(rec.metadata["knee_secondary"]["rotvec_rad"][k], v)
     p = 0.5 * (moved.position("knee_l") + moved.position("ankle_l"))

@@ -34,7 +34,7 @@ axis (the femoral and tibial mechanical axes are perpendicular to the knee flexi
 within a few degrees). CMU's own 1-DoF knees give 0.1-1.6 s⁻² with ideal sensors and
 1.2-5.3 s⁻² with the simulator's soft-tissue artefact (CMU 02_01 and BVH 131_02 walks); with the
 simulator's knee rotations (:mod:`kinefuse.sim.knee`, internal/external rotation and
-ab/adduction of the measured ranges) 2.7-7.4 s⁻², and real knees in walking 10-16 s⁻² (Neura,
+ab/adduction of the measured ranges) 2.7-11.8 s⁻², and real knees in walking 10-16 s⁻² (Neura,
 x-IMU3: not used). Real knees also rotate off the flexion axis more than the simulator's
 (``kinefuse experiment realism``, measure (iv)), so the threshold was not chosen on virtual walks.
 

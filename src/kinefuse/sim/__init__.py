@@ -86,7 +86,7 @@ def virtual_recording(
         Factor on the internal/external rotation and ab/adduction added to hinge knees
         (:mod:`kinefuse.sim.knee`: 1 = the measured ranges in walking; 0 = the mocap's own knees).
         The truth (reference joints and orientations) is the motion with them, drawn from
-        ``default_rng([seed, 3])``.
+        ``default_rng([seed, 4])``.
 
     Returns
     -------
@@ -114,7 +114,7 @@ def virtual_recording(
     )
     if not (math.isfinite(scale) and scale >= 0.0):
         raise InputError(f"expected knee_secondary finite and >= 0, got {knee_secondary!r}")
-    motion, knee_truth = with_knee_secondary(motion, np.random.default_rng([seed, 3]), scale)
+    motion, knee_truth = with_knee_secondary(motion, np.random.default_rng([seed, 4]), scale)
     cam_rate = camera.rate_hz if camera is not None else 30.0
     ref_rate = cam_rate if reference_rate_hz is None else float(reference_rate_hz)
     t_ref = time_grid(motion.t_s, ref_rate)

@@ -25,7 +25,7 @@ thigh), the knee (thigh to shank) and the ankle (shank to foot), where those seg
 their time course is not a copy of the flexion curve (a rotation proportional to flexion would
 only tilt the flexion axis). Gains :data:`KNEE_SECONDARY_GAIN` (rad per rad of joint drive) were
 set so that the mean ranges of motion (2.5-97.5 percentile span) over the realism check's tuning
-walks (CMU 02_01 and 02_02, 40 draws each) equal those means; the shank rotates by ``exp(θ)`` after its mocap orientation, the ankle and foot
+walks (CMU 02_01 and 02_02, 500 draws each, both knees) equal those means; the shank rotates by ``exp(θ)`` after its mocap orientation, the ankle and foot
 follow the shank's new direction (the foot keeps its orientation: the ankle takes up the
 rotation, as a planted foot does), and the thigh, pelvis and everything above are unchanged.
 
@@ -49,7 +49,7 @@ __all__ = ["HINGE_TOLERANCE_RAD", "KNEE_SECONDARY_GAIN", "with_knee_secondary"]
 
 #: Rotation per radian of joint drive: internal/external (about the shank's y axis) and
 #: ab/adduction (about its z axis); the module doc gives the sources and how they were set.
-KNEE_SECONDARY_GAIN = {"internal_external": 0.49, "ab_adduction": 0.146}
+KNEE_SECONDARY_GAIN = {"internal_external": 0.50, "ab_adduction": 0.16}
 
 #: A knee whose rotation leaves its main axis by less than this (RMS, rad) counts as a hinge.
 HINGE_TOLERANCE_RAD = np.deg2rad(0.5)
