@@ -54,12 +54,12 @@ def test_tuning_and_report_sets_are_disjoint():
         assert not set(TUNING[key]) & set(REPORT[key]), key
 
 
-def test_realism_quick_runs_all_four_measures(shared_data):
+def test_realism_quick_runs_all_five_measures(shared_data):
     assert "realism" in EXPERIMENTS
     out = run_experiment("realism", shared_data, quick=True, quiet=True)
     rows = out["results"]["rows"]
     measures = {r["measure"][:5] for r in rows}
-    assert measures == {"(i) B", "(ii) ", "(iii)", "(iv) "}
+    assert measures == {"(i) B", "(ii) ", "(iii)", "(iv) ", "(v) I"}
     assert {r["set"] for r in rows} == {"tuning", "report"}
     for r in rows:
         assert np.isfinite(r["real"]) and r["real"] > 0 and r["virtual"] > 0, r
@@ -72,3 +72,17 @@ def test_realism_quick_runs_all_four_measures(shared_data):
 def test_realism_needs_the_data(tmp_path):
     with pytest.raises(InputError, match="broad"):
         run_experiment("realism", tmp_path, quick=True, quiet=True)
+
+
+def test_imu_only_measure_is_the_neura_experiments_first_row(shared_data):
+    """Measure (v) on the Neura walk is the mean of ``kinefuse experiment neura-imu-only``'s
+    'functional (IMU only), tape lengths' row (the same procedure, called twice)."""
+    from kinefuse.apps.neura_imu_only import TAPE_LENGTHS_M, run_neura_imu_only
+    from kinefuse.apps.realism import imu_only_chain_error_cm
+    from kinefuse.io import load
+
+    row = run_neura_imu_only(shared_data)["results"]["rows"][0]
+    assert row["label"] == "functional (IMU only), tape lengths"
+    expected = 100 * np.mean([row[j] for j in ("knee_l", "knee_r", "ankle_l", "ankle_r")])
+    rec = load(shared_data / "neura_sparse_sample", format="neura")
+    assert imu_only_chain_error_cm(rec, TAPE_LENGTHS_M) == pytest.approx(expected, rel=1e-12)

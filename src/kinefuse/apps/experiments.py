@@ -81,7 +81,7 @@ def _runner(name: str, quick: bool, split: DataSplit) -> tuple[Callable, int]:
     return {
         "neura-imu-only": (_neura_imu_only, 2),
         "paper-a": (run_paper_a, n_cmu + 1 + (8 if quick else 12)),
-        "realism": (_realism, 9),
+        "realism": (_realism, 12),
         "paper-b": (run_paper_b, n_cmu + 2),
     }[name]
 

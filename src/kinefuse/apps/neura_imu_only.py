@@ -29,7 +29,7 @@ from kinefuse.io import load
 from kinefuse.kinematics import calibrate, chain_positions, joint_angles, lower_body
 from kinefuse.kinematics.hinge import segment_frame
 
-__all__ = ["TAPE_LENGTHS_M", "run_neura_imu_only"]
+__all__ = ["TAPE_LENGTHS_M", "chain_rmse_m", "run_neura_imu_only"]
 
 #: Thigh and shank lengths of S02 (``neura_sparse_sample/SOURCE.md``), taken as tape measures, m.
 TAPE_LENGTHS_M = {"thigh_l": 0.417, "thigh_r": 0.395, "shank_l": 0.389, "shank_r": 0.409}
@@ -78,15 +78,26 @@ def _reference_flexion(rec, side: str) -> np.ndarray:
     return (th.inv() * sk).as_euler("YXZ", degrees=True)[:, 0]
 
 
-def _scores(rec, sk, cal, hinge: dict, tag: str, use_lengths: bool) -> dict:
+def chain_rmse_m(rec, sk, cal, use_lengths: bool) -> dict[str, float]:
+    """3-D RMSE (m) of the leg chain at knees and ankles against ``rec.reference``.
+
+    The chain is rooted at the reference's hip centres (a measured root, as paper A's
+    shoulder), with ``sk``'s lengths (``use_lengths`` False: tape measures) or the
+    calibration's; the reference is interpolated at the chain's times.
+    """
     est = chain_positions(rec, sk, cal, root=("hip_l", "hip_r"), use_calibrated_lengths=use_lengths)
     ref = rec.reference
-    out = {"label": tag}
+    out = {}
     for j in _JOINTS:
         e = est.position(j) - np.stack(
             [np.interp(est.t_s, ref.t_s, ref.position(j)[:, k]) for k in range(3)], -1
         )
         out[j] = float(np.sqrt(np.nanmean(np.sum(e**2, axis=1))))
+    return out
+
+
+def _scores(rec, sk, cal, hinge: dict, tag: str, use_lengths: bool) -> dict:
+    out = {"label": tag, **chain_rmse_m(rec, sk, cal, use_lengths)}
     for side in ("l", "r"):
         Rt = _mats(rec.imu[f"thigh_{side}"].q_world_from_sensor)
         Rs = _mats(rec.imu[f"shank_{side}"].q_world_from_sensor)

@@ -38,6 +38,13 @@ the simulated figure should lie within ±30 % of the real one (:data:`TOLERANCE`
     (and the sensors see it move) out of the flexion plane as much as a real one: knee axial
     rotation and ab/adduction, soft tissue, orientation error. The functional calibration's
     location of a knee centre along its axis rests on that motion.
+(v) The leg chain from IMUs alone, walking
+    ``kinefuse experiment neura-imu-only``'s first row on both sides: functional calibration
+    from the walk itself, thigh and shank lengths given as tape measures, the chain rooted at the
+    true hip centres. Real: the Neura walk (evaluation only; its ``SOURCE.md`` lengths). Virtual:
+    CMU walks with virtual pelvis, thigh, shank and foot IMUs (VQF 9D), the motion's own bone
+    lengths. Figure: mean over knees and ankles of the 3-D RMSE, cm. It tells whether the
+    simulator is as hard as real data for the IMU-only capture of issue 10.
 
 Tuning and report sets (:data:`TUNING`, :data:`REPORT`): the simulator's error magnitudes (magnetic
 inhomogeneity and disturbance sizes, soft-tissue scale, sensor placement) were chosen on the
@@ -60,6 +67,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from kinefuse.apps._common import imu_only_output, result_table
+from kinefuse.apps.neura_imu_only import TAPE_LENGTHS_M, chain_rmse_m
 from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.io import JointStream, load
 from kinefuse.io.broad import read_broad
@@ -292,6 +300,29 @@ def cmu_knee_off_axis_share(motion, seed: int) -> float:
     )
 
 
+# ------------------------------------------------------------------- (v) IMU-only leg chain
+def imu_only_chain_error_cm(rec, lengths_m) -> float:
+    """Measure (v): mean over knees and ankles of the 3-D RMSE (cm) of the leg chain calibrated
+    from the walk itself (functional calibration), ``lengths_m`` as tape measures, rooted at the
+    reference hips (:func:`kinefuse.apps.neura_imu_only.chain_rmse_m`, the procedure of
+    ``kinefuse experiment neura-imu-only``'s first row)."""
+    sk = lower_body(lengths=dict(lengths_m))
+    with warnings.catch_warnings():  # (length warnings: the tape lengths are used)
+        warnings.simplefilter("ignore", NumericalWarning)
+        cal = calibrate(rec, sk, "functional")
+    return 100.0 * float(np.mean(list(chain_rmse_m(rec, sk, cal, use_lengths=False).values())))
+
+
+def cmu_imu_only_chain_error_cm(motion, seed: int) -> float:
+    """Measure (v) on a virtual recording of a CMU walk (VQF 9D leg and pelvis IMUs; the
+    motion's own thigh and shank lengths as the tape measures)."""
+    rec = virtual_recording(
+        motion, camera=None, segments=_KNEE_RIG, seed=seed, reference_rate_hz=100.0
+    )
+    legs = ("thigh_l", "thigh_r", "shank_l", "shank_r")
+    return imu_only_chain_error_cm(rec, {s: motion.segment_length_m[s] for s in legs})
+
+
 # ------------------------------------------------------------------------------ (iii) wrist
 _RESIDUAL = re.compile(r"RMS residual \(deg\): .*?forearm_r (\d+(?:\.\d+)?)")
 
@@ -494,6 +525,16 @@ def _knee_rows(data_dir: Path, quick: bool, advance: Callable, rows: list, res: 
                    real_name="x-IMU3", per_walk=cmu_knee_off_axis_share, seed0=_SEED + 20)  # fmt: skip
 
 
+def _imu_only_rows(data_dir: Path, quick: bool, advance: Callable, rows: list, res: list) -> None:
+    """(v) the leg chain from IMUs alone: the Neura walk (real) and CMU walks (virtual)."""
+    neura = load(data_dir / "neura_sparse_sample", format="neura")
+    real = imu_only_chain_error_cm(neura, TAPE_LENGTHS_M)
+    advance()
+    _cmu_walk_rows(data_dir, quick, advance, rows, res,
+                   measure="(v) IMU-only leg chain vs truth, cm", unit="cm", real=real,
+                   real_name="Neura", per_walk=cmu_imu_only_chain_error_cm, seed0=_SEED + 30)  # fmt: skip
+
+
 def _notes(res: list[dict]) -> list[str]:
     """What the table's rows and columns mean."""
     n_out = sum(1 for d in res if not d["within_tolerance"])
@@ -505,8 +546,8 @@ def _notes(res: list[dict]) -> list[str]:
         "error size and time); "
         "'report' = not used for any choice. (ii) has no tuning: its real side, the Neura walk, "
         "is evaluation-only, so both its rows are untuned (they differ in the CMU walks); nor has "
-        "(iv): the knee rotations' gains were set on CMU 02_01 02_02 to published ranges of "
-        "motion, not to any real figure.",
+        "(iv) or (v): the knee rotations' gains were set on CMU 02_01 02_02 to published ranges "
+        "of motion, not to any real figure.",
         "(i) RMSE of the total orientation error over BROAD's motion phases, VQF 9D (causal, "
         "defaults) on the raw real / virtual signals, mean over the trials listed; the virtual "
         "IMU follows the trial's optical pose; virtual figure = mean over "
@@ -533,6 +574,11 @@ def _notes(res: list[dict]) -> list[str]:
         "walks (straight), pelvis, thigh, shank and foot IMUs. CMU's knees are 1-DoF hinges; "
         "the simulator adds internal/external rotation and ab/adduction of the ranges measured "
         "in walking (kinefuse.sim.knee).",
+        "(v) Mean over knees and ankles of the 3-D RMSE of the leg chain calibrated from the "
+        "walk itself (functional calibration, IMU only), thigh and shank lengths given as tape "
+        "measures, rooted at the true hip centres (kinefuse experiment neura-imu-only's first "
+        "row); real: the Neura walk (Xsens on-board orientation, SOURCE.md lengths); virtual: "
+        "CMU walks, pelvis, thigh, shank and foot IMUs (VQF 9D), the motion's bone lengths.",
         "Simulator: kinefuse.sim defaults (calibrated ICM-20948 residual errors, soft-tissue "
         "artefact, mounting error, indoor magnetic inhomogeneity and disturbances, orientation "
         "from VQF on the raw virtual signals; knee secondary rotations; Kinect with tracking "
@@ -581,6 +627,7 @@ def run_realism(data_dir: Path | None, quick: bool, advance: Callable, notes: li
     _walk_rows(data_dir, quick, advance, rows, res)
     _wrist_rows(data_dir, quick, advance, notes, rows, res)
     _knee_rows(data_dir, quick, advance, rows, res)
+    _imu_only_rows(data_dir, quick, advance, rows, res)
     notes += _notes(res)
     if quick:
         notes.append("QUICK run: one trial per set; figures are not the realism check")
