@@ -21,13 +21,14 @@ of the joint rotations around the knee,
 with ``s(t)`` the stacked rotation vectors (rad, minus their trial mean) of the hip (pelvis to
 thigh), the knee (thigh to shank) and the ankle (shank to foot), where those segments exist, and
 ``m_1, m_2`` the rows of a random matrix of spectral norm <= 1 (singular values uniform in
-[0.5, 1]). The mixture ties the rotations to the movement (none when the leg is still) while
-their time course is not a copy of the flexion curve (a rotation proportional to flexion would
-only tilt the flexion axis). Gains :data:`KNEE_SECONDARY_GAIN` (rad per rad of joint drive) were
-set so that the mean ranges of motion (2.5-97.5 percentile span) over the realism check's tuning
-walks (CMU 02_01 and 02_02, 500 draws each, both knees) equal those means; the shank rotates by ``exp(θ)`` after its mocap orientation, the ankle and foot
-follow the shank's new direction (the foot keeps its orientation: the ankle takes up the
-rotation, as a planted foot does), and the thigh, pelvis and everything above are unchanged.
+[0.5, 1]). The mixture ties the rotations to the movement (none when the leg is still) while their
+time course is not a copy of the flexion curve (a rotation proportional to flexion would only tilt
+the flexion axis). Gains :data:`KNEE_SECONDARY_GAIN` (rad per rad of joint drive) were set so that
+the mean ranges of motion (2.5-97.5 percentile span) over the realism check's tuning walks (CMU
+02_01 and 02_02, 500 draws each, both knees) equal those means; the shank rotates by ``exp(θ)``
+after its mocap orientation, the ankle and foot follow the shank's new direction (the foot keeps
+its orientation: the ankle takes up the rotation, as a planted foot does), and the thigh, pelvis
+and everything above are unchanged.
 
 Not modelled: tibiofemoral translations (a few mm), and the coupling of these rotations to load.
 A knee that is not a hinge in the mocap (off-axis rotation above :data:`HINGE_TOLERANCE_RAD` RMS)
@@ -88,9 +89,8 @@ def with_knee_secondary(
     segs = set(motion.segments)
     for side in ("l", "r"):
         thigh, shank, foot = f"thigh_{side}", f"shank_{side}", f"foot_{side}"
-        m = _mixing(
-            rng
-        )  # drawn for both knees, so that the right knee's draw never depends on the left's
+        # drawn for every knee, so that the right knee's draw never depends on the left's
+        m = _mixing(rng)
         if scale == 0 or not {thigh, shank} <= segs or f"ankle_{side}" not in motion.joints:
             continue
         rot = {s: _rotation(motion, s) for s in ("pelvis", thigh, shank, foot) if s in segs}
