@@ -203,7 +203,7 @@ def pipeline_recording(duration_s: float, seed: int = 0):
 
 #: Simulator truth a virtual recording carries in its metadata (about 1.2 GB for an hour) and a
 #: recording read from files does not: left out of the pipeline rows' input (and peak memory).
-_SIM_TRUTH = ("imu_truth", "reference_imu_rate", "camera_truth")
+_SIM_TRUTH = ("imu_truth", "reference_imu_rate", "camera_truth", "knee_secondary")
 
 
 def _as_read_from_files(rec):
