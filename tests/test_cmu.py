@@ -170,3 +170,20 @@ def test_packaged_demo_trial():
     m = demo_motion(0.0, 1.0)
     assert m.position_m.shape == (120, 22, 3)
     assert m.segment_length_m["upper_arm_r"] == pytest.approx(0.284, abs=0.002)
+
+
+def test_hand_segment_carries_the_wrist_pronation(shared_data):
+    """The canonical hand is CMU's wrist bone: relative to the forearm (radius) it turns about
+    the forearm's long axis only, by the AMC's ``rwrist ry`` (read here from the text)."""
+    amc = shared_data / "cmu_mocap" / "asfamc" / "02" / "02_07.amc"
+    m = load_motion_asf_amc(amc)
+    ry = np.array(
+        [float(ln.split()[1]) for ln in amc.read_text().splitlines() if ln.startswith("rwrist ")]
+    )
+    fa = Rotation.from_quat(m.orientation("forearm_r"), scalar_first=True)
+    hand = Rotation.from_quat(m.orientation("hand_r"), scalar_first=True)
+    rv = np.degrees((fa.inv() * hand).as_rotvec())
+    np.testing.assert_allclose(rv[:, [0, 2]], 0.0, atol=1e-6)  # deg: rounding of composed rotations
+    assert ry.size == len(m) and np.ptp(ry) > 90  # a swordplay trial: the wrist turns a lot
+    np.testing.assert_allclose(np.abs(rv[:, 1]), np.abs(ry), atol=1e-6)
+    assert m.segment_joints["hand_r"] == ("wrist_r", "hand_r")

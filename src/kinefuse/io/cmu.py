@@ -27,8 +27,9 @@ Canonical mapping (CMU bone names; "end of X" = the point where bone X ends)
     thorax; neck = end of lowerneck; head = end of upperneck; shoulder = end of l/rclavicle;
     elbow = end of l/rhumerus; wrist = end of l/rradius; hand = end of l/rwrist; hip = end of
     l/rhipjoint; knee = end of l/rfemur; ankle = end of l/rtibia; foot = end of l/rfoot.
-    segments: pelvis = root; chest = thorax; upper_arm = humerus; forearm = radius; thigh =
-    femur; shank = tibia; foot = foot.
+    segments: pelvis = root; chest = thorax; upper_arm = humerus; forearm = radius; hand =
+    wrist (the short bone that carries pronation/supination, dof ``ry``); thigh = femur;
+    shank = tibia; foot = foot.
 """
 
 from __future__ import annotations
@@ -86,6 +87,8 @@ _CMU_SEGMENTS = {
     "shank_r": "rtibia",
     "foot_l": "lfoot",
     "foot_r": "rfoot",
+    "hand_l": "lwrist",
+    "hand_r": "rwrist",
 }
 _ROT_DOFS = ("rx", "ry", "rz")
 

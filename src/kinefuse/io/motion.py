@@ -60,6 +60,8 @@ CANONICAL_SEGMENT_JOINTS: dict[str, tuple[str, str | None]] = {
     "shank_r": ("knee_r", "ankle_r"),
     "foot_l": ("ankle_l", "foot_l"),
     "foot_r": ("ankle_r", "foot_r"),
+    "hand_l": ("wrist_l", "hand_l"),
+    "hand_r": ("wrist_r", "hand_r"),
 }
 
 _REST_FORWARD = np.array([0.0, 0.0, 1.0])  # mocap coordinates

@@ -40,6 +40,19 @@ Soft-tissue artefact (STA)
 --------------------------
 See :mod:`kinefuse.sim.soft_tissue` (Dumas et al. 2014 linear model, literature amplitudes).
 
+Forearm pronation
+-----------------
+Mocap skeletons put pronation/supination at the wrist (CMU: the short wrist bone's ``ry``; the
+canonical ``hand`` segment), not on the forearm bone, but the radius turns about the ulna along
+the whole forearm: a sensor strapped to the forearm turns with it, by more the nearer it sits to
+the wrist. A forearm sensor at ``position_along_segment`` ``f`` is turned about the forearm's
+long axis by ``f · φ(t)``, with ``φ`` the twist of the hand relative to the forearm about that
+axis (swing-twist decomposition; minus its trial mean, so that the mean sensor-to-bone rotation
+is the mounting), before the soft tissue: ``R_ws = R_world_from_segment · exp(f φ e2) · exp(δθ) ·
+R_segment_from_sensor``. Linear in ``f`` (none at the elbow, where the ulna does not turn, all at
+the wrist): a modelling choice, not a measured profile. Without a hand segment in the motion
+``φ = 0``.
+
 Magnetometer
 ------------
 World field ``m_w(t) = m_earth + m_inh(t) + m_dist(t)`` in µT, sensor reading ``R_wsᵀ m_w``
@@ -171,7 +184,8 @@ def simulate_imu(
         As :func:`simulate_imu_from_pose`, plus ``q_world_from_segment`` (n, 4) of the bone,
         ``q_segment_from_sensor`` (4,) mounting, ``sta_rotvec_rad`` and ``sta_translation_m``
         (n, 3) soft-tissue artefact (segment frame), ``sta_drive_rad`` (n, 3m) the joint rotation
-        vectors driving it and ``sta_amplitude`` ``(A_tr m, A_rot rad)`` per radian.
+        vectors driving it, ``sta_amplitude`` ``(A_tr m, A_rot rad)`` per radian and
+        ``twist_rad`` (n,) the forearm pronation turning the sensor (zeros elsewhere).
 
     Notes
     -----
@@ -189,6 +203,8 @@ def simulate_imu(
 
     p = _sensor_path(motion, segment, i, config)
     rot_seg = _smoothed_rot(i)
+    twist = config.position_along_segment * _forearm_twist(motion, segment, rot_seg, _smoothed_rot)
+    rot_skin = rot_seg * Rotation.from_rotvec(twist[:, None] * SEGMENT_AXIS)
     mount = Rotation.from_rotvec(rng.standard_normal(3) * config.mounting_error_deg * _DEG)
     kind = sta_kind(segment)
     nbs = neighbours(motion, segment) if kind is not None else []
@@ -201,7 +217,7 @@ def simulate_imu(
     m_rot = norm_bounded_matrix(rng, 3, drive.shape[1]) if drive.shape[1] else np.zeros((3, 0))
     sta_rot = a_rot * drive @ m_rot.T
     sta_tr = a_tr * drive @ m_tr.T
-    rot_sensor = rot_seg * Rotation.from_rotvec(sta_rot) * mount
+    rot_sensor = rot_skin * Rotation.from_rotvec(sta_rot) * mount
     p_sensor = p + rot_seg.apply(sta_tr)
 
     t = time_grid(motion.t_s, config.rate_hz) if t_s is None else np.asarray(t_s, dtype=float)
@@ -216,8 +232,20 @@ def simulate_imu(
         sta_translation_m=CubicSpline(motion.t_s, sta_tr, axis=0)(t),
         sta_drive_rad=CubicSpline(motion.t_s, drive, axis=0)(t) if drive.shape[1] else drive[:0],
         sta_amplitude=(a_tr, a_rot),
+        twist_rad=np.interp(t, motion.t_s, twist),
     )
     return stream, truth
+
+
+def _forearm_twist(motion: Motion, segment: str, rot_seg: Rotation, smoothed_rot) -> np.ndarray:
+    """Twist ``φ`` (rad, (T,), minus its mean) of the hand about a forearm's long axis; zeros
+    for other segments and when the motion has no hand segment (module doc, forearm pronation)."""
+    hand = "hand" + segment[len("forearm") :] if segment.startswith("forearm") else None
+    if hand is None or hand not in motion.segments:
+        return np.zeros(len(motion))
+    rel = (rot_seg.inv() * smoothed_rot(motion.segment_index(hand))).as_quat(scalar_first=True)
+    phi = np.unwrap(2.0 * np.arctan2(rel[:, 2], rel[:, 0]))  # twist about e2 (swing-twist)
+    return phi - phi.mean()
 
 
 def _sensor_path(motion: Motion, segment: str, i: int, config: ImuConfig) -> np.ndarray:
