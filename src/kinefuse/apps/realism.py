@@ -319,8 +319,7 @@ def cmu_imu_only_chain_error_cm(motion, seed: int) -> float:
     rec = virtual_recording(
         motion, camera=None, segments=_KNEE_RIG, seed=seed, reference_rate_hz=100.0
     )
-    legs = ("thigh_l", "thigh_r", "shank_l", "shank_r")
-    return imu_only_chain_error_cm(rec, {s: motion.segment_length_m[s] for s in legs})
+    return imu_only_chain_error_cm(rec, {s: motion.segment_length_m[s] for s in _LEG_SEGMENTS})
 
 
 # ------------------------------------------------------------------------------ (iii) wrist
