@@ -4,7 +4,7 @@ from kinefuse.kinematics.alignment import heading_rotation, kabsch_rotation
 from kinefuse.kinematics.angles import JOINT_ANGLE_COMPONENTS, angle_components, joint_angles
 from kinefuse.kinematics.calibration import calibrate
 from kinefuse.kinematics.calibration_result import Calibration
-from kinefuse.kinematics.chain import chain_positions, segment_orientations
+from kinefuse.kinematics.chain import chain_orientations, chain_positions, segment_orientations
 from kinefuse.kinematics.forward import as_rotation_matrices, euler_to_matrix, forward_kinematics
 from kinefuse.kinematics.functional import FunctionalCalibration, functional_calibration
 from kinefuse.kinematics.skeleton import (
@@ -30,6 +30,7 @@ __all__ = [
     "angle_components",
     "as_rotation_matrices",
     "calibrate",
+    "chain_orientations",
     "chain_positions",
     "euler_to_matrix",
     "find_still_window",

@@ -18,7 +18,7 @@ from kinefuse.kinematics.forward import as_rotation_matrices, forward_kinematics
 from kinefuse.kinematics.skeleton import Skeleton
 from kinefuse.orientation.resample import slerp_resample
 
-__all__ = ["chain_positions", "segment_orientations"]
+__all__ = ["chain_orientations", "chain_positions", "segment_orientations"]
 
 
 def chain_positions(
@@ -30,6 +30,7 @@ def chain_positions(
     source: str = "reference",
     t_s=None,
     use_calibrated_lengths: bool = True,
+    orientations: Mapping[str, np.ndarray] | None = None,
 ) -> JointStream:
     """Joint positions of the IMU chain (SPEC §2.1/§2.2) for a recording.
 
@@ -53,6 +54,9 @@ def chain_positions(
         Timeline for mapping roots (default: the source stream's, else the first segment IMU's).
     use_calibrated_lengths : bool
         Use the lengths measured during calibration where available.
+    orientations : mapping of str -> ndarray, shape (T, 3, 3), optional
+        :func:`chain_orientations` of the same recording and calibration on the output
+        timeline, when the caller has them already (they are not resampled again).
 
     Returns
     -------
@@ -72,7 +76,21 @@ def chain_positions(
         t, roots, frame = _given_roots(recording, skeleton, root, stream, t_s)
     else:
         t, roots, frame = _stream_roots(recording, skeleton, root, source)
-    ori = _chain_orientations(recording, skeleton, calibration, roots, t)
+    needed = list(skeleton.segments)
+    if skeleton.root_segment is not None and any(j not in roots for j in skeleton.offsets_m):
+        needed.append(skeleton.root_segment)
+    have = {} if orientations is None else orientations
+    ori = {s: have[s] for s in needed if s in have}
+    bad = [s for s, R in ori.items() if np.shape(R) != (t.size, 3, 3)]
+    if bad:
+        raise InputError(
+            f"orientations of {bad}: expected shape ({t.size}, 3, 3) (the output timeline), got "
+            f"{[np.shape(ori[s]) for s in bad]}"
+        )
+    if len(ori) < len(needed):
+        ori.update(
+            _chain_orientations(recording, calibration, [s for s in needed if s not in ori], t)
+        )
     pos = forward_kinematics(skeleton, ori, roots)
     names = [j for j in skeleton.joints if j in pos] + [j for j in pos if j not in skeleton.joints]
     P = np.stack([pos[j] for j in names], axis=1)
@@ -121,12 +139,35 @@ def _stream_roots(recording, skeleton, root, source: str):
     return stream.t_s, {j: stream.position(j) for j in names}, stream.frame
 
 
-def _chain_orientations(recording, skeleton, calibration, roots, t) -> dict[str, np.ndarray]:
-    """``R_frame_from_sensor`` on ``t`` of every segment the chain needs (headings, ``R_c`` applied)."""
+def chain_orientations(
+    recording: Recording, skeleton: Skeleton, calibration: Calibration | None, t_s
+) -> dict[str, np.ndarray]:
+    """The sensor orientations :func:`chain_positions` uses, in the frame of its output.
+
+    Parameters
+    ----------
+    recording, skeleton, calibration
+        As in :func:`chain_positions`: the skeleton's segments (and its root segment where that
+        has an IMU) are returned, with the calibration's heading corrections and
+        ``R_world_from_camera`` (the output frame of a chain rooted at the camera or the
+        reference) applied. ``calibration`` may be None.
+    t_s : array_like, shape (T,)
+        The output timeline, s (orientations SLERP-resampled to it).
+
+    Returns
+    -------
+    dict of str -> ndarray, shape (T, 3, 3)
+        ``R_frame_from_sensor`` per segment; NaN where the IMU has no sample.
+    """
+    segs = list(skeleton.segments)
+    if skeleton.root_segment is not None and skeleton.root_segment in recording.imu:
+        segs.append(skeleton.root_segment)
+    return _chain_orientations(recording, calibration, segs, np.asarray(t_s, dtype=float))
+
+
+def _chain_orientations(recording, calibration, needed, t) -> dict[str, np.ndarray]:
+    """``R_frame_from_sensor`` on ``t`` of the ``needed`` segments (headings, ``R_c`` applied)."""
     Rc = None if calibration is None else calibration.R_world_from_camera
-    needed = list(skeleton.segments)
-    if skeleton.root_segment is not None and any(j not in roots for j in skeleton.offsets_m):
-        needed.append(skeleton.root_segment)
     ori = {}
     for s in needed:
         st = oriented_imu(recording, s, "chain")
