@@ -224,7 +224,7 @@ def _cmu_datasets(
 
 def _utd_part(rec, name: str) -> dict:
     """One UTD-MHAD trial's wrist chain (real forearm IMU, Kinect elbow) and Kinect wrist."""
-    _, zw, rw, _, _, _ = utd_wrist_chain(rec)
+    _, zw, rw, *_ = utd_wrist_chain(rec)
     return {"name": name, "z": {"wrist_r": zw}, "ref": {"wrist_r": rw}}
 
 

@@ -111,13 +111,16 @@ def _paper_b_cmu(data_dir, quick, split, advance, notes, trial_map: TrialMap) ->
     return parts
 
 
-def _vision_methods(methods, z_imu, z_cam, avail, params, joints):
-    """Each method (offline) and :data:`PAPER_B_CAUSAL` (causal) on arrays, by table label."""
+def _vision_methods(methods, z_imu, z_cam, avail, params, joints, rotations):
+    """Each method (offline) and :data:`PAPER_B_CAUSAL` (causal) on arrays, by table label;
+    ``"kinefuse"`` gets the chain's segment ``rotations (T, J, S, 3, 3)``."""
     est, times = {}, {}
     for m, causal, label in labelled_runs(methods, [m for m in PAPER_B_CAUSAL if m in methods]):
+        rots = rotations if m == "kinefuse" else None
         res, times[label] = timed_quietly(
             vision_assisted,
             z_imu, z_cam, avail, 1.0 / 30.0, m, joints=joints, params=params, causal=causal,
+            segment_rotations=rots,
         )  # fmt: skip
         est[label] = res.position
     return est, times
@@ -133,14 +136,15 @@ def utd_scenario(rec, name: str, methods) -> dict:
     Everything that calibrates sees the Kinect wrist only outside the hidden window
     (:func:`utd_wrist_chain`); the methods get the masked camera.
     """
-    t, zi, ref, cam, origin, hide = utd_wrist_chain(rec, UTD_HIDDEN)
+    t, zi, ref, cam, origin, hide, rots = utd_wrist_chain(rec, UTD_HIDDEN)
     # paper B works in body-relative coordinates: relative to the Kinect spine_shoulder
     zi, ref, cam = zi - origin, ref - origin, cam - origin
     avail = np.all(np.isfinite(cam), axis=-1)
     zc = np.where(avail[:, None], cam, np.nan)
     est, times = _vision_methods(
-        methods, zi[:, None], zc[:, None], avail[:, None], VisionParams(**_UTD_PARAMS), ("wrist_r",)
-    )
+        methods, zi[:, None], zc[:, None], avail[:, None], VisionParams(**_UTD_PARAMS),
+        ("wrist_r",), rots[:, None],
+    )  # fmt: skip
     return {
         "name": name,
         "estimates": est,
@@ -222,7 +226,7 @@ def neura_scenario(rec, joints, methods) -> dict:
     rf = out.reference[:, idx] - o_ref
     av = np.all(np.isfinite(zc), axis=-1)
     params = VisionParams(n_hidden=10, min_train=90)
-    est, times = _vision_methods(methods, zi, zc, av, params, joints)
+    est, times = _vision_methods(methods, zi, zc, av, params, joints, out.segment_rotations(joints))
     return {
         "name": "S02-Trial-Walk-1",
         "estimates": est,

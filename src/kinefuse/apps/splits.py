@@ -155,7 +155,8 @@ def utd_wrist_chain(rec, hidden: tuple[float, float] | None = None):
     there to everything that calibrates (axis, camera rotation, forearm length) and to the
     returned camera; the reference keeps it. None: calibration over the whole trial.
     Returns ``t, chain, reference, camera, origin`` (wrist, (T, 3); origin = Kinect
-    spine_shoulder) and the hidden mask ``(T,)``.
+    spine_shoulder), the hidden mask ``(T,)`` and the orientations of the segments that move
+    the wrist (``(T, S, 3, 3)``, :meth:`SessionOutput.segment_rotations`).
     """
     v = rec.vision
     cam = v
@@ -173,7 +174,8 @@ def utd_wrist_chain(rec, hidden: tuple[float, float] | None = None):
         np.zeros(out.t_s.size, dtype=bool) if hidden is None else utd_hidden(out.t_s, v.t_s, hidden)
     )
     camera = np.where(hide[:, None], np.nan, out.camera[:, j])
-    return out.t_s, out.chain[:, j], out.reference[:, j], camera, origin, hide
+    rots = out.segment_rotations(["wrist_r"])[:, 0]
+    return out.t_s, out.chain[:, j], out.reference[:, j], camera, origin, hide, rots
 
 
 class _Skipped(NamedTuple):

@@ -6,6 +6,9 @@ or length, shoulder and hip offsets that are not rigid in the chest frame. That 
 function of what the IMUs see, so a regression on IMU-derived features can predict it while the
 camera is out. :func:`imu_features` builds those features from segment orientations;
 :func:`chain_features` is the fallback built from the chain positions alone.
+:func:`segment_frame_design` is the design of the segment-frame error model that
+:func:`~kinefuse.pipelines.kinefuse_fusion.kinefuse_fusion` uses when it is given the segment
+orientations.
 """
 
 from __future__ import annotations
@@ -22,7 +25,13 @@ from kinefuse.kinematics.skeleton import Skeleton
 from kinefuse.orientation import estimate
 from kinefuse.orientation.resample import slerp_resample
 
-__all__ = ["chain_features", "imu_features", "joint_segments"]
+__all__ = [
+    "chain_features",
+    "imu_features",
+    "joint_rotations",
+    "joint_segments",
+    "segment_frame_design",
+]
 
 
 def joint_segments(skeleton: Skeleton, joint: str) -> tuple[str, ...]:
@@ -58,6 +67,41 @@ def joint_segments(skeleton: Skeleton, joint: str) -> tuple[str, ...]:
     children = [s for s, p in zip(skeleton.segments, skeleton.proximal, strict=True) if p == joint]
     out = ([skeleton.root_segment] if skeleton.offsets_m else []) + chain + children
     return tuple(dict.fromkeys(out))
+
+
+def joint_rotations(
+    rotations: Mapping[str, np.ndarray], segments: Sequence[Sequence[str]]
+) -> np.ndarray:
+    """Per joint the orientations of the segments that move it, as one padded array.
+
+    Parameters
+    ----------
+    rotations : mapping of str -> ndarray, shape (T, 3, 3)
+        Segment orientations (``R_frame_from_sensor``) on one timeline.
+    segments : sequence of sequence of str
+        Per joint (J), the segments that move it (e.g. its :func:`joint_segments` that have an
+        orientation), each a key of ``rotations``.
+
+    Returns
+    -------
+    ndarray, shape (T, J, S, 3, 3)
+        Per joint the rotations of its segments in that order, all-zero padded to the largest
+        count S (the ``segment_rotations`` input of
+        :func:`~kinefuse.pipelines.kinefuse_fusion.kinefuse_fusion`).
+    """
+    segs = [list(names) for names in segments]
+    empty = [j for j, names in enumerate(segs) if not names]
+    if empty or not segs:
+        raise InputError(f"joints {empty}: expected at least one segment each, got none")
+    missing = sorted({s for names in segs for s in names} - set(rotations))
+    if missing:
+        raise InputError(f"no orientation for segments {missing}; got {sorted(rotations)}")
+    T = np.asarray(rotations[segs[0][0]]).shape[0]
+    out = np.zeros((T, len(segs), max(len(names) for names in segs), 3, 3))
+    for j, names in enumerate(segs):
+        for k, s in enumerate(names):
+            out[:, j, k] = rotations[s]
+    return out
 
 
 def _orientation_at(stream: ImuStream, t_s: np.ndarray, segment: str) -> np.ndarray:
@@ -249,3 +293,52 @@ def chain_features(z_imu, dt_s: float, parents: Sequence[int] | None = None) -> 
     vel = np.zeros_like(z)
     vel[1:] = (z[1:] - z[:-1]) / float(dt_s)
     return np.concatenate([u, n, z, vel], axis=-1)
+
+
+def segment_frame_design(rotations) -> np.ndarray:
+    """Design of the segment-frame chain-error model: one row of regressors per world axis.
+
+    A sensor-to-segment misalignment, a segment-length error or an offset error is a constant
+    vector ``δ_s`` in the frame of its segment's sensor, so it moves the chain's joint by
+    ``R_s(t) δ_s`` in the world. The chain error along world axis ``i`` is modelled as ::
+
+        e_i(t) = c_i + Σ_s R_s(t)[i, :] δ_s
+
+    linear in the unknowns ``(c, δ_s)`` with the same ``δ_s`` for all three axes (a rotation
+    mixes the axes: a regression per world axis on the elements of ``R_s`` needs 27
+    coefficients per segment for what this model says with 3).
+
+    Parameters
+    ----------
+    rotations : sequence of sequence of ndarray
+        Per joint (J), the ``R_frame_from_sensor (T, 3, 3)`` of the segments whose pose moves
+        the joint (e.g. :func:`joint_rotations`), in the frame of the positions the error is
+        measured in. NaN where an orientation is missing.
+
+    Returns
+    -------
+    ndarray, shape (T, J, 3, K)
+        Per joint and world axis ``i``: the indicator of ``i`` (3 columns, the constant world
+        offset ``c``), then ``R_s[i, :]`` of each segment (3 columns each). Joints with fewer
+        segments are zero-padded (constant columns, which a regression with an intercept
+        ignores). NaN rows where an orientation is missing.
+    """
+    per_joint = []
+    T = None
+    for j, segs in enumerate(rotations):
+        Rs = [np.asarray(R, dtype=float) for R in segs]
+        if not Rs:
+            raise InputError(f"joint {j}: expected at least one segment rotation, got none")
+        for R in Rs:
+            if R.ndim != 3 or R.shape[1:] != (3, 3) or (T is not None and R.shape[0] != T):
+                want = "(T, 3, 3)" if T is None else f"({T}, 3, 3)"
+                raise InputError(f"joint {j}: expected rotations with shape {want}, got {R.shape}")
+            T = R.shape[0]
+        per_joint.append(np.concatenate([np.broadcast_to(np.eye(3), (T, 3, 3)), *Rs], axis=2))
+    if not per_joint:
+        raise InputError("expected rotations for at least one joint, got none")
+    K = max(p.shape[-1] for p in per_joint)
+    out = np.zeros((T, len(per_joint), 3, K))
+    for j, p in enumerate(per_joint):
+        out[:, j, :, : p.shape[-1]] = p
+    return out

@@ -88,7 +88,8 @@ class FusionContext:
     """Validated inputs of one fusion run, joint-major (what a method of ``METHODS`` receives).
 
     ``z_imu, z_cam (J, T, 3)`` (z_cam NaN where unavailable), ``available (J, T)``, ``dt_s``,
-    ``params``, ``causal``, ``joints``, ``method``, ``features (J, T, F)`` or None, and the two
+    ``params``, ``causal``, ``joints``, ``method``, ``features (J, T, F)`` or None,
+    ``segment_rotations (J, T, S, 3, 3)`` or None (read by ``"kinefuse"`` only) and the two
     constant-velocity models ``model_imu``, ``model_cam`` (``params.models(dt_s)``).
     """
 
@@ -101,6 +102,7 @@ class FusionContext:
     joints: tuple[str, ...]
     method: str
     features: np.ndarray | None
+    segment_rotations: np.ndarray | None = None
     model_imu: LinearGaussianModel = field(init=False)
     model_cam: LinearGaussianModel = field(init=False)
 

@@ -22,8 +22,8 @@ Notes
 
 ``f̂`` is a ridge regression (:class:`~kinefuse.pipelines.kinefuse_ridge.RidgeCorrection`) of the chain error
 ``e_t = z_cam_t − z_imu_t`` on the IMU features ``φ_t`` over all camera-seen samples so far,
-its penalty chosen by leave-one-block-out cross-validation over 2 s blocks (offline; 1 s in
-causal mode); it captures the error that follows the limb's state (soft-tissue motion, axis,
+its penalty chosen by leave-one-block-out cross-validation over 2 s blocks (offline; beyond
+20 blocks, 20 folds of interleaved blocks; 1 s blocks and 10 folds in causal mode); it captures the error that follows the limb's state (soft-tissue motion, axis,
 length and offset errors). The blocks must be longer than the error's correlation (a gait
 cycle is about 1 s): with 1 s blocks a held-out block resembles its neighbours, the
 validation is optimistic and picks too small a penalty, and the correction then extrapolates
@@ -34,6 +34,26 @@ further recordings of the tuning motions 34.4 → 32.9 mm, 36 virtual walks and 
 02_01-02_03 and BVH 131_01-03, six seeds each, 8 occlusions a minute) 48.8 → 44.7 mm; 1.5-3 s
 gave similar gains. In causal mode 2 s was slightly worse on the tuning set (49.2 → 49.7
 mm), so it keeps 1 s.
+
+**Segment-frame terms** (``segment_rotations``, issue 11). A mis-estimated sensor axis, length
+or offset is a constant vector ``δ_s`` in its segment's sensor frame and moves the joint by
+``R_s(t) δ_s`` in the world; a regression on world-frame features can only follow that
+through the pose. Given the orientations of the segments that move a joint, the regression
+also gets, per world axis ``i``, the regressors ``R_s(t)[i, :]`` with coefficients shared by
+the three axes (:func:`~kinefuse.pipelines.features.segment_frame_design`,
+:class:`~kinefuse.pipelines.kinefuse_ridge.AxisRidgeCorrection`); the features above keep their
+own coefficient per axis. Chosen on the tuning set and on the virtual walks above (four seeds
+each), outage 3-D RMSE offline: tuning CMU 30.5 → 26.3 mm (causal 48.7 → 45.0), virtual walks
+47.3 → 44.2 mm; on the real UTD-MHAD tuning trials (one forearm IMU, about 2.6 s of camera
+history) 64.7 → 65.3 mm (causal 71.7 → 69.6). Tried and not adopted: products of ``R_s`` with
+the relative rotations of neighbouring segments (soft-tissue motion linear in the joint
+angles, Dumas et al., J. Biomech. 47, 2014, the simulator's own model): tuning 26.7 mm,
+walks 42.5 mm, with four times the columns (15 times the run time on a one-hour recording);
+the segment-frame columns without the features: tuning 25.2 mm, walks 43.3 mm, UTD-MHAD
+69.1 mm. The constant terms model calibration error, which any chain has; they do not rest
+on the simulator's soft-tissue model. The paper-B rig
+(:func:`~kinefuse.pipelines.vision_recording.vision_assisted_from_recording`) and
+``kinefuse run`` pass the chain's orientations.
 
 ``b`` (first-order Gauss-Markov, a random walk when ``φ_b → 1``) captures what the
 regression misses and ``c`` the camera's correlated error (e.g. bone-length variation).
@@ -116,9 +136,9 @@ from kinefuse._validation import positive_finite
 from kinefuse.conventions import SOURCE_BRIDGED, SOURCE_FUSED, SOURCE_IMU
 from kinefuse.exceptions import InputError
 from kinefuse.pipelines._kinefuse_kernels import N_X, kf_segment, rts_smooth
-from kinefuse.pipelines.features import chain_features
+from kinefuse.pipelines.features import chain_features, segment_frame_design
 from kinefuse.pipelines.kinefuse_noise import NoiseParameters, _Moments, estimate_noise
-from kinefuse.pipelines.kinefuse_ridge import RidgeCorrection
+from kinefuse.pipelines.kinefuse_ridge import AxisRidgeCorrection, RidgeCorrection
 from kinefuse.pipelines.offset_bridge import prequential_bridge
 
 __all__ = [
@@ -133,6 +153,10 @@ _H_CAM = np.array([1.0, 0.0, 0.0, 1.0])  # z_cam = p + c + n_V
 _H_IMU = np.array([1.0, 0.0, 1.0, 0.0])  # z_imu + f(φ) = p + b + n_I
 # causal mode (see the module Notes, "Causal")
 _N_FOLDS_CAUSAL = 10  # CV folds of the streaming ridge (bounded cost per re-solve)
+# offline CV folds at most (block i in fold i mod 20): leave-one-block-out up to 40 s of camera
+# history, which covers every recording of the experiments; beyond, the cost stays bounded (an
+# hour had 1800 folds, one eigendecomposition each)
+_N_FOLDS_OFFLINE = 20
 _PRIOR_S = 2.0  # weight of the conservative noise prior, seconds of pseudo-data
 _MIN_FIT_S = 3.0  # camera-seen history before the correction uses more than an intercept, s
 _CV_BLOCK_S = 2.0  # block length of the correction's cross-validation, offline, s (Notes)
@@ -217,13 +241,20 @@ def _run(zc, zi, p: NoiseParameters, dt: float):
     return xs, Ps
 
 
+def _ridge(phi, **kwargs):
+    """The correction's regression for one joint's ``phi``: features ``(T, F)`` shared by the
+    axes (:class:`RidgeCorrection`) or a per-axis design ``(T, 3, K)`` (:class:`AxisRidgeCorrection`)."""
+    return (AxisRidgeCorrection if phi.ndim == 3 else RidgeCorrection)(**kwargs)
+
+
 def _fit_joint(zc, zi, phi, seen, dt, alpha, max_lag):
     """Offline: fit the correction and the noise parameters of one joint on the ``seen`` samples."""
     block = max(2, int(round(_CV_BLOCK_S / dt)))
     t = np.flatnonzero(seen)
-    reg = RidgeCorrection(block=block, **({} if alpha is None else {"alphas": alpha})).fit(
-        phi[seen], (zc - zi)[seen], t
-    )
+    n_blocks = len(np.unique(t // block))
+    folds = None if n_blocks <= _N_FOLDS_OFFLINE else _N_FOLDS_OFFLINE
+    kw = {} if alpha is None else {"alphas": alpha}
+    reg = _ridge(phi, block=block, n_folds=folds, **kw).fit(phi[seen], (zc - zi)[seen], t)
     corr = reg.predict(phi)
     zic = zi + corr
     params = estimate_noise(np.where(seen[:, None], zc, np.nan), zic, seen, dt, max_lag=max_lag)
@@ -267,8 +298,8 @@ def _causal_joint(zc, zi, phi, seen, dt, cfg: _CausalSettings):
     block = max(2, int(round(_CV_BLOCK_CAUSAL_S / dt)))
     kw = {} if cfg.alpha is None else {"alphas": cfg.alpha}
     min_blocks = max(2, int(np.ceil(cfg.min_fit_s / (block * dt))))
-    reg = RidgeCorrection(
-        block=block, n_folds=cfg.n_folds, min_blocks=min_blocks, reselect_growth=1.5, **kw
+    reg = _ridge(
+        phi, block=block, n_folds=cfg.n_folds, min_blocks=min_blocks, reselect_growth=1.5, **kw
     )
     mom = _Moments(cfg.max_lag)
     ok = seen & np.all(np.isfinite(zi), -1)
@@ -381,10 +412,33 @@ def _check(z_imu, z_cam, available, dt_s, features):
     return zi.astype(float), zc, av, dt, features
 
 
+def _rotations_by_joint(rotations, shape) -> list[list[np.ndarray]]:
+    """Per joint the ``(T, 3, 3)`` rotations of ``rotations (T, J, S, 3, 3)``, padding dropped."""
+    R = np.asarray(rotations)
+    T, J = shape
+    if (
+        not np.issubdtype(R.dtype, np.floating)
+        or R.ndim != 5
+        or R.shape[:2] != (T, J)
+        or R.shape[3:] != (3, 3)
+    ):
+        raise InputError(
+            f"expected segment_rotations as floats with shape (T, J, S, 3, 3) = ({T}, {J}, S, 3, 3), "
+            f"got {R.shape}"
+        )
+    out = []
+    for j in range(J):
+        segs = [R[:, j, k] for k in range(R.shape[2]) if np.any(R[:, j, k] != 0)]
+        if not segs:
+            raise InputError(f"segment_rotations: joint {j} has only padding (all-zero) segments")
+        out.append(segs)
+    return out
+
+
 def kinefuse_fusion(
     z_imu, z_cam, available, dt_s: float, *, causal: bool = False, features=None, lag: int = 0,
     parents=None, alpha=None, max_lag: int | None = None, min_history: int = 30,
-    refit_every: int | None = 60, bridge: bool = True,
+    refit_every: int | None = 60, bridge: bool = True, segment_rotations=None,
 ) -> KinefuseResult:  # fmt: skip
     """Fuse an IMU chain and a camera with a learned, state-dependent chain-error model.
 
@@ -432,6 +486,12 @@ def kinefuse_fusion(
         history on both sides, the mean of the smoother's output and the bridges run forward
         and backward (module Notes, "Offline"). Default True; False: the filter or smoother
         alone.
+    segment_rotations : array_like, shape (T, J, S, 3, 3), optional
+        Per joint, ``R_frame_from_sensor`` of the S segments whose pose moves it (e.g.
+        :func:`kinefuse.pipelines.features.joint_rotations`), in the frame of the positions; all-zero matrices pad joints with fewer segments, NaN where an
+        orientation is missing. When given, the correction also regresses on the segment-frame
+        model (:func:`kinefuse.pipelines.features.segment_frame_design`: a constant error in
+        each sensor's frame; module Notes).
 
     Returns
     -------
@@ -454,16 +514,33 @@ def kinefuse_fusion(
     # the chain's velocity is always a feature: it absorbs a residual time offset between the
     # streams (e(t) ≈ −δ ż(t)); the rest comes from the IMU features when given
     phi = base if phi is None else np.concatenate([phi, base[..., -3:]], axis=-1)
+    rots = None
+    if segment_rotations is not None:
+        rots = _rotations_by_joint(segment_rotations, zi.shape[:2])
     cfg = _CausalSettings(
         alpha=alpha, max_lag=int(max(2, int(round(1.0 / dt))) if max_lag is None else max_lag),
         min_history=int(min_history), refit_every=refit_every, lag=int(lag),
         n_folds=_N_FOLDS_CAUSAL, min_fit_s=_MIN_FIT_S, prior_s=_PRIOR_S,
     )  # fmt: skip
-    return _fuse(zi, zc, av, phi, dt, cfg, bool(causal), bridge)
+    return _fuse(zi, zc, av, (phi, rots), dt, cfg, bool(causal), bridge)
 
 
-def _fuse(zi, zc, av, phi, dt, cfg: _CausalSettings, causal: bool, bridge) -> KinefuseResult:
-    """:func:`kinefuse_fusion` on validated inputs, joint by joint."""
+def _joint_phi(phi, rots, j) -> np.ndarray:
+    """Joint ``j``'s regressors: its features ``(T, F)``, or with segment rotations the per-axis
+    design ``(T, 3, K + 3 F)``: the segment-frame columns, then the features with a coefficient
+    per axis (as without rotations). Built per joint: a long recording's design for all joints
+    at once would not fit in memory."""
+    if rots is None:
+        return phi[:, j]
+    design = segment_frame_design([rots[j]])[:, 0]
+    per_axis = np.einsum("tf,ad->tadf", phi[:, j], np.eye(3)).reshape(phi.shape[0], 3, -1)
+    return np.concatenate([design, per_axis], axis=-1)
+
+
+def _fuse(zi, zc, av, inputs, dt, cfg: _CausalSettings, causal: bool, bridge) -> KinefuseResult:
+    """:func:`kinefuse_fusion` on validated inputs, joint by joint (``inputs``: the features
+    and the segment rotations by joint or None)."""
+    phi_all, rots = inputs
     T, J, _ = zi.shape
     pos = np.empty((T, J, 3))
     cov = np.zeros((T, J, 3, 3))
@@ -474,9 +551,10 @@ def _fuse(zi, zc, av, phi, dt, cfg: _CausalSettings, causal: bool, bridge) -> Ki
     n_refits = []
     for j in range(J):
         seen = av[:, j]
+        phi = _joint_phi(phi_all, rots, j)
         if not causal:
             if seen.sum() >= 2:
-                reg, corr, pj = _fit_joint(zc[:, j], zi[:, j], phi[:, j], seen, dt, cfg.alpha,
+                reg, corr, pj = _fit_joint(zc[:, j], zi[:, j], phi, seen, dt, cfg.alpha,
                                            cfg.max_lag)  # fmt: skip
             else:
                 reg, corr, pj = None, np.zeros((T, 3)), NoiseParameters.default()
@@ -484,9 +562,7 @@ def _fuse(zi, zc, av, phi, dt, cfg: _CausalSettings, causal: bool, bridge) -> Ki
             m, P = _run(zc[:, j], zi[:, j] + corr, pj, dt)
             last = {"noise": pj, "correction": reg}
         else:
-            m, P, corr, last, n, t_first = _causal_joint(
-                zc[:, j], zi[:, j], phi[:, j], seen, dt, cfg
-            )
+            m, P, corr, last, n, t_first = _causal_joint(zc[:, j], zi[:, j], phi, seen, dt, cfg)
             source[:t_first, j][~seen[:t_first]] = SOURCE_IMU
             n_refits.append(n)
         pos[:, j] = m[..., 0].T

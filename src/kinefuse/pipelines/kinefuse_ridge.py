@@ -2,7 +2,9 @@
 
 :class:`RidgeCorrection` accumulates per-fold moments, so that ``partial_fit`` as data arrive
 and ``fit`` on a whole series give the same solve, and selects its penalty by blocked
-cross-validation from the stored moments alone.
+cross-validation from the stored moments alone. :class:`AxisRidgeCorrection` is the same
+regression on a design with one row per world axis (the segment-frame model,
+:func:`kinefuse.pipelines.features.segment_frame_design`).
 """
 
 from __future__ import annotations
@@ -10,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-__all__ = ["RidgeCorrection"]
+__all__ = ["AxisRidgeCorrection", "RidgeCorrection"]
 
 #: Default ridge penalties of :class:`RidgeCorrection` (last: intercept only).
 _ALPHAS = (*np.logspace(-4, 3, 15).tolist(), float("inf"))
@@ -189,6 +191,52 @@ class RidgeCorrection:
     def predict(self, X) -> np.ndarray:
         """``f̂(X) (n, D)``; rows with NaN features predict 0 (no correction)."""
         X = np.asarray(X, dtype=float)
-        out = self.intercept_ + np.nan_to_num(X) @ self.coef_
-        out[~np.all(np.isfinite(X), 1)] = 0.0
+        out = X @ self.coef_  # non-finite where a feature is (NaN · 0 is NaN): no copy of X
+        out += self.intercept_
+        out[~np.all(np.isfinite(out), 1)] = 0.0
         return out
+
+
+class AxisRidgeCorrection:
+    """:class:`RidgeCorrection` on per-axis designs: ``X (n, D, K)`` -> ``Y (n, D)``.
+
+    Each sample contributes D rows (one per output axis, ``Y[:, d] ≈ X[:, d] θ``) with one
+    coefficient vector θ shared by the axes, as the segment-frame model needs
+    (:func:`kinefuse.pipelines.features.segment_frame_design`); the D rows of a sample fall in
+    the same cross-validation block. Parameters as :class:`RidgeCorrection` (``block`` in
+    samples); the intercept is shared by the axes (the design's axis indicators carry the
+    per-axis constants).
+    """
+
+    def __init__(self, **kwargs):
+        self.ridge = RidgeCorrection(**kwargs)
+
+    def fit(self, X, Y, t=None) -> AxisRidgeCorrection:
+        """Fit on ``X (n, D, K)``, ``Y (n, D)`` at sample times ``t (n,)`` (default 0..n−1)."""
+        self.ridge.fit(*self._rows(X, Y, t))
+        return self
+
+    def partial_fit(self, X, Y, t=None) -> AxisRidgeCorrection:
+        """Accumulate the rows of more samples and re-solve; returns self."""
+        self.ridge.partial_fit(*self._rows(X, Y, t))
+        return self
+
+    def predict(self, X) -> np.ndarray:
+        """``f̂(X) (n, D)``; rows with NaN regressors predict 0 (no correction)."""
+        X = np.asarray(X, dtype=float)
+        n, D, K = X.shape
+        return self.ridge.predict(X.reshape(n * D, K)).reshape(n, D)
+
+    def __getattr__(self, name):
+        # the fitted state and settings (alpha_, coef_, block...) are the inner regression's
+        if name == "ridge":
+            raise AttributeError(name)
+        return getattr(self.ridge, name)
+
+    @staticmethod
+    def _rows(X, Y, t):
+        X = np.asarray(X, dtype=float)
+        Y = np.asarray(Y, dtype=float)
+        n, D, K = X.shape
+        t = np.arange(n) if t is None else np.asarray(t)
+        return X.reshape(n * D, K), Y.reshape(n * D, 1), np.repeat(t, D)

@@ -50,7 +50,8 @@ _CAMERA_METHODS = ("camera-only", "camera-gapfill")
 def _kinefuse(ctx: FusionContext) -> FusionResult:
     """``"kinefuse"``: :func:`kinefuse.pipelines.kinefuse_fusion.kinefuse_fusion` (this package's
     own method, not paper B's), offline or causal as ``ctx.causal``; ``ctx.features`` are its
-    IMU features φ (default: chain features). ``params.fixed_lag`` is its ``lag`` when causal."""
+    IMU features φ (default: chain features), or ``ctx.segment_rotations`` its segment-frame
+    error model. ``params.fixed_lag`` is its ``lag`` when causal."""
     lag = int(ctx.params.fixed_lag) if ctx.causal else 0
     res = kinefuse_fusion(
         ctx.z_imu.transpose(1, 0, 2),
@@ -60,6 +61,9 @@ def _kinefuse(ctx: FusionContext) -> FusionResult:
         causal=ctx.causal,
         lag=lag,
         features=None if ctx.features is None else ctx.features.transpose(1, 0, 2),
+        segment_rotations=None
+        if ctx.segment_rotations is None
+        else np.swapaxes(ctx.segment_rotations, 0, 1),
     )
     return finish(
         ctx,
@@ -118,6 +122,7 @@ def vision_assisted(
     causal: bool = False,
     params: VisionParams | None = None,
     features=None,
+    segment_rotations=None,
 ) -> FusionResult:
     r"""Vision-data-assisted IMU joint positions, paper B (Xu 2023) per joint, all joints at once.
 
@@ -153,6 +158,11 @@ def vision_assisted(
     features : array_like of float, shape (T, J, F), optional
         Extra ELM-1 inputs appended to ``z_imu`` (e.g. segment orientations); default None
         (paper: position only). Rows with NaN are excluded from training and bridged output.
+    segment_rotations : array_like of float, shape (T, J, S, 3, 3), optional
+        ``R_frame_from_sensor`` of the segments that move each joint (all-zero padding), in the
+        frame of ``z_imu``: ``"kinefuse"`` then models the chain error in the segments' frames
+        (:func:`~kinefuse.pipelines.kinefuse_fusion.kinefuse_fusion`); the other methods do
+        not read it.
 
     Returns
     -------
@@ -183,7 +193,16 @@ def vision_assisted(
     zi, zc, av, dt, names, feats = check_inputs(
         z_imu, z_cam, available, dt_s, joints, features, need_imu=method not in _CAMERA_METHODS
     )
-    ctx = FusionContext(zi, zc, av, dt, params, bool(causal), names, method, feats)
+    rots = None
+    if segment_rotations is not None:
+        rots = np.asarray(segment_rotations)
+        if rots.ndim != 5 or rots.shape[:2] != zi.shape[1::-1] or rots.shape[3:] != (3, 3):
+            raise InputError(
+                f"expected segment_rotations with shape (T, J, S, 3, 3) = "
+                f"({zi.shape[1]}, {zi.shape[0]}, S, 3, 3), got {rots.shape}"
+            )
+        rots = np.swapaxes(rots, 0, 1)
+    ctx = FusionContext(zi, zc, av, dt, params, bool(causal), names, method, feats, rots)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="ELM fitted on", category=UserWarning)
         return METHODS[method](ctx)

@@ -16,6 +16,8 @@ Steps
 3. Default offsets: window mean of ``R_chestᵀ R (p_cam,joint − p_cam,spine_shoulder)`` for
    the shoulders and hips; default lengths: window median camera bone lengths.
 4. ``z^I`` = forward kinematics from the chest origin (0) in the IMU world (ENU).
+5. ``"kinefuse"`` also gets, per joint, the resampled orientations of the segments that move
+   it (its segment-frame chain-error model, :func:`~kinefuse.pipelines.features.segment_frame_design`).
 
 Deviations from the paper
 -------------------------
@@ -36,6 +38,7 @@ from kinefuse.io.recording import Recording
 from kinefuse.kinematics import forward_kinematics, full_body, kabsch_rotation
 from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.orientation import slerp_resample
+from kinefuse.pipelines.features import joint_rotations, joint_segments
 from kinefuse.pipelines.fusion_context import FusionResult
 from kinefuse.pipelines.vision_assisted import vision_assisted
 from kinefuse.pipelines.vision_params import VisionParams, check_float
@@ -151,8 +154,9 @@ def vision_assisted_from_recording(
     av = np.all(np.isfinite(z_cam), axis=-1)
     z_cam = np.where(av[..., None], z_cam, np.nan)
     res = vision_assisted(
-        z_imu, z_cam, av, 1.0 / rate, method, joints=out_joints, causal=causal, params=params
-    )
+        z_imu, z_cam, av, 1.0 / rate, method, joints=out_joints, causal=causal, params=params,
+        segment_rotations=_joint_rotations(R, sk, out_joints) if method == "kinefuse" else None,
+    )  # fmt: skip
     ref = _reference(recording, out_joints, t)
     return RecordingFusion(res, t, z_imu, z_cam, av, ref, Rc, sk)
 
@@ -188,6 +192,11 @@ def _imu_rotations(recording, sk, t) -> dict:
         st = recording.imu[s]
         R[s] = as_rotation_matrices(slerp_resample(st.t_s, st.q_world_from_sensor, t), f"IMU {s!r}")
     return R
+
+
+def _joint_rotations(R, sk, joints) -> np.ndarray:
+    """``(T, J, S, 3, 3)``: per joint the orientations of its :func:`joint_segments`."""
+    return joint_rotations(R, [[s for s in joint_segments(sk, j) if s in R] for j in joints])
 
 
 def _camera_rotation(cam, sk, R, win) -> np.ndarray:

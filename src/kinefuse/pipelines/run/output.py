@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from kinefuse.conventions import AXES_ENU
 from kinefuse.evaluation import evaluate
+from kinefuse.pipelines.features import joint_rotations
 
 __all__ = ["SessionOutput"]
 
@@ -79,6 +81,12 @@ class SessionOutput:
     chain_description : dict or None
         The calibrated chain for live capture (:mod:`kinefuse.pipelines.run.chain_file`), or
         None when it cannot run live (the reason is in ``notes``).
+    chain_orientations : dict of str -> ndarray, shape (T, 3, 3)
+        The sensor orientations the chain was built from, ``R_frame_from_sensor`` in the frame
+        of ``chain`` (:func:`kinefuse.kinematics.chain_orientations`).
+    joint_segments : dict of str -> tuple of str
+        Per output joint, the segments of ``chain_orientations`` that move it
+        (:func:`kinefuse.pipelines.features.joint_segments`).
     """
 
     t_s: np.ndarray
@@ -106,6 +114,15 @@ class SessionOutput:
     coverage: dict = field(default_factory=dict)
     warnings: list = field(default_factory=list)
     chain_description: dict | None = None
+    chain_orientations: dict = field(default_factory=dict)
+    joint_segments: dict = field(default_factory=dict)
+
+    def segment_rotations(self, joints: Sequence[str] | None = None) -> np.ndarray:
+        """``(T, J, S, 3, 3)``: per joint (default: all output joints) the orientations of
+        the segments that move it, all-zero padded; what ``"kinefuse"`` models the chain
+        error with (:func:`kinefuse.pipelines.features.joint_rotations`)."""
+        names = self.joints if joints is None else joints
+        return joint_rotations(self.chain_orientations, [self.joint_segments[j] for j in names])
 
     def trajectories(self) -> dict[str, np.ndarray]:
         """Evaluated trajectories by their table label (tags such as "[calibrated on reference]")."""

@@ -21,7 +21,12 @@ import numpy as np
 from kinefuse import methods
 from kinefuse.conventions import SOURCE_IMU
 from kinefuse.exceptions import ConfigError, InputError
-from kinefuse.kinematics import chain_positions, kabsch_rotation, segment_lengths
+from kinefuse.kinematics import (
+    chain_orientations,
+    chain_positions,
+    kabsch_rotation,
+    segment_lengths,
+)
 from kinefuse.pipelines import METHODS as FUSION_METHODS
 from kinefuse.pipelines import (
     VisionParams,
@@ -29,6 +34,7 @@ from kinefuse.pipelines import (
     vision_assisted,
     vision_assisted_from_recording,
 )
+from kinefuse.pipelines.features import joint_segments
 from kinefuse.pipelines.run.calibration import (
     _joint_angles,
     _sensor_orientations,
@@ -258,9 +264,9 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     source = "vision" if root_kind == "vision" else "reference"
     # sk holds the resolved lengths (measured > camera/reference > functional > body height):
     # the calibration's own length estimates must not override them again
-    chain_st = chain_positions(
-        recording, sk, cal, root=root_pos, source=source, t_s=t, use_calibrated_lengths=False
-    )
+    ori = chain_orientations(recording, sk, cal, t)  # resampled once: chain and "kinefuse"
+    chain_st = chain_positions(recording, sk, cal, root=root_pos, source=source, t_s=t,
+                               use_calibrated_lengths=False, orientations=ori)  # fmt: skip
     joints = tuple(s for s in sk.distal)
     chain = np.stack([chain_st.position(j, masked=False) for j in joints], axis=1)
     coverage, root_ok, inputs = _input_coverage(recording, sk, root_stream, t, joints)
@@ -279,6 +285,8 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     )
     if why is not None:
         notes.append(f"no {CHAIN_FILE} for kinefuse stream --chain: {why}")
+    out.chain_orientations = ori
+    out.joint_segments = {j: tuple(s for s in joint_segments(sk, j) if s in ori) for j in joints}
     if cal is not None:
         out.sensor_orientations = _sensor_orientations(recording, cal, t)
     if cal is not None and cal.frames:
@@ -538,6 +546,7 @@ def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, ca
         return
     avail = np.all(np.isfinite(camera), axis=-1)
     keep = [j for j in range(len(out.joints)) if np.any(avail[:, j]) or method != "camera-only"]
+    rots = out.segment_rotations() if method == "kinefuse" else None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         res = vision_assisted(
@@ -549,6 +558,7 @@ def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, ca
             joints=[out.joints[j] for j in keep],
             causal=causal,
             params=vparams,
+            segment_rotations=None if rots is None else rots[:, keep],
         )
     out.position = np.full_like(chain, np.nan)
     out.position[:, keep] = res.position
