@@ -345,7 +345,8 @@ def _run_method(out: SessionOutput, recording, method: str, params: Mapping, ctx
     apply_coverage(
         out, ctx["coverage"], ctx["root_ok"], ctx["joints"], method, ctx["root_name"], ctx["inputs"]
     )
-    if method in _CAMERA_METHODS and out.camera is not None:
+    if method in _CAMERA_METHODS and out.camera is not None and out.reference is not None:
+        # only an evaluation reads them (SessionOutput.trajectories): none without a reference
         out.baselines = _baselines(out.chain, out.camera, dt, out.joints)
 
 
