@@ -165,3 +165,15 @@ def test_session_output_rotations_are_the_chains_frames(shared_data):
     v = np.einsum("tji,tj->ti", shank, out.chain[:, j["ankle_l"]] - out.chain[:, j["knee_l"]])[ok]
     assert np.linalg.norm(v.mean(0)) > 0.3
     np.testing.assert_allclose(v, np.broadcast_to(v.mean(0), v.shape), atol=1e-9)
+
+
+def test_a_kinefuse_run_says_what_its_correction_models():
+    from kinefuse.apps.demo import demo_recording
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = process_recording(demo_recording(), "kinefuse", {})
+        base = process_recording(demo_recording(), "offset-interp", {})
+    assert any("modelled in the frames of the sensors" in n for n in out.notes)
+    assert not any("paper B pipeline" in n for n in out.notes + base.notes)  # not paper B's
+    assert not any("frames of the sensors" in n for n in base.notes)

@@ -540,10 +540,14 @@ def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, ca
         out.source = fused.result.source.astype(np.int64)
         out.mode = np.full(out.source.shape, -1, dtype=np.int64)
         out.frame = "ENU chest-relative"
-        out.notes.append(
-            f"paper B pipeline {method!r} from the chest IMU (Xu 2023, SPEC §10.3); positions "
-            "relative to spine_shoulder"
-        )
+        info = methods.get(method)
+        what = f"paper B pipeline {method!r} (Xu 2023, SPEC §10.3)" if info.paper else info.summary
+        out.notes.append(f"{what}, from the chest IMU; positions relative to spine_shoulder")
+        if method == "kinefuse":
+            out.notes.append(
+                "kinefuse: the chain error is also modelled in the frames of the sensors that move "
+                "each joint (the chest, the segments to the joint and the one starting at it)"
+            )
         return
     avail = np.all(np.isfinite(camera), axis=-1)
     keep = [j for j in range(len(out.joints)) if np.any(avail[:, j]) or method != "camera-only"]
@@ -565,10 +569,15 @@ def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, ca
     out.position[:, keep] = res.position
     out.std_m[:, keep] = np.sqrt(np.diagonal(res.cov, axis1=-2, axis2=-1))
     out.source[:, keep] = res.source
-    out.notes.append(
-        f"paper B pipeline {method!r} per joint (Xu 2023, SPEC §10.3) on the IMU chain and the "
-        "camera joints"
-    )
+    info = methods.get(method)
+    what = f"paper B pipeline {method!r} (Xu 2023, SPEC §10.3)" if info.paper else info.summary
+    out.notes.append(f"{what}, per joint on the IMU chain and the camera joints")
+    if rots is not None:
+        frames = "; ".join(f"{j}: {', '.join(out.joint_segments[j])}" for j in out.joints)
+        out.notes.append(
+            f"kinefuse: the chain error is also modelled in the frames of the sensors that move "
+            f"each joint ({frames})"
+        )
 
 
 def _baselines(chain, camera, dt, joints) -> dict[str, np.ndarray]:
