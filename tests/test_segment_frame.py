@@ -177,3 +177,9 @@ def test_a_kinefuse_run_says_what_its_correction_models():
     assert any("modelled in the frames of the sensors" in n for n in out.notes)
     assert not any("paper B pipeline" in n for n in out.notes + base.notes)  # not paper B's
     assert not any("frames of the sensors" in n for n in base.notes)
+    # the paper-B rig builds its own chain: its orientations come with it, in its frame
+    assert out.joint_segments["wrist_l"] == ("chest", "upper_arm_l", "forearm_l")
+    fa = out.segment_rotations(["wrist_l"])[:, 0, 2]
+    j = {n: out.joints.index(n) for n in ("elbow_l", "wrist_l")}
+    v = np.einsum("tji,tj->ti", fa, out.chain[:, j["wrist_l"]] - out.chain[:, j["elbow_l"]])
+    np.testing.assert_allclose(v, np.broadcast_to(v.mean(0), v.shape), atol=1e-9)

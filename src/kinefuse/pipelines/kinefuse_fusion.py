@@ -23,8 +23,9 @@ Notes
 ``f̂`` is a ridge regression (:class:`~kinefuse.pipelines.kinefuse_ridge.RidgeCorrection`) of the chain error
 ``e_t = z_cam_t − z_imu_t`` on the IMU features ``φ_t`` over all camera-seen samples so far,
 its penalty chosen by leave-one-block-out cross-validation over 2 s blocks (offline; beyond
-20 blocks, 20 folds of interleaved blocks; 1 s blocks and 10 folds in causal mode); it captures the error that follows the limb's state (soft-tissue motion, axis,
-length and offset errors). The blocks must be longer than the error's correlation (a gait
+20 blocks, 20 folds of interleaved blocks; 1 s blocks and 10 folds in causal mode); it
+captures the error that follows the limb's state (soft-tissue motion, axis, length and offset
+errors). The blocks must be longer than the error's correlation (a gait
 cycle is about 1 s): with 1 s blocks a held-out block resembles its neighbours, the
 validation is optimistic and picks too small a penalty, and the correction then extrapolates
 badly in outages (on virtual walks the corrected chain was worse than the raw chain at an
@@ -243,7 +244,8 @@ def _run(zc, zi, p: NoiseParameters, dt: float):
 
 def _ridge(phi, **kwargs):
     """The correction's regression for one joint's ``phi``: features ``(T, F)`` shared by the
-    axes (:class:`RidgeCorrection`) or a per-axis design ``(T, 3, K)`` (:class:`AxisRidgeCorrection`)."""
+    axes (:class:`RidgeCorrection`) or a per-axis design ``(T, 3, K)``
+    (:class:`AxisRidgeCorrection`)."""
     return (AxisRidgeCorrection if phi.ndim == 3 else RidgeCorrection)(**kwargs)
 
 
@@ -488,8 +490,8 @@ def kinefuse_fusion(
         alone.
     segment_rotations : array_like, shape (T, J, S, 3, 3), optional
         Per joint, ``R_frame_from_sensor`` of the S segments whose pose moves it (e.g.
-        :func:`kinefuse.pipelines.features.joint_rotations`), in the frame of the positions; all-zero matrices pad joints with fewer segments, NaN where an
-        orientation is missing. When given, the correction also regresses on the segment-frame
+        :func:`kinefuse.pipelines.features.joint_rotations`), in the frame of the positions;
+        all-zero matrices pad joints with fewer segments, NaN where an orientation is missing. When given, the correction also regresses on the segment-frame
         model (:func:`kinefuse.pipelines.features.segment_frame_design`: a constant error in
         each sensor's frame; module Notes).
 

@@ -66,6 +66,8 @@ class RecordingFusion:
         Camera-to-IMU-world rotation used.
     skeleton : Skeleton
         The chain used for ``z_imu`` (lengths, axes, offsets).
+    orientations : dict of str -> ndarray, shape (T, 3, 3)
+        The IMU orientations ``z_imu`` was built from (``R_world_from_sensor`` at ``t_s``).
     """
 
     result: FusionResult
@@ -76,6 +78,7 @@ class RecordingFusion:
     reference: np.ndarray | None
     R_world_from_camera: np.ndarray
     skeleton: object
+    orientations: dict
 
 
 def vision_assisted_from_recording(
@@ -158,7 +161,7 @@ def vision_assisted_from_recording(
         segment_rotations=_joint_rotations(R, sk, out_joints) if method == "kinefuse" else None,
     )  # fmt: skip
     ref = _reference(recording, out_joints, t)
-    return RecordingFusion(res, t, z_imu, z_cam, av, ref, Rc, sk)
+    return RecordingFusion(res, t, z_imu, z_cam, av, ref, Rc, sk, R)
 
 
 def _check_recording(recording, rate_hz):

@@ -67,9 +67,9 @@ class SessionOutput:
         Label suffix of scores that used the reference beyond evaluation (e.g.
         ``" [calibrated on reference]"``); empty otherwise.
     baselines : dict of str -> ndarray, shape (T, J, 3)
-        With a camera method and a reference (they are for the evaluation): the simple baselines on the same chain and camera, by table
-        label (``offset interp``, ``offset hold``, ``camera gap-fill``;
-        :func:`kinefuse.pipelines.vision_assisted`), m, same frame.
+        With a camera method and a reference (they are for the evaluation): the simple
+        baselines on the same chain and camera, by table label (``offset interp``, ``offset
+        hold``, ``camera gap-fill``; :func:`kinefuse.pipelines.vision_assisted`), m, same frame.
     available : ndarray of bool, shape (T, J) or None
         The sample is backed by the inputs the method needs (see :func:`kinefuse.pipelines.run.timeline.apply_coverage`);
         False where a stream did not cover it, even if the filter predicted a position.

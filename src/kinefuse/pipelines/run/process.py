@@ -534,6 +534,11 @@ def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, ca
         out.joints = joints
         out.position = fused.result.position
         out.chain = fused.z_imu
+        out.chain_orientations = fused.orientations  # (the rig's chain, its frame)
+        out.joint_segments = {
+            j: tuple(s for s in joint_segments(fused.skeleton, j) if s in fused.orientations)
+            for j in joints
+        }
         out.camera = fused.z_cam
         out.reference = fused.reference
         out.std_m = np.sqrt(np.diagonal(fused.result.cov, axis1=-2, axis2=-1))
