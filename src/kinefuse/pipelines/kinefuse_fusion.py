@@ -50,9 +50,11 @@ history) 64.7 → 65.3 mm (causal 71.7 → 69.6). Tried and not adopted: product
 the relative rotations of neighbouring segments (soft-tissue motion linear in the joint
 angles, Dumas et al., J. Biomech. 47, 2014, the simulator's own model): tuning 26.7 mm,
 walks 42.5 mm, with four times the columns (15 times the run time on a one-hour recording);
-the segment-frame columns without the features: tuning 25.2 mm, walks 43.3 mm, UTD-MHAD
-69.1 mm. The constant terms model calibration error, which any chain has; they do not rest
-on the simulator's soft-tissue model. The paper-B rig
+the segment-frame columns without the features: tuning 22.4 mm (best there), walks 46.8 mm,
+UTD-MHAD 69.1 mm (worst there), and with the products but without the features 25.2 and
+43.3 mm; nested with the features, the UTD-MHAD trials lose 0.6 mm and the walks gain. The
+constant terms model calibration error, which any chain has; they do not rest on the
+simulator's soft-tissue model. The paper-B rig
 (:func:`~kinefuse.pipelines.vision_recording.vision_assisted_from_recording`) and
 ``kinefuse run`` pass the chain's orientations.
 
