@@ -183,3 +183,21 @@ def test_a_kinefuse_run_says_what_its_correction_models():
     j = {n: out.joints.index(n) for n in ("elbow_l", "wrist_l")}
     v = np.einsum("tji,tj->ti", fa, out.chain[:, j["wrist_l"]] - out.chain[:, j["elbow_l"]])
     np.testing.assert_allclose(v, np.broadcast_to(v.mean(0), v.shape), atol=1e-9)
+
+
+def test_a_session_with_a_camera_passes_the_chains_orientations(shared_data):
+    # kinefuse run's per-joint path (not the paper-B rig): the Neura legs with a camera made
+    # from Vicon, as in kinefuse experiment paper-b; the correction names the sensors it used
+    from pathlib import Path
+
+    from kinefuse.apps import paper_b
+
+    rec, joints = paper_b.neura_inputs(Path(shared_data))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = process_recording(rec, "kinefuse", {"calibration": "vision"})
+    note = next(n for n in out.notes if "frames of the sensors" in n)
+    assert "ankle_l: thigh_l, shank_l" in note
+    assert out.segment_rotations(joints).shape == (out.t_s.size, 4, 2, 3, 3)
+    seen = np.all(np.isfinite(out.camera), axis=-1)
+    assert np.all(np.isfinite(out.position[seen]))
