@@ -30,6 +30,7 @@ __all__ = [
     "imu_features",
     "joint_rotations",
     "joint_segments",
+    "moving_segments",
     "segment_frame_design",
 ]
 
@@ -67,6 +68,14 @@ def joint_segments(skeleton: Skeleton, joint: str) -> tuple[str, ...]:
     children = [s for s, p in zip(skeleton.segments, skeleton.proximal, strict=True) if p == joint]
     out = ([skeleton.root_segment] if skeleton.offsets_m else []) + chain + children
     return tuple(dict.fromkeys(out))
+
+
+def moving_segments(
+    skeleton: Skeleton, joints: Sequence[str], available
+) -> dict[str, tuple[str, ...]]:
+    """Per joint its :func:`joint_segments` that are in ``available`` (e.g. the segments with
+    an orientation), in that order."""
+    return {j: tuple(s for s in joint_segments(skeleton, j) if s in available) for j in joints}
 
 
 def joint_rotations(

@@ -38,7 +38,7 @@ from kinefuse.io.recording import Recording
 from kinefuse.kinematics import forward_kinematics, full_body, kabsch_rotation
 from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.orientation import slerp_resample
-from kinefuse.pipelines.features import joint_rotations, joint_segments
+from kinefuse.pipelines.features import joint_rotations, moving_segments
 from kinefuse.pipelines.fusion_context import FusionResult
 from kinefuse.pipelines.vision_assisted import vision_assisted
 from kinefuse.pipelines.vision_params import VisionParams, check_float
@@ -198,8 +198,8 @@ def _imu_rotations(recording, sk, t) -> dict:
 
 
 def _joint_rotations(R, sk, joints) -> np.ndarray:
-    """``(T, J, S, 3, 3)``: per joint the orientations of its :func:`joint_segments`."""
-    return joint_rotations(R, [[s for s in joint_segments(sk, j) if s in R] for j in joints])
+    """``(T, J, S, 3, 3)``: per joint the orientations of its :func:`moving_segments`."""
+    return joint_rotations(R, list(moving_segments(sk, joints, R).values()))
 
 
 def _camera_rotation(cam, sk, R, win) -> np.ndarray:

@@ -34,7 +34,7 @@ from kinefuse.pipelines import (
     vision_assisted,
     vision_assisted_from_recording,
 )
-from kinefuse.pipelines.features import joint_segments
+from kinefuse.pipelines.features import moving_segments
 from kinefuse.pipelines.run.calibration import (
     _joint_angles,
     _sensor_orientations,
@@ -286,7 +286,7 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     if why is not None:
         notes.append(f"no {CHAIN_FILE} for kinefuse stream --chain: {why}")
     out.chain_orientations = ori
-    out.joint_segments = {j: tuple(s for s in joint_segments(sk, j) if s in ori) for j in joints}
+    out.joint_segments = moving_segments(sk, joints, ori)
     if cal is not None:
         out.sensor_orientations = _sensor_orientations(recording, cal, t)
     if cal is not None and cal.frames:
@@ -535,24 +535,14 @@ def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, ca
         out.position = fused.result.position
         out.chain = fused.z_imu
         out.chain_orientations = fused.orientations  # (the rig's chain, its frame)
-        out.joint_segments = {
-            j: tuple(s for s in joint_segments(fused.skeleton, j) if s in fused.orientations)
-            for j in joints
-        }
+        out.joint_segments = moving_segments(fused.skeleton, joints, fused.orientations)
         out.camera = fused.z_cam
         out.reference = fused.reference
         out.std_m = np.sqrt(np.diagonal(fused.result.cov, axis1=-2, axis2=-1))
         out.source = fused.result.source.astype(np.int64)
         out.mode = np.full(out.source.shape, -1, dtype=np.int64)
         out.frame = "ENU chest-relative"
-        info = methods.get(method)
-        what = f"paper B pipeline {method!r} (Xu 2023, SPEC §10.3)" if info.paper else info.summary
-        out.notes.append(f"{what}, from the chest IMU; positions relative to spine_shoulder")
-        if method == "kinefuse":
-            out.notes.append(
-                "kinefuse: the chain error is also modelled in the frames of the sensors that move "
-                "each joint (the chest, the segments to the joint and the one starting at it)"
-            )
+        _method_notes(out, method, "from the chest IMU; positions relative to spine_shoulder")
         return
     avail = np.all(np.isfinite(camera), axis=-1)
     keep = [j for j in range(len(out.joints)) if np.any(avail[:, j]) or method != "camera-only"]
@@ -574,10 +564,16 @@ def _vision(out: SessionOutput, recording, chain, camera, dt, method, params, ca
     out.position[:, keep] = res.position
     out.std_m[:, keep] = np.sqrt(np.diagonal(res.cov, axis1=-2, axis2=-1))
     out.source[:, keep] = res.source
+    _method_notes(out, method, "per joint on the IMU chain and the camera joints")
+
+
+def _method_notes(out: SessionOutput, method: str, where: str) -> None:
+    """What the camera method is (paper B's pipeline, or the registry's summary) and, for
+    ``"kinefuse"``, the sensor frames its correction models the chain error in."""
     info = methods.get(method)
     what = f"paper B pipeline {method!r} (Xu 2023, SPEC §10.3)" if info.paper else info.summary
-    out.notes.append(f"{what}, per joint on the IMU chain and the camera joints")
-    if rots is not None:
+    out.notes.append(f"{what}, {where}")
+    if method == "kinefuse":
         frames = "; ".join(f"{j}: {', '.join(out.joint_segments[j])}" for j in out.joints)
         out.notes.append(
             f"kinefuse: the chain error is also modelled in the frames of the sensors that move "
