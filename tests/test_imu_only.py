@@ -585,6 +585,14 @@ def test_functional_session_uses_the_measured_lengths_and_feet_for_ankles(shared
     assert prov["segment_lengths"]["shank_l"] == {"m": 0.389, "source": "measured"}
     report = (tmp_path / "o" / "report.html").read_text()
     assert "foot_l, foot_r: IMUs used for the ankle centres only" in report
+    # the OpenSense orientations hold every mapped sensor (they share the data set's world
+    # frame), the pelvis and the feet too: OpenSense IK reads its pelvis IMU first
+    sto = (tmp_path / "o" / "nf_orientations.sto").read_text().splitlines()
+    header = next(ln for ln in sto if ln.startswith("time")).split("\t")
+    assert set(header[1:]) == {
+        "pelvis_imu", "femur_l_imu", "femur_r_imu", "tibia_l_imu", "tibia_r_imu",
+        "calcn_l_imu", "calcn_r_imu",
+    }  # fmt: skip
 
 
 def _session(tmp_path: Path, body: str) -> Path:

@@ -252,8 +252,12 @@ def test_utd_mhad_session(shared_data, tmp_path):
     ev = summary["evaluation"]
     assert ev.joints == ("wrist_r",)
     # wrist = Kinect elbow + real forearm IMU; reference = Kinect wrist. The session
-    # calibrates on the camera, which is the reference's own data: every score says so
-    tag = " [calibrated on camera = reference, lengths from camera = reference]"
+    # calibrates on the camera, which is the reference's own data, and starts the chain at its
+    # elbow: every score says so
+    tag = (
+        " [calibrated on camera = reference, lengths from camera = reference, "
+        "root from camera = reference]"
+    )
     assert ev.methods == ("EM-KF/FIR" + tag, "IMU chain" + tag)
     # paper A scores the IMU wrist against the Kinect wrist: no warning; a camera method
     # scored against its own camera gets one

@@ -13,6 +13,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from kinefuse.conventions import SEGMENTS
 from kinefuse.exceptions import NumericalWarning
 from kinefuse.kinematics import (
     calibrate,
@@ -273,15 +274,31 @@ def _turn_notes(cal, notes: list[str], provenance: dict) -> None:
         provenance[key] = value
 
 
-def _sensor_orientations(recording, cal, t: np.ndarray) -> dict[str, np.ndarray]:
-    """Calibrated ``q_world_from_sensor`` per segment on ``t``, heading corrections applied."""
-    out = {}
-    for s in cal.axes:
-        st = recording.imu.get(s)
-        if st is None or st.q_world_from_sensor is None:
+def _sensor_orientations(recording, cal, t: np.ndarray, notes: list[str]) -> dict[str, np.ndarray]:
+    """``q_world_from_sensor`` on ``t`` of every mapped IMU whose world frame the calibration
+    puts in the common one (heading corrections applied); the others are named in ``notes``.
+
+    Every IMU is in the common frame when no heading was estimated per sensor (the frames are
+    shared); where headings were estimated (static ``heading="static"``, functional
+    ``heading="estimate"``), only those the calibration turned are."""
+    turned = set(cal.world_heading_deg)
+    if getattr(cal, "heading", None) == "estimate":  # functional: the joint pairs' sensors
+        turned |= {x for f in cal.joints.values() for x in (f.proximal, f.distal) if x}
+    calibrated = set(cal.axes)
+    out, left = {}, []
+    for s, st in recording.imu.items():
+        if s not in SEGMENTS or st.q_world_from_sensor is None:
+            continue
+        if turned and s not in turned and s not in calibrated:
+            left.append(s)
             continue
         q = slerp_resample(st.t_s, st.q_world_from_sensor, t)  # NaN rows stay NaN
         out[s] = turn_heading(q, cal.world_heading_deg.get(s, 0.0))
+    if left:
+        notes.append(
+            f"sensor orientations: {', '.join(left)} left out (their heading relative to the "
+            "other sensors was not estimated by this calibration)"
+        )
     return out
 
 

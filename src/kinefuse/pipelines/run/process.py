@@ -150,7 +150,7 @@ def process_recording(
         )
     _drop_unmatched_reference(out, recording)
     _run_method(out, recording, method, params, ctx)
-    _label_and_align(out, recording, plan, ctx["reference"], tags)
+    _label_and_align(out, recording, plan, tags)
     return out
 
 
@@ -288,12 +288,12 @@ def _chain_output(recording, method, params, segs, plan, lengths, body_height_m,
     out.chain_orientations = ori
     out.joint_segments = moving_segments(sk, joints, ori)
     if cal is not None:
-        out.sensor_orientations = _sensor_orientations(recording, cal, t)
+        out.sensor_orientations = _sensor_orientations(recording, cal, t, notes)
     if cal is not None and cal.frames:
         out.angles = _joint_angles(recording, cal, t, notes, run_warnings)
     ctx = {"cal": cal, "calib": calib, "coverage": coverage, "root_ok": root_ok, "inputs": inputs,
            "root_name": {"vision": "camera", "reference": "reference"}.get(root_kind, root_kind),
-           "reference": out.reference, "joints": joints}  # fmt: skip
+           "joints": joints}  # fmt: skip
     return out, recording, ctx
 
 
@@ -350,7 +350,7 @@ def _run_method(out: SessionOutput, recording, method: str, params: Mapping, ctx
         out.baselines = _baselines(out.chain, out.camera, dt, out.joints)
 
 
-def _label_and_align(out: SessionOutput, recording, plan: dict, reference, tags=()) -> None:
+def _label_and_align(out: SessionOutput, recording, plan: dict, tags=()) -> None:
     """Tags saying what the reference was used for (after ``tags``); the rigid alignment, if
     asked."""
     notes, provenance = out.notes, out.provenance
@@ -370,6 +370,8 @@ def _label_and_align(out: SessionOutput, recording, plan: dict, reference, tags=
             tags.append("calibrated on camera = reference")
         if any(s.startswith("camera") for s in sources):
             tags.append("lengths from camera = reference")
+        if plan["root"] == "vision":  # the chain starts at the camera's (= reference's) joints
+            tags.append("root from camera = reference")
         if out.method in _CAMERA_METHODS or out.baselines:
             msg = (
                 "the camera is the reference's own data: wherever the camera sees a joint, an "
@@ -381,52 +383,76 @@ def _label_and_align(out: SessionOutput, recording, plan: dict, reference, tags=
             notes.append(f"WARNING: {msg}")
     if out.reference is not None and out.frame != "ENU chest-relative":
         ref_frame = recording.reference.frame
-        if plan["align"] == "rigid":
-            for name in ("position", "chain", "camera"):
-                arr = getattr(out, name)
-                if arr is not None and np.any(np.isfinite(arr)):
-                    setattr(out, name, _rigid_align(arr, reference)[0])
-            out.baselines = {
-                k: _rigid_align(v, reference)[0] if np.any(np.isfinite(v)) else v
-                for k, v in out.baselines.items()
-            }
-            tags.append("aligned to reference")
-            notes.append(
-                "estimates rigidly aligned to the reference (Kabsch rotation + translation over "
-                "all samples, as asked: [reference] align = 'rigid') before evaluation"
-            )
-            provenance["alignment"] = "rigid (Kabsch) to the reference, as asked"
-        elif _score_relative(out, recording.reference):
+        # a root-relative output is scored against the reference made relative to its own
+        # root joints (then aligned too, if asked): its origin moves, so no rigid alignment
+        # maps it onto the reference's world positions
+        relative = _score_relative(out, recording.reference)
+        if relative:
             origin = relative_origin_joints(out.frame, ref_frame)
             tags.append(f"scored relative to the reference's {_origin_name(origin)}")
             notes.append(
                 f"scored root-relative: the output ({out.frame}) against the reference minus "
                 f"its own {' and '.join(origin)} (their mean) at "
-                "each sample; no other use of the reference (no alignment)"
+                "each sample; no other use of the reference"
+                + ("" if plan["align"] == "rigid" else " (no alignment)")
             )
             provenance["alignment"] = "none; scored relative to the reference's root joints"
-        elif ref_frame != out.frame:
-            if "relative to" in out.frame:  # a moving origin: no rigid alignment maps it
-                fix = "set [skeleton] root = 'reference' (the chain starts at the reference joints)"
-            else:
-                fix = (
-                    "set [reference] align = 'rigid' (a rigid alignment to the reference) or "
-                    "[skeleton] root = 'reference' (the chain starts at the reference joints)"
-                )
-            msg = (
-                f"not scored: the output frame ({out.frame}) is not the reference frame "
-                f"({ref_frame}); positions in different frames are not comparable. To score, "
-                + fix
-                + "; the scores are then labelled so"
-            )
-            out.warnings.append(msg)
-            notes.append(f"WARNING: {msg}")
-            out.reference = None
-            provenance["alignment"] = "none (frames differ: not scored)"
-        else:
+        moving = "relative to" in out.frame
+        if plan["align"] == "rigid" and (relative or not moving):
+            _align_rigidly(out, out.reference, tags, notes, provenance, relative)
+        elif not relative and ref_frame != out.frame:
+            _not_scored(out, ref_frame, moving, plan["align"] == "rigid", notes, provenance)
+        elif not relative:
             provenance["alignment"] = "none"
     out.tag = f" [{', '.join(tags)}]" if tags else ""
     provenance["labels"] = out.tag.strip() or "IMU/camera data only"
+
+
+def _align_rigidly(out, reference, tags, notes, provenance, relative: bool) -> None:
+    """The rigid (Kabsch) alignment asked for (``[reference] align = 'rigid'``), in place."""
+    for name in ("position", "chain", "camera"):
+        arr = getattr(out, name)
+        if arr is not None and np.any(np.isfinite(arr)):
+            setattr(out, name, _rigid_align(arr, reference)[0])
+    out.baselines = {
+        k: _rigid_align(v, reference)[0] if np.any(np.isfinite(v)) else v
+        for k, v in out.baselines.items()
+    }
+    tags.append("aligned to reference")
+    onto = "the root-relative reference" if relative else "the reference"
+    notes.append(
+        f"estimates rigidly aligned to {onto} (Kabsch rotation + translation over all samples, "
+        "as asked: [reference] align = 'rigid') before evaluation"
+    )
+    provenance["alignment"] = f"rigid (Kabsch) to {onto}, as asked"
+
+
+def _not_scored(out, ref_frame: str, moving: bool, rigid: bool, notes, provenance) -> None:
+    """Drop the reference of an output whose frame differs from it, with a warning saying
+    what would make them comparable."""
+    if moving:  # a moving origin: no rigid alignment maps it
+        fix = "set [skeleton] root = 'reference' (the chain starts at the reference joints)"
+        if rigid:
+            fix = (
+                "a rigid alignment cannot map an output whose origin moves onto world "
+                "positions, and the reference lacks that origin's joints to be made relative; "
+                + fix
+            )
+    else:
+        fix = (
+            "set [reference] align = 'rigid' (a rigid alignment to the reference) or "
+            "[skeleton] root = 'reference' (the chain starts at the reference joints)"
+        )
+    msg = (
+        f"not scored: the output frame ({out.frame}) is not the reference frame "
+        f"({ref_frame}); positions in different frames are not comparable. To score, "
+        + fix
+        + "; the scores are then labelled so"
+    )
+    out.warnings.append(msg)
+    notes.append(f"WARNING: {msg}")
+    out.reference = None
+    provenance["alignment"] = "none (frames differ: not scored)"
 
 
 def _origin_name(joints: Sequence[str]) -> str:
