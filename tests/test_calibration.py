@@ -150,12 +150,14 @@ def test_static_t_pose_arms():
     right = np.cross(facing, [0, 0, 1])
     # segment frame with its -z along the right arm
     seg = Rotation.align_vectors([right], [[0, 0, -1.0]])[0]
-    q = (seg * mount).as_quat(scalar_first=True)[None].repeat(10, 0)
-    rec = Recording(imu={"upper_arm_r": ImuStream(t_s=np.arange(10) / FS, q_world_from_sensor=q)})
+    n = int(0.5 * FS)  # a static calibration needs the pose held for 0.25 s at least
+    q = (seg * mount).as_quat(scalar_first=True)[None].repeat(n, 0)
+    rec = Recording(imu={"upper_arm_r": ImuStream(t_s=np.arange(n) / FS, q_world_from_sensor=q)})
     cal = calibrate(
         rec,
         upper_limb("r", height_m=1.7),
         "static",
+        window_s=0.5,
         pose="t",
         facing=facing,
         segments=["upper_arm_r"],
@@ -292,3 +294,25 @@ def test_turn_heading_is_scipys_composition_with_rz(psi, seed, scale):
         atol=1e-15,
     )
     assert np.isnan(got[7]).all()
+
+
+def _still_arm(n):
+    q = Rotation.from_euler("xyz", [10, 70, -20], degrees=True).as_quat(scalar_first=True)
+    st = ImuStream(t_s=np.arange(n) / FS, q_world_from_sensor=q[None].repeat(n, 0))
+    return Recording(imu={"upper_arm_r": st})
+
+
+def test_static_calibration_refuses_a_recording_too_short_to_hold_a_pose():
+    """A few samples (0.02 s) cannot show stillness: an error saying how long the sensors
+    share and what is needed, not a calibration over 20 ms."""
+    with pytest.raises(InputError, match=r"share only 0\.02 s, too short to hold a pose"):
+        calibrate(_still_arm(3), upper_limb("r", height_m=1.7), "static", segments=["upper_arm_r"])
+
+
+def test_static_calibration_warns_when_the_recording_is_shorter_than_its_window():
+    sk = upper_limb("r", height_m=1.7)
+    with pytest.warns(NumericalWarning, match=r"shorter than the still window of 1 s.*0\.59 s"):
+        calibrate(_still_arm(60), sk, "static", segments=["upper_arm_r"])
+    with warnings.catch_warnings():  # 100 samples at 100 Hz fill a 1-s window: no warning
+        warnings.simplefilter("error", NumericalWarning)
+        calibrate(_still_arm(100), sk, "static", segments=["upper_arm_r"])

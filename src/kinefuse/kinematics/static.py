@@ -20,7 +20,7 @@ from kinefuse.kinematics.angles import joint_angles
 from kinefuse.kinematics.calibration_result import Calibration
 from kinefuse.kinematics.forward import as_rotation_matrices
 from kinefuse.kinematics.skeleton import Skeleton, unit_axis, window_mask
-from kinefuse.kinematics.still import StillWindow, find_still_window
+from kinefuse.kinematics.still import MIN_STILL_S, StillWindow, find_still_window
 
 __all__ = [
     "POSE_WARN_DEG",
@@ -152,6 +152,24 @@ def _search_still(imus, window_s, *, max_rate_rad_s, max_acc_std_m_s2) -> StillW
         max_rate_rad_s=max_rate_rad_s,
         max_acc_std_m_s2=max_acc_std_m_s2,
     )
+    span = still.end_s - still.start_s
+    if span < MIN_STILL_S:
+        raise InputError(
+            f"static calibration: the IMU streams share only {span:.2f} s, too short to hold a "
+            f"pose (at least {MIN_STILL_S:g} s; the still window is {window_s:g} s): stillness "
+            "cannot be told from a pause in a movement over less; record the subject holding "
+            f"the pose for {window_s:g} s, or use functional calibration"
+        )
+    dt = max(
+        (float(np.median(np.diff(st.t_s))) for st in imus.values() if st.t_s.size > 1), default=0.0
+    )
+    if span + dt < float(window_s) - 1e-9:  # (n samples span (n - 1) sample intervals)
+        warnings.warn(
+            f"static calibration: the recording is shorter than the still window of "
+            f"{window_s:g} s; the window is the whole recording, {span:.2f} s",
+            NumericalWarning,
+            stacklevel=5,
+        )
     if not still.still:
         raise InputError(
             f"static calibration: no still window of {window_s:g} s in the recording "

@@ -25,12 +25,22 @@ import numpy as np
 from kinefuse.exceptions import InputError
 from kinefuse.io.recording import ImuStream
 
-__all__ = ["MAX_ACC_STD_M_S2", "MAX_RATE_RAD_S", "StillWindow", "find_still_window"]
+__all__ = [
+    "MAX_ACC_STD_M_S2",
+    "MAX_RATE_RAD_S",
+    "MIN_STILL_S",
+    "StillWindow",
+    "find_still_window",
+]
 
 #: Default threshold of the mean angular-rate magnitude in a still window, rad/s.
 MAX_RATE_RAD_S = 0.1
 #: Default threshold of the acceleration standard deviation in a still window, m/s².
 MAX_ACC_STD_M_S2 = 0.2
+#: A recording shorter than the still window is one candidate window; a static calibration
+#: refuses one shorter than this, s: over less, stillness cannot be told from a pause in a
+#: movement (zero-velocity detectors judge windows of 0.1-0.5 s, Skog et al. 2010).
+MIN_STILL_S = 0.25
 
 
 @dataclass(frozen=True)
@@ -178,8 +188,9 @@ def find_still_window(
     t1 = min(float(st.t_s[-1]) for st in streams.values())
     if t1 <= t0:
         raise InputError(
-            f"find_still_window: the sensors {sorted(streams)} share no time span "
-            f"(latest start {t0:.3f} s, earliest end {t1:.3f} s)"
+            f"still-window search: the IMU streams {sorted(streams)} share no time span "
+            f"(latest start {t0:.3f} s, earliest end {t1:.3f} s); a static calibration needs "
+            f"them recorded together for {float(window_s):g} s"
         )
     win = min(float(window_s), t1 - t0 + 1e-6)
     step = float(step_s) if step_s is not None else win / 4.0

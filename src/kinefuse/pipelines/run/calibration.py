@@ -25,6 +25,7 @@ from kinefuse.kinematics.angles import JOINTS, angle_words
 from kinefuse.kinematics.calibration_result import turn_heading
 from kinefuse.kinematics.functional import align_headings
 from kinefuse.kinematics.hinge import OPPOSITE_DEG
+from kinefuse.kinematics.still import MIN_STILL_S
 from kinefuse.orientation.resample import slerp_resample
 from kinefuse.session_file.from_recording import (
     NO_HEIGHT_RATIO,
@@ -75,6 +76,11 @@ def no_still_window(streams: Mapping) -> str:
     if not sized:
         return ""
     w = find_still_window(sized, CALIBRATION_WINDOW_S)
+    if w.end_s - w.start_s < MIN_STILL_S:
+        return (
+            f"the IMUs share only {w.end_s - w.start_s:.2f} s, too short to hold a pose for a "
+            "static calibration"
+        )
     if w.still:
         return ""
     return (
