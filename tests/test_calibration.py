@@ -166,6 +166,43 @@ def test_static_t_pose_arms():
 
 
 # ---------------------------------------------------------------- reference-window calibration
+def _with_trunk(rec, mounts):
+    """``rec`` (make_recording: hips fixed, right = world +x) plus pelvis and chest IMUs
+    mounted as ``mounts`` (``R_sensor_from_segment``, ISB: X anterior, Y up, Z right) on a trunk
+    pitching about the hips' axis, and the shoulders in the reference."""
+    ref = rec.reference
+    t = ref.t_s
+    G0 = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # X->+y, Y->+z, Z->+x
+    G = Rotation.from_rotvec(0.3 * np.sin(2 * np.pi * 0.5 * t)[:, None] * [1.0, 0, 0])
+    G = G * Rotation.from_matrix(G0)
+    mid = 0.5 * (ref.position("hip_l") + ref.position("hip_r"))
+    sh = {s: mid + G.apply([0.0, 0.5, z]) for s, z in (("shoulder_l", -0.18), ("shoulder_r", 0.18))}
+    joints = (*ref.joints, *sh)
+    P = np.concatenate([ref.position_m, np.stack(list(sh.values()), axis=1)], axis=1)
+    imu = dict(rec.imu)
+    for s, M in mounts.items():  # world_from_sensor = world_from_segment @ segment_from_sensor
+        q = (G * Rotation.from_matrix(M).inv()).as_quat(scalar_first=True)
+        imu[s] = ImuStream(t_s=t, q_world_from_sensor=q, name=s, frame="ENU")
+    return Recording(imu=imu, reference=JointStream(t_s=t, position_m=P, joints=joints))
+
+
+def test_reference_calibration_gives_the_trunk_frames_from_shoulders_and_hips():
+    """With a reference holding both shoulders and hips, the chest and pelvis IMUs get their
+    ISB frame (right along the shoulder or hip line, up from mid-hip to mid-shoulder) instead
+    of the sensor taken as right-front-up. Oracle: the mounting the data were made with."""
+    rec, _, _ = make_recording()
+    mounts = {
+        "pelvis": Rotation.from_euler("xyz", [30, -50, 110], degrees=True).as_matrix(),
+        "chest": Rotation.from_euler("zyx", [-80, 20, 160], degrees=True).as_matrix(),
+    }
+    cal = calibrate(_with_trunk(rec, mounts), lower_body(height_m=1.75), "reference", window_s=1.0)
+    for s, M in mounts.items():
+        np.testing.assert_allclose(cal.frames[s], M, atol=1e-9)
+    # without the shoulders the trunk frames stay unknown (not guessed)
+    cal = calibrate(rec, lower_body(height_m=1.75), "reference", window_s=1.0)
+    assert not cal.frames
+
+
 def test_reference_window_recovers_axis_under_noise():
     rec, truth, expected = make_recording(noise_m=0.005, rich=False)
     sk = lower_body(height_m=1.75)

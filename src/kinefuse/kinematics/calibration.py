@@ -398,7 +398,52 @@ def _joint_stream_calibration(
         window_s=(float(t[0]), float(t[-1])),
         residual_deg=resid,
         align=align,
+        frames=_trunk_frames(recording, stream, sel, t, Rc_eff),
     )
+
+
+#: The joints a trunk frame is built from in a joint stream: right axis from the left to the
+#: right joint of the pair, superior axis from the mid-hip to the mid-shoulder point.
+_TRUNK_JOINTS = ("shoulder_l", "shoulder_r", "hip_l", "hip_r")
+
+
+def _trunk_frames(recording, stream, sel, t, Rc) -> dict[str, np.ndarray]:
+    """ISB frames (``R_sensor_from_segment``: X anterior, Y superior, Z right) of the ``chest``
+    and ``pelvis`` IMUs from the joint stream's shoulders and hips in the window: Z along
+    shoulder_l -> shoulder_r (chest) or hip_l -> hip_r (pelvis), Y along mid-hip -> mid-shoulder
+    made perpendicular to Z, X = Y x Z; each averaged in the sensor frame over the window
+    (``Rc``: stream frame -> IMU world). Empty without those joints or trunk IMUs; a trunk
+    IMU's frame otherwise is the sensor taken as right-front-up, which places the shoulders
+    wherever that sensor happens to point."""
+    trunk = [s for s in ("chest", "pelvis") if s in recording.imu]
+    if not trunk or not all(j in stream.joints for j in _TRUNK_JOINTS):
+        return {}
+    p = {j: stream.position(j)[sel] for j in _TRUNK_JOINTS}
+    up = 0.5 * (p["shoulder_l"] + p["shoulder_r"] - p["hip_l"] - p["hip_r"])
+    pairs = {"chest": ("shoulder_l", "shoulder_r"), "pelvis": ("hip_l", "hip_r")}
+    frames = {}
+    for seg in trunk:
+        imu = recording.imu[seg]
+        if imu.q_world_from_sensor is None:
+            continue
+        right = p[pairs[seg][1]] - p[pairs[seg][0]]
+        ok = np.all(np.isfinite(right), axis=1) & np.all(np.isfinite(up), axis=1)
+        R = as_rotation_matrices(slerp_resample(imu.t_s, imu.q_world_from_sensor, t))
+        ok &= np.all(np.isfinite(R), axis=(1, 2))
+        if not np.any(ok):
+            continue
+        unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)  # noqa: E731
+        # each direction in the sensor frame: R_world_from_sensorᵀ · Rc · d
+        z = np.einsum("kji,jl,kl->i", R[ok], Rc, unit(right[ok]))
+        y = np.einsum("kji,jl,kl->i", R[ok], Rc, unit(up[ok]))
+        z = z / np.linalg.norm(z)
+        y = y - z * np.dot(y, z)
+        n = np.linalg.norm(y)
+        if not np.isfinite(n) or n < 1e-6:
+            continue
+        y = y / n
+        frames[seg] = np.stack([np.cross(y, z), y, z], axis=1)
+    return frames
 
 
 def _paired_directions(skeleton, s, stream, imu, sel, t, method):

@@ -255,7 +255,12 @@ def _trunk_orientation(recording, cal, t, segment: str) -> tuple[np.ndarray, str
     :func:`trunk_frame_in_sensor`) and how it was found."""
     if cal is not None and segment in cal.frames:
         R = segment_orientations(recording, cal, t, [segment])[segment]
-        return R, f"the {segment} frame of the static calibration (Z = right in the pose)"
+        how = {
+            "static": "the static calibration (Z = right in the pose)",
+            "reference": "the reference calibration (Z = right along its shoulders or hips)",
+            "vision": "the camera calibration (Z = right along its shoulders or hips)",
+        }.get(cal.method, f"the {cal.method} calibration")
+        return R, f"the {segment} frame of {how}"
     st = recording.imu[segment]
     R = as_rotation_matrices(slerp_resample(st.t_s, st.q_world_from_sensor, t))
     how = f"the {segment} sensor frame taken as right-front-up (no calibrated {segment} frame)"
