@@ -335,7 +335,7 @@ def _session(
         (
             {"imu": "x.csv"},
             "",
-            "s.toml: [imu] path: file 'x.csv' not found (relative paths are resolved against the TOML's folder)",
+            "s.toml: [imu] path: file 'x.csv' not found (looked for ",
         ),
         ({"method": "elm-fir"}, "", "s.toml: [method] name: method 'elm-fir' needs a camera"),
         (
@@ -372,6 +372,17 @@ def test_load_session_errors_name_key_and_fix(tmp_path, kwargs, extra, message):
     with pytest.raises(ConfigError) as info:
         load_session(p)
     assert message in str(info.value)
+
+
+def test_missing_relative_path_names_the_path_looked_for(tmp_path):
+    p = _session(tmp_path, imu="data/x.csv")
+    with pytest.raises(ConfigError) as info:
+        load_session(p)
+    msg = str(info.value)
+    assert f"looked for {tmp_path.resolve() / 'data' / 'x.csv'}" in msg or (
+        f"looked for {tmp_path / 'data' / 'x.csv'}" in msg
+    )
+    assert "relative paths are resolved against the TOML's folder" in msg
 
 
 def test_load_session_more_errors(tmp_path):
@@ -612,3 +623,45 @@ def test_evaluate_unreadable_recording_fails_before_the_kernel_note(monkeypatch,
     monkeypatch.setattr(_kernel_mode, "interpret_kernels", lambda: True)  # ... interpreted
     result = runner.invoke(cli.app, ["evaluate", str(bad), "--method", "imu-only"])
     _assert_one_line_error(result, 2, "rand.bin: unsupported format")  # the note not printed
+
+
+def test_one_sensor_mapped_to_two_segments_is_refused(tmp_path):
+    p = _session(tmp_path)
+    p.write_text(p.read_text().replace('forearm_r = "A"', 'forearm_r = "A"\nupper_arm_r = "A"'))
+    with pytest.raises(
+        ConfigError, match=r"sensor 'A' is mapped to 2 segments \(forearm_r, upper_arm_r\)"
+    ):
+        load_session(p)
+
+
+def test_evaluate_errors_name_its_options_not_session_keys(shared_data):
+    """`kinefuse evaluate` has --body-height, not [skeleton] body_height_m: its errors say so."""
+    neura = str(shared_data / "neura_sparse_sample")
+    _assert_one_line_error(
+        runner.invoke(cli.app, ["evaluate", neura, "-m", "imu-only", "--body-height", "-1"]),
+        2,
+        "--body-height: expected metres (0.5-2.8), got -1",
+    )
+    args = ["evaluate", neura, "-m", "paper-a", "--calibration", "reference", "--root", "fixed"]
+    line = _assert_one_line_error(runner.invoke(cli.app, args), 2, "give --body-height")
+    assert "body_height_m" not in line
+
+
+def test_evaluate_says_what_a_file_without_imu_holds(shared_data):
+    mot = shared_data / "third_party" / "opensim" / "opensim_subject01_walk_IK.mot"
+    line = _assert_one_line_error(
+        runner.invoke(cli.app, ["evaluate", str(mot), "-m", "camera-only"]), 2, "no IMU data"
+    )
+    assert "joint angles" in line and "positions only" not in line
+
+
+def test_a_forced_reader_that_fails_says_what_the_file_looks_like(shared_data):
+    trc = shared_data / "third_party" / "trc" / "opensim_subject01_walk1.trc"
+    line = _assert_one_line_error(
+        runner.invoke(cli.app, ["evaluate", str(trc), "-m", "imu-only", "--format", "c3d"]),
+        2,
+        "expected a C3D header",
+        "first bytes 0x50 0x61 (not a C3D file)",
+        "(read as 'c3d', as asked; it looks like 'trc')",
+    )
+    assert "5061" not in line.replace("0x50 0x61", "")

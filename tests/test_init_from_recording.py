@@ -343,3 +343,34 @@ def test_6d_limbs_read_zero_in_the_pose(shared_data, tmp_path):
     # the coverage per joint: a table in the report, not eight notes
     assert "<h2>Coverage</h2>" in notes and "coverage knee_l:" not in notes
     assert any(n.startswith("coverage knee_l:") for n in summary.notes)  # still in the result
+
+
+def test_a_file_holding_every_sensor_is_not_called_one_sensor(shared_data, tmp_path):
+    """The qmt example's one .mat holds all 16 sensors (its folder reads the same file): no
+    advice to pass the folder instead. The DOT case (one file per sensor) keeps it (above)."""
+    rec = shared_data / "qmt_full_body_example" / "full_body_example_data.mat"
+    res = _init(tmp_path / "qmt.toml", rec)
+    assert res.exit_code == 0, (res.output, cli_stderr(res))
+    assert "one sensor of the recording" not in " ".join(res.output.split())
+
+
+def test_init_session_names_a_folder_path_before_asking_for_force(shared_data, tmp_path):
+    rec = shared_data / "xio_imu_mocap_lower_body"
+    res = _init(tmp_path, rec)
+    assert res.exit_code == 2
+    err = " ".join(cli_stderr(res).split())
+    assert f"PATH {tmp_path}: is a folder, expected a file name" in err, err
+
+
+def test_init_session_errors_name_the_recording(tmp_path):
+    """A recording kinefuse reads but cannot sketch (one sample: no time span for the still
+    window): the error names the file and no internal function."""
+    csv = tmp_path / "one.csv"
+    csv.write_text(
+        "# kinefuse-imu-csv 1\nt_s,sensor,qw,qx,qy,qz\n0.0,thigh_r,1,0,0,0\n0.0,shank_r,1,0,0,0\n",
+        encoding="utf-8",
+    )
+    res = _init(tmp_path / "s.toml", csv)
+    err = " ".join(cli_stderr(res).split())
+    assert res.exit_code == 2 and "share no time span" in err, err
+    assert "find_still_window" not in err and err.startswith(f"kinefuse: error: {csv}:"), err

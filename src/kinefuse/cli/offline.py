@@ -22,7 +22,7 @@ from kinefuse.cli._output import (
     fresh_dir,
     present,
 )
-from kinefuse.exceptions import InputError
+from kinefuse.exceptions import ConfigError, InputError
 from kinefuse.io import FORMATS, detect_format
 from kinefuse.io.output_folder import check_writable_file
 from kinefuse.progress import progress
@@ -204,15 +204,7 @@ def init_session(
         raise InputError(
             f"--format: unknown reader {fmt!r}; expected one of {', '.join(sorted(FORMATS))}"
         )
-    if path.exists() and not force:
-        raise FileExistsError(
-            f"{path} already exists; pass --force to overwrite it, or give another PATH"
-        )
-    if path.is_dir():
-        raise InputError(f"{path} is a folder; give a file name such as {path / 'session.toml'}")
-    if not path.parent.is_dir():
-        raise InputError(f"folder {path.parent} does not exist; create it first")
-    check_writable_file(path, force=True, what="PATH")  # (existing file: refused above)
+    check_writable_file(path, force=force, what="PATH")  # a folder, an existing file...
     session_name = name or (path.stem if path.stem != "session" else "my-session")
     if source is None:
         text, what = (
@@ -220,7 +212,12 @@ def init_session(
             "Edit the [imu] path and [imu.segments]",
         )
     else:
-        sk = backend("init-session")(source, path.parent, fmt)
+        try:
+            sk = backend("init-session")(source, path.parent, fmt)
+        except InputError as exc:  # name the recording unless the message does
+            if str(source) in str(exc):
+                raise
+            raise InputError(f"{source}: {exc}") from None
         text = filled_template(session_name, path.name, sk)
         mapped = ", ".join(f"{s} = {n}" for s, n in sk.segments.items()) or "none"
         what = (
@@ -345,20 +342,44 @@ def evaluate(
     ):
         if value not in choices:
             raise InputError(f"{opt}: expected one of {', '.join(choices)}, got {value!r}")
+    if body_height is not None and not 0.5 <= body_height <= 2.8:
+        raise InputError(f"--body-height: expected metres (0.5-2.8), got {body_height:g}")
     if fmt is None:
         detect_format(recording)  # an unreadable recording fails here, before any kernel note
     if first_run_kernels((recording,), quiet) == "compile":  # before any kernel is imported
         compile_kernels_now(quiet)
-    summary = backend("evaluate")(
-        recording,
-        method,
-        format=fmt,
-        calibration=calibration,
-        root=root,
-        align=align,
-        body_height_m=body_height,
-    )
+    try:
+        summary = backend("evaluate")(
+            recording,
+            method,
+            format=fmt,
+            calibration=calibration,
+            root=root,
+            align=align,
+            body_height_m=body_height,
+        )
+    except ConfigError as exc:  # a session's key named in a message: evaluate's option instead
+        raise type(exc)(_as_options(str(exc))) from None
+    except InputError as exc:
+        if "body_height_m" not in str(exc) and "[skeleton.lengths]" not in str(exc):
+            raise
+        raise InputError(_as_options(str(exc))) from None
     present(summary, quiet=quiet, json_file=json_file, force=force)
+
+
+#: Session keys in the pipelines' messages and what ``kinefuse evaluate`` calls them.
+_EVALUATE_OPTIONS = (
+    ("[skeleton] body_height_m", "--body-height"),
+    ("body_height_m", "--body-height"),
+    ("[skeleton.lengths] in m", "in m, in a session file's [skeleton.lengths]: kinefuse run"),
+)
+
+
+def _as_options(msg: str) -> str:
+    """``msg`` with the session keys that ``kinefuse evaluate`` sets by options renamed."""
+    for key, option in _EVALUATE_OPTIONS:
+        msg = msg.replace(key, option)
+    return msg
 
 
 def experiment(

@@ -385,4 +385,15 @@ def load(path, format: str | None = None, **options) -> Recording:
             )
         p = only or p
     fmt = format or detect_format(p)
-    return _reader(fmt)(p, **options)
+    try:
+        return _reader(fmt)(p, **options)
+    except FormatError as exc:
+        if format is None:
+            raise
+        try:  # a reader forced on another format's file: say what the file looks like
+            seen = detect_format(p)
+        except (FormatError, OSError):
+            raise exc from None
+        if seen != format:
+            exc.args = (f"{exc.args[0]} (read as {format!r}, as asked; it looks like {seen!r})",)
+        raise

@@ -55,7 +55,12 @@ def _check_header(path: Path) -> dict:
     except OSError as e:
         raise FormatError(path, f"could not read the file: {e}") from None
     if len(head) < 512 or head[1] != 0x50 or param_block < 2:
-        found = head[:2].hex() if head else "an empty file"
+        if not head:
+            found = "an empty file"
+        elif len(head) < 512:
+            found = f"a file of {len(head)} bytes (a C3D header block is 512)"
+        else:
+            found = f"first bytes 0x{head[0]:02x} 0x{head[1]:02x} (not a C3D file)"
         raise FormatError(
             path,
             f"expected a C3D header (byte 2 = 0x50, parameter block >= 2), found {found}",

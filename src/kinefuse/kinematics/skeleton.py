@@ -462,14 +462,11 @@ def segment_lengths(
     missing = [s for s in segments if s not in out]
     if missing:
         no_ratio = [s for s in missing if s.rsplit("_", 1)[0] not in ANTHROPOMETRIC_RATIOS]
-        hint = (
-            f"; {no_ratio} have no anthropometric ratio, so body height cannot give them"
-            if no_ratio and h is not None
-            else ""
-        )
+        height = "" if len(no_ratio) == len(missing) else ", give body_height_m"
+        hint = f"; {no_ratio} have no anthropometric ratio, so body height cannot give them"
         raise InputError(
-            f"no length for segment(s) {missing}: measure them ([skeleton.lengths] in m), give "
-            f"body_height_m, or use functional calibration{hint}"
+            f"no length for segment(s) {missing}: measure them ([skeleton.lengths] in m)"
+            f"{height}, or use functional calibration{hint if no_ratio else ''}"
         )
     return out, how
 

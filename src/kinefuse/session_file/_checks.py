@@ -138,7 +138,12 @@ class _Ctx:
         if not p.is_absolute():
             p = self.base / p
         if not p.exists():
-            raise self.error(section, key, f"file {raw!r} not found", _PATH_HINT)
+            hint = (
+                _PATH_HINT
+                if Path(raw).expanduser().is_absolute()
+                else f"looked for {p}; {_PATH_HINT}"
+            )
+            raise self.error(section, key, f"file {raw!r} not found", hint)
         return p.resolve()
 
     def segment(self, section: str, name: str) -> None:

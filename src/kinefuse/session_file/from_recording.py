@@ -137,8 +137,12 @@ def _no_imu_message(recording, fmt: str, rec) -> str:
 
 
 def _whole_folder(p: Path, fmt: str) -> str:
-    """``str(p.parent)`` when ``p`` is a file of a folder the ``fmt`` reader reads whole."""
+    """``str(p.parent)`` when ``p`` is one of several files (same suffix) of a folder the
+    ``fmt`` reader reads whole (one file per sensor); not when ``p`` is the folder's only such
+    file (the folder would read the same sensors)."""
     if not p.is_file():
+        return ""
+    if not any(q != p and q.suffix.lower() == p.suffix.lower() for q in p.parent.iterdir()):
         return ""
     try:
         same = detect_format(p.parent) == fmt

@@ -197,6 +197,19 @@ def _imu(c: _Ctx, doc: Mapping) -> ImuConfig:
                 "imu.segments", k, f"expected the sensor name as a non-empty string, got {v!r}"
             )
         segments[k] = v.strip()
+    by_sensor: dict[str, list[str]] = {}
+    for k, v in segments.items():
+        by_sensor.setdefault(v, []).append(k)
+    twice = {v: ks for v, ks in by_sensor.items() if len(ks) > 1}
+    if twice:
+        v, ks = next(iter(twice.items()))
+        raise c.error(
+            "imu.segments",
+            ks[1],
+            f"sensor {v!r} is mapped to {len(ks)} segments ({', '.join(ks)}); one IMU is worn on "
+            "one segment",
+            "map each segment to its own sensor",
+        )
     return ImuConfig(
         format=c.string(t, "imu", "format"),
         path=imu_path,

@@ -125,9 +125,15 @@ def _load_scorable(path, format, method: str):
         raise
     imu = {k: v for k, v in rec.imu.items() if k in SEGMENTS}
     if not rec.imu:
+        if rec.vision is not None or rec.reference is not None:
+            holds = "joint or marker positions only"
+        elif (rec.metadata or {}).get("table") is not None:
+            holds = "a table of other quantities (e.g. joint angles), no positions or IMU signals"
+        else:
+            holds = "no IMU signals"
         raise InputError(
-            f"{path}: no IMU data: the file holds joint or marker positions only (kinefuse "
-            "evaluate scores IMU methods; kinefuse.io.load reads it)"
+            f"{path}: no IMU data: the file holds {holds} (kinefuse evaluate scores IMU methods; "
+            "kinefuse.io.load reads it)"
         )
     if not imu:
         raise InputError(
