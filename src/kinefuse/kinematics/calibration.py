@@ -432,10 +432,12 @@ def _trunk_frames(recording, stream, sel, t, Rc) -> dict[str, np.ndarray]:
         ok &= np.all(np.isfinite(R), axis=(1, 2))
         if not np.any(ok):
             continue
-        unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)  # noqa: E731
-        # each direction in the sensor frame: R_world_from_sensorᵀ · Rc · d
-        z = np.einsum("kji,jl,kl->i", R[ok], Rc, unit(right[ok]))
-        y = np.einsum("kji,jl,kl->i", R[ok], Rc, unit(up[ok]))
+        r_k, u_k = right[ok], up[ok]
+        r_k = r_k / np.linalg.norm(r_k, axis=1, keepdims=True)
+        u_k = u_k / np.linalg.norm(u_k, axis=1, keepdims=True)
+        # each direction in the sensor frame: R_world_from_sensorᵀ · Rc · d, summed
+        z = np.einsum("kji,jl,kl->i", R[ok], Rc, r_k)
+        y = np.einsum("kji,jl,kl->i", R[ok], Rc, u_k)
         z = z / np.linalg.norm(z)
         y = y - z * np.dot(y, z)
         n = np.linalg.norm(y)
