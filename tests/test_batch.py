@@ -8,6 +8,7 @@ work; --force redoes it. Every server binds 127.0.0.1.
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import signal
@@ -786,3 +787,44 @@ def test_cli_refuses_an_unusable_out_folder_before_any_task(tmp_path, monkeypatc
         err = [ln for ln in _err(res).splitlines() if ln.strip()]
         assert res.exit_code == 2 and len(err) == 1, (res.exit_code, err)
         assert err[0].startswith(f"kinefuse: error: --out {out}") and reason in err[0], err
+
+
+def test_a_changed_setting_reruns_the_task_instead_of_reusing_its_result(sessions, tmp_path):
+    """A finished task whose study settings changed (here the calibration window) is stale:
+    the next run computes it again and replaces the stored result (before: 'finished earlier
+    (skipped)' with the old numbers); unchanged, it is skipped."""
+    from kinefuse.batch.tasks import is_finished, is_stale, run_task, task_settings
+
+    study = kb.study_from_sessions(sessions / "utd_*.toml", out_dir=tmp_path)
+    task = study.tasks[0]
+    first = run_task(task, str(tmp_path), study=study.name)
+    assert first["status"] == "done" and first["settings"] == task_settings(task)
+    assert run_task(task, str(tmp_path), study=study.name)["status"] == "skipped"
+    doc = copy.deepcopy(task.document)
+    doc["method"]["parameters"]["calibration_window_s"] = 1.0
+    changed = replace(task, document=doc)
+    assert is_stale(tmp_path, changed) and not is_finished(tmp_path, changed)
+    again = run_task(changed, str(tmp_path), study=study.name)
+    assert again["status"] == "done" and again["rerun"]
+    assert again["rows"] != first["rows"]  # a 1-s window calibrates differently
+    assert is_finished(tmp_path, changed) and not is_finished(tmp_path, task)
+    assert run_task(changed, str(tmp_path), study=study.name)["status"] == "skipped"
+
+
+def test_out_holding_another_study_is_refused_without_force(sessions, tmp_path):
+    """`--out` pointing at another study's folder would replace its table and report: refused
+    unless --force; the same study resumes there."""
+    from kinefuse.batch.runner import _claim_out_dir
+
+    base = kb.study_from_sessions(sessions / "utd_*.toml", out_dir=tmp_path)
+    one, two = replace(base, name="one"), replace(base, name="two")
+    _claim_out_dir(one, force=False)
+    (tmp_path / "study_results.csv").write_text("study,recording\none,r\n", encoding="utf-8")
+    _claim_out_dir(one, force=False)  # the same study: resumes
+    with pytest.raises(FileExistsError, match="holds the table and report of study 'one'"):
+        _claim_out_dir(two, force=False)
+    (tmp_path / ".kinefuse-study.json").unlink()  # a folder from before the marker: the table
+    with pytest.raises(FileExistsError, match="study 'one'"):
+        _claim_out_dir(two, force=False)
+    _claim_out_dir(two, force=True)
+    _claim_out_dir(two, force=False)  # now two's

@@ -23,12 +23,15 @@ starts no cluster.
 
 from __future__ import annotations
 
+import csv
 import importlib.util
+import json
 import os
 import queue
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
+from pathlib import Path
 
 from rich import progress as rp
 from rich.console import Console
@@ -36,7 +39,7 @@ from rich.console import Console
 from kinefuse import _compile  # sets NUMBA_CACHE_DIR when the package is read-only
 from kinefuse.batch.report import NO_SCORES, summary_table, write_study_report
 from kinefuse.batch.study import Study
-from kinefuse.batch.table import flatten, write_table
+from kinefuse.batch.table import TABLE_NAME, flatten, write_table
 from kinefuse.batch.tasks import clean_temporaries, is_finished, read_result, run_task
 from kinefuse.evaluation.tables import ResultTable, TableRow
 from kinefuse.exceptions import InputError
@@ -372,7 +375,7 @@ def run_study(
     out_dir = study.out_dir
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"output folder {out_dir} exists and is not a folder")
-    out_dir.mkdir(parents=True, exist_ok=True)
+    _claim_out_dir(study, force)
     clean_temporaries(out_dir)
     results, pending = _known_results(study, force)
     cluster_desc, link = "none (nothing to run)", None
@@ -392,6 +395,46 @@ def run_study(
     return summary
 
 
+#: In a study's output folder: which study its table and report belong to.
+STUDY_MARKER = ".kinefuse-study.json"
+
+
+def _claim_out_dir(study: Study, force: bool) -> None:
+    """Create ``study.out_dir`` and mark it as this study's; refuse (unless ``force``) a folder
+    holding another study's table, which this run would replace (a rerun of the same study
+    resumes it)."""
+    out_dir = study.out_dir
+    marker = out_dir / STUDY_MARKER
+    tables = [out_dir / f"{TABLE_NAME}.{ext}" for ext in ("csv", "parquet")]
+    if not force and any(p.is_file() for p in tables):
+        other = _owner(marker, tables[0])
+        if other != study.name:
+            whose = f"study {other!r}" if other else "another study"
+            raise FileExistsError(
+                f"--out {out_dir}: holds the table and report of {whose}, which study "
+                f"{study.name!r} would replace; pass --force to replace them, or choose "
+                "another --out"
+            )
+    out_dir.mkdir(parents=True, exist_ok=True)
+    text = json.dumps({"study": study.name, "source": str(study.path or "")}, indent=1)
+    marker.write_text(text + "\n", encoding="utf-8")
+
+
+def _owner(marker: Path, csv_path: Path) -> str | None:
+    """The study a folder's table belongs to: its marker's, else the ``study`` column of the
+    table's first row (a folder written before the marker existed); None if neither says."""
+    try:
+        return json.loads(marker.read_text(encoding="utf-8")).get("study")
+    except (OSError, ValueError):
+        pass
+    try:
+        with open(csv_path, newline="", encoding="utf-8") as fh:
+            row = next(csv.DictReader(fh), None)
+    except (OSError, ValueError, csv.Error):
+        return None
+    return None if row is None else row.get("study")
+
+
 def _summary(study: Study, ordered: list, cluster_desc: str, link, tasks_wall: float) -> dict:
     """Write the study table; the run's summary (without ``report`` and ``wall_s``)."""
     paths = write_table(study.out_dir, flatten(ordered))
@@ -401,6 +444,7 @@ def _summary(study: Study, ordered: list, cluster_desc: str, link, tasks_wall: f
         "study": study.name,
         "out_dir": study.out_dir,
         "counts": counts,
+        "rerun": [f"{r['recording']}/{r['method'] or '-'}" for r in ordered if r.get("rerun")],
         "failed": [
             (f"{r['recording']}/{r['method'] or '-'}", r["error"])
             for r in ordered
@@ -506,7 +550,13 @@ def summary_tables(summary: Mapping) -> list:
         (
             "tasks",
             f"{c['total']}: {c['done']} run, {c['skipped']} finished earlier (skipped), "
-            f"{c['failed']} failed",
+            f"{c['failed']} failed"
+            + (
+                f"; {len(summary['rerun'])} of those run had a stored result computed with "
+                "other settings (the study changed since): replaced"
+                if summary.get("rerun")
+                else ""
+            ),
         ),
         ("cluster", str(summary["cluster"])),
         ("wall time", f"{summary['wall_s']:.1f} s (tasks {summary['tasks_wall_s']:.1f} s)"),

@@ -10,11 +10,15 @@ to ``recordings/<recording>/<method>/`` when complete. A task whose worker dies 
 temporary folder (removed once the study's tasks have finished, or by the next run), never a
 half-written result; a task that runs twice (re-scheduled after a worker died just after
 finishing) keeps the first complete result and discards the second. ``result.json`` in the
-final folder is the "finished" marker.
+final folder is the "finished" marker; it holds a fingerprint of the task's settings (its
+merged session document and method, :func:`task_settings`), and a result whose settings differ
+from the study's (the study file was edited since) is stale: the task runs again and replaces
+it.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -28,7 +32,8 @@ from kinefuse.exceptions import InputError
 from kinefuse.pipelines.run import run_session
 from kinefuse.session_file import load_session
 
-__all__ = ["RESULT_NAME", "is_finished", "read_result", "run_task", "task_dir"]
+__all__ = ["RESULT_NAME", "is_finished", "is_stale", "read_result", "run_task", "task_dir",
+           "task_settings"]  # fmt: skip
 
 #: Marker and rows of a finished task, inside its folder.
 RESULT_NAME = "result.json"
@@ -40,9 +45,35 @@ def task_dir(out_dir: str | Path, task: Task) -> Path:
     return Path(out_dir) / "recordings" / safe_name(task.recording) / safe_name(task.method or "-")
 
 
+def task_settings(task: Task) -> str:
+    """Fingerprint (SHA-256, hex) of what a task computes from: its method and merged session
+    document (paths, calibration, parameters...). The recordings' contents are not in it."""
+    doc = {"method": task.method, "document": task.document}
+    text = json.dumps(doc, sort_keys=True, default=str, ensure_ascii=True)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def _stored_settings(out_dir: str | Path, task: Task) -> str | None:
+    """The settings fingerprint of the task's stored result; None without one."""
+    path = task_dir(out_dir, task) / RESULT_NAME
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text(encoding="utf-8")).get("settings", "")
+    except (OSError, ValueError):
+        return ""
+
+
 def is_finished(out_dir: str | Path, task: Task) -> bool:
-    """True when the task's folder holds a complete result."""
-    return (task_dir(out_dir, task) / RESULT_NAME).is_file()
+    """True when the task's folder holds a complete result computed with the task's settings."""
+    return _stored_settings(out_dir, task) == task_settings(task)
+
+
+def is_stale(out_dir: str | Path, task: Task) -> bool:
+    """True when the task's folder holds a result computed with other settings (the study's
+    session changed since), or one from before results held their settings."""
+    stored = _stored_settings(out_dir, task)
+    return stored is not None and stored != task_settings(task)
 
 
 def read_result(out_dir: str | Path, task: Task) -> dict:
@@ -149,8 +180,9 @@ def run_task(task: Task, out_dir: str, force: bool = False, study: str = "") -> 
     """
     final = task_dir(out_dir, task)
     base = {"recording": task.recording, "method": task.method, "study": study}
-    if not force and (final / RESULT_NAME).is_file():
+    if not force and is_finished(out_dir, task):
         return read_result(out_dir, task)
+    stale = is_stale(out_dir, task)
     if task.error is not None:
         return {**base, "status": "failed", "error": " ".join(task.error.split()), "rows": []}
     tmp = final.with_name(f"{_TMP_PREFIX}{final.name}-{uuid.uuid4().hex[:8]}")
@@ -169,9 +201,12 @@ def run_task(task: Task, out_dir: str, force: bool = False, study: str = "") -> 
             "outputs": sorted(p.name for p in tmp.iterdir()),
             "warnings": list(summary.get("warnings") or ()),
             "worker": os.getpid(),
+            "settings": task_settings(task),
         }
+        if stale and not force:
+            result["rerun"] = "its settings changed since the stored result"
         (tmp / RESULT_NAME).write_text(json.dumps(result, indent=1), encoding="utf-8")
-        if not _publish(tmp, final, force):
+        if not _publish(tmp, final, force or stale):
             return read_result(out_dir, task) | {"status": "done"}
         return result
     except Exception as exc:  # a recording's problem must not stop the study
