@@ -90,8 +90,11 @@ def test_paper_b_quick_tuning_set_tables_name_the_set_and_baselines(shared_data)
     assert not set(TUNING_SET.utd_subjects) & set(REPORT_SET.utd_subjects)
     assert not {t[:2] for t in TUNING_SET.cmu_trials} & {t[:2] for t in REPORT_SET.cmu_trials}
     out = run_experiment("paper-b", shared_data, quick=True, quiet=True, split="tuning")
-    assert out["split"] == "tuning"
-    assert all("tuning set" in t.title for t in out["tables"])
+    # --quick runs the packaged clip and two UTD-MHAD trials: no table claims the tuning set
+    assert out["split"] == "quick"
+    assert all("quick set" in t.title and "tuning set" not in t.title for t in out["tables"])
+    assert any("quick set (not the tuning set): CMU 02_08 (the packaged clip" in n
+               for n in out["notes"])  # fmt: skip
     assert "Neura walk (real IMUs)" not in out["results"]  # evaluation-only: report set
     ev = out["results"]["UTD-MHAD (real IMU)"]["evaluation"]
     assert {"offset interp", "offset hold", "camera gap-fill", "kinefuse causal"} <= set(
@@ -170,3 +173,17 @@ def test_oracle_constant_offset_closed_form():
     expect = [k[a:b, 0] - k[a:b, 0].mean(0) for j, (a, b) in spans]
     rms = np.sqrt(np.mean(np.sum(np.concatenate(expect) ** 2, -1)))
     assert oracle_constant_offset([part]) == pytest.approx(rms, rel=1e-9)
+
+
+def test_an_experiment_on_a_data_folder_without_its_data_is_refused_or_labelled(tmp_path):
+    """A full run on a --data folder with none of the data sets is an error (it ran the
+    packaged clip and called it the report set); the default without shared data runs the
+    clip under its own name."""
+    from kinefuse.apps.splits import REPORT_SET, as_run
+
+    with pytest.raises(InputError, match="holds neither cmu_mocap/ nor utd_mhad/"):
+        run_experiment("paper-a", tmp_path, quiet=True)
+    ran = as_run(REPORT_SET, None, quick=False)
+    assert ran.name == "reduced" and ran.cmu_trials == ("02_08",) and ran.utd_subjects == ()
+    assert ran.describe().startswith("reduced set (not the report set): CMU 02_08")
+    assert as_run(REPORT_SET, tmp_path, quick=True).name == "quick"

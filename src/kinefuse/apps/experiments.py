@@ -38,6 +38,7 @@ from kinefuse.apps.splits import (
     TUNING_SET,
     UTD_ACTIONS,
     DataSplit,
+    as_run,
     default_data_dir,
 )
 from kinefuse.apps.trials import ExperimentRun, TrialMap, serial_map
@@ -84,6 +85,19 @@ def _runner(name: str, quick: bool, split: DataSplit) -> tuple[Callable, int]:
         "realism": (_realism, 12),
         "paper-b": (run_paper_b, n_cmu + 2),
     }[name]
+
+
+def _check_data(name: str, data_dir, explicit: bool, quick: bool) -> None:
+    """A full (not --quick) paper experiment on a ``--data`` folder holding none of its data
+    sets is an error (it would silently run the packaged clip alone)."""
+    if quick or not explicit:
+        return
+    root = Path(data_dir)
+    if not any((root / sub).is_dir() for sub in ("cmu_mocap", "utd_mhad")):
+        raise InputError(
+            f"--data {data_dir}: holds neither cmu_mocap/ nor utd_mhad/, the recordings of "
+            f"{name}; give the shared data folder, or --quick for the packaged CMU clip alone"
+        )
 
 
 def _data_set(split: DataSplit) -> dict:
@@ -152,6 +166,7 @@ def run_experiment(
     chosen = SPLITS[split]
     if quick is None:
         quick = os.environ.get(_QUICK_ENV, "") not in ("", "0")
+    explicit = data_dir is not None
     if data_dir is None:
         data_dir = default_data_dir()
     elif not Path(data_dir).is_dir():
@@ -161,9 +176,14 @@ def run_experiment(
         raise InputError("neura-imu-only: needs --data (the folder with neura_sparse_sample/)")
     notes: list[str] = []
     t0 = time.perf_counter()
-    run, n_steps = _runner(name, bool(quick), chosen)
     paper = name in ("paper-a", "paper-b")  # neura-imu-only: the Neura walk, evaluation only
-    title = f"Experiment {name}" + (f" ({split} set)" if paper else "")
+    if paper:
+        _check_data(name, data_dir, explicit, bool(quick))
+        chosen = as_run(chosen, data_dir, bool(quick))  # what runs: every table names it
+        if chosen.reduced_from:
+            notes.append(f"{name}: {chosen.describe()}; these figures are not the {split} set's")
+    run, n_steps = _runner(name, bool(quick), chosen)
+    title = f"Experiment {name}" + (f" ({chosen.name} set)" if paper else "")
     with progress(title, total=n_steps, quiet=quiet) as advance:
         out = run(
             ExperimentRun(data_dir, bool(quick), chosen, advance, notes, trial_map or serial_map)
@@ -171,7 +191,7 @@ def run_experiment(
     out.update(
         notes=notes,
         quick=bool(quick),
-        split=split if paper else None,
+        split=chosen.name if paper else None,
         data_set=_data_set(chosen) if paper else None,
         data_dir=None if data_dir is None else str(data_dir),
         wall_time_s=time.perf_counter() - t0,

@@ -30,6 +30,7 @@ __all__ = [
     "UTD_ACTIONS",
     "UTD_HIDDEN",
     "DataSplit",
+    "as_run",
     "cmu_motions",
     "default_data_dir",
     "utd_hidden",
@@ -60,22 +61,57 @@ class DataSplit:
         UTD-MHAD subjects (trial 1 of :data:`UTD_ACTIONS`).
     neura : bool
         Whether the Neura walk belongs to the set (it is evaluation-only: report set).
+    reduced_from : str
+        Empty for a declared set; for what a run used instead of one (``--quick``, or data
+        missing: :func:`as_run`), the declared set's name.
     """
 
     name: str
     cmu_trials: tuple[str, ...]
     utd_subjects: tuple[int, ...]
     neura: bool
+    reduced_from: str = ""
 
     def describe(self) -> str:
         """One line naming the recordings of the set."""
-        parts = [
-            f"CMU {', '.join(self.cmu_trials)}",
-            f"UTD-MHAD subjects {', '.join(map(str, self.utd_subjects))} (trial 1)",
-        ]
+        cmu = f"CMU {', '.join(self.cmu_trials)}"
+        if self.cmu_trials == (DEMO_TRIAL,):
+            cmu += " (the packaged clip: CMU subject 02, whose trials are the tuning set's)"
+        parts = [cmu]
+        if self.utd_subjects:
+            actions = UTD_ACTIONS[:2] if self.name == "quick" else UTD_ACTIONS
+            parts.append(
+                f"UTD-MHAD subjects {', '.join(map(str, self.utd_subjects))} (trial 1"
+                + (f", actions {', '.join(map(str, actions))})" if self.reduced_from else ")")
+            )
         if self.neura:
             parts.append("Neura walk")
-        return f"{self.name} set: " + "; ".join(parts)
+        head = f"{self.name} set"
+        if self.reduced_from:
+            head += f" (not the {self.reduced_from} set)"
+        return f"{head}: " + "; ".join(parts)
+
+
+def as_run(split: DataSplit, data_dir, quick: bool) -> DataSplit:
+    """The recordings a run of ``split`` uses: ``split`` itself, or, with ``quick`` or its data
+    missing from ``data_dir``, a set named ``"quick"`` or ``"reduced"`` that says what runs
+    instead (the packaged CMU clip, fewer or no UTD-MHAD trials), so that no table claims the
+    declared set."""
+    root = None if data_dir is None else Path(data_dir)
+
+    def has(sub: str) -> bool:
+        return root is not None and (root / sub).is_dir()
+
+    cmu_full = not quick and has("cmu_mocap/asfamc")
+    if cmu_full and has("utd_mhad") and (has("neura_sparse_sample") or not split.neura):
+        return split
+    return DataSplit(
+        "quick" if quick else "reduced",
+        split.cmu_trials if cmu_full else (DEMO_TRIAL,),
+        (split.utd_subjects[:1] if quick else split.utd_subjects) if has("utd_mhad") else (),
+        split.neura and has("neura_sparse_sample"),
+        reduced_from=split.name,
+    )
 
 
 #: The only recordings anything in kinefuse was developed or chosen on (CMU subject 02,
