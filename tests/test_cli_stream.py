@@ -258,6 +258,9 @@ def test_cli_stream_accepts_offline_session(lsl_env, tmp_path):
         (["replay", "rand.bin"], ["rand.bin: unsupported format"]),  # before "Publishing"
         (["replay", "demo", "--rate", "0"], ["--rate", "> 0"]),
         (["replay", "demo", "--duration", "-1"], ["--duration", "> 0"]),
+        (["replay", "demo", "--format", "nope"], ["--format: unknown reader 'nope'"]),
+        # an IMU with acc/gyr only: --no-raw would publish nothing (refused, no "Publishing")
+        (["replay", "raw.csv", "--no-raw"], ["--no-raw", "IMU 'thigh_r' has no orientation"]),
         (
             ["stream", "bad.toml"],
             ["bad.toml: [stream] bogus: unknown key (allowed keys: name_prefix, imu_streams,"],
@@ -276,6 +279,10 @@ def test_cli_stream_accepts_offline_session(lsl_env, tmp_path):
         ),
         (["stream", "s.toml", "--out", "existing.npz/sub/out"], ["existing.npz", "not a folder"]),
         (["stream", "s.toml", "--record-inputs"], ["--record-inputs needs --out"]),
+        (
+            ["stream", "s.toml", "--chain", "c.json"],
+            ["--chain c.json: SESSION.toml s.toml is a streaming session", "[stream] table"],
+        ),
         (["stream", "s.toml", "--idle-timeout", "0"], ["--idle-timeout", "> 0"]),
         (["stream", "s.toml", "--view", "--view-port", "70000"], ["--view-port", "[0, 65535]"]),
     ],
@@ -289,6 +296,10 @@ def test_cli_stream_replay_bad_input_exits_2_before_lsl(args, needles, tmp_path,
     (tmp_path / "broken.toml").write_text("[stream\n")
     (tmp_path / "existing.npz").write_bytes(b"keep me")
     (tmp_path / "rand.bin").write_bytes(bytes(range(256)) * 4)
+    rows = "".join(f"{k / 100:.2f},thigh_r,0,0,9.81,0,0,0\n" for k in range(3))
+    (tmp_path / "raw.csv").write_text(
+        "# kinefuse-imu-csv 1\nt_s,sensor,acc_x,acc_y,acc_z,gyr_x,gyr_y,gyr_z\n" + rows
+    )
     result = runner.invoke(cli.app, args)
     assert result.exit_code == 2, (result.output, cli_stderr(result))
     _one_line_error(cli_stderr(result), *needles)
@@ -300,7 +311,7 @@ def test_cli_stream_replay_bad_input_exits_2_before_lsl(args, needles, tmp_path,
 @pytest.mark.parametrize(
     ("command", "options"),
     [
-        ("replay", ["--rate", "--prefix", "--loop", "--duration", "--no-raw",
+        ("replay", ["--rate", "--prefix", "--loop", "--duration", "--no-raw", "--format",
                     "--wait-for-consumers", "--quiet", "--json", "_imu_", "_camera", "MoCap"]),
         ("stream", ["--duration", "--idle-timeout", "--resolve-timeout", "--out", "--force",
                     "--record-inputs", "--wait-for-reader", "--no-status", "--quiet", "--json",

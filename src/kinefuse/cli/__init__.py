@@ -15,6 +15,10 @@ Exit codes
     that ``--force`` would overwrite. Every :class:`~kinefuse.exceptions.InputError` (and so
     ``FormatError`` and ``ConfigError``) is shown as one red line on stderr, never a traceback;
     ``kinefuse --debug COMMAND`` (or ``KINEFUSE_DEBUG=1``) also prints the traceback.
+130
+    Interrupted by Ctrl-C before a result (the shell's convention, 128 + SIGINT): "kinefuse:
+    interrupted". ``stream`` and ``replay`` treat Ctrl-C as their normal stop (exit 0, with
+    their summary) once they run; while ``stream`` is still looking for its streams it is 130.
 
 Back-end contracts
 ------------------

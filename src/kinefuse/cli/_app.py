@@ -37,7 +37,8 @@ EXIT_OK, EXIT_FAILURE, EXIT_USAGE = 0, 1, 2
 #: Shown under every command's help.
 EPILOG = (
     "Exit codes: 0 success; 1 runtime failure, feature not available or target not met; "
-    "2 bad input or usage (one red line on stderr; add --debug for the traceback)."
+    "2 bad input or usage (one red line on stderr; add --debug for the traceback); 130 "
+    "interrupted by Ctrl-C before a result (stream and replay stop cleanly on it: 0)."
 )
 
 app = typer.Typer(

@@ -25,7 +25,7 @@ from kinefuse.cli._output import (
     one_line,
 )
 from kinefuse.exceptions import InputError
-from kinefuse.io import detect_format
+from kinefuse.io import FORMATS, detect_format
 from kinefuse.io.output_folder import check_folder_usable
 from kinefuse.session_file import load_session, read_toml
 
@@ -59,7 +59,11 @@ def _stream_session(path: Path, resolve_timeout_s: float | None, chain_file: Pat
     chain = None
     if chain_file is not None:
         if "stream" in doc:
-            raise InputError("--chain: give the offline session the chain was calibrated for")
+            raise InputError(
+                f"--chain {chain_file}: SESSION.toml {p} is a streaming session (it has a "
+                "[stream] table); with --chain give the offline session file the chain was "
+                "calibrated from (the one `kinefuse run` wrote that chain.json for)"
+            )
         chain = backend_module("stream", "kinefuse.pipelines.run.chain_file").read_chain(chain_file)
     with warnings.catch_warnings(record=True) as caught:  # one clean line each, not Python's
         warnings.simplefilter("always")  # file:line form
@@ -279,6 +283,10 @@ def replay(
         "until Ctrl-C with --loop).",
     ) = None,
     no_raw: _flag("--no-raw", "Publish the orientation channels only (no acc_*, gyr_*).") = False,
+    fmt: Annotated[
+        str | None,
+        typer.Option("--format", metavar="FORMAT", help="Reader of RECORDING (default: detected)."),
+    ] = None,
     wait_for_consumers: _seconds(
         "--wait-for-consumers",
         "Before publishing, wait up to this long until every stream has a reader (once one "
@@ -290,7 +298,8 @@ def replay(
 ) -> None:
     """Publish a recording as live LSL streams, at its real rate or --rate times faster.
 
-    PREFIX_imu_SEGMENT, one per IMU (type IMU): qw qx qy qz, acc_x/y/z m/s^2, gyr_x/y/z rad/s.
+    PREFIX_imu_SEGMENT, one per IMU (type IMU): qw qx qy qz (when the recording has
+    orientations: kinefuse stream needs them), acc_x/y/z m/s^2, gyr_x/y/z rad/s.
 
     PREFIX_camera (type MoCap): per joint JOINT_x/_y/_z in m (NaN if unseen), JOINT_available.
 
@@ -309,14 +318,21 @@ def replay(
         )
     check_json(json_file, force, () if recording == "demo" else (Path(recording),))
     source = recording if recording == "demo" else Path(recording)
-    if source != "demo":
-        detect_format(source)  # an unreadable recording fails here, before "Publishing"
-    if not quiet:
-        stderr().print(
-            f"Publishing {recording} as {prefix}_* LSL streams at {rate:g}x (Ctrl-C stops)..."
+    if fmt is not None and fmt not in FORMATS:
+        raise InputError(
+            f"--format: unknown reader {fmt!r}; expected one of {', '.join(sorted(FORMATS))}"
         )
+    if source != "demo" and fmt is None:
+        detect_format(source)  # an unreadable recording fails here, before "Publishing"
+
+    def ready() -> None:  # the recording was read and can be published
+        if not quiet:
+            stderr().print(
+                f"Publishing {recording} as {prefix}_* LSL streams at {rate:g}x (Ctrl-C stops)..."
+            )
+
     summary = backend("replay")(
         source, rate, prefix, loop, duration, include_raw=not no_raw,
-        wait_for_consumers_s=wait_for_consumers, quiet=quiet,
+        wait_for_consumers_s=wait_for_consumers, quiet=quiet, format=fmt, on_ready=ready,
     )  # fmt: skip
     finish(summary, lambda s: _replay_table(s, rate), quiet=quiet, json_file=json_file, force=force)

@@ -65,7 +65,7 @@ def demo(
     quiet: Quiet = False,
     json_file: Json = None,
 ) -> None:
-    """Run the demo on built-in data and write an HTML report (report.html) to DIR."""
+    """Run the demo on built-in data and write an HTML report (report.html) to --out DIR."""
     out_dir = fresh_dir("kinefuse-demo") if out is None else out
     check_report_free(out_dir, force)
     check_json(json_file, force)

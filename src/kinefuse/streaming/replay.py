@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -57,20 +58,28 @@ def demo_recording(stop_s: float | None = None, seed: int = 0) -> Recording:
     return virtual_recording(demo_motion(None, stop_s), seed=seed)
 
 
-def load_recording(recording) -> Recording:
-    """A :class:`Recording`, a path readable by :func:`kinefuse.io.load`, or ``"demo"``."""
+def load_recording(recording, format: str | None = None) -> Recording:
+    """A :class:`Recording`, a path readable by :func:`kinefuse.io.load` (as ``format`` if
+    given), or ``"demo"``."""
     if isinstance(recording, Recording):
         return recording
     if isinstance(recording, str) and recording == "demo":
         return demo_recording()
     if isinstance(recording, (str, Path)):
-        return load(Path(recording))
+        return load(Path(recording), format=format)
     raise InputError(f"expected a Recording, a path or 'demo', got {type(recording).__name__}")
 
 
 def _streams(rec: Recording, prefix: str, include_raw: bool):
     """(name, type, channels, t (N,), values (N, C), rate_hz, desc) per stream."""
     out = []
+    bare = [seg for seg, st in rec.imu.items() if st.q_world_from_sensor is None]
+    if bare and not include_raw:
+        raise InputError(
+            f"--no-raw (include_raw=False): IMU {', '.join(map(repr, bare))} has no orientation, "
+            "only acc/gyr: its stream would carry nothing; publish the raw channels, or estimate "
+            "the orientations first (kinefuse.orientation.estimate)"
+        )
     for seg, st in rec.imu.items():
         cols, chans = [], []
         if st.q_world_from_sensor is not None:
@@ -174,6 +183,8 @@ def run_replay(
     stop_event=None,
     quiet: bool = True,
     linger_s: float = 0.5,
+    format: str | None = None,
+    on_ready: Callable[[], None] | None = None,
 ) -> ReplaySummary:
     """Publish a recording to LSL at its real rate (or ``rate`` times faster).
 
@@ -191,7 +202,8 @@ def run_replay(
     duration_s : float, optional
         Stop after this much recording time, s (default: once, or forever with ``loop``).
     include_raw : bool
-        Publish acc/gyr channels next to the orientation.
+        Publish acc/gyr channels next to the orientation (an IMU without orientation publishes
+        them anyway; with ``include_raw=False`` it is an error).
     wait_for_consumers_s : float, optional
         Before publishing, wait up to this long until every outlet has a consumer
         (:func:`wait_for_consumers`: once one has, at most :data:`CONSUMER_GRACE_S` more).
@@ -203,6 +215,11 @@ def run_replay(
         Keep the outlets open this long after the last sample (in-flight data), s; after a
         Ctrl-C too, so that a consumer gets every sample the summary counts (a second Ctrl-C
         closes them at once).
+    format : str, optional
+        A :data:`kinefuse.io.FORMATS` reader for a path (default: detected).
+    on_ready : callable, optional
+        Called once the recording is read and checked, before LSL is loaded (the CLI's
+        "Publishing ..." line: not printed for a recording that is refused).
 
     Returns
     -------
@@ -212,10 +229,12 @@ def run_replay(
         raise InputError(f"expected rate > 0, got {rate!r}")
     if duration_s is not None and not duration_s > 0:
         raise InputError(f"expected duration_s > 0, got {duration_s!r}")
-    rec = load_recording(recording)
+    rec = load_recording(recording, format)
     streams = _streams(rec, name_prefix, include_raw)
     if not streams:
         raise InputError("the recording has no IMU or camera stream to publish")
+    if on_ready is not None:
+        on_ready()
     pylsl = import_pylsl()
     outlets = [make_outlet(name, stype, chans, rate_hz * rate, source_id=f"{name}@kinefuse-replay",
                            desc=desc, chunk_size=1)
