@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -342,3 +343,35 @@ def test_best_marks_only_where_smaller_is_better():
     assert to_html(errors).count("num best") == 2
     angles = ResultTable("Angles", ("Joint", "Angle"), ("min", "max"), rows, best=False)
     assert "best" not in to_html(angles)
+
+
+def test_short_method_labels_put_a_shared_tag_in_the_caption():
+    from kinefuse.evaluation.plots import short_method_labels
+
+    tag = " [calibrated on camera = reference, lengths from camera = reference]"
+    short, cap = short_method_labels(["IMU only" + tag, "kinefuse" + tag])
+    assert short == {"IMU only" + tag: "IMU only", "kinefuse" + tag: "kinefuse"}
+    assert (
+        cap == "every estimate: [calibrated on camera = reference, lengths from camera = reference]"
+    )
+    short, cap = short_method_labels(["reference", "kinefuse" + tag])  # one without the tag
+    assert short == {"reference": "reference", "kinefuse" + tag: "kinefuse *"}
+    assert cap.startswith("* [calibrated on camera")
+    two = ["a [x]", "b [y, z]"]  # different tags: kept (wrapped on request)
+    assert short_method_labels(two) == ({m: m for m in two}, "")
+    assert short_method_labels(two, wrap=4)[0]["b [y, z]"] == "b\n[y,\nz]"
+
+
+def test_a_report_whose_estimates_share_a_long_tag_keeps_its_plots(shared_data, tmp_path):
+    """UTD-MHAD's Kinect is camera and reference: every estimate's label carries a long tag.
+    In legends it squeezed the axes to nothing (matplotlib: "constrained_layout not
+    applied"); it is now said once per figure."""
+    import warnings
+
+    from kinefuse.pipelines.run import run_session
+
+    session = Path(__file__).parent / "data" / "sessions" / "utd_mhad_a9_s1_t1.toml"
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="constrained_layout not applied")
+        run_session(session, tmp_path / "out")
+    assert (tmp_path / "out" / "figures" / "summary_rmse.png").is_file()

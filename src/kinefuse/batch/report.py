@@ -14,6 +14,7 @@ import base64
 import datetime as _dt
 import html
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -51,8 +52,11 @@ def _box_figure(data: Mapping[tuple[str, str], np.ndarray], title: str, ylabel: 
     joints = list(dict.fromkeys(j for _, j in data))
     estimates = list(dict.fromkeys(e for e, _ in data))
     colors = plots.method_colors(estimates)
+    short, common = plots.short_method_labels(estimates, wrap=24)
+    lines = max(s.count("\n") + 1 for s in short.values())
     fig = Figure(
-        figsize=(max(4.0, 1.2 + 1.0 * len(estimates)) * len(joints), 3.6), layout="constrained"
+        figsize=(max(4.0, 1.2 + 1.1 * len(estimates)) * len(joints), 3.4 + 0.35 * lines),
+        layout="constrained",
     )
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, len(joints), squeeze=False)[0]
@@ -60,14 +64,17 @@ def _box_figure(data: Mapping[tuple[str, str], np.ndarray], title: str, ylabel: 
         labels = [e for e in estimates if (e, joint) in data]
         vals = [data[(e, joint)] for e in labels]
         box = ax.boxplot(vals, patch_artist=True, showfliers=True)
-        ax.set_xticks(range(1, len(labels) + 1), labels, rotation=20)
+        ax.set_xticks(range(1, len(labels) + 1), [short[e] for e in labels], rotation=30,
+                      ha="right", rotation_mode="anchor", fontsize=8)  # fmt: skip
         for patch, e in zip(box["boxes"], labels, strict=True):
             patch.set_facecolor(colors[e])
             patch.set_alpha(0.55)
         ax.set_title(f"{joint} (n = {', '.join(str(v.size) for v in vals)})", fontsize=10)
         ax.set_ylabel(ylabel)
         ax.grid(True, axis="y", alpha=0.3)
-    fig.suptitle(title, fontsize=11)
+    width = max(30, int(8 * fig.get_figwidth()))
+    caption = "\n".join(textwrap.wrap(common, width))
+    fig.suptitle(title + ("\n" + caption if caption else ""), fontsize=10 if caption else 11)
     return fig
 
 

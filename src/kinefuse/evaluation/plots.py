@@ -14,6 +14,7 @@ Okabe & Ito (2008) for per-sample codes (filter branch, data source).
 from __future__ import annotations
 
 import io
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import NamedTuple
@@ -223,19 +224,18 @@ def trajectory_figure(
         ax.set_ylabel(f"{axis_labels[a]} (m)")
     _error_panel(axs[3], t, ref, estimates, outage, colors, styles, dotted)
     handles, labels = axs[0].get_legend_handles_labels()
+    short, caption = short_method_labels(labels)
     fig.legend(
         handles,
-        labels,
+        [short[lb] for lb in labels],
         loc="outside upper center",
         ncols=min(len(labels), 6),
         frameon=False,
         markerscale=3,
         handlelength=3,
     )
-    axs[0].set_title(
-        f"{joint}: position per axis and Euclidean error" if joint else "Position per axis",
-        fontweight="bold",
-    )
+    title = f"{joint}: position per axis and Euclidean error" if joint else "Position per axis"
+    axs[0].set_title(_with_caption(fig, title, caption), fontweight="bold")
     return fig
 
 
@@ -308,6 +308,7 @@ def cdf_figure(
     """
     colors = dict(colors or method_colors(list(cdfs)))
     styles = dict(linestyles or method_linestyles(list(cdfs)))
+    short, caption = short_method_labels(list(cdfs))
     panels = [("all samples", cdfs)]
     if outage_cdfs is not None and any(x.size for x, _ in outage_cdfs.values()):
         panels.append(("inside camera outages", outage_cdfs))
@@ -325,7 +326,7 @@ def cdf_figure(
                 color=colors.get(m),
                 lw=1.4,
                 ls=styles.get(m, "-"),
-                label=f"{m}  ({x[k]:.3f} m at {p:g})",
+                label=f"{short.get(m, m)}  ({x[k]:.3f} m at {p:g})",
             )
             ax.plot([x[k]], [prob[k]], "o", color=colors.get(m), ms=4)
         ax.axhline(p, color="0.4", ls="--", lw=0.8)
@@ -336,7 +337,7 @@ def cdf_figure(
         ax.grid(alpha=0.3)
         ax.legend(loc="lower right", fontsize="small", handlelength=3)
     axs[0].set_ylabel("CDF")
-    fig.suptitle(f"{joint}: error CDF" if joint else "Error CDF")
+    fig.suptitle(_with_caption(fig, f"{joint}: error CDF" if joint else "Error CDF", caption))
     return fig
 
 
@@ -477,11 +478,12 @@ def skeleton_figure(
         _cube_axes(ax, center, half)
         ax.set_title(f"t = {float(np.asarray(t_s)[k]):.2f} s" if t_s is not None else f"sample {k}")
     handles, labels = fig.axes[0].get_legend_handles_labels() if fig.axes else ([], [])
+    short, caption = short_method_labels(labels)
     fig.legend(
-        handles, labels, loc="outside lower center", ncols=min(len(labels), 5), frameon=False,
-        handlelength=3,
+        handles, [short[lb] for lb in labels], loc="outside lower center",
+        ncols=min(len(labels), 5), frameon=False, handlelength=3,
     )  # fmt: skip
-    fig.suptitle("Skeleton snapshots", fontweight="bold")
+    fig.suptitle(_with_caption(fig, "Skeleton snapshots", caption), fontweight="bold")
     return fig
 
 
@@ -544,6 +546,39 @@ def _cube_axes(ax, center, half: float) -> None:
     ax.tick_params(labelsize="x-small")
 
 
+def short_method_labels(methods: Sequence[str], wrap: int = 0) -> tuple[dict[str, str], str]:
+    """Short labels of ``methods`` ("IMU only [calibrated on ..., ...]") for ticks and legends,
+    and a caption for what they leave out.
+
+    When every method that carries a bracketed tag carries the same one, the labels are the
+    names and the caption gives the tag once: "every estimate: [tag]", or, when some methods
+    (e.g. the reference) have none, the tagged names end in " *" and the caption is
+    "* [tag]". Otherwise the labels keep their tags (on new lines of at most ``wrap``
+    characters if ``wrap``) and the caption is empty."""
+    parts = {m: (m.split(" [", 1) + [""])[:2] for m in methods}
+    tags = {tag.rstrip("]") for _, tag in parts.values() if tag}
+    if len(tags) == 1:
+        (common,) = tags
+        every = all(tag for _, tag in parts.values())
+        labels = {m: name + ("" if every or not tag else " *") for m, (name, tag) in parts.items()}
+        return labels, (f"every estimate: [{common}]" if every else f"* [{common}]")
+    labels = {}
+    for m, (name, tag) in parts.items():
+        own = tag.rstrip("]")
+        if own and wrap:
+            labels[m] = name + "\n" + "\n".join(textwrap.wrap(f"[{own}]", wrap))
+        else:
+            labels[m] = m
+    return labels, ""
+
+
+def _with_caption(fig: Figure, title: str, caption: str) -> str:
+    """``title`` with ``caption`` on the lines below it (none when empty), wrapped to the
+    figure's width (about 8 characters of a bold 10-pt title per inch)."""
+    width = max(30, int(8 * fig.get_figwidth()))
+    return title + "".join("\n" + ln for ln in textwrap.wrap(caption, width)) if caption else title
+
+
 def rmse_bar_figure(result, *, colors: Mapping[str, str] | None = None) -> Figure:
     """Grouped bars of the papers' mean RMSE per joint and method (overall and in outages).
 
@@ -553,6 +588,7 @@ def rmse_bar_figure(result, *, colors: Mapping[str, str] | None = None) -> Figur
     """
     colors = dict(colors or method_colors(result.methods))
     many = len(result.methods) > 6
+    short, common = short_method_labels(result.methods, wrap=40)
     panels = [("all samples", result.mean_rmse)]
     if result.has_outages:
         panels.append(("inside camera outages", result.mean_rmse_outage))
@@ -571,12 +607,13 @@ def rmse_bar_figure(result, *, colors: Mapping[str, str] | None = None) -> Figur
                 hatch=_HATCHES[m % len(_HATCHES)] if many else None,
                 edgecolor="white" if many else None,
                 lw=0,
-                label=method,
+                label=short[method],
             )
         ax.set_xticks(x, result.joints, rotation=30 if J > 4 else 0)
         ax.set_title(name)
         ax.grid(axis="y", alpha=0.3)
     axs[0].set_ylabel("mean RMSE (m)")
     axs[-1].legend(fontsize="small", ncols=2 if M > 6 else 1)
-    fig.suptitle("Mean RMSE per joint (mean of per-axis RMSEs)")
+    # the shared tag once here, not in every legend entry (long tags squeezed the axes to nothing)
+    fig.suptitle(_with_caption(fig, "Mean RMSE per joint (mean of per-axis RMSEs)", common))
     return fig
