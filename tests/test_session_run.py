@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import textwrap
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -309,3 +310,23 @@ def test_evaluate_recording_camera_method_without_camera(shared_data):
     path = shared_data / "neura_sparse_sample" / "vicon" / "S02-Trial-Walk-1.csv"
     with pytest.raises(InputError, match="needs a camera"):
         evaluate_recording(path, "elm-fir")
+
+
+def test_every_method_of_a_recording_is_scored_where_the_reference_measured(shared_data):
+    """UTD-MHAD's Kinect (camera = reference) runs at about 15 Hz; a camera method's output is
+    on a 30-Hz grid, IMU-only on the Kinect's own frames. Both are scored at the same
+    instants, one per Kinect frame (before: the camera methods also on the reference values
+    interpolated between frames, twice as many samples, not comparable)."""
+    import kinefuse.io as kio
+    from kinefuse.pipelines.run import process_recording
+
+    rec = kio.load(shared_data / "utd_mhad" / "Inertial" / "a1_s1_t1_inertial.mat")
+    rec = replace(rec, reference=rec.vision)  # as the UTD-MHAD sessions: the Kinect is both
+    params = {"calibration": "vision", "calibration_window_s": 10.0}
+    imu = process_recording(rec, "imu-only", params, body_height_m=1.75).evaluation()
+    cam = process_recording(rec, "kinefuse", params, body_height_m=1.75).evaluation()
+    n_frames = 48  # the trial's Kinect frames (SOURCE.md: no timestamps, 14.8 Hz effective)
+    assert imu.n_steps == n_frames and cam.n_steps == 2 * n_frames
+    chain_imu = imu.methods.index(next(m for m in imu.methods if m.startswith("IMU only")))
+    chain_cam = cam.methods.index(next(m for m in cam.methods if m.startswith("IMU chain")))
+    assert imu.n_samples[chain_imu, 0] == cam.n_samples[chain_cam, 0] == n_frames

@@ -44,6 +44,12 @@ class SessionOutput:
         Camera positions of the output joints in the same frame (NaN where unavailable).
     reference : ndarray, shape (T, J, 3) or None
         Reference positions at ``t_s`` in the same frame (NaN where unavailable).
+    reference_frames : ndarray of bool, shape (T,), or None
+        The samples scored: each the nearest to a frame of the reference
+        (:func:`~kinefuse.pipelines.run.timeline.nearest_samples`). A reference sparser than
+        the output (UTD-MHAD's Kinect, 15 Hz, under a 30-Hz camera method) is not scored where
+        ``reference`` interpolates between its frames, so every method of a recording is
+        scored at the same instants, where the reference measured. None: every sample.
     run_time_s : float
         Wall-clock time of the method (chain excluded), s; NaN for ``imu-only`` without a
         filter (nothing runs beyond the chain, so the report has no run-time table).
@@ -101,6 +107,7 @@ class SessionOutput:
     chain: np.ndarray
     camera: np.ndarray | None = None
     reference: np.ndarray | None = None
+    reference_frames: np.ndarray | None = None
     run_time_s: float = float("nan")
     edges: tuple[tuple[str, str], ...] = ()
     notes: list[str] = field(default_factory=list)
@@ -160,9 +167,12 @@ class SessionOutput:
         outage = None
         if self.camera is not None:
             outage = ~np.all(np.isfinite(self.camera), axis=-1)
+        ref = self.reference
+        if self.reference_frames is not None:  # not where it is interpolated between its frames
+            ref = np.where(self.reference_frames[:, None, None], ref, np.nan)
         return evaluate(
             est,
-            self.reference,
+            ref,
             outage,
             {self.label + self.tag: self.run_time_s} if math.isfinite(self.run_time_s) else None,
             joints=self.joints,

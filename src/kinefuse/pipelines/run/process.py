@@ -65,6 +65,7 @@ from kinefuse.pipelines.run.timeline import (
     _output_timeline,
     _sample_joints,
     apply_coverage,
+    nearest_samples,
     sample_joint,
 )
 
@@ -305,9 +306,10 @@ def _new_output(recording, method, t, joints, chain, frame, sk, cal, root_kind) 
         camera = _sample_joints(recording.vision, joints, t)
         if cal is not None and cal.R_world_from_camera is not None and root_kind != "vision":
             camera = camera @ np.asarray(cal.R_world_from_camera).T
-    reference = None
+    reference = frames = None
     if recording.reference is not None:
         reference = _sample_joints(recording.reference, joints, t)
+        frames = nearest_samples(t, recording.reference.t_s)
     return SessionOutput(
         t_s=t,
         joints=joints,
@@ -321,6 +323,7 @@ def _new_output(recording, method, t, joints, chain, frame, sk, cal, root_kind) 
         chain=chain,
         camera=camera,
         reference=reference,
+        reference_frames=frames,
         edges=tuple((p, d) for p, d in zip(sk.proximal, sk.distal, strict=True) if p in joints),
     )
 

@@ -28,6 +28,7 @@ __all__ = [
     "apply_coverage",
     "coverage_counts",
     "coverage_table",
+    "nearest_samples",
     "sample_joint",
 ]
 
@@ -58,6 +59,25 @@ def sample_joint(stream, joint: str, t: np.ndarray, *, fill: bool) -> np.ndarray
         return np.stack([np.interp(t, stream.t_s[ok], p[ok, k]) for k in range(3)], axis=-1)
     out, _ = resample_positions(stream.t_s, p, t)
     return out
+
+
+def nearest_samples(t: np.ndarray, t_frames: np.ndarray) -> np.ndarray:
+    """``(T,)`` bool: the samples of ``t`` that are the nearest to a frame of ``t_frames``
+    (frames within half a step of ``t``'s span). All True for frames about as dense as ``t``
+    or denser (median step up to 1.25 of ``t``'s: timestamp jitter would otherwise leave
+    samples out); for a sparser stream, one sample per frame: where it measured, not where
+    ``t`` falls between its frames."""
+    t = np.asarray(t, dtype=float)
+    f = np.asarray(t_frames, dtype=float)
+    if t.size < 2 or f.size < 2 or np.median(np.diff(f)) <= 1.25 * np.median(np.diff(t)):
+        return np.ones(t.size, dtype=bool)
+    mask = np.zeros(t.size, dtype=bool)
+    half = 0.5 * float(np.median(np.diff(t)))
+    f = f[(f >= t[0] - half) & (f <= t[-1] + half)]
+    i = np.clip(np.searchsorted(t, f), 1, t.size - 1)
+    i -= (f - t[i - 1]) <= (t[i] - f)
+    mask[i] = True
+    return mask
 
 
 #: Longest interval between two IMU orientation samples interpolated across, s (SLERP), or 1.5
