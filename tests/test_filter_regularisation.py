@@ -40,6 +40,12 @@ def _indefinite_S_state(model):
     return _cov_giving(model, Pp)
 
 
+def _with_cov(state, P):
+    """``state`` holding the covariance ``P`` in every element: a posterior no ``init`` gives
+    (``init`` refuses a covariance that is not positive semi-definite)."""
+    return state._replace(P=np.broadcast_to(P, state.P.shape).copy())
+
+
 def _regularisation_warnings(record):
     return [
         w
@@ -58,7 +64,7 @@ def test_chol_status_values():
 def test_dense_kalman_warns_once_per_call():
     m = constant_velocity(DT, q=1.0, r=1e-2)
     kf = KalmanFilter(m, method="dense")
-    state = kf.init((2,), mean=np.zeros(6), cov=_indefinite_S_state(m))
+    state = _with_cov(kf.init((2,), mean=np.zeros(6)), _indefinite_S_state(m))
     z = np.zeros((2, 3, 3))
     with warnings.catch_warnings(record=True) as rec:
         warnings.simplefilter("always")
@@ -91,7 +97,7 @@ def test_rts_warns_once_per_call():
 def test_imm_warns_once_per_call():
     m = constant_velocity(DT, q=1.0, r=1e-2)
     imm = IMM(m, m)
-    state = imm.init((2,), mean=np.zeros(6), cov=_indefinite_S_state(m))
+    state = _with_cov(imm.init((2,), mean=np.zeros(6)), _indefinite_S_state(m))
     z = np.zeros((2, 3, 2, 3))
     with warnings.catch_warnings(record=True) as rec:
         warnings.simplefilter("always")
@@ -104,7 +110,7 @@ def test_imm_warns_once_per_call():
 def test_em_kf_regularisation_warns_once_per_call(n_iter):
     m = constant_velocity(DT, q=1.0, r=1e-2)
     f = EMKalmanFilter(m, n_iter=n_iter)
-    st = f.init((2,), mean=np.zeros(6), cov=_indefinite_S_state(m))
+    st = _with_cov(f.init((2,), mean=np.zeros(6)), _indefinite_S_state(m))
     with warnings.catch_warnings(record=True) as rec:
         warnings.simplefilter("always")
         f.filter(np.zeros((2, 3, 3)), st)

@@ -442,3 +442,41 @@ def test_generic_linear_model_dense():
     m_ref, P_ref, _ = filterpy_run(model, z, x0, initial_covariance(model))
     np.testing.assert_allclose(res.mean, m_ref, atol=ATOL, rtol=0)
     np.testing.assert_allclose(res.cov, P_ref, atol=ATOL, rtol=0)
+
+
+@pytest.mark.parametrize("which", ["kf", "ufir", "em", "integrated", "imm"])
+def test_an_initial_covariance_that_is_not_a_covariance_is_refused(which):
+    """A negative or non-symmetric initial covariance was stored as given: the KF then gave
+    positions hundreds of metres off with negative variances, and no warning."""
+    from kinefuse.exceptions import InputError
+    from kinefuse.filters import IMM, EMKalmanFilter, IntegratedFilter, UFIRFilter
+
+    m = constant_velocity(1 / 30, q=0.1, r=0.01)
+    flt = {
+        "kf": lambda: KalmanFilter(m),
+        "ufir": lambda: UFIRFilter(m, horizon=10),
+        "em": lambda: EMKalmanFilter(m),
+        "integrated": lambda: IntegratedFilter(m, horizon=10),
+        "imm": lambda: IMM(m, m),
+    }[which]()
+    with pytest.raises(InputError, match="expected cov positive semi-definite, got smallest"):
+        flt.init((2,), mean=np.zeros(6), cov=-np.eye(6))
+    skew = np.eye(6)
+    skew[0, 1] = 0.5
+    with pytest.raises(InputError, match="expected cov symmetric"):
+        flt.init((2,), mean=np.zeros(6), cov=skew)
+    flt.init((2,), mean=np.zeros(6), cov=2.0 * np.eye(6))  # a covariance is taken
+
+
+def test_imm_refuses_external_posterior_covariances_that_are_not_covariances():
+    from kinefuse.exceptions import InputError
+    from kinefuse.filters import IMM
+
+    m = constant_velocity(1 / 30, q=0.1, r=0.01)
+    imm = IMM(m, m, reading="R2")
+    z = np.zeros((5, 2, 3))
+    x = np.zeros((5, 2, 6))
+    with pytest.raises(InputError, match="expected P_prev positive semi-definite"):
+        imm.filter(z, prev=(x, np.broadcast_to(-np.eye(6), (5, 2, 6, 6))))
+    P = np.full((5, 2, 6, 6), np.nan)  # NaN: not given, the IMM's own posterior is used
+    imm.filter(z, prev=(x, P))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import vqf
@@ -117,6 +119,17 @@ def test_estimate_bad_input(imu):
         estimate(acc, gyr, rate_hz=FS, params={"tau_acc": 1.0})
     with pytest.raises(InputError, match="rate_hz finite and > 0"):
         estimate(acc, gyr, rate_hz=0.0)
+    # VQF asserts these in C++: without the check the Python process aborted (exit 134)
+    for bad_params, msg in (
+        ({"tauAcc": -1.0}, "'tauAcc': expected a finite number > 0, got -1.0"),
+        ({"restFilterTau": 0.0}, "'restFilterTau': expected a finite number > 0"),
+        ({"tauAcc": "x"}, "'tauAcc': expected a number, got 'x'"),
+        ({"restBiasEstEnabled": 1}, "'restBiasEstEnabled': expected True or False"),
+        ({"biasClip": np.nan}, "'biasClip': expected a finite number"),
+    ):
+        for offline in (False, True):
+            with pytest.raises(InputError, match=re.escape(msg)):
+                estimate(acc, gyr, rate_hz=FS, params=bad_params, offline=offline)
     with pytest.raises(InputError, match=r"acc with shape \(3,\)"):
         OrientationEstimator(FS).update(acc[:2], gyr[0])
 
@@ -240,3 +253,21 @@ def test_broad_estimate_equals_vqf_and_accuracy(shared_data, trial):
     )
     rmse = np.degrees(np.sqrt(np.mean(err.magnitude() ** 2)))
     assert rmse == pytest.approx(BROAD_TRIALS[trial], abs=0.01)
+
+
+def test_slerp_resample_refuses_times_that_are_not_times():
+    """A NaN source time made every output NaN, the valid part too; a negative max_gap_s
+    did the same: both are errors, not missing data."""
+    from kinefuse.orientation.resample import slerp_resample
+
+    t = np.arange(10) / 10.0
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (10, 1))
+    bad = t.copy()
+    bad[4] = np.nan
+    with pytest.raises(InputError, match="expected t_src_s finite, got nan at sample 4"):
+        slerp_resample(bad, q, t[:5] + 0.05)
+    with pytest.raises(InputError, match="expected t_dst_s finite"):
+        slerp_resample(t, q, bad)
+    with pytest.raises(InputError, match="max_gap_s >= 0"):
+        slerp_resample(t, q, t + 0.05, max_gap_s=-1.0)
+    np.testing.assert_allclose(slerp_resample(t, q, t[:-1] + 0.05), q[:-1])

@@ -100,6 +100,53 @@ def positive_finite(value, name: str) -> float:
     return out
 
 
+def names_arg(value, name: str):
+    """``value`` as a tuple of names, or None; a bare string (which Python would iterate letter
+    by letter: "unknown joint 'e'") is refused with the fix."""
+    if value is None:
+        return None
+    if isinstance(value, (str, bytes)):
+        raise InputError(
+            f"expected {name} as a sequence of names, e.g. [{value!r}], got the string {value!r}"
+        )
+    try:
+        return tuple(value)
+    except TypeError:
+        raise InputError(
+            f"expected {name} as a sequence of names, got {type(value).__name__}"
+        ) from None
+
+
+def check_psd_stack(m: np.ndarray, name: str) -> None:
+    """Each ``(n, n)`` matrix of ``m (..., n, n)`` symmetric positive semi-definite, to rounding
+    (relative 1e-9); matrices with a NaN are skipped (not given). Raises an InputError naming
+    the first bad one."""
+    n = m.shape[-1]
+    a = np.asarray(m, dtype=float).reshape(-1, n, n)
+    idx = np.flatnonzero(np.all(np.isfinite(a), axis=(1, 2)))
+    if idx.size == 0:
+        return
+    a = a[idx]
+    scale = np.maximum(np.abs(a).max(axis=(1, 2)), np.finfo(float).tiny)
+    asym = np.abs(a - a.transpose(0, 2, 1)).max(axis=(1, 2))
+    where = lambda k: np.unravel_index(int(idx[k]), m.shape[:-2]) if m.ndim > 2 else ()  # noqa: E731
+    bad = np.flatnonzero(asym > 1e-9 * scale)
+    if bad.size:
+        k = int(bad[0])
+        raise InputError(
+            f"expected {name} symmetric, got max |{name} - {name}ᵀ| = {asym[k]:.3g} at "
+            f"index {where(k)}"
+        )
+    eig = np.linalg.eigvalsh(a).min(axis=1)
+    bad = np.flatnonzero(eig < -1e-9 * scale)
+    if bad.size:
+        k = int(bad[0])
+        raise InputError(
+            f"expected {name} positive semi-definite, got smallest eigenvalue {eig[k]:.3g} at "
+            f"index {where(k)}"
+        )
+
+
 def psd_matrix(value, name: str, n: int, *, strict: bool = False) -> np.ndarray:
     """Return ``value`` as an ``(n, n)`` symmetric positive (semi-)definite float matrix."""
     m = np.asarray(value, dtype=float) if not isinstance(value, np.ndarray) else value

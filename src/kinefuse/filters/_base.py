@@ -34,7 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from kinefuse._validation import as_float_array
+from kinefuse._validation import as_float_array, check_psd_stack
 from kinefuse.exceptions import InputError, NumericalWarning
 
 #: Initial velocity standard deviation, m/s (SPEC §4.2 and §12.2).
@@ -396,6 +396,8 @@ def make_initial_state(model, batch_shape=(), mean=None, cov=None) -> GaussianSt
     x = broadcast_copy(m, (*batch_shape, n_x), "mean", finite=True)
     c = initial_covariance(model) if cov is None else as_float_array(cov, "cov")
     P = broadcast_copy(c, (*batch_shape, n_x, n_x), "cov", finite=True)
+    if cov is not None:
+        check_psd_stack(c, "cov")
     return GaussianState(x, P, np.ones(batch_shape, dtype=bool), 0)
 
 

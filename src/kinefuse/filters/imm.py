@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from kinefuse._validation import as_float_array
+from kinefuse._validation import as_float_array, check_psd_stack
 from kinefuse.exceptions import InputError
 from kinefuse.filters._base import (
     FilterResult,
@@ -389,6 +389,8 @@ class IMM:
         x = broadcast_copy(m, (*batch_shape, M, n_x), "mean", finite=True, order="C")
         c = self._P_init if cov is None else as_float_array(cov, "cov")
         P = broadcast_copy(c, (*batch_shape, M, n_x, n_x), "cov", finite=True, order="C")
+        if cov is not None:
+            check_psd_stack(c, "cov")
         return IMMState(x, P, mu_b, np.ones(batch_shape, dtype=bool), 0)
 
     # ------------------------------------------------------------------ running
@@ -504,6 +506,7 @@ class IMM:
             raise InputError(f"expected P_prev with shape {(*lead, n_x, n_x)}, got {Pp.shape}")
         if np.any(np.isinf(xp)) or np.any(np.isinf(Pp)):
             raise InputError("expected prev finite or NaN (not given), got ±inf")
+        check_psd_stack(Pp, "P_prev")
         return xp, Pp
 
     def _run(self, state: IMMState, z: np.ndarray, prev) -> tuple[IMMState, IMMResult]:

@@ -52,6 +52,12 @@ def slerp_resample(t_src_s, q_src, t_dst_s, *, max_gap_s: float | None = None) -
         raise InputError(f"expected t_src_s (T,) and q_src (T, 4), got {t_src.shape} and {q.shape}")
     if t_dst.ndim != 1:
         raise InputError(f"expected t_dst_s with shape (M,), got {t_dst.shape}")
+    for name, t in (("t_src_s", t_src), ("t_dst_s", t_dst)):  # a NaN time is not "missing"
+        if not np.all(np.isfinite(t)):
+            k = int(np.flatnonzero(~np.isfinite(t))[0])
+            raise InputError(f"expected {name} finite, got {t[k]} at sample {k}")
+    if max_gap_s is not None and not (float(max_gap_s) >= 0):
+        raise InputError(f"expected max_gap_s >= 0 (s) or None, got {max_gap_s!r}")
     if t_src.shape == t_dst.shape and np.array_equal(t_src, t_dst):
         return q.copy()
     ok = finite_rows(q)

@@ -14,6 +14,7 @@ Both are returned unchanged as kinefuse's ``q_world_from_sensor``.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import numpy as np
@@ -51,13 +52,30 @@ def _check_params(params) -> dict:
         raise InputError(
             f"expected params as a mapping of VQF parameter names, got {type(params).__name__}"
         )
-    known = set(vqf.VQF(1.0).params)
-    unknown = sorted(set(params) - known)
+    defaults = vqf.VQF(1.0).params
+    unknown = sorted(set(params) - set(defaults))
     if unknown:
         raise InputError(
-            f"unknown VQF parameter(s) {unknown}; expected a subset of {sorted(known)}"
+            f"unknown VQF parameter(s) {unknown}; expected a subset of {sorted(defaults)}"
         )
+    for name, value in params.items():  # VQF's own checks are C++ assertions: they abort Python
+        if isinstance(defaults[name], bool):
+            if not isinstance(value, (bool, np.bool_)):
+                raise InputError(f"VQF parameter {name!r}: expected True or False, got {value!r}")
+            continue
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.number)):
+            raise InputError(f"VQF parameter {name!r}: expected a number, got {value!r}")
+        if not math.isfinite(value) or (name in _VQF_POSITIVE and not value > 0):
+            need = " > 0" if name in _VQF_POSITIVE else ""
+            raise InputError(
+                f"VQF parameter {name!r}: expected a finite number{need}, got {value!r}"
+            )
     return dict(params)
+
+
+#: VQF parameters whose value VQF asserts > 0: a C++ assertion, which ends the Python process
+#: (vqf 2.x: zero or negative tauAcc or restFilterTau; the others were checked not to abort).
+_VQF_POSITIVE = frozenset({"tauAcc", "restFilterTau"})
 
 
 def estimate(
