@@ -829,3 +829,30 @@ def test_default_facing_note_says_why():
     assert "no elbow or knee moved enough" in note({})
     moved = note({"knee_l": 0.5, "knee_r": 0.6})
     assert "knee_l, knee_r gave no common one" in moved and "moved enough" not in moved
+
+
+def test_api_arguments_that_would_be_misread_are_refused(shared_data):
+    """Found by a sweep of the Python API: a name given as a bare string was iterated letter
+    by letter ("unknown segment 't'"); a low-pass cutoff of NaN or above Nyquist switched the
+    filter off (thigh 0.097 m instead of 0.356); a zero or negative still-window step searched
+    only the first window; a tiny one asked for 63 GiB."""
+    from kinefuse.io import load
+    from kinefuse.kinematics import find_still_window, joint_angles
+    from kinefuse.kinematics.functional import functional_calibration
+
+    rec = load(shared_data / "neura_sparse_sample")
+    sk = lower_body(height_m=1.75)
+    with pytest.raises(InputError, match=r"segments as a sequence of names, e.g. \['thigh_l'\]"):
+        calibrate(rec, sk, "functional", segments="thigh_l")
+    with pytest.raises(InputError, match="expected segments with at least one segment name"):
+        calibrate(rec, sk, "functional", segments=[])
+    with pytest.raises(InputError, match=r"joints as a sequence of names, e\.g\. \['knee_l'\]"):
+        joint_angles({}, joints="knee_l")
+    for bad in (np.nan, 0.0, 49.9, True):
+        with pytest.raises(InputError, match=r"expected cutoff_hz in \(0, 45\) Hz"):
+            functional_calibration(rec, sk, cutoff_hz=bad)
+    for bad in (-1.0, 0.0, np.nan):
+        with pytest.raises(InputError, match="expected step_s finite and > 0"):
+            find_still_window(rec.imu, step_s=bad)
+    with pytest.raises(InputError, match="candidate windows"):
+        find_still_window(rec.imu, step_s=1e-9)

@@ -389,3 +389,23 @@ def test_table_cells_never_show_minus_zero():
         "0.0", "0.0", "0.0", "-0.1", "-1.2", "2.0",
     ]  # fmt: skip
     assert t.cell(float("nan")) == "–" and t.cell(None) == "–" and t.cell("n/a") == "n/a"
+
+
+def test_a_diverged_estimate_scores_an_infinite_error_not_a_missing_sample():
+    """±inf in an estimate was left out like NaN: 47 % inf scored as well as a good estimate.
+    NaN is missing; inf is a sample whose error is infinite. A reference with inf is refused."""
+    from kinefuse.evaluation.metrics import error_at, evaluate, rmse_3d
+
+    ref = np.zeros((100, 3))
+    est = ref + 0.01
+    est[:47] = np.inf
+    assert rmse_3d(est, ref) == np.inf and error_at(est, ref, p=0.9) == np.inf
+    ev = evaluate({"a": est[:, None]}, ref[:, None])
+    assert ev.rmse_3d[0, 0] == np.inf and ev.n_samples[0, 0] == 100
+    missing = ref + 0.01
+    missing[:47] = np.nan  # missing samples are left out
+    assert rmse_3d(missing, ref) == pytest.approx(0.01 * np.sqrt(3))
+    bad_ref = ref.copy()
+    bad_ref[3] = np.inf
+    with pytest.raises(InputError, match=r"expected ref finite or NaN \(missing\), got ±inf"):
+        rmse_3d(est, bad_ref)

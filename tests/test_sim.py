@@ -415,3 +415,16 @@ def test_bad_arguments(walk):
         CameraConfig(frame="NED")
     with pytest.raises(InputError, match="expected motion"):
         virtual_recording(np.zeros((3, 3)))
+
+
+def test_reference_at_refuses_times_outside_the_motion():
+    """A cubic spline extrapolated the truth: 7 s past a 2.85-s clip the wrist was 4e5 m away,
+    marked available."""
+    from kinefuse.data import demo_motion
+    from kinefuse.exceptions import InputError
+    from kinefuse.sim.camera import reference_at
+
+    m = demo_motion()
+    with pytest.raises(InputError, match="expected t_s inside the motion's span"):
+        reference_at(m, np.array([m.t_s[-1] + 7.0]))
+    assert np.all(np.isfinite(reference_at(m, m.t_s[[0, -1]]).position_m))

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from kinefuse._validation import names_arg
 from kinefuse.conventions import AXES_ENU
 from kinefuse.exceptions import InputError
 
@@ -49,7 +50,7 @@ __all__ = [
 # --------------------------------------------------------------------------------------------
 
 
-def _positions(value, name: str) -> np.ndarray:
+def _positions(value, name: str, *, estimate: bool = False) -> np.ndarray:
     arr = np.asarray(value)
     if arr.dtype == object or not (
         np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)
@@ -59,12 +60,16 @@ def _positions(value, name: str) -> np.ndarray:
         )
     if arr.ndim < 2 or arr.shape[-1] != 3:
         raise InputError(f"expected {name} with shape (..., T, 3), got {arr.shape}")
-    return np.asarray(arr, dtype=np.float64)
+    out = np.asarray(arr, dtype=np.float64)
+    n_inf = int(np.count_nonzero(np.isinf(out)))
+    if n_inf and not estimate:  # NaN marks a missing sample, ±inf nothing a reference holds
+        raise InputError(f"expected {name} finite or NaN (missing), got ±inf in {n_inf} entries")
+    return out
 
 
 def _pair(est, ref, mask) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validate and broadcast; return ``(est, ref, valid)`` with ``valid`` shaped ``(..., T)``."""
-    e = _positions(est, "est")
+    e = _positions(est, "est", estimate=True)
     r = _positions(ref, "ref")
     try:
         shape = np.broadcast_shapes(e.shape, r.shape)
@@ -74,7 +79,8 @@ def _pair(est, ref, mask) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         ) from None
     e = np.broadcast_to(e, shape)
     r = np.broadcast_to(r, shape)
-    valid = np.all(np.isfinite(e), axis=-1) & np.all(np.isfinite(r), axis=-1)
+    # an estimate's NaN is a missing sample; its ±inf (a diverged filter) is an infinite error
+    valid = ~np.any(np.isnan(e), axis=-1) & np.all(np.isfinite(r), axis=-1)
     if mask is not None:
         m = np.asarray(mask)
         if m.dtype != bool:
@@ -217,13 +223,13 @@ def error_cdf(est, ref, mask=None) -> tuple[np.ndarray, np.ndarray]:
         ``F(sorted_errors[i]) = (i + 1) / n``, the empirical CDF (a right-continuous step
         function; plot it with ``drawstyle="steps-post"``).
     """
-    e = _positions(est, "est")
+    e = _positions(est, "est", estimate=True)
     if e.ndim != 2:
         raise InputError(
             f"expected est with shape (T, 3) (one joint; loop over batches), got {e.shape}"
         )
     err = position_error(e, ref, mask)
-    x = np.sort(err[np.isfinite(err)])
+    x = np.sort(err[~np.isnan(err)])  # an infinite error (a diverged estimate) counts
     n = x.size
     return x, np.arange(1, n + 1, dtype=float) / max(n, 1)
 
@@ -250,8 +256,8 @@ def error_at(est, ref, *, p: float = 0.9, mask=None) -> np.ndarray:
     err = position_error(est, ref, mask)
     if err.shape[-1] == 0:
         return np.full(err.shape[:-1], np.nan)
-    x = np.sort(err, axis=-1)  # NaN sorts last
-    n = np.isfinite(err).sum(axis=-1)
+    x = np.sort(err, axis=-1)  # inf (a diverged estimate) sorts before NaN (not valid), last
+    n = (~np.isnan(err)).sum(axis=-1)
     # 1e-9 guards p * n against round-off just above an integer (0.9 * 10 = 9.000000000000002)
     idx = np.clip(np.ceil(p * n - 1e-9).astype(np.int64) - 1, 0, err.shape[-1] - 1)
     out = np.take_along_axis(x, idx[..., None], axis=-1)[..., 0]
@@ -416,7 +422,7 @@ class EvaluationResult:
                 err = err[:0]
             else:
                 err = err[self.outage_mask[:, j] == bool(outage)]
-        x = np.sort(err[np.isfinite(err)])
+        x = np.sort(err[~np.isnan(err)])  # an infinite error counts (the plot clips it)
         return x, np.arange(1, x.size + 1, dtype=float) / max(x.size, 1)
 
     def improvement(
@@ -544,7 +550,7 @@ def evaluate(
     """
     if not isinstance(estimates, Mapping) or not estimates:
         raise InputError("expected estimates as a non-empty mapping method name -> (T, J, 3) array")
-    ref, names = _reference_arrays(reference, joints)
+    ref, names = _reference_arrays(reference, names_arg(joints, "joints"))
     T, J, _ = ref.shape
     axes = tuple(axes)
     if len(axes) != 3:
@@ -553,7 +559,7 @@ def evaluate(
     R = np.moveaxis(ref, 0, 1)[None]  # (1, J, T, 3)
     om = _outage_mask(outage_mask, T, J)
     rt = _run_times(run_time_s, estimates)
-    both = np.isfinite(E).all(-1) & np.isfinite(R).all(-1)  # (M, J, T)
+    both = ~np.isnan(E).any(-1) & np.isfinite(R).all(-1)  # (M, J, T): samples scored
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         rmse = rmse_per_axis(E, R)
@@ -589,7 +595,7 @@ def _stacked_estimates(estimates: Mapping, ref: np.ndarray) -> np.ndarray:
     """The methods' positions, validated against ``ref`` (T, J, 3), as (M, J, T, 3)."""
     est = []
     for name, value in estimates.items():
-        e = _positions(value, f"estimates[{name!r}]")
+        e = _positions(value, f"estimates[{name!r}]", estimate=True)
         if e.shape != ref.shape:
             raise InputError(
                 f"expected estimates[{name!r}] with shape (T, J, 3) = {ref.shape}, got {e.shape}"

@@ -22,6 +22,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from kinefuse._validation import names_arg
 from kinefuse.exceptions import InputError
 from kinefuse.kinematics.forward import as_rotation_matrices
 
@@ -119,6 +120,7 @@ def joint_angles(
         raise InputError(
             f"expected orientations as a mapping segment -> (..., T, 3, 3), got {type(orientations).__name__}"
         )
+    joints = names_arg(joints, "joints")
     if joints is None:
         joints = [j for j, (p, d, _) in JOINTS.items() if p in orientations and d in orientations]
     out = {}

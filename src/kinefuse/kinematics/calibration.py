@@ -43,6 +43,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from kinefuse._validation import names_arg
 from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.io.recording import Recording
 from kinefuse.kinematics.alignment import (
@@ -223,7 +224,10 @@ def calibrate(
             declared_axes=mounting,
             proximal_segments=proximal_segments,
         )
-    segs = list(skeleton.segments) if segments is None else list(segments)
+    segs = names_arg(segments, "segments")
+    segs = list(skeleton.segments if segs is None else segs)
+    if not segs:
+        raise InputError("expected segments with at least one segment name, or None for all")
     for s in segs:
         if not (method == "static" and s in (skeleton.root_segment, *TRUNK_SEGMENTS)):
             skeleton.index(s)

@@ -92,6 +92,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from kinefuse._validation import names_arg
 from kinefuse.exceptions import InputError, NumericalWarning
 from kinefuse.io.recording import Recording
 from kinefuse.kinematics.calibration_result import Calibration, oriented_imu, turned_heading
@@ -227,8 +228,9 @@ def functional_calibration(
         heading (Notes). ``"norm"``: Seel et al. 2012's orientation-free form
         ``‖a_A + K_A r_A‖ = ‖a_B + K_B r_B‖``, for long recordings whose relative heading
         drifts (6-D fusion); no heading is estimated (``heading_deg`` NaN).
-    cutoff_hz : float
-        Zero-phase low-pass (2nd-order Butterworth run forwards and backwards), Hz (default
+    cutoff_hz : float or None
+        Zero-phase low-pass (2nd-order Butterworth run forwards and backwards), Hz, below 0.45
+        of the sampling rate; None: no low-pass (default
         :data:`CUTOFF_HZ`, Winter 2009). It is applied to both sides of the linear model, the
         measured acceleration ``R a`` and the regressor ``R K`` (not to ``K``'s inputs, which
         would break the model's ``ω²`` term for fast motion); the hinge axes use the low-passed
@@ -272,7 +274,10 @@ def functional_calibration(
         unknown ``heading``.
     """
     _check_arguments(recording, skeleton, constraint, heading, min_excitation_s2)
-    segs = list(skeleton.segments) if segments is None else list(segments)
+    segs = names_arg(segments, "segments")
+    segs = list(skeleton.segments if segs is None else segs)
+    if not segs:
+        raise InputError("expected segments with at least one segment name, or None for all")
     for s in segs:
         skeleton.index(s)
     beyond = dict(DISTAL_SEGMENTS if distal_segments is None else distal_segments)
@@ -289,6 +294,7 @@ def functional_calibration(
         raise InputError(
             f"functional calibration: expected at least 10 samples in the window, got {t.size}"
         )
+    _check_cutoff(cutoff_hz, t)
     sig = {s: joint_signals(st, s, t, cutoff_hz) for s, st in streams.items()}
     if heading == "auto":
         heading = "shared" if len({st.frame for st in streams.values()}) == 1 else "estimate"
@@ -328,6 +334,20 @@ def _check_arguments(recording, skeleton, constraint, heading, min_excitation_s2
         raise InputError(f"expected heading in ('auto', 'shared', 'estimate'), got {heading!r}")
     if not (np.isfinite(min_excitation_s2) and min_excitation_s2 >= 0):
         raise InputError(f"expected min_excitation_s2 >= 0, got {min_excitation_s2}")
+
+
+def _check_cutoff(cutoff_hz, t: np.ndarray) -> None:
+    """``cutoff_hz`` None (no low-pass) or a number in (0, 0.45 fs): at or above that the
+    low-pass would be skipped, a NaN would switch it off, both silently."""
+    if cutoff_hz is None:
+        return
+    fs = 1.0 / float(np.median(np.diff(t)))
+    c = float(cutoff_hz) if isinstance(cutoff_hz, (int, float, np.number)) else np.nan
+    if isinstance(cutoff_hz, (bool, np.bool_)) or not (np.isfinite(c) and 0 < c < 0.45 * fs):
+        raise InputError(
+            f"expected cutoff_hz in (0, {0.45 * fs:.3g}) Hz (0.45 x the {fs:.4g} Hz sampling "
+            f"rate) or None for no low-pass, got {cutoff_hz!r}"
+        )
 
 
 def _joint_pairs(

@@ -17,6 +17,7 @@ recordings of ``../shared/data`` at rest), walking 1-5 rad/s and 2-10 m/s².
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -37,6 +38,9 @@ __all__ = [
 MAX_RATE_RAD_S = 0.1
 #: Default threshold of the acceleration standard deviation in a still window, m/s².
 MAX_ACC_STD_M_S2 = 0.2
+#: Most candidate windows one search examines (each holds per-sensor statistics; a day at the
+#: default step of a 1-s window is 345 600).
+MAX_CANDIDATES = 2_000_000
 #: A recording shorter than the still window is one candidate window; a static calibration
 #: refuses one shorter than this, s: over less, stillness cannot be told from a pause in a
 #: movement (zero-velocity detectors judge windows of 0.1-0.5 s, Skog et al. 2010).
@@ -194,7 +198,15 @@ def find_still_window(
         )
     win = min(float(window_s), t1 - t0 + 1e-6)
     step = float(step_s) if step_s is not None else win / 4.0
-    starts = t0 + np.arange(max(int(np.floor((t1 - t0 - win) / step + 1e-9)) + 1, 1)) * step
+    if isinstance(step_s, (bool, np.bool_)) or not (math.isfinite(step) and step > 0):
+        raise InputError(f"expected step_s finite and > 0 (s) or None, got {step_s!r}")
+    n_starts = max(int(np.floor((t1 - t0 - win) / step + 1e-9)) + 1, 1)
+    if n_starts > MAX_CANDIDATES:
+        raise InputError(
+            f"step_s = {step:g} s gives {n_starts} candidate windows over {t1 - t0:.4g} s (at most "
+            f"{MAX_CANDIDATES}); give a longer step_s"
+        )
+    starts = t0 + np.arange(n_starts) * step
     rate, acc, signals = _candidate_stats(streams, starts, win)
     names = list(streams)
     with np.errstate(invalid="ignore"):

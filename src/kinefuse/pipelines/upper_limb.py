@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kinefuse._validation import positive_finite
+from kinefuse._validation import names_arg, positive_finite
 from kinefuse.conventions import MODE_EM, MODE_FIR, MODE_KF, MODE_PREDICT
 from kinefuse.exceptions import InputError
 from kinefuse.filters import KalmanFilter
@@ -131,7 +131,7 @@ def _chain_arrays(z_elbow, z_wrist, joints):
             f"expected z_wrist with the shape of z_elbow {arrs[0].shape}, got {arrs[1].shape}"
         )
     default = ("elbow", "wrist")[: len(arrs)]
-    names = tuple(joints) if joints is not None else default
+    names = names_arg(joints, "joints") or default
     if len(names) != len(arrs):
         raise InputError(f"expected {len(arrs)} joint names, got {len(names)}")
     return np.stack(arrs, axis=1), names, None, None

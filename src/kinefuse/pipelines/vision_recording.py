@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kinefuse._validation import names_arg
 from kinefuse.conventions import PAPER_B_JOINTS
 from kinefuse.exceptions import InputError
 from kinefuse.io.recording import Recording
@@ -129,7 +130,7 @@ def vision_assisted_from_recording(
     The steps and the deviations from the paper are in the module docstring.
     """
     rate, t, cam = _check_recording(recording, rate_hz)
-    out_joints = tuple(PAPER_B_JOINTS if joints is None else joints)
+    out_joints = names_arg(joints, "joints") or PAPER_B_JOINTS
     sk = full_body(height_m=1.75) if skeleton is None else skeleton  # default: topology only
     if calibration is not None:
         sk = calibration.apply(sk)

@@ -202,7 +202,15 @@ def reference_at(motion: Motion, t_s: np.ndarray, joints=None) -> JointStream:
     """
     names = tuple(motion.joints if joints is None else joints)
     idx = [motion.joint_index(j) for j in names]
-    pos = CubicSpline(motion.t_s, motion.position_m[:, idx], axis=0)(np.asarray(t_s, dtype=float))
+    t = np.asarray(t_s, dtype=float)
+    outside = ~((t >= motion.t_s[0] - 1e-9) & (t <= motion.t_s[-1] + 1e-9))
+    if np.any(outside):  # a spline extrapolates wildly (4e5 m 7 s past the end): an error
+        k = int(np.flatnonzero(outside)[0])
+        raise InputError(
+            f"expected t_s inside the motion's span {motion.t_s[0]:.4g}-{motion.t_s[-1]:.4g} s, "
+            f"got {t[k]!r} (sample {k})"
+        )
+    pos = CubicSpline(motion.t_s, motion.position_m[:, idx], axis=0)(t)
     return JointStream(t_s=t_s, position_m=pos, joints=names, frame="ENU")
 
 
