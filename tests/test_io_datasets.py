@@ -334,3 +334,12 @@ def test_load_dispatches_to_cmu_and_bvh(shared_data):
     assert kio.detect_format(amc) == "cmu" and kio.detect_format(bvh) == "bvh"
     assert isinstance(kio.load(amc), kio.Recording)
     assert isinstance(kio.load(bvh), kio.Recording)
+
+
+def test_utd_mhad_pair_of_two_trials_is_refused(shared_data):
+    """The inertial file of one trial with the skeleton of another was read as one recording."""
+    d = shared_data / "utd_mhad"
+    with pytest.raises(FormatError, match="is the skeleton of trial a10_s1_t2, given with the"):
+        kio.load(
+            (d / "Inertial" / "a10_s1_t1_inertial.mat", d / "Skeleton" / "a10_s1_t2_skeleton.mat")
+        )

@@ -150,6 +150,16 @@ def read_utd_mhad(
     path = Path(path)
     parsed = _parse_name(path)
     iner_path, skel_path = _trial_files(path, parsed, skeleton_path)
+    names = [(q, _parse_name(q)) for q in (iner_path, skel_path) if q is not None]
+    trials = {tuple(n[:3]) for _, n in names if n is not None}
+    if len(trials) > 1:  # two trials' files read as one recording: wrong without a sign
+        a, b = names
+        raise FormatError(
+            b[0],
+            f"is the skeleton of trial a{b[1][0]}_s{b[1][1]}_t{b[1][2]}, given with the inertial "
+            f"file of trial a{a[1][0]}_s{a[1][1]}_t{a[1][2]} ({a[0].name}); give the two files "
+            "of one trial",
+        )
     notes: list[str] = []
     imu, t_end = {}, None
     action = parsed[0] if parsed else None

@@ -65,7 +65,10 @@ JOINTS = {
 
 def angle_components(joint: str) -> tuple[str, str, str]:
     """The names of ``joint``'s three angles, in the order :func:`joint_angles` returns them:
-    :data:`TRUNK_ANGLE_COMPONENTS` for ``"trunk"``, else :data:`JOINT_ANGLE_COMPONENTS`."""
+    :data:`TRUNK_ANGLE_COMPONENTS` for ``"trunk"``, else :data:`JOINT_ANGLE_COMPONENTS`; a
+    name that is not a joint of :data:`JOINTS` is an error (not a limb joint's names)."""
+    if joint not in JOINTS:
+        raise InputError(f"unknown joint {joint!r}; expected one of {sorted(JOINTS)}")
     return TRUNK_ANGLE_COMPONENTS if joint == "trunk" else JOINT_ANGLE_COMPONENTS
 
 
