@@ -353,3 +353,15 @@ def test_static_calibration_warns_when_the_recording_is_shorter_than_its_window(
     with warnings.catch_warnings():  # 100 samples at 100 Hz fill a 1-s window: no warning
         warnings.simplefilter("error", NumericalWarning)
         calibrate(_still_arm(100), sk, "static", segments=["upper_arm_r"])
+
+
+def test_reference_calibration_refuses_quaternions_that_are_not_unit():
+    """Norm-2 quaternions were blended (and so normalised) by SLERP before any check: the
+    reference calibration accepted what the static one and chain_positions refuse."""
+    from dataclasses import replace
+
+    rec, _, _ = make_recording()
+    st = rec.imu["thigh_l"]
+    imu = {**rec.imu, "thigh_l": replace(st, q_world_from_sensor=2.0 * st.q_world_from_sensor)}
+    with pytest.raises(InputError, match="IMU 'thigh_l' orientation as unit quaternions"):
+        calibrate(replace(rec, imu=imu), lower_body(height_m=1.75), "reference", window_s=1.0)

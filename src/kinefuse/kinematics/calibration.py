@@ -462,7 +462,8 @@ def _paired_directions(skeleton, s, stream, imu, sel, t, method):
             f"segment {s!r}: expected joints {lack} in the {method} stream, got {list(stream.joints)}"
         )
     d = stream.position(dist)[sel] - stream.position(prox)[sel]
-    q = slerp_resample(imu.t_s, imu.q_world_from_sensor, t)
+    as_rotation_matrices(imu.q_world_from_sensor, f"IMU {s!r} orientation")  # unit norm, before
+    q = slerp_resample(imu.t_s, imu.q_world_from_sensor, t)  # SLERP normalises what it blends
     R = as_rotation_matrices(q, f"IMU {s!r} orientation")
     n = np.linalg.norm(d, axis=1)
     ok = np.isfinite(n) & (n > 1e-6) & np.all(np.isfinite(R), axis=(1, 2))
