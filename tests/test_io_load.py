@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 import kinefuse.io as kio
-from kinefuse.exceptions import FormatError
+from kinefuse.exceptions import FormatError, InputError
 
 
 def test_formats_listing():
@@ -78,3 +78,11 @@ def test_explicit_format_and_options(shared_data):
     assert rec.vision.t_s[1] == pytest.approx(1 / 30)
     assert rec.metadata["units_converted"] == ["acc g -> m/s^2", "gyr deg/s -> rad/s"]
     assert {"subject", "source", "format", "units_converted"} <= set(rec.metadata)
+
+
+def test_load_names_a_wrong_path_type_and_unknown_reader_options(shared_data):
+    """load(5) raised a TypeError from pathlib; load(path, foo=1) one naming read_neura."""
+    with pytest.raises(InputError, match="expected path as a file or folder path, got int"):
+        kio.load(5)
+    with pytest.raises(InputError, match=r"unknown option\(s\) \['foo'\] for the 'neura' reader"):
+        kio.load(shared_data / "neura_sparse_sample", foo=1)

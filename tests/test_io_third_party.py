@@ -706,6 +706,8 @@ name = "imu-only"
     assert rec.vision.available.sum() == 7155 + 1795  # Inferred accepted by the mapping
     p.write_text(text.replace('time_unit = "ms"', 'time_units = "ms"'))
     with pytest.raises(
-        ConfigError, match=r"\[camera.reader\]: .*unexpected keyword argument 'time_units'"
+        ConfigError,
+        match=r"\[camera.reader\]: unknown option\(s\) \['time_units'\] for the 'kinect_v2' "
+        r"reader; it takes \[.*'time_unit'",
     ):
         load_streams(load_session(p), strict_units=False)

@@ -201,3 +201,23 @@ def test_a_session_with_a_camera_passes_the_chains_orientations(shared_data):
     assert out.segment_rotations(joints).shape == (out.t_s.size, 4, 2, 3, 3)
     seen = np.all(np.isfinite(out.camera), axis=-1)
     assert np.all(np.isfinite(out.position[seen]))
+
+
+def test_segment_rotations_that_are_not_rotations_are_refused():
+    """A (T, J, S, 3, 3) of ones (or 1e3) was taken as orientations and changed the output;
+    all-NaN rotations failed with a zip() error (they are padding, and a joint with nothing
+    else is refused). Zero padding and NaN rows stay allowed."""
+    rng = np.random.default_rng(0)
+    T = 200
+    zi = rng.normal(size=(T, 1, 3))
+    zc = zi + 0.01 * rng.normal(size=(T, 1, 3))
+    av = np.ones((T, 1), bool)
+    av[120:140] = False
+    R = Rotation.random(T, random_state=1).as_matrix()[:, None, None]  # (T, 1, 1, 3, 3)
+    R = np.concatenate([R, np.zeros_like(R)], axis=2)  # a padded second segment
+    R[5] = np.nan  # a missing orientation
+    kinefuse_fusion(zi, zc, av, 1 / 30, segment_rotations=R)
+    with pytest.raises(InputError, match=r"joint 0, segment 0, sample 0 is not a rotation"):
+        kinefuse_fusion(zi, zc, av, 1 / 30, segment_rotations=np.ones((T, 1, 1, 3, 3)))
+    with pytest.raises(InputError, match="joint 0 has only padding"):
+        kinefuse_fusion(zi, zc, av, 1 / 30, segment_rotations=np.full((T, 1, 1, 3, 3), np.nan))

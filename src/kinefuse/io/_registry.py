@@ -7,7 +7,9 @@ module lands later and importing :mod:`kinefuse.io` stays cheap.
 from __future__ import annotations
 
 import importlib
+import inspect
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -334,6 +336,21 @@ def _detect_json(path: Path) -> str | None:
     return None
 
 
+def _check_options(reader, fmt: str, options) -> None:
+    """Options ``load`` passes on must be keyword arguments of the reader (a TypeError named
+    the Python function and not the option's use)."""
+    params = inspect.signature(reader).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return
+    known = [n for n, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY
+             or (p.kind is inspect.Parameter.POSITIONAL_OR_KEYWORD and n != "path")]  # fmt: skip
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise InputError(
+            f"unknown option(s) {unknown} for the {fmt!r} reader; it takes {sorted(known) or 'none'}"
+        )
+
+
 def load(path, format: str | None = None, **options) -> Recording:
     """Read a recording in any supported format into a :class:`~kinefuse.io.recording.Recording`.
 
@@ -374,6 +391,8 @@ def load(path, format: str | None = None, **options) -> Recording:
         return _reader("utd_mhad")(a, skeleton_path=b, **options)
     if format is not None and format not in _REGISTRY:
         raise InputError(f"unknown format {format!r}; known formats: {_known()}")
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"expected path as a file or folder path, got {type(path).__name__}")
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"{p}: no such file or directory")
@@ -385,6 +404,7 @@ def load(path, format: str | None = None, **options) -> Recording:
             )
         p = only or p
     fmt = format or detect_format(p)
+    _check_options(_reader(fmt), fmt, options)
     try:
         return _reader(fmt)(p, **options)
     except FormatError as exc:

@@ -65,10 +65,14 @@ JOINTS = {
 
 def angle_components(joint: str) -> tuple[str, str, str]:
     """The names of ``joint``'s three angles, in the order :func:`joint_angles` returns them:
-    :data:`TRUNK_ANGLE_COMPONENTS` for ``"trunk"``, else :data:`JOINT_ANGLE_COMPONENTS`; a
-    name that is not a joint of :data:`JOINTS` is an error (not a limb joint's names)."""
-    if joint not in JOINTS:
-        raise InputError(f"unknown joint {joint!r}; expected one of {sorted(JOINTS)}")
+    :data:`TRUNK_ANGLE_COMPONENTS` for ``"trunk"``, else :data:`JOINT_ANGLE_COMPONENTS`.
+    ``joint``: a joint of :data:`JOINTS` or its kind without the side (``"knee"``); anything
+    else is an error (it got a limb joint's names)."""
+    if joint not in JOINTS and f"{joint}_l" not in JOINTS:
+        kinds = sorted({j.rsplit("_", 1)[0] if j[-2:] in ("_l", "_r") else j for j in JOINTS})
+        raise InputError(
+            f"unknown joint {joint!r}; expected one of {sorted(JOINTS)} or a kind {kinds}"
+        )
     return TRUNK_ANGLE_COMPONENTS if joint == "trunk" else JOINT_ANGLE_COMPONENTS
 
 

@@ -432,11 +432,30 @@ def _rotations_by_joint(rotations, shape) -> list[list[np.ndarray]]:
         )
     out = []
     for j in range(J):
-        segs = [R[:, j, k] for k in range(R.shape[2]) if np.any(R[:, j, k] != 0)]
+        # padding: no finite non-zero entry (all zero, or zero with the missing rows' NaN)
+        segs = [R[:, j, k] for k in range(R.shape[2]) if np.any(np.nan_to_num(R[:, j, k]) != 0)]
         if not segs:
             raise InputError(f"segment_rotations: joint {j} has only padding (all-zero) segments")
+        for k, Rk in enumerate(segs):
+            _check_rotations(Rk, j, k)
         out.append(segs)
     return out
+
+
+def _check_rotations(R: np.ndarray, j: int, k: int) -> None:
+    """The finite rows of ``R (T, 3, 3)`` are rotation matrices (orthonormal, det +1, to 1e-6);
+    NaN rows are missing orientations."""
+    ok = np.all(np.isfinite(R), axis=(1, 2))
+    Rf = R[ok]
+    err = np.abs(np.einsum("tji,tjk->tik", Rf, Rf) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(Rf)
+    bad = np.flatnonzero((err > 1e-6) | (det < 0))
+    if bad.size:
+        t = int(np.flatnonzero(ok)[bad[0]])
+        raise InputError(
+            f"segment_rotations: joint {j}, segment {k}, sample {t} is not a rotation matrix "
+            f"(max |RᵀR − I| = {err[bad[0]]:.3g}, det {det[bad[0]]:.3g})"
+        )
 
 
 def kinefuse_fusion(

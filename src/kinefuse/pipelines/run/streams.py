@@ -71,8 +71,9 @@ def _load(
         except FormatError as exc:  # of a pair, the file at fault names its own section
             at = "camera" if pair is not None and Path(exc.path) == Path(pair) else section
             raise ConfigError(f"{source}: [{at}] path: {exc}") from None
-        except InputError as exc:
-            raise ConfigError(f"{source}: [{section}]: {exc}") from None
+        except InputError as exc:  # an option the reader does not take: its table is at fault
+            at = f"{section}.reader" if str(exc).startswith("unknown option(s)") else section
+            raise ConfigError(f"{source}: [{at}]: {exc}") from None
     _check_no_inf(rec, path, section, source)
     msgs = []
     for w in caught:
