@@ -86,3 +86,16 @@ def test_load_names_a_wrong_path_type_and_unknown_reader_options(shared_data):
         kio.load(5)
     with pytest.raises(InputError, match=r"unknown option\(s\) \['foo'\] for the 'neura' reader"):
         kio.load(shared_data / "neura_sparse_sample", foo=1)
+
+
+def test_writers_refuse_what_their_readers_would_refuse(shared_data, tmp_path):
+    """write_trc wrote DataRate 'abc' (read_trc then refused the file); decimals=-1 failed
+    in a format string."""
+    from kinefuse.io.trc import write_trc
+
+    ref = kio.load(shared_data / "neura_sparse_sample").reference
+    with pytest.raises(InputError, match=r"DataRate='abc': expected a rate > 0"):
+        write_trc(tmp_path / "a.trc", ref, header={"DataRate": "abc"})
+    with pytest.raises(InputError, match="expected decimals as an integer from 0 to 17, got -1"):
+        write_trc(tmp_path / "b.trc", ref, decimals=-1)
+    assert not (tmp_path / "a.trc").exists() and not (tmp_path / "b.trc").exists()

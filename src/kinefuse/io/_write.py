@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from kinefuse.exceptions import InputError
+
 __all__ = ["current_umask", "fixed_point_rows", "fmt_float", "printf_rows", "write_text_safely"]
 
 
@@ -107,7 +109,15 @@ def fixed_point_rows(columns: Sequence[np.ndarray], decimals: int, sep: str = ",
     ------
     TypeError
         A column of another dtype (strings, objects): format those per value.
+    InputError
+        ``decimals`` not an integer in 0..17.
     """
+    if (
+        isinstance(decimals, bool)
+        or not isinstance(decimals, (int, np.integer))
+        or not (0 <= int(decimals) <= 17)
+    ):
+        raise InputError(f"expected decimals as an integer from 0 to 17, got {decimals!r}")
     specs, values = [], []
     for c in columns:
         a = np.asarray(c)

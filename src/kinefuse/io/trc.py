@@ -329,6 +329,20 @@ def write_trc(
     return write_text_safely(path, "\n".join(out) + "\n", force=force)
 
 
+#: TRC header values the writer takes as given and a reader parses as numbers.
+_RATE_KEYS = frozenset({"DataRate", "CameraRate", "OrigDataRate"})
+_NUMBER_KEYS = _RATE_KEYS | {"OrigDataStartFrame", "OrigNumFrames"}
+
+
+def _is_number(text: str, rate: bool) -> bool:
+    """``text`` a finite rate > 0 (``rate``) or a whole number."""
+    try:
+        x = float(text)
+    except ValueError:
+        return False
+    return bool(np.isfinite(x) and (x > 0 if rate else x == int(x)))
+
+
 def _check_write_args(stream, units: str, decimals, header, note) -> tuple[float, int, dict]:
     """(factor from m, decimals, header values as text) after checking what TRC can hold."""
     if not isinstance(stream, JointStream):
@@ -345,6 +359,11 @@ def _check_write_args(stream, units: str, decimals, header, note) -> tuple[float
     for k, v in hdr.items():
         if "\t" in v or not v:
             raise InputError(f"header value {k}={v!r} cannot be written to TRC (empty or a tab)")
+        if k in _NUMBER_KEYS and not _is_number(v, k in _RATE_KEYS):
+            what = "a rate > 0" if k in _RATE_KEYS else "a whole number"
+            raise InputError(
+                f"header value {k}={v!r}: expected {what} (read_trc refuses anything else)"
+            )
     if note is not None and ("\t" in note or "\n" in note):
         raise InputError(f"TRC note must be one line without tabs, got {note!r}")
     return factor, decimals, hdr
