@@ -99,3 +99,15 @@ def test_writers_refuse_what_their_readers_would_refuse(shared_data, tmp_path):
     with pytest.raises(InputError, match="expected decimals as an integer from 0 to 17, got -1"):
         write_trc(tmp_path / "b.trc", ref, decimals=-1)
     assert not (tmp_path / "a.trc").exists() and not (tmp_path / "b.trc").exists()
+
+
+def test_write_mot_refuses_a_file_its_reader_would_refuse(tmp_path):
+    import numpy as np
+
+    from kinefuse.io.mot import write_mot
+
+    t = np.arange(5) / 100.0
+    with pytest.raises(InputError, match="at least one column besides time"):
+        write_mot(tmp_path / "a.mot", t, {})
+    with pytest.raises(InputError, match="expected name as one non-empty line"):
+        write_mot(tmp_path / "b.mot", t, {"knee_flexion": t}, name="a\nb")

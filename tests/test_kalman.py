@@ -480,3 +480,13 @@ def test_imm_refuses_external_posterior_covariances_that_are_not_covariances():
         imm.filter(z, prev=(x, np.broadcast_to(-np.eye(6), (5, 2, 6, 6))))
     P = np.full((5, 2, 6, 6), np.nan)  # NaN: not given, the IMM's own posterior is used
     imm.filter(z, prev=(x, P))
+
+
+def test_imm_refuses_a_series_without_time_steps():
+    """(B, 0, M, n_z) failed with an IndexError in the all-missing check."""
+    from kinefuse.exceptions import InputError
+    from kinefuse.filters import IMM
+
+    m = constant_velocity(1 / 30, q=0.1, r=0.01)
+    with pytest.raises(InputError, match="at least one time step"):
+        IMM(m, m).filter(np.zeros((4, 0, 2, 3)))

@@ -451,6 +451,8 @@ class IMM:
         zz = check_measurements(z, self.n_z)
         if zz.ndim < 3 or zz.shape[-2] != M:
             raise InputError(f"expected z with shape (..., T, {M}, {self.n_z}), got {zz.shape}")
+        if zz.shape[-3] == 0:
+            raise InputError(f"expected z with at least one time step, got shape {zz.shape}")
         batch = zz.shape[:-3]
         if state is None:
             state = self.init(batch_shape=batch)

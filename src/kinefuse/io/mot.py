@@ -87,6 +87,10 @@ def write_mot(
     """
     path = Path(path)
     t, names, data = _check_series(t_s, columns)
+    if not names:
+        raise InputError("write_mot: expected at least one column besides time, got none")
+    if name is not None and (not str(name).strip() or any(ch in str(name) for ch in "\n\r")):
+        raise InputError(f"write_mot: expected name as one non-empty line, got {name!r}")
     if missing not in ("drop", "nan"):
         raise InputError(f"write_mot: expected missing in ('drop', 'nan'), got {missing!r}")
     M = np.column_stack([t, *data]) if data else t[:, None]
