@@ -124,3 +124,21 @@ def test_from_recording_on_virtual_cmu():
     np.testing.assert_array_equal(r.t_s, rec.reference.t_s)
     err = np.sqrt(np.mean(np.sum((r.position - ref) ** 2, axis=-1), axis=0))
     assert np.all(err < 0.05), err
+
+
+def test_a_chain_stream_off_its_grid_or_a_wrong_dt_is_refused():
+    """upper_limb filtered a JointStream with a 5-s hole, or a dt_s of 0.01 on a 30-Hz
+    stream, as if its samples were dt apart: silently wrong positions."""
+    from kinefuse.exceptions import InputError
+    from kinefuse.io.recording import JointStream
+    from kinefuse.pipelines import upper_limb
+
+    t = np.arange(90) / 30.0
+    p = np.zeros((90, 2, 3))
+    st = JointStream(t_s=t, position_m=p, joints=("elbow_r", "wrist_r"))
+    with pytest.raises(InputError, match="dt_s = 0.01 s differs from the chain stream's"):
+        upper_limb(st, dt_s=0.01)
+    holed = JointStream(t_s=np.r_[t[:45], t[45:] + 5.0], position_m=p, joints=st.joints)
+    with pytest.raises(InputError, match="expected the chain stream on a regular timeline"):
+        upper_limb(holed)
+    upper_limb(st)  # regular: runs

@@ -115,6 +115,13 @@ def _chain_arrays(z_elbow, z_wrist, joints):
             )
         z = np.stack([st.position(j) for j in names], axis=1)
         dt = float(np.median(np.diff(st.t_s))) if st.t_s.size > 1 else None
+        if dt is not None and np.max(np.diff(st.t_s)) > 1.5 * dt:
+            k = int(np.argmax(np.diff(st.t_s)))
+            raise InputError(
+                f"expected the chain stream on a regular timeline (the filter steps dt = {dt:.4g} "
+                f"s), got a {np.diff(st.t_s)[k]:.4g}-s step at t = {st.t_s[k]:.4g} s; resample it "
+                "(kinefuse.io.resample_positions) or mark missing samples NaN on a regular grid"
+            )
         return z, names, dt, st.t_s
     arrs = []
     for name, v in (("z_elbow", z_elbow), ("z_wrist", z_wrist)):
@@ -254,6 +261,11 @@ def upper_limb(
     if dt_s is None:
         dt_s = dt_stream if dt_stream is not None else 1.0 / 30.0
     dt = positive_finite(dt_s, "dt_s")
+    if dt_stream is not None and abs(dt - dt_stream) > 0.05 * dt_stream:
+        raise InputError(
+            f"dt_s = {dt:g} s differs from the chain stream's sample step {dt_stream:.4g} s; leave "
+            "dt_s unset (the stream's), or resample the stream"
+        )
     T, J, _ = z.shape
     if T < 1:
         raise InputError(f"expected at least one sample, got shape {z.shape}")
