@@ -14,7 +14,6 @@ import base64
 import datetime as _dt
 import html
 import math
-import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -72,9 +71,7 @@ def _box_figure(data: Mapping[tuple[str, str], np.ndarray], title: str, ylabel: 
         ax.set_title(f"{joint} (n = {', '.join(str(v.size) for v in vals)})", fontsize=10)
         ax.set_ylabel(ylabel)
         ax.grid(True, axis="y", alpha=0.3)
-    width = max(30, int(8 * fig.get_figwidth()))
-    caption = "\n".join(textwrap.wrap(common, width))
-    fig.suptitle(title + ("\n" + caption if caption else ""), fontsize=10 if caption else 11)
+    fig.suptitle(plots.with_caption(fig, title, common), fontsize=10 if common else 11)
     return fig
 
 

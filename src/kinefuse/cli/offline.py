@@ -358,12 +358,11 @@ def evaluate(
             align=align,
             body_height_m=body_height,
         )
-    except ConfigError as exc:  # a session's key named in a message: evaluate's option instead
-        raise type(exc)(_as_options(str(exc))) from None
-    except InputError as exc:
-        if "body_height_m" not in str(exc) and "[skeleton.lengths]" not in str(exc):
+    except InputError as exc:  # a session's key named in a message: evaluate's option instead
+        msg = _as_options(str(exc))
+        if msg == str(exc):
             raise
-        raise InputError(_as_options(str(exc))) from None
+        raise (ConfigError if isinstance(exc, ConfigError) else InputError)(msg) from None
     present(summary, quiet=quiet, json_file=json_file, force=force)
 
 

@@ -35,9 +35,11 @@ __all__ = [
     "method_linestyles",
     "outage_runs",
     "rmse_bar_figure",
+    "short_method_labels",
     "skeleton_figure",
     "timeline_figure",
     "trajectory_figure",
+    "with_caption",
 ]
 
 #: Paul Tol's "muted" qualitative palette (colour-blind safe), one colour per method.
@@ -235,7 +237,7 @@ def trajectory_figure(
         handlelength=3,
     )
     title = f"{joint}: position per axis and Euclidean error" if joint else "Position per axis"
-    axs[0].set_title(_with_caption(fig, title, caption), fontweight="bold")
+    axs[0].set_title(with_caption(fig, title, caption), fontweight="bold")
     return fig
 
 
@@ -337,7 +339,7 @@ def cdf_figure(
         ax.grid(alpha=0.3)
         ax.legend(loc="lower right", fontsize="small", handlelength=3)
     axs[0].set_ylabel("CDF")
-    fig.suptitle(_with_caption(fig, f"{joint}: error CDF" if joint else "Error CDF", caption))
+    fig.suptitle(with_caption(fig, f"{joint}: error CDF" if joint else "Error CDF", caption))
     return fig
 
 
@@ -483,7 +485,7 @@ def skeleton_figure(
         handles, [short[lb] for lb in labels], loc="outside lower center",
         ncols=min(len(labels), 5), frameon=False, handlelength=3,
     )  # fmt: skip
-    fig.suptitle(_with_caption(fig, "Skeleton snapshots", caption), fontweight="bold")
+    fig.suptitle(with_caption(fig, "Skeleton snapshots", caption), fontweight="bold")
     return fig
 
 
@@ -572,7 +574,7 @@ def short_method_labels(methods: Sequence[str], wrap: int = 0) -> tuple[dict[str
     return labels, ""
 
 
-def _with_caption(fig: Figure, title: str, caption: str) -> str:
+def with_caption(fig: Figure, title: str, caption: str) -> str:
     """``title`` with ``caption`` on the lines below it (none when empty), wrapped to the
     figure's width (about 8 characters of a bold 10-pt title per inch)."""
     width = max(30, int(8 * fig.get_figwidth()))
@@ -615,5 +617,5 @@ def rmse_bar_figure(result, *, colors: Mapping[str, str] | None = None) -> Figur
     axs[0].set_ylabel("mean RMSE (m)")
     axs[-1].legend(fontsize="small", ncols=2 if M > 6 else 1)
     # the shared tag once here, not in every legend entry (long tags squeezed the axes to nothing)
-    fig.suptitle(_with_caption(fig, "Mean RMSE per joint (mean of per-axis RMSEs)", common))
+    fig.suptitle(with_caption(fig, "Mean RMSE per joint (mean of per-axis RMSEs)", common))
     return fig

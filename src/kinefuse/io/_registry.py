@@ -404,9 +404,10 @@ def load(path, format: str | None = None, **options) -> Recording:
             )
         p = only or p
     fmt = format or detect_format(p)
-    _check_options(_reader(fmt), fmt, options)
+    reader = _reader(fmt)
+    _check_options(reader, fmt, options)
     try:
-        return _reader(fmt)(p, **options)
+        return reader(p, **options)
     except FormatError as exc:
         if format is None:
             raise
